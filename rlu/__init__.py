@@ -1,0 +1,31 @@
+"""rlu: RL Unplugged without TensorFlow.
+
+The public API is imported lazily so that ``import rlu`` needs numpy only:
+``load_dataset``, ``make_env``, ``make_agent``, ``evaluate``, ``list_tasks``, ``get_task``.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+__version__ = "0.1.0"
+
+_LAZY = {
+    "list_tasks": "rlu.tasks",
+    "get_task": "rlu.tasks",
+    "TaskSpec": "rlu.tasks",
+    "load_dataset": "rlu.data",
+    "open_dataset": "rlu.data",
+    "make_env": "rlu.envs",
+    "make_agent": "rlu.agents",
+    "evaluate": "rlu.evaluation",
+}
+
+__all__ = sorted(_LAZY) + ["__version__"]
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'rlu' has no attribute {name!r}")

@@ -1,0 +1,5 @@
+import sys
+
+from rlu.cli import main
+
+sys.exit(main())

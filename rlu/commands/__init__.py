@@ -1,0 +1,1 @@
+"""One module per group of ``rlu`` subcommands; each defines ``register(subparsers)``."""

@@ -1,0 +1,80 @@
+"""``rlu list`` and ``rlu info TASK|PATH``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("list", help="list every task of the suite")
+    p.add_argument("--domain", help="control_suite, locomotion, atari or rwrl")
+    p.add_argument("--selection", choices=["online", "offline"])
+    p.add_argument("--json", action="store_true", help="print a JSON array")
+    p.set_defaults(func=_list)
+
+    p = sub.add_parser("info", help="describe a task id or a dataset directory")
+    p.add_argument("target", help="a task id (control_suite/cartpole_swingup) or a dataset path")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=_info)
+
+
+def _list(args: argparse.Namespace) -> int:
+    from rlu.tasks import list_tasks
+
+    tasks = list_tasks(args.domain, args.selection)
+    if args.json:
+        print(json.dumps([t.to_json() for t in tasks], indent=1))
+        return 0
+    rows = [("id", "domain", "selection", "actions", "ep.len", "datasets")]
+    for t in tasks:
+        kind = f"{t.action_dim} discrete" if t.discrete else f"{t.action_dim} cont."
+        rows.append((t.id, t.domain, t.selection, kind, str(t.episode_length), str(len(t.datasets))))
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    for r in rows:
+        print("  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip())
+    print(f"{len(tasks)} tasks")
+    return 0
+
+
+def _info(args: argparse.Namespace) -> int:
+    if os.path.isdir(args.target):
+        from rlu.data.store import open_dataset
+
+        info = open_dataset(args.target, verify=False).info()
+    else:
+        from rlu.tasks import get_task
+
+        info = get_task(args.target).to_json()
+    if args.json:
+        print(json.dumps(info, indent=1))
+    else:
+        _print_tree(info)
+    return 0
+
+
+def _print_tree(d: object, indent: int = 0) -> None:
+    pad = "  " * indent
+    if isinstance(d, dict):
+        for k, v in d.items():
+            if isinstance(v, (dict, list)) and v and not _flat(v):
+                print(f"{pad}{k}:")
+                _print_tree(v, indent + 1)
+            else:
+                print(f"{pad}{k}: {json.dumps(v)}")
+    elif isinstance(d, list):
+        for v in d:
+            if isinstance(v, (dict, list)):
+                print(f"{pad}-")
+                _print_tree(v, indent + 1)
+            else:
+                print(f"{pad}- {v}")
+
+
+def _flat(v: object) -> bool:
+    if isinstance(v, dict):
+        return all(not isinstance(x, (dict, list)) for x in v.values()) and len(v) <= 4
+    if isinstance(v, list):
+        return all(not isinstance(x, (dict, list)) for x in v)
+    return True

@@ -1,0 +1,171 @@
+"""Specs, named batches and the Policy protocol shared by every part of rlu.
+
+Data flows one way: ``TaskSpec -> data -> Batch -> agent.update`` and
+``TaskSpec -> envs -> rollout(policy)``. This module is the only vocabulary they share, and it
+imports numpy only.
+
+Observations are either one array (Atari: uint8 (84, 84, 4), newest frame last) or a flat dict
+keyed as in the original release without its ``observation/`` prefix, nested levels joined by
+``/`` (``position``, ``walker/joints_pos``, ``walker/egocentric_camera``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any, NamedTuple, Protocol, Union
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class ArraySpec:
+    """Shape and dtype of one array (per step, without the batch or time axis)."""
+
+    shape: tuple[int, ...]
+    dtype: str
+    """numpy dtype name: 'float32', 'uint8', 'int64', ..."""
+
+    @property
+    def size(self) -> int:
+        return int(np.prod(self.shape, dtype=np.int64))
+
+    def zeros(self, *leading: int) -> np.ndarray:
+        return np.zeros((*leading, *self.shape), dtype=self.dtype)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"shape": list(self.shape), "dtype": self.dtype}
+
+    @staticmethod
+    def from_json(d: Mapping[str, Any]) -> ArraySpec:
+        if "num_values" in d:
+            return DiscreteSpec.from_json(d)
+        if "minimum" in d:
+            return BoundedSpec.from_json(d)
+        return ArraySpec(tuple(int(x) for x in d["shape"]), str(d["dtype"]))
+
+
+@dataclass(frozen=True)
+class BoundedSpec(ArraySpec):
+    """A continuous action: every element in [minimum, maximum]."""
+
+    minimum: float = -1.0
+    maximum: float = 1.0
+
+    def to_json(self) -> dict[str, Any]:
+        return {**super().to_json(), "minimum": self.minimum, "maximum": self.maximum}
+
+    @staticmethod
+    def from_json(d: Mapping[str, Any]) -> BoundedSpec:
+        return BoundedSpec(
+            tuple(int(x) for x in d["shape"]),
+            str(d["dtype"]),
+            float(d["minimum"]),
+            float(d["maximum"]),
+        )
+
+
+@dataclass(frozen=True)
+class DiscreteSpec(ArraySpec):
+    """A discrete action: a scalar integer in [0, num_values)."""
+
+    num_values: int = 2
+
+    def to_json(self) -> dict[str, Any]:
+        return {**super().to_json(), "num_values": self.num_values}
+
+    @staticmethod
+    def from_json(d: Mapping[str, Any]) -> DiscreteSpec:
+        return DiscreteSpec(tuple(int(x) for x in d["shape"]), str(d["dtype"]), int(d["num_values"]))
+
+
+ObservationSpec = Union[ArraySpec, Mapping[str, ArraySpec]]
+ActionSpec = Union[BoundedSpec, DiscreteSpec]
+Observation = Union[np.ndarray, Mapping[str, np.ndarray]]
+
+
+def observation_spec_to_json(spec: ObservationSpec) -> Any:
+    if isinstance(spec, ArraySpec):
+        return spec.to_json()
+    return {k: v.to_json() for k, v in spec.items()}
+
+
+def observation_spec_from_json(d: Any) -> ObservationSpec:
+    if "shape" in d and "dtype" in d:
+        return ArraySpec.from_json(d)
+    return {k: ArraySpec.from_json(v) for k, v in d.items()}
+
+
+def map_observation(fn, obs: Observation) -> Observation:
+    """Apply ``fn`` to every array of an observation (array or dict)."""
+    if isinstance(obs, Mapping):
+        return {k: fn(v) for k, v in obs.items()}
+    return fn(obs)
+
+
+class Transition(NamedTuple):
+    """A batch of SARSA transitions (the paper's unified API), leading axis = batch.
+
+    ``discount`` is 0 after a terminal transition and 1 otherwise (a time-limit truncation keeps 1);
+    ``reward`` follows ``action``. For n-step batches ``reward`` is the discounted n-step sum,
+    ``discount`` the product of the n per-step discounts (without the agent's gamma^n),
+    ``next_observation`` the observation n steps later and ``next_action`` the action there.
+    """
+
+    observation: Observation
+    action: np.ndarray
+    reward: np.ndarray
+    discount: np.ndarray
+    next_observation: Observation
+    next_action: np.ndarray
+
+
+class Sequence(NamedTuple):
+    """A batch of fixed-length windows, shape (batch, T, ...), padded past episode ends.
+
+    ``mask[b, t]`` is True where step t is real data. Step semantics are RLDS: ``reward[b, t]``
+    and ``discount[b, t]`` follow ``action[b, t]``; on the final step of an episode
+    (``is_last``) action, reward and discount carry no information.
+    """
+
+    observation: Observation
+    action: np.ndarray
+    reward: np.ndarray
+    discount: np.ndarray
+    is_first: np.ndarray
+    is_last: np.ndarray
+    mask: np.ndarray
+
+
+class Policy(Protocol):
+    """What evaluation sees of an agent: observations in, actions out (no training state)."""
+
+    def __call__(self, observation: Observation) -> np.ndarray: ...
+
+
+class Agent(Protocol):
+    """The contract every baseline in ``rlu.agents`` meets.
+
+    Constructed as ``Agent(observation_spec, action_spec, config, seed=...)``; ``act`` takes a
+    batched observation (leading batch axis) and returns a batch of actions.
+    """
+
+    def update(self, batch: Any) -> dict[str, float]: ...
+
+    def act(self, observation: Observation, greedy: bool = True) -> np.ndarray: ...
+
+    def state_dict(self) -> dict[str, Any]: ...
+
+    def load_state_dict(self, state: dict[str, Any]) -> None: ...
+
+
+class RluError(Exception):
+    """Base of every error rlu raises on bad input; the message names the thing and the fix."""
+
+
+class FormatError(RluError):
+    """A file is not in the format it claims to be (corrupt, truncated, wrong schema)."""
+
+
+class SpecError(RluError):
+    """Data disagrees with a spec (shape, dtype, key)."""
