@@ -20,10 +20,23 @@ from typing import Any
 from rlu.types import ActionSpec, DiscreteSpec, ObservationSpec, RluError
 
 # (name, discrete) -> module path. The module holds Config, Agent, PRESETS and GRID.
-AGENTS: dict[tuple[str, bool], str] = {}
+AGENTS: dict[tuple[str, bool], str] = {
+    # continuous (control suite, locomotion, RWRL): paper appendix A.1
+    ("bc", False): "rlu.agents.bc",
+    ("d4pg", False): "rlu.agents.d4pg",
+    ("bcq", False): "rlu.agents.bcq",
+    ("brac", False): "rlu.agents.brac",
+    ("rabm", False): "rlu.agents.rabm",
+    # discrete (Atari): paper appendix A.2
+    ("bc", True): "rlu.agents.bc_discrete",
+    ("dqn", True): "rlu.agents.dqn",
+    ("iqn", True): "rlu.agents.iqn",
+    ("bcq", True): "rlu.agents.bcq_discrete",
+    ("rem", True): "rlu.agents.rem",
+}
 
-CONTINUOUS_AGENTS: tuple[str, ...] = ()
-DISCRETE_AGENTS: tuple[str, ...] = ()
+CONTINUOUS_AGENTS: tuple[str, ...] = tuple(n for n, d in AGENTS if not d)
+DISCRETE_AGENTS: tuple[str, ...] = tuple(n for n, d in AGENTS if d)
 
 
 def agent_module(name: str, discrete: bool) -> Any:
