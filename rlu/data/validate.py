@@ -147,7 +147,7 @@ def _check_returns(ds: Dataset, report: Report) -> None:
         i = int(bad[0])
         report.add(
             f"{ds.path / 'segments/meta_episode_return.bin'}: segment {i} stores return "
-            f"{stored[i]:.6g} but its rewards sum to {sums[i]:.6g}"
+            f"{stored[i]:.6g} but its rewards ({ds.path / 'steps/reward.bin'}) sum to {sums[i]:.6g}"
         )
     report.checked.append(f"episode returns of {int(whole.sum())} whole episodes")
 
