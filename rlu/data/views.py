@@ -20,7 +20,6 @@ so a stack never mixes two episodes.
 
 from __future__ import annotations
 
-import mmap
 from collections.abc import Iterator
 
 import numpy as np
@@ -28,22 +27,10 @@ import numpy as np
 from rlu.data.store import Dataset, ZlibColumn
 from rlu.types import ArraySpec, RluError, Sequence, Transition
 
-# Raw columns above this size give their pages back after every batch so that sampling a dataset
-# larger than RAM keeps the resident memory bounded (the pages stay in the OS page cache).
-_RELEASE_BYTES = 256 << 20
-
-
 def _take(col, rows: np.ndarray) -> np.ndarray:
     if isinstance(col, ZlibColumn):
         return col.take(rows)
-    out = col[rows]
-    return np.asarray(out)
-
-
-def _release(col) -> None:
-    mm = getattr(col, "_mmap", None)
-    if isinstance(mm, mmap.mmap) and col.nbytes >= _RELEASE_BYTES:
-        mm.madvise(mmap.MADV_DONTNEED)
+    return col[rows]
 
 
 class _Index:
@@ -83,20 +70,17 @@ class DatasetView:
             k = self.schema.frame_stack
             first = self.frame_start[seg] + (steps - self.start[seg])  # frame row of step - k + 1
             rows = first[..., None] + np.arange(k)
-            col = self.ds.column("observation")
-            frames = _take(col, rows)  # (..., k, H, W)
-            _release(col)
+            frames = _take(self.ds.column("observation"), rows)  # (..., k, H, W)
+            self.ds.release_pages("observation")
             return np.moveaxis(frames, -3, -1)
         if not isinstance(self.schema.observation, ArraySpec):
             out = {}
             for key in self.schema.observation:
-                col = self.ds.column(f"observation/{key}")
-                out[key] = _take(col, steps)
-                _release(col)
+                out[key] = _take(self.ds.column(f"observation/{key}"), steps)
+                self.ds.release_pages(f"observation/{key}")
             return out
-        col = self.ds.column("observation")
-        out = _take(col, steps)
-        _release(col)
+        out = _take(self.ds.column("observation"), steps)
+        self.ds.release_pages("observation")
         return out
 
     def column(self, name: str, steps: np.ndarray) -> np.ndarray:
