@@ -19,13 +19,15 @@ encoding off so that image observations stay exact):
   the first step's older frames as the segment's frame prefix;
 - episode metadata: rlu's per-segment metadata as episode attributes ``rlu_<field>``, plus
   ``rlu_is_first`` / ``rlu_is_last`` so that release windows (segments that are not whole
-  episodes) come back as windows.
+  episodes) come back as windows; a window's last step (which starts the next, unstored,
+  transition) keeps its action, reward and discount in ``rlu_final_action`` / ``_reward`` /
+  ``_discount``.
 
 Import (``import_minari``) reads any Minari dataset (an id in ``MINARI_DATASETS_PATH`` or a
 dataset directory) with Minari's own iteration; an episode that ends with neither a termination
 nor a truncation (a recording cut short) counts as truncated. The final step of each imported
-episode holds no action or reward (rlu's step semantics), so a window's last action is not kept:
-transitions round-trip exactly, and whole episodes round-trip column for column.
+episode holds no action or reward (rlu's step semantics). rlu's segments, windows included,
+round-trip column for column.
 """
 
 from __future__ import annotations
@@ -209,6 +211,10 @@ def _episode_attrs(seg: Segment) -> dict[str, Any]:
     attrs = {f"rlu_{k}": v for k, v in seg.metadata.items()}
     attrs["rlu_is_first"] = bool(seg.is_first[0])
     attrs["rlu_is_last"] = bool(seg.is_last[-1])
+    if not seg.is_last[-1]:  # a window's last step holds real data (the next transition's start)
+        attrs["rlu_final_action"] = np.asarray(seg.action[-1])
+        attrs["rlu_final_reward"] = np.float32(seg.reward[-1])
+        attrs["rlu_final_discount"] = np.float32(seg.discount[-1])
     return attrs
 
 
@@ -316,7 +322,13 @@ def load_minari(id_or_path: str | os.PathLike, root: str | os.PathLike | None = 
         data = path / "data" if (path / "data").is_dir() else path
         if not (data / "metadata.json").exists():
             raise FormatError(f"{data}: no metadata.json; not a Minari dataset directory")
-        return minari.MinariDataset(data)
+        try:
+            return minari.MinariDataset(data)
+        except (ValueError, UnicodeDecodeError) as e:  # json.JSONDecodeError is a ValueError
+            raise FormatError(
+                f"{data / 'metadata.json'}: not a Minari metadata JSON file ({e}); rlu reads only "
+                "JSON metadata and never unpickles: re-create the dataset"
+            ) from None
     with _datasets_root(root):
         try:
             return minari.load_dataset(str(id_or_path))
@@ -373,10 +385,19 @@ def _segment(ep: Any, meta: Mapping[str, Any], schema: Schema) -> Segment:
         flags_first[0] = is_first
         flags_last = seg.is_last.copy()
         flags_last[-1] = is_last
-        discount = seg.discount.copy()
+        action, reward, discount = seg.action.copy(), seg.reward.copy(), seg.discount.copy()
         if not is_last:
-            discount[-1] = 1.0
-        seg = dataclasses.replace(seg, is_first=flags_first, is_last=flags_last, discount=discount)
+            action[-1] = np.asarray(meta.get("rlu_final_action", 0)).astype(action.dtype)
+            reward[-1] = np.float32(meta.get("rlu_final_reward", 0.0))
+            discount[-1] = np.float32(meta.get("rlu_final_discount", 1.0))
+        seg = dataclasses.replace(
+            seg,
+            is_first=flags_first,
+            is_last=flags_last,
+            action=action,
+            reward=reward,
+            discount=discount,
+        )
     return seg
 
 
