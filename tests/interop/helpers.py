@@ -24,8 +24,9 @@ def assert_same_transitions(a, b):
             np.testing.assert_array_equal(u, v, err_msg=field)
 
 
-def assert_same_segments(a, b, fields=("action", "reward", "discount", "is_first", "is_last",
-                                       "is_terminal")):
+def assert_same_segments(
+    a, b, fields=("action", "reward", "discount", "is_first", "is_last", "is_terminal")
+):
     assert len(a) == len(b)
     for i in range(len(a)):
         s, t = a.segment(i), b.segment(i)

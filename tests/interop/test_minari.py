@@ -1,4 +1,4 @@
-"""Minari in and out, with Minari's own code as the judge (load_dataset, iteration, DataCollector)."""
+"""Minari in and out, judged by Minari's own code (load_dataset, iteration, DataCollector)."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ gym = pytest.importorskip("gymnasium")
 from rlu.cli import main  # noqa: E402
 from rlu.data import DatasetWriter, Schema, Segment, open_dataset  # noqa: E402
 from rlu.data.minari import _flatten, export_minari, import_minari, spaces_for  # noqa: E402
-from rlu.data.synthetic import random_episodes, write_synthetic  # noqa: E402
+from rlu.data.synthetic import write_synthetic  # noqa: E402
 from rlu.data.views import DatasetView  # noqa: E402
 from rlu.tasks import get_task  # noqa: E402
 from rlu.types import RluError  # noqa: E402
@@ -44,7 +44,9 @@ def check_minari_iteration(ds, mds):
         n = len(seg) - 1
         if ds.schema.frame_stack > 1:
             steps = np.arange(ds.start[i], ds.start[i] + len(seg))
-            np.testing.assert_array_equal(ep.observations, view.observation(np.full_like(steps, i), steps))
+            np.testing.assert_array_equal(
+                ep.observations, view.observation(np.full_like(steps, i), steps)
+            )
         elif isinstance(seg.observation, dict):
             obs = _flatten(ep.observations)
             assert set(obs) == set(seg.observation)
@@ -60,7 +62,9 @@ def check_minari_iteration(ds, mds):
         np.testing.assert_array_equal(1.0 - ep.terminations, seg.discount[:n])
 
 
-@pytest.mark.parametrize("schema,name", [(CARTPOLE, "cartpole"), (RODENT, "rodent"), (PONG, "pong")])
+@pytest.mark.parametrize(
+    "schema,name", [(CARTPOLE, "cartpole"), (RODENT, "rodent"), (PONG, "pong")]
+)
 def test_export_loads_in_minari_and_imports_back(tmp_path, minari_root, schema, name):
     src = write_synthetic(tmp_path / "src", schema, 3, 6, seed=3, vary_length=True)
     ds = open_dataset(src)
@@ -86,9 +90,14 @@ def test_dict_spaces_are_nested_by_slash(minari_root):
 
 def _window(schema, rng, n, first, last, terminal):
     """A release-style segment: possibly mid-episode (no is_first), possibly not ending it."""
-    obs = rng.integers(0, 256, (n, 84, 84), np.uint8) if schema.frame_stack > 1 else {
-        k: rng.standard_normal((n, *s.shape)).astype(s.dtype) for k, s in schema.observation.items()
-    }
+    obs = (
+        rng.integers(0, 256, (n, 84, 84), np.uint8)
+        if schema.frame_stack > 1
+        else {
+            k: rng.standard_normal((n, *s.shape)).astype(s.dtype)
+            for k, s in schema.observation.items()
+        }
+    )
     flags_first = np.zeros(n, bool)
     flags_first[0] = first
     flags_last = np.zeros(n, bool)
@@ -100,8 +109,11 @@ def _window(schema, rng, n, first, last, terminal):
         discount[-1] = 0.0
         if terminal:
             discount[-2] = 0.0
-    action = rng.integers(0, 6, n) if schema.frame_stack > 1 else rng.uniform(
-        -1, 1, (n, *schema.action.shape)).astype(np.float32)
+    action = (
+        rng.integers(0, 6, n)
+        if schema.frame_stack > 1
+        else rng.uniform(-1, 1, (n, *schema.action.shape)).astype(np.float32)
+    )
     if last:
         action[-1] = 0
     reward = rng.random(n, dtype=np.float32)
@@ -109,7 +121,11 @@ def _window(schema, rng, n, first, last, terminal):
         reward[-1] = 0
     prefix = None
     if schema.frame_stack > 1:
-        prefix = np.zeros((3, 84, 84), np.uint8) if first else rng.integers(0, 256, (3, 84, 84), np.uint8)
+        prefix = (
+            np.zeros((3, 84, 84), np.uint8)
+            if first
+            else rng.integers(0, 256, (3, 84, 84), np.uint8)
+        )
     return Segment(obs, action, reward, discount, flags_first, flags_last, term, {}, prefix)
 
 
@@ -117,8 +133,12 @@ def _window(schema, rng, n, first, last, terminal):
 def test_release_windows_round_trip(tmp_path, minari_root, schema):
     rng = np.random.default_rng(0)
     with DatasetWriter(tmp_path / "src", schema) as w:
-        for first, last, terminal in [(True, False, False), (False, False, False),
-                                      (False, True, True), (False, True, False)]:
+        for first, last, terminal in [
+            (True, False, False),
+            (False, False, False),
+            (False, True, True),
+            (False, True, False),
+        ]:
             w.append(_window(schema, rng, 5, first, last, terminal))
     ds = open_dataset(tmp_path / "src")
     export_minari(ds, "rlu/windows-v0")
@@ -127,12 +147,15 @@ def test_release_windows_round_trip(tmp_path, minari_root, schema):
     assert_same_segments(ds, back)
 
 
-@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(
+    max_examples=12, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
 @given(seed=st.integers(0, 10_000), n=st.integers(1, 5), term=st.floats(0, 1))
 def test_minari_round_trip_property(tmp_path, minari_root, seed, n, term):
     tmp = tmp_path / uuid.uuid4().hex
-    src = write_synthetic(tmp / "src", CARTPOLE, n, 5, seed=seed, terminal_prob=term,
-                          vary_length=True)
+    src = write_synthetic(
+        tmp / "src", CARTPOLE, n, 5, seed=seed, terminal_prob=term, vary_length=True
+    )
     ds = open_dataset(src)
     path = export_minari(ds, f"rlu/prop{uuid.uuid4().hex[:8]}-v0", root=tmp / "m")
     check_minari_iteration(ds, minari.MinariDataset(path / "data"))
@@ -143,16 +166,57 @@ def test_minari_round_trip_property(tmp_path, minari_root, seed, n, term):
 def test_cli_export_and_import(tmp_path, capsys):
     src = write_synthetic(tmp_path / "src", CARTPOLE, 2, 4, seed=1)
     root = tmp_path / "m"
-    assert main(["export", str(src), "--format", "minari", "--id", "rlu/cli-v1",
-                 "--minari-dir", str(root)]) == 0
+    assert (
+        main(
+            [
+                "export",
+                str(src),
+                "--format",
+                "minari",
+                "--id",
+                "rlu/cli-v1",
+                "--minari-dir",
+                str(root),
+            ]
+        )
+        == 0
+    )
     assert (root / "rlu" / "cli-v1" / "data" / "main_data.hdf5").exists()
-    assert main(["import", "--format", "minari", "rlu/cli-v1", "--minari-dir", str(root),
-                 "--task", CARTPOLE.task_id, "--out", str(tmp_path / "back")]) == 0
+    assert (
+        main(
+            [
+                "import",
+                "--format",
+                "minari",
+                "rlu/cli-v1",
+                "--minari-dir",
+                str(root),
+                "--task",
+                CARTPOLE.task_id,
+                "--out",
+                str(tmp_path / "back"),
+            ]
+        )
+        == 0
+    )
     assert "2 episodes" in capsys.readouterr().out
     assert_same_segments(open_dataset(src), open_dataset(tmp_path / "back"))
     # the same id again is refused, and the first export is left as it was
-    assert main(["export", str(src), "--format", "minari", "--id", "rlu/cli-v1",
-                 "--minari-dir", str(root)]) == 2
+    assert (
+        main(
+            [
+                "export",
+                str(src),
+                "--format",
+                "minari",
+                "--id",
+                "rlu/cli-v1",
+                "--minari-dir",
+                str(root),
+            ]
+        )
+        == 2
+    )
     assert "already exists" in capsys.readouterr().err
     assert main(["export", str(src), "--format", "minari", "--minari-dir", str(root)]) == 2
     assert "--id" in capsys.readouterr().err
@@ -193,8 +257,11 @@ def check_against_minari(mds, ds):
         obs = _flatten(ep.observations) if isinstance(ep.observations, dict) else ep.observations
         n = len(ep.rewards)
         for t in range(n):
-            pick = (lambda x, i: {k: v[i] for k, v in x.items()}) if isinstance(obs, dict) else (
-                lambda x, i: x[i])
+            pick = (
+                (lambda x, i: {k: v[i] for k, v in x.items()})
+                if isinstance(obs, dict)
+                else (lambda x, i: x[i])
+            )
             view_rows["o"].append(pick(obs, t))
             view_rows["o2"].append(pick(obs, t + 1))
             view_rows["a"].append(ep.actions[t])
@@ -206,9 +273,12 @@ def check_against_minari(mds, ds):
     b = all_transitions(ds)
     if isinstance(b.observation, dict):
         for k in b.observation:
-            np.testing.assert_array_equal(b.observation[k], np.stack([o[k] for o in view_rows["o"]]))
-            np.testing.assert_array_equal(b.next_observation[k],
-                                          np.stack([o[k] for o in view_rows["o2"]]))
+            np.testing.assert_array_equal(
+                b.observation[k], np.stack([o[k] for o in view_rows["o"]])
+            )
+            np.testing.assert_array_equal(
+                b.next_observation[k], np.stack([o[k] for o in view_rows["o2"]])
+            )
     else:
         np.testing.assert_array_equal(b.observation, np.stack(view_rows["o"]))
         np.testing.assert_array_equal(b.next_observation, np.stack(view_rows["o2"]))
@@ -237,12 +307,15 @@ class NestedDictEnv(gym.Env):
     def __init__(self):
         box = gym.spaces.Box(-np.inf, np.inf, (3,), np.float32)
         self.observation_space = gym.spaces.Dict(
-            {"position": box, "velocity": gym.spaces.Box(-np.inf, np.inf, (2,), np.float32)})
+            {"position": box, "velocity": gym.spaces.Box(-np.inf, np.inf, (2,), np.float32)}
+        )
         self.action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
 
     def _obs(self):
-        return {"position": self.np_random.standard_normal(3).astype(np.float32),
-                "velocity": self.np_random.standard_normal(2).astype(np.float32)}
+        return {
+            "position": self.np_random.standard_normal(3).astype(np.float32),
+            "velocity": self.np_random.standard_normal(2).astype(np.float32),
+        }
 
     def reset(self, *, seed=None, options=None):
         super().reset(seed=seed)
