@@ -223,11 +223,15 @@ def export_minari(
     dataset_id: str,
     root: str | os.PathLike | None = None,
     description: str | None = None,
+    chunk_steps: int = CHUNK_STEPS,
 ) -> Path:
     """Write ``ds`` as Minari dataset ``dataset_id`` (``namespace/name-vN``); returns its directory.
 
     ``root`` is the Minari datasets directory (default: ``MINARI_DATASETS_PATH`` or
-    ``~/.minari/datasets``). On any error the half-written dataset is removed.
+    ``~/.minari/datasets``). Episodes go to Minari in chunks of about ``chunk_steps`` steps. A
+    single-step segment holds no transition and Minari cannot store it: it is left out, with a
+    warning, and its index listed in the dataset metadata (``rlu_skipped_single_step_segments``).
+    On any error the half-written dataset is removed.
     """
     minari = _require_minari()
     from minari.dataset.minari_dataset import parse_dataset_id
@@ -244,18 +248,18 @@ def export_minari(
         path = Path(get_dataset_path(dataset_id))
         if path.exists():
             raise RluError(f"{path}: Minari dataset {dataset_id} already exists; use another --id")
-        if len(ds) == 0:
-            raise RluError(f"{ds.path}: no segments to export")
         obs_space, act_space = spaces_for(ds.schema)
         prov = ds.manifest.get("provenance", {})
         desc = description or (
             f"Exported by rlu from {ds.path} (task {ds.schema.task_id}, source "
             f"{prov.get('source', 'unknown')})."
         )
+        skipped: list[int] = []
         try:
             mds = None
+            index = 0
             warnings.filterwarnings("ignore", module="minari")  # author, permalink, env_spec unset
-            for index, chunk in _chunks(ds):
+            for chunk in _chunks(ds, chunk_steps, skipped):
                 buffers = [episode_buffer(s, ds.schema) for s in chunk]
                 if mds is None:
                     mds = minari.create_dataset_from_buffers(
@@ -273,24 +277,40 @@ def export_minari(
                 mds.storage.update_episode_metadata(
                     [_episode_attrs(s) for s in chunk], range(index, index + len(chunk))
                 )
+                index += len(chunk)
+            if mds is None:
+                raise RluError(f"{ds.path}: every segment is a single step; nothing to export")
+            if skipped:
+                mds.storage.update_metadata({"rlu_skipped_single_step_segments": skipped})
         except BaseException:
             shutil.rmtree(path, ignore_errors=True)
             raise
+    if skipped:
+        warnings.warn(
+            f"{len(skipped)} single-step segment(s) of {ds.path} hold no transition and were left "
+            f"out (Minari cannot store an episode without a step): {skipped[:10]}",
+            stacklevel=2,
+        )
     return path
 
 
-def _chunks(ds: Dataset) -> Iterator[tuple[int, list[Segment]]]:
+def _chunks(ds: Dataset, chunk_steps: int, skipped: list[int]) -> Iterator[list[Segment]]:
+    """Segments with at least one transition, in chunks of about ``chunk_steps`` steps; the
+    indices of the others (single-step segments, which Minari cannot store) go to ``skipped``."""
     chunk: list[Segment] = []
-    start, steps = 0, 0
+    steps = 0
     for i in range(len(ds)):
         seg = ds.segment(i)
+        if len(seg) < 2:
+            skipped.append(i)
+            continue
         chunk.append(seg)
         steps += len(seg)
-        if steps >= CHUNK_STEPS:
-            yield start, chunk
-            start, chunk, steps = i + 1, [], 0
+        if steps >= chunk_steps:
+            yield chunk
+            chunk, steps = [], 0
     if chunk:
-        yield start, chunk
+        yield chunk
 
 
 class _datasets_root:

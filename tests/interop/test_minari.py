@@ -13,7 +13,7 @@ minari = pytest.importorskip("minari")
 gym = pytest.importorskip("gymnasium")
 
 from rlu.cli import main  # noqa: E402
-from rlu.data import DatasetWriter, Schema, Segment, open_dataset  # noqa: E402
+from rlu.data import DatasetWriter, Schema, Segment, make_episode, open_dataset  # noqa: E402
 from rlu.data.minari import _flatten, export_minari, import_minari, spaces_for  # noqa: E402
 from rlu.data.synthetic import write_synthetic  # noqa: E402
 from rlu.data.views import DatasetView  # noqa: E402
@@ -332,3 +332,45 @@ def test_datacollector_dict_env_imports_into_a_task(tmp_path, minari_root):
     assert ds.schema.task_id == CARTPOLE.task_id
     ends = check_against_minari(mds, ds)
     assert any(t for t, _ in ends) and any(tr and not t for t, tr in ends)
+
+
+def test_export_in_chunks_keeps_order_and_metadata(tmp_path):
+    src = open_dataset(write_synthetic(tmp_path / "src", CARTPOLE, 7, 4, seed=8, vary_length=True))
+    path = export_minari(src, "rlu/chunks-v0", root=tmp_path / "m", chunk_steps=5)
+    mds = minari.MinariDataset(path / "data")
+    check_minari_iteration(src, mds)
+    metas = list(mds.storage.get_episode_metadata(range(7)))
+    assert [m["rlu_episode_id"] for m in metas] == list(range(7))
+    back = open_dataset(import_minari(path, tmp_path / "back", CARTPOLE.task_id))
+    assert_same_segments(src, back)
+
+
+def test_single_step_segments_are_left_out_with_a_warning(tmp_path):
+    def ep(n, seed):
+        rng = np.random.default_rng(seed)
+        obs = {
+            k: rng.standard_normal((n + 1, *s.shape)).astype(np.float32)
+            for k, s in CARTPOLE.observation.items()
+        }
+        return make_episode(
+            obs,
+            rng.uniform(-1, 1, (n, 1)).astype(np.float32),
+            rng.random(n).astype(np.float32),
+            terminal=bool(seed % 2),
+        )
+
+    with DatasetWriter(tmp_path / "src", CARTPOLE) as w:
+        for n, seed in [(3, 0), (0, 1), (2, 2), (0, 3)]:
+            w.append(ep(n, seed))
+    src = open_dataset(tmp_path / "src")
+    with pytest.warns(UserWarning, match=r"2 single-step segment\(s\).*\[1, 3\]"):
+        path = export_minari(src, "rlu/short-v0", root=tmp_path / "m")
+    mds = minari.MinariDataset(path / "data")
+    assert mds.total_episodes == 2
+    assert mds.storage.metadata["rlu_skipped_single_step_segments"] == [1, 3]
+    back = open_dataset(import_minari(path, tmp_path / "back", CARTPOLE.task_id))
+    for i, j in [(0, 0), (1, 2)]:
+        np.testing.assert_array_equal(back.segment(i).reward, src.segment(j).reward)
+        np.testing.assert_array_equal(
+            back.segment(i).observation["velocity"], src.segment(j).observation["velocity"]
+        )
