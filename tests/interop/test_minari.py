@@ -374,3 +374,52 @@ def test_single_step_segments_are_left_out_with_a_warning(tmp_path):
         np.testing.assert_array_equal(
             back.segment(i).observation["velocity"], src.segment(j).observation["velocity"]
         )
+
+
+@settings(
+    max_examples=10, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(
+    seed=st.integers(0, 10_000),
+    eps=st.lists(
+        st.tuples(st.integers(1, 6), st.sampled_from(["term", "trunc", "both", "neither"])),
+        min_size=1,
+        max_size=5,
+    ),
+    discrete=st.booleans(),
+)
+def test_minari_import_property(tmp_path, seed, eps, discrete):
+    """Random episodes that Minari itself stores (any ending, either action type) import into
+    rlu with the transitions Minari's iteration gives."""
+    from minari.data_collector import EpisodeBuffer
+
+    tmp = tmp_path / uuid.uuid4().hex
+    rng = np.random.default_rng(seed)
+    buffers = []
+    for n, end in eps:
+        term, trunc = np.zeros(n, bool), np.zeros(n, bool)
+        term[-1] = end in ("term", "both")
+        trunc[-1] = end in ("trunc", "both")
+        act = rng.integers(0, 3, n) if discrete else rng.uniform(-2, 2, (n, 2)).astype(np.float32)
+        buffers.append(
+            EpisodeBuffer(
+                observations=rng.standard_normal((n + 1, 5)).astype(np.float32),
+                actions=act,
+                rewards=rng.standard_normal(n),
+                terminations=term,
+                truncations=trunc,
+            )
+        )
+    act_space = gym.spaces.Discrete(3) if discrete else gym.spaces.Box(-2, 2, (2,), np.float32)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("MINARI_DATASETS_PATH", str(tmp / "m"))
+        mds = minari.create_dataset_from_buffers(
+            "rand/episodes-v0",
+            buffers,
+            observation_space=gym.spaces.Box(-np.inf, np.inf, (5,)),
+            action_space=act_space,
+            algorithm_name="random",
+        )
+    ds = open_dataset(import_minari(tmp / "m" / "rand" / "episodes-v0", tmp / "ds"))
+    ends = check_against_minari(mds, ds)
+    assert ends == [(e in ("term", "both"), e in ("trunc", "both")) for _, e in eps]
