@@ -139,8 +139,9 @@ def d4rl_segments(d: Mapping[str, np.ndarray], frame_stack: int = 1) -> list[Seg
 def _segments_without_next(
     d: Mapping[str, np.ndarray], obs: Any, frame_stack: int
 ) -> list[Segment]:
-    """Files without ``next_observations`` (D4RL's AntMaze, Adroit, Kitchen): cut at terminals and
-    timeouts only, and read them as d3rlpy does: after a terminal the final observation is zeros;
+    """Files without ``next_observations`` (several of D4RL's, AntMaze among them): cut at
+    terminals and timeouts only, and read as d3rlpy does: after a terminal the final observation is
+    zeros;
     a timeout row (or a trailing run) holds the final observation, its action and reward unused."""
     actions = np.asarray(d["actions"])
     rewards = np.asarray(d["rewards"], np.float32).reshape(-1)
