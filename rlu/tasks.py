@@ -62,7 +62,8 @@ def _binding_fields(binding: str) -> dict[str, str]:
     if binding.startswith("run_"):
         return {"run": binding}
     challenge, size = binding.split("/")
-    return {"challenge": challenge, "size": size}
+    # Bindings use the paper's size names; the bucket's folders are the TFDS percentages.
+    return {"challenge": challenge, "size": RWRL_SIZES.get(size, size)}
 
 
 @dataclass(frozen=True)
