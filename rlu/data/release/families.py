@@ -70,25 +70,28 @@ class SegmentBatch:
     is_last: np.ndarray
     is_terminal: np.ndarray
     metadata: dict[str, np.ndarray] = field(default_factory=dict)
+    lengths: np.ndarray | None = None
+    """Per-segment step counts when some segments are shorter than T (trimmed windows)."""
 
     def __len__(self) -> int:
         return int(self.reward.shape[0])
 
     def __iter__(self) -> Iterator[Segment]:
         for i in range(len(self)):
+            sl = slice(0, None if self.lengths is None else int(self.lengths[i]))
             obs = (
-                {k: v[i] for k, v in self.observation.items()}
+                {k: v[i, sl] for k, v in self.observation.items()}
                 if isinstance(self.observation, Mapping)
-                else self.observation[i]
+                else self.observation[i, sl]
             )
             yield Segment(
                 observation=obs,
-                action=self.action[i],
-                reward=self.reward[i],
-                discount=self.discount[i],
-                is_first=self.is_first[i],
-                is_last=self.is_last[i],
-                is_terminal=self.is_terminal[i],
+                action=self.action[i, sl],
+                reward=self.reward[i, sl],
+                discount=self.discount[i, sl],
+                is_first=self.is_first[i, sl],
+                is_last=self.is_last[i, sl],
+                is_terminal=self.is_terminal[i, sl],
                 metadata={k: v[i].item() for k, v in self.metadata.items()},
             )
 
@@ -190,18 +193,44 @@ def _observation(raw: Raw, prefix: str = "observation/") -> dict[str, np.ndarray
 
 
 def window_segments(raw: Raw) -> SegmentBatch:
-    """Release windows (seq2 / seq40) -> segments with the loader's alignment."""
+    """Release windows (seq2 / seq40) -> segments with the loader's alignment.
+
+    A window ends at its first LAST step: anything after it is padding (Acme's sequence adder
+    pads with zero steps, whose step_type 0 would read as FIRST) and is dropped. The final step
+    is terminal when the transition into it has discount 0 (the loader's ``p_t``); the LAST
+    step's own stored discount reaches no transition.
+    """
     step_type = _need(raw, "step_type", "window")
     discount = raw["discount"].astype(np.float32)
+    n, t = discount.shape
     is_last = step_type == LAST
+    is_first = step_type == FIRST
+    # cut after the first LAST, and before a FIRST that is not step 0 (a new episode)
+    ends = np.full(n, t)
+    has_last = is_last.any(axis=1)
+    ends[has_last] = np.argmax(is_last[has_last], axis=1) + 1
+    late_first = is_first.copy()
+    late_first[:, 0] = False
+    has_late = late_first.any(axis=1)
+    ends[has_late] = np.minimum(ends[has_late], np.argmax(late_first[has_late], axis=1))
+    if (ends < 1).any():
+        raise FormatError("a window has no steps before its episode boundary")
+    steps = np.arange(t)
+    inside = steps[None, :] < ends[:, None]
+    is_last = is_last & inside
+    is_first = is_first & inside
+    prev_discount = np.ones_like(discount)
+    prev_discount[:, 1:] = discount[:, :-1]
+    is_terminal = is_last & (prev_discount == 0) & (steps[None, :] > 0)
     return SegmentBatch(
         observation=_observation(raw),
         action=raw["action"],
         reward=raw["reward"].astype(np.float32),
         discount=discount,
-        is_first=step_type == FIRST,
+        is_first=is_first,
         is_last=is_last,
-        is_terminal=is_last & (discount == 0),
+        is_terminal=is_terminal,
+        lengths=None if (ends == t).all() else ends,
     )
 
 
@@ -505,7 +534,8 @@ def dmlab_segment(raw: Raw) -> SegmentBatch:
     is_first, is_last, is_terminal = flags.copy(), flags.copy(), flags.copy()
     is_first[:, 0] = True
     is_last[:, -1] = True
-    is_terminal[:, -1] = disc[:, -1] == 0
+    if t > 1:  # terminal when the transition into the final step has discount 0
+        is_terminal[:, -1] = disc[:, -2] == 0
     meta: dict[str, np.ndarray] = {}
     if "episode_id" in raw:
         meta["episode_id"] = raw["episode_id"].astype(np.int64).view(np.uint64)
