@@ -13,7 +13,14 @@ import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from rlu.tasks import BASE_URL, RWRL_DATASETS, ReleaseDataset, TaskSpec, get_task
+from rlu.tasks import (
+    BASE_URL,
+    RWRL_DATASETS,
+    ReleaseDataset,
+    TaskSpec,
+    _binding_fields,
+    get_task,
+)
 from rlu.types import RluError
 
 SHARD_RE = re.compile(r"-(\d{5})-of-(\d{5})$")
@@ -130,19 +137,43 @@ def catalog() -> list[dict]:
     return rows
 
 
-def find_shards(root: str | os.PathLike, selection: ReleaseSelection) -> list[str]:
-    """The selection's shard files under a bucket-shaped ``root`` (all must exist)."""
+def find_shards(
+    root: str | os.PathLike, selection: ReleaseSelection, shards: str | Sequence[int] | None = None
+) -> list[str]:
+    """The dataset's shard files under a bucket-shaped ``root``, in shard order.
+
+    Files are found by name, ``<prefix>-%05d-of-%05d``, so a copy renumbered as the README does
+    (``...-00000-of-00001``) is found too; all N shards of the count in the names must be there.
+    """
     root = os.fspath(root)
-    paths = [os.path.join(root, *o.split("/")) for o in selection.objects]
-    missing = [p for p in paths if not os.path.isfile(p)]
-    if missing:
-        more = f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
+    prefix = selection.release.path.format(**_binding_fields(selection.binding))
+    folder = os.path.join(root, *prefix.split("/")[:-1])
+    base = prefix.split("/")[-1]
+    pat = re.compile(re.escape(base) + r"-(\d{5})-of-(\d{5})$")
+    found: dict[int, dict[int, str]] = {}
+    names = os.listdir(folder) if os.path.isdir(folder) else []
+    for name in names:
+        m = pat.match(name)
+        if m:
+            found.setdefault(int(m.group(2)), {})[int(m.group(1))] = os.path.join(folder, name)
+    hint = (
+        f"Fetch them with `rlu download {selection.task.id} --family {selection.family}` "
+        f"or pass the files themselves"
+    )
+    if not found:
+        raise RluError(f"no shards {base}-NNNNN-of-NNNNN of {selection.task.id} in {folder}. {hint}")
+    if len(found) > 1:
+        raise RluError(f"{folder} mixes shard counts {sorted(found)} for {base}; keep one set")
+    (n, by_index), = found.items()
+    missing = [i for i in range(n) if i not in by_index]
+    picked = parse_shards(shards, n)
+    gone = [i for i in picked if i not in by_index]
+    if gone:
         raise RluError(
-            f"{len(missing)} of {len(paths)} shards of {selection.task.id} "
-            f"({selection.family}) are not under {root}: first missing {missing[0]}{more}. "
-            f"Fetch them with `rlu download {selection.task.id} --family {selection.family}`"
+            f"{len(missing)} of {n} shards of {base} are missing in {folder} (first: "
+            f"{base}-{missing[0]:05d}-of-{n:05d}). {hint}"
         )
-    return paths
+    return [by_index[i] for i in picked]
 
 
 def bsuite_objects(env: str, noise: float, k: int = 0, split: str = "full") -> list[str]:
