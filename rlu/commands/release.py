@@ -32,20 +32,30 @@ def register(sub: argparse._SubParsersAction) -> None:
         "ROOT) into a new dataset at --out. A failed conversion leaves nothing at --out.",
     )
     p.add_argument("files", nargs="*", metavar="FILE", help="shard files")
-    p.add_argument("--family", required=True, help="atari, atari_episodes_ordered, "
-                   "dm_control_suite, dm_control_suite_episodes, dm_locomotion, "
-                   "dm_locomotion_episodes, rwrl")  # fmt: skip
+    p.add_argument(
+        "--family",
+        required=True,
+        help="atari, atari_episodes_ordered, "
+        "dm_control_suite, dm_control_suite_episodes, dm_locomotion, "
+        "dm_locomotion_episodes, rwrl",
+    )
     p.add_argument("--task", required=True, help="task id, e.g. control_suite/cartpole_swingup")
     p.add_argument("--out", required=True, help="new dataset directory")
     p.add_argument("--src", help="bucket-shaped root holding the shards (instead of FILE...)")
     p.add_argument("--shards", help="with --src: shard indices, e.g. 0-3,7")
     _dataset_args(p)
     p.add_argument("--workers", type=int, help="processes (default: one per core)")
-    p.add_argument("--skip-corrupt", action="store_true",
-                   help="drop damaged records and report how many, instead of failing")  # fmt: skip
+    p.add_argument(
+        "--skip-corrupt",
+        action="store_true",
+        help="drop damaged records and report how many, instead of failing",
+    )
     p.add_argument("--no-verify", action="store_true", help="skip the record CRC checks")
-    p.add_argument("--image-encoding", choices=["raw", "zlib"],
-                   help="store images raw or zlib-compressed (default: zlib for Atari)")  # fmt: skip
+    p.add_argument(
+        "--image-encoding",
+        choices=["raw", "zlib"],
+        help="store images raw or zlib-compressed (default: zlib for Atari)",
+    )
     p.add_argument("--overwrite", action="store_true")
     p.set_defaults(func=_convert)
 
@@ -59,13 +69,15 @@ def _download(args: argparse.Namespace) -> int:
         for u in sel.urls(args.base_url):
             print(u)
         return 0
-    d = Downloader(cache_dir=args.cache_dir, base_url=args.base_url, workers=args.workers,
-                   retries=args.retries)  # fmt: skip
+    d = Downloader(
+        cache_dir=args.cache_dir, base_url=args.base_url, workers=args.workers, retries=args.retries
+    )
     got = d.fetch(sel.objects)
     reused = sum(f.reused for f in got)
     total = sum(f.size for f in got)
+    what = f"{sel.family} {sel.binding}".strip()
     print(
-        f"{len(got)} shards of {sel.task.id} ({sel.family}{' ' + sel.binding if sel.binding else ''})"
+        f"{len(got)} shards of {sel.task.id} ({what})"
         f" in {d.root}: {total / 1e6:,.1f} MB, {len(got) - reused} downloaded, {reused} reused"
     )
     return 0

@@ -50,16 +50,35 @@ def _shard(tmp_path, family, recs, name="train-00000-of-00001"):
 
 
 CASES = [
-    ("dm_control_suite", "control_suite/walker_walk", lambda: _windows("control_suite/walker_walk")),
-    ("dm_locomotion", "locomotion/humanoid_corridor",
-     lambda: _windows("locomotion/humanoid_corridor", n=6)),
-    ("dm_locomotion", "locomotion/humanoid_walls",
-     lambda: _windows("locomotion/humanoid_walls", n=3, t=40)),
-    ("atari", "atari/Pong", lambda: [atari_record(np.random.default_rng(i), float(i % 4 > 0))
-                                     for i in range(6)]),
-    ("atari_episodes_ordered", "atari/Pong",
-     lambda: [atari_episode(np.random.default_rng(1), 7), atari_episode(np.random.default_rng(2), 5, 1.0)]),
-]  # fmt: skip
+    (
+        "dm_control_suite",
+        "control_suite/walker_walk",
+        lambda: _windows("control_suite/walker_walk"),
+    ),
+    (
+        "dm_locomotion",
+        "locomotion/humanoid_corridor",
+        lambda: _windows("locomotion/humanoid_corridor", n=6),
+    ),
+    (
+        "dm_locomotion",
+        "locomotion/humanoid_walls",
+        lambda: _windows("locomotion/humanoid_walls", n=3, t=40),
+    ),
+    (
+        "atari",
+        "atari/Pong",
+        lambda: [atari_record(np.random.default_rng(i), float(i % 4 > 0)) for i in range(6)],
+    ),
+    (
+        "atari_episodes_ordered",
+        "atari/Pong",
+        lambda: [
+            atari_episode(np.random.default_rng(1), 7),
+            atari_episode(np.random.default_rng(2), 5, 1.0),
+        ],
+    ),
+]
 
 
 @pytest.mark.parametrize("family,task,make", CASES)
@@ -129,23 +148,39 @@ def test_batched_append_writes_the_same_bytes(tmp_path):
 
 def test_parallel_conversion_is_deterministic(tmp_path):
     paths = [
-        _shard(tmp_path, "dm_control_suite", _windows("control_suite/walker_walk", 40, seed=i),
-               f"train-{i:05d}-of-00003")
+        _shard(
+            tmp_path,
+            "dm_control_suite",
+            _windows("control_suite/walker_walk", 40, seed=i),
+            f"train-{i:05d}-of-00003",
+        )
         for i in range(3)
-    ]  # fmt: skip
+    ]
     for w in (1, 2, 3):
-        convert(paths, "dm_control_suite", "control_suite/walker_walk", tmp_path / f"o{w}", workers=w)
-    files = [json.loads((tmp_path / f"o{w}" / "manifest.json").read_text())["files"] for w in (1, 2, 3)]
+        convert(
+            paths, "dm_control_suite", "control_suite/walker_walk", tmp_path / f"o{w}", workers=w
+        )
+    files = [
+        json.loads((tmp_path / f"o{w}" / "manifest.json").read_text())["files"] for w in (1, 2, 3)
+    ]
     assert files[0] == files[1] == files[2]
     assert len(open_dataset(tmp_path / "o2")) == 120
 
 
 @pytest.mark.parametrize("workers", [1, 2])
 def test_failed_conversion_leaves_nothing(tmp_path, workers):
-    good = _shard(tmp_path, "dm_control_suite", _windows("control_suite/walker_walk", 40),
-                  "train-00000-of-00002")  # fmt: skip
-    bad = _shard(tmp_path, "dm_control_suite", _windows("control_suite/walker_walk", 40, seed=1),
-                 "train-00001-of-00002")  # fmt: skip
+    good = _shard(
+        tmp_path,
+        "dm_control_suite",
+        _windows("control_suite/walker_walk", 40),
+        "train-00000-of-00002",
+    )
+    bad = _shard(
+        tmp_path,
+        "dm_control_suite",
+        _windows("control_suite/walker_walk", 40, seed=1),
+        "train-00001-of-00002",
+    )
     raw = bytearray(gzip.decompress(bad.read_bytes()))
     raw[len(raw) // 2] ^= 0xFF
     bad.write_bytes(gzip.compress(bytes(raw)))
@@ -155,11 +190,34 @@ def test_failed_conversion_leaves_nothing(tmp_path, workers):
     assert not out.exists()
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
     # the CLI: non-zero exit, nothing at --out; --skip-corrupt converts the rest and reports
-    code = main(["convert", "--family", "dm_control_suite", "--task", "control_suite/walker_walk",
-                 "--out", str(out), str(good), str(bad)])  # fmt: skip
+    code = main(
+        [
+            "convert",
+            "--family",
+            "dm_control_suite",
+            "--task",
+            "control_suite/walker_walk",
+            "--out",
+            str(out),
+            str(good),
+            str(bad),
+        ]
+    )
     assert code != 0 and not out.exists()
-    code = main(["convert", "--family", "dm_control_suite", "--task", "control_suite/walker_walk",
-                 "--out", str(out), "--skip-corrupt", str(good), str(bad)])  # fmt: skip
+    code = main(
+        [
+            "convert",
+            "--family",
+            "dm_control_suite",
+            "--task",
+            "control_suite/walker_walk",
+            "--out",
+            str(out),
+            "--skip-corrupt",
+            str(good),
+            str(bad),
+        ]
+    )
     assert code == 0 and len(open_dataset(out)) == 79
 
 
@@ -179,18 +237,56 @@ def test_cli_convert_src_root(tmp_path, capsys):
     d = root / "dm_control_suite" / "walker_walk"
     d.mkdir(parents=True)
     for i in range(2):
-        Fm.write_shard(d / f"train-{i:05d}-of-00002", "dm_control_suite",
-                       _windows("control_suite/walker_walk", 10, seed=i))  # fmt: skip
+        Fm.write_shard(
+            d / f"train-{i:05d}-of-00002",
+            "dm_control_suite",
+            _windows("control_suite/walker_walk", 10, seed=i),
+        )
     out = tmp_path / "ds"
-    code = main(["convert", "--family", "dm_control_suite", "--task", "control_suite/walker_walk",
-                 "--out", str(out), "--src", str(root)])  # fmt: skip
+    code = main(
+        [
+            "convert",
+            "--family",
+            "dm_control_suite",
+            "--task",
+            "control_suite/walker_walk",
+            "--out",
+            str(out),
+            "--src",
+            str(root),
+        ]
+    )
     assert code == 0 and len(open_dataset(out)) == 20
     assert "20 segments" in capsys.readouterr().out
     shutil.rmtree(out)
-    code = main(["convert", "--family", "dm_control_suite", "--task", "control_suite/walker_walk",
-                 "--out", str(out), "--src", str(root), "--shards", "1"])  # fmt: skip
+    code = main(
+        [
+            "convert",
+            "--family",
+            "dm_control_suite",
+            "--task",
+            "control_suite/walker_walk",
+            "--out",
+            str(out),
+            "--src",
+            str(root),
+            "--shards",
+            "1",
+        ]
+    )
     assert code == 0 and len(open_dataset(out)) == 10
     (d / "train-00001-of-00002").unlink()
-    code = main(["convert", "--family", "dm_control_suite", "--task", "control_suite/walker_walk",
-                 "--out", str(tmp_path / "y"), "--src", str(root)])  # fmt: skip
+    code = main(
+        [
+            "convert",
+            "--family",
+            "dm_control_suite",
+            "--task",
+            "control_suite/walker_walk",
+            "--out",
+            str(tmp_path / "y"),
+            "--src",
+            str(root),
+        ]
+    )
     assert code == 2 and "missing" in capsys.readouterr().err

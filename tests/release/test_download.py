@@ -13,7 +13,7 @@ import google_crc32c
 import numpy as np
 import pytest
 
-from rlu.data.release.download import DownloadError, Downloader
+from rlu.data.release.download import Downloader, DownloadError
 
 
 class _Handler(http.server.BaseHTTPRequestHandler):

@@ -142,7 +142,9 @@ def test_round_trip(tmp_path, family):
     Fm.write_shard(path, family, recs)
     assert is_gzip(path) == (family != "rwrl")  # RWRL files are plain TFRecords
     raws = list(Fm.iter_raw(path, family))
-    got = [{k: v[i] for k, v in b.items()} for b in raws for i in range(len(next(iter(b.values()))))]
+    got = [
+        {k: v[i] for k, v in b.items()} for b in raws for i in range(len(next(iter(b.values()))))
+    ]
     assert len(got) == len(recs)
     for g, r in zip(got, recs, strict=True):
         exp = _expected_raw(family, r)
@@ -214,7 +216,9 @@ def test_rule_atari_transitions(tmp_path):
     recs = [atari_record(rng, 1.0, 2**63), atari_record(rng, 0.0, 7)]
     segs = _one("atari", tmp_path, recs)
     for s, r in zip(segs, recs, strict=True):
-        assert np.array_equal(s.observation[0], r["o_t"]) and np.array_equal(s.observation[1], r["o_tp1"])
+        assert np.array_equal(s.observation[0], r["o_t"]) and np.array_equal(
+            s.observation[1], r["o_tp1"]
+        )
         assert s.action.tolist() == [r["a_t"], r["a_tp1"]]
         assert s.reward[0] == r["r_t"] and s.discount[0] == r["d_t"]
         assert not s.is_first.any()

@@ -53,9 +53,11 @@ def object_url(obj: str, base_url: str | None = None) -> str:
 
 
 def dataset_binding(
-    task: TaskSpec, run: str | int | None = None, challenge: str | None = None,
+    task: TaskSpec,
+    run: str | int | None = None,
+    challenge: str | None = None,
     size: str | None = None,
-) -> str:  # fmt: skip
+) -> str:
     """The key of ``ReleaseDataset.shards`` for a task's dataset (``run_1``, ``none/large``, '')."""
     if task.domain == "atari":
         r = run if run is not None else 1
@@ -161,10 +163,12 @@ def find_shards(
         f"or pass the files themselves"
     )
     if not found:
-        raise RluError(f"no shards {base}-NNNNN-of-NNNNN of {selection.task.id} in {folder}. {hint}")
+        raise RluError(
+            f"no shards {base}-NNNNN-of-NNNNN of {selection.task.id} in {folder}. {hint}"
+        )
     if len(found) > 1:
         raise RluError(f"{folder} mixes shard counts {sorted(found)} for {base}; keep one set")
-    (n, by_index), = found.items()
+    ((n, by_index),) = found.items()
     missing = [i for i in range(n) if i not in by_index]
     picked = parse_shards(shards, n)
     gone = [i for i in picked if i not in by_index]
@@ -185,4 +189,6 @@ def bsuite_objects(env: str, noise: float, k: int = 0, split: str = "full") -> l
 
 def dmlab_objects(level: str, run: str) -> list[str]:
     """DMLab shards: ``dmlab/{level}/{run}/tfrecord-{i}-of-00500``."""
-    return [f"dmlab/{level}/{run}/tfrecord-{i:05d}-of-{DMLAB_SHARDS:05d}" for i in range(DMLAB_SHARDS)]
+    return [
+        f"dmlab/{level}/{run}/tfrecord-{i:05d}-of-{DMLAB_SHARDS:05d}" for i in range(DMLAB_SHARDS)
+    ]

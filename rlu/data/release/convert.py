@@ -44,8 +44,9 @@ class ConvertReport:
     seconds: float = 0.0
 
 
-def schema_for(task: TaskSpec, family: str, challenge: str | None = None,
-               image_encoding: str | None = None) -> Schema:  # fmt: skip
+def schema_for(
+    task: TaskSpec, family: str, challenge: str | None = None, image_encoding: str | None = None
+) -> Schema:
     """The store schema of a task's release family (Atari transitions keep their 4-frame stacks)."""
     if image_encoding is None:
         image_encoding = "zlib" if family.startswith("atari") else "raw"
@@ -77,8 +78,17 @@ def _fit(batch: SegmentBatch, schema: Schema, where: str) -> SegmentBatch:
             raise SpecError(f"{where}: the file holds a dict observation, the task one array")
         obs = _cast(obs, spec, f"{where}: observation")
     action = _cast(batch.action, schema.action, f"{where}: action")
-    return SegmentBatch(obs, action, batch.reward, batch.discount, batch.is_first, batch.is_last,
-                        batch.is_terminal, batch.metadata, batch.lengths)  # fmt: skip
+    return SegmentBatch(
+        obs,
+        action,
+        batch.reward,
+        batch.discount,
+        batch.is_first,
+        batch.is_last,
+        batch.is_terminal,
+        batch.metadata,
+        batch.lengths,
+    )
 
 
 def _cast(v: np.ndarray, spec: ArraySpec, what: str) -> np.ndarray:
@@ -120,10 +130,13 @@ def append_batch(writer: DatasetWriter, batch: SegmentBatch) -> None:
     else:
         cols["observation"] = flat(batch.observation)
     cols.update(
-        action=flat(batch.action), reward=flat(batch.reward), discount=flat(batch.discount),
-        is_first=flat(batch.is_first), is_last=flat(batch.is_last),
+        action=flat(batch.action),
+        reward=flat(batch.reward),
+        discount=flat(batch.discount),
+        is_first=flat(batch.is_first),
+        is_last=flat(batch.is_last),
         is_terminal=flat(batch.is_terminal),
-    )  # fmt: skip
+    )
     unknown = set(batch.metadata) - set(METADATA_FIELDS)
     if unknown:
         raise SpecError(f"segment metadata has unknown key(s) {sorted(unknown)}")
@@ -151,8 +164,16 @@ def _shard_batches(path: str, family: str, verify: bool, on_error: str):
     reader = RecordReader(path, verify=verify, on_error=on_error)
     for raw in iter_raw(path, family, reader=reader, on_error=on_error):
         yield fam.segments(raw), None
-    yield None, {"path": path, "records": reader.stats.records, "skipped": reader.stats.skipped,
-                 "errors": reader.stats.errors[:20], "bytes": os.path.getsize(path)}  # fmt: skip
+    yield (
+        None,
+        {
+            "path": path,
+            "records": reader.stats.records,
+            "skipped": reader.stats.skipped,
+            "errors": reader.stats.errors[:20],
+            "bytes": os.path.getsize(path),
+        },
+    )
 
 
 def _worker(path: str, family: str, verify: bool, on_error: str, q: Any) -> None:
@@ -168,8 +189,9 @@ def _worker(path: str, family: str, verify: bool, on_error: str, q: Any) -> None
 class _Pool:
     """Up to ``workers`` shard readers running ahead of the parent, each with its own queue."""
 
-    def __init__(self, files: Sequence[str], family: str, verify: bool, on_error: str,
-                 workers: int):  # fmt: skip
+    def __init__(
+        self, files: Sequence[str], family: str, verify: bool, on_error: str, workers: int
+    ):
         self.ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
         self.files, self.family, self.verify, self.on_error = files, family, verify, on_error
         self.workers = workers
@@ -292,10 +314,14 @@ def convert(
                     )
                     sys.stderr.flush()
             writer.provenance["files"] = [
-                {"name": os.path.basename(f["path"]), "bytes": f["bytes"],
-                 "records": f["records"], "skipped": f["skipped"]}
+                {
+                    "name": os.path.basename(f["path"]),
+                    "bytes": f["bytes"],
+                    "records": f["records"],
+                    "skipped": f["skipped"],
+                }
                 for f in report.files
-            ]  # fmt: skip
+            ]
             writer.provenance["skipped_records"] = report.skipped
             report.segments = len(writer._seg["start"])
             report.steps = writer.num_steps

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import base64
 import hashlib
+import http.client
 import json
 import os
 import sys
@@ -247,7 +248,7 @@ class Downloader:
                 self.sleep(self.backoff * (2 ** (attempt - 1)))
             try:
                 ok, why = self._attempt(url, part, meta_path, bar)
-            except (urllib.error.URLError, OSError, ValueError) as e:
+            except (urllib.error.URLError, http.client.HTTPException, OSError, ValueError) as e:
                 ok, why = False, f"{type(e).__name__}: {e}"
             if ok:
                 digest = sha256_file(part)
@@ -286,7 +287,9 @@ class Downloader:
                 _remove(part, meta_path)
                 return False, "HTTP 416 on resume; starting over"
             if e.code == 404:
-                raise DownloadError(f"{url}: not found (HTTP 404); check the task and shards")
+                raise DownloadError(
+                    f"{url}: not found (HTTP 404); check the task and shards"
+                ) from None
             return False, f"HTTP {e.code} {e.reason}"
         with resp:
             status = resp.status

@@ -23,13 +23,13 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, Union
+from typing import Any
 
 import numpy as np
 
 from rlu.types import FormatError
 
-Feature = Union[np.ndarray, list]
+Feature = np.ndarray | list
 """float32 array, int64 array, or list of bytes."""
 
 BYTES, FLOAT, INT64 = 1, 2, 3
@@ -314,8 +314,12 @@ class BytesColumn:
     concatenated entries as one (N, total) uint8 array, built without Python per record.
     """
 
-    def __init__(self, values: list[list[bytes]] | None = None, flat: np.ndarray | None = None,
-                 entry_lengths: Sequence[int] | None = None):  # fmt: skip
+    def __init__(
+        self,
+        values: list[list[bytes]] | None = None,
+        flat: np.ndarray | None = None,
+        entry_lengths: Sequence[int] | None = None,
+    ):
         self._values = values
         self.flat = flat
         self.entry_lengths = tuple(entry_lengths) if entry_lengths is not None else None
@@ -346,7 +350,7 @@ class BytesColumn:
         return np.frombuffer(b"".join(joined), np.uint8).reshape(len(joined), total)
 
 
-Column = Union[np.ndarray, BytesColumn]
+Column = np.ndarray | BytesColumn
 """Numeric: (N, count) array when counts agree, else an object array of 1D arrays."""
 
 
@@ -513,7 +517,9 @@ def _ld(field: int, payload: bytes) -> bytes:
 def _kind_of(value: Any) -> tuple[int, Any]:
     if isinstance(value, (bytes, bytearray, str)):
         value = [value]
-    if isinstance(value, (list, tuple)) and (not value or isinstance(value[0], (bytes, bytearray, str))):
+    if isinstance(value, (list, tuple)) and (
+        not value or isinstance(value[0], (bytes, bytearray, str))
+    ):
         if value and isinstance(value[0], (bytes, bytearray, str)):
             return BYTES, [v.encode() if isinstance(v, str) else bytes(v) for v in value]
         return FLOAT, np.zeros(0, np.float32)

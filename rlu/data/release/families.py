@@ -558,7 +558,9 @@ def dmlab_segment(raw: Raw) -> SegmentBatch:
 
 
 def encode_dmlab(rec: Mapping[str, np.ndarray]) -> bytes:
-    feats: dict[str, Any] = {"observations_pixels": [encode_png(f) for f in rec["observations_pixels"]]}
+    feats: dict[str, Any] = {
+        "observations_pixels": [encode_png(f) for f in rec["observations_pixels"]]
+    }
     feats["actions"] = np.asarray(rec["actions"], np.int64)
     for k in ("rewards", "discounts", "discounted_rewards", "observations_reward"):
         feats[k] = np.asarray(rec[k], np.float32)

@@ -82,6 +82,9 @@ def encode_png(img: np.ndarray, level: int = 6) -> bytes:
         raise ValueError(f"cannot write a PNG of shape {img.shape}; use (H, W) or (H, W, 3)")
     raw = np.concatenate([np.zeros((h, 1), np.uint8), rows], axis=1).tobytes()
     ihdr = struct.pack(">IIBBBBB", w, h, 8, color, 0, 0, 0)
-    return PNG_MAGIC + _chunk(b"IHDR", ihdr) + _chunk(b"IDAT", zlib.compress(raw, level)) + (
-        _chunk(b"IEND", b"")
+    return (
+        PNG_MAGIC
+        + _chunk(b"IHDR", ihdr)
+        + _chunk(b"IDAT", zlib.compress(raw, level))
+        + (_chunk(b"IEND", b""))
     )
