@@ -204,3 +204,16 @@ def test_header_helpers():
     rec = F.frame(b"hello")
     (n,) = struct.unpack("<Q", rec[:8])
     assert n == 5 and struct.unpack("<I", rec[8:12])[0] == F.masked_crc32c(rec[:8])
+
+
+def test_crc_mismatch_inside_a_run_of_equal_lengths(tmp_path):
+    payloads = [bytes([i]) * 40 for i in range(60)]  # the vectorised path frames these
+    data = bytearray(b"".join(F.frame(p) for p in payloads))
+    off = 33 * (40 + 16)
+    data[off + 12 + 5] ^= 0x10
+    path = tmp_path / "run"
+    path.write_bytes(gzip.compress(bytes(data)))
+    with pytest.raises(F.RecordError, match=f"payload CRC mismatch at byte offset {off};"):
+        list(F.read_records(path))
+    r = F.RecordReader(path, on_error="skip")
+    assert list(r) == payloads[:33] + payloads[34:] and r.stats.skipped == 1

@@ -416,11 +416,10 @@ def decode_batch(payloads: Sequence[bytes], template_min: int = 8) -> dict[str, 
     n = len(payloads)
     if n == 0:
         return {}
-    payloads = [p if isinstance(p, bytes) else bytes(p) for p in payloads]
-    length0 = len(payloads[0])
-    if n >= template_min and all(len(p) == length0 for p in payloads):
-        layout = _layout(payloads[0])
-        if _layout_is_simple(layout, payloads[0]):
+    if n >= template_min and len(set(map(len, payloads))) == 1:
+        first = bytes(payloads[0])
+        layout = _layout(first)
+        if _layout_is_simple(layout, first):
             cols, ok = _template_decode(payloads, layout)
             if ok.all():
                 return cols
