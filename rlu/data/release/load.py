@@ -7,6 +7,7 @@ the dataset is missing).
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import os
 from collections.abc import Sequence
@@ -46,6 +47,16 @@ def load_release_dataset(
     dest = release_dataset_path(sel, cache_dir, all_shards=shards is None)
     if os.path.isfile(os.path.join(dest, "manifest.json")):
         return open_dataset(dest)
+    os.makedirs(os.path.dirname(dest), exist_ok=True)
+    with open(dest + ".lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # two processes loading one dataset: one converts
+        if os.path.isfile(os.path.join(dest, "manifest.json")):
+            return open_dataset(dest)
+        _fetch_and_convert(sel, dest, cache_dir, base_url, workers, progress)
+    return open_dataset(dest)
+
+
+def _fetch_and_convert(sel, dest, cache_dir, base_url, workers, progress) -> None:
     fetched = download(sel.objects, cache_dir=cache_dir, base_url=base_url, progress=progress)
     convert(
         [f.path for f in fetched],
@@ -61,4 +72,3 @@ def load_release_dataset(
             "sha256": {f.object: f.sha256 for f in fetched},
         },
     )
-    return open_dataset(dest)

@@ -1,10 +1,12 @@
 """PNG frames of the release: 84x84 grey (Atari) and 72x96x3 BGR (DMLab).
 
 Decoding uses Pillow (the ``release`` extra), imported on first use. The release's Atari PNGs use
-the Paeth and Average filters, whose per-pixel recurrences a numpy decoder cannot vectorise;
-Pillow's C decoder is within about 2.5x of zlib's inflate alone on these frames (76 us vs
-29 us per noisy 84x84 frame on the dev machine; measured in ``bench/release_reader.py --png``),
-so a hand-written decoder would not pay for itself.
+the Paeth filter (the TF-written fixture holds Sub, Up and Paeth rows), whose per-pixel recurrence
+a numpy decoder cannot vectorise, so the decoder is Pillow's C one, called directly for 8-bit grey
+and RGB frames (``_fast_decode``) rather than through ``Image.open``, whose Python-side plugin and
+chunk handling dominates on 84x84 frames: 41 us per frame against 121 us for ``Image.open``, with
+zlib's inflate alone at 4.4 us (``bench/release_reader.py --png``, dev machine under load).
+Anything else (palette, 16-bit, interlaced) goes through ``Image.open``.
 
 Encoding (for writing test shards and round trips) is a few lines of zlib with filter 0: no
 dependency, and any PNG reader accepts it.
