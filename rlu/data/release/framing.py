@@ -354,7 +354,9 @@ class RecordReader:
                         if bad.size:
                             keep = np.ones(run, bool)
                             keep[bad] = False
-                            payloads = [q for q, k in zip(payloads, keep.tolist(), strict=True) if k]
+                            payloads = [
+                                q for q, k in zip(payloads, keep.tolist(), strict=True) if k
+                            ]
                     out.extend(payloads)
                     pos += run * stride
                     continue
