@@ -158,7 +158,8 @@ def sweep(
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     cfg_path = out / "sweep.json"
-    if cfg_path.exists() and json.loads(cfg_path.read_text()) != config.to_json():
+    wanted = json.loads(json.dumps(config.to_json()))
+    if cfg_path.exists() and json.loads(cfg_path.read_text()) != wanted:
         raise RluError(
             f"{cfg_path} was written by a different sweep configuration; use the same arguments "
             "to continue it or choose a new --out"

@@ -1,0 +1,81 @@
+"""Sweeps: 2 tasks x 2 agents x 2 configurations x 2 seeds on the local pool and on a local Ray
+instance give the same results table; completed runs are skipped on a second run."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from rlu.sweep import SweepConfig, expand, load_results, results_table, sweep
+from rlu.types import RluError
+
+TASKS = ("test/pendulum", "test/pendulum_heavy")
+AGENTS = ("tests.train.fake_agent", "tests.train.fake_agent_mlp")
+
+
+def _config(datasets) -> SweepConfig:
+    return SweepConfig(
+        tasks=TASKS,
+        agents=AGENTS,
+        datasets=datasets,
+        seeds=(0, 1),
+        steps=30,
+        eval_episodes=2,
+        eval_envs=2,
+        eval_max_steps=20,
+        log_every=10,
+        checkpoint_every=30,
+        env="tests.train.pendulum:make_env",
+    )
+
+
+def test_expand_uses_each_agents_grid(pendulum_datasets, tmp_path):
+    runs = expand(_config(pendulum_datasets), tmp_path)
+    assert len(runs) == 2 * 2 * 2 * 2
+    assert {r.config for r in runs} == {"learning_rate=0.01", "learning_rate=0.003"}
+    assert len({r.run_dir for r in runs}) == 16
+    with pytest.raises(RluError, match="--dataset"):
+        expand(SweepConfig(tasks=("x",), agents=AGENTS, datasets={}), tmp_path)
+
+
+@pytest.fixture(scope="module")
+def local_sweep(pendulum_datasets, tmp_path_factory):
+    out = tmp_path_factory.mktemp("sweep_local")
+    records = sweep(_config(pendulum_datasets), out, backend="local", workers=2)
+    return out, records
+
+
+def test_local_sweep_then_skip_completed(local_sweep, pendulum_datasets):
+    out, records = local_sweep
+    assert len(records) == 16
+    assert all(isinstance(r["score"], float) for r in records)
+    assert load_results(out) == records
+    # a record's score is its run's last evaluation
+    for r in records:
+        evals = (Path(r["run"]) / "eval.jsonl").read_text().splitlines()
+        assert json.loads(evals[-1])["mean"] == r["score"]
+    # running it again trains nothing: every run folder is left as it was
+    stamps = {r["run"]: (Path(r["run"]) / "result.json").stat().st_mtime_ns for r in records}
+    again = sweep(_config(pendulum_datasets), out, backend="local", workers=1)
+    assert again == records
+    assert stamps == {
+        r["run"]: (Path(r["run"]) / "result.json").stat().st_mtime_ns for r in records
+    }
+
+
+def test_ray_sweep_gives_the_same_table(local_sweep, pendulum_datasets, tmp_path):
+    pytest.importorskip("ray")
+    _, local_records = local_sweep
+    records = sweep(_config(pendulum_datasets), tmp_path / "ray", backend="ray")
+    assert results_table(records) == results_table(local_records)
+    assert [r["returns"] for r in records] == [r["returns"] for r in local_records]
+
+
+def test_sweep_refuses_a_different_config_in_the_same_folder(local_sweep, pendulum_datasets):
+    out, _ = local_sweep
+    cfg = _config(pendulum_datasets)
+    other = SweepConfig(**{**cfg.__dict__, "steps": 31})
+    with pytest.raises(RluError, match="different sweep configuration"):
+        sweep(other, out)
