@@ -10,25 +10,8 @@ import pytest
 
 from rlu.sweep import SweepConfig, expand, load_results, results_table, sweep
 from rlu.types import RluError
-
-TASKS = ("test/pendulum", "test/pendulum_heavy")
-AGENTS = ("tests.train.fake_agent", "tests.train.fake_agent_mlp")
-
-
-def _config(datasets) -> SweepConfig:
-    return SweepConfig(
-        tasks=TASKS,
-        agents=AGENTS,
-        datasets=datasets,
-        seeds=(0, 1),
-        steps=30,
-        eval_episodes=2,
-        eval_envs=2,
-        eval_max_steps=20,
-        log_every=10,
-        checkpoint_every=30,
-        env="tests.train.pendulum:make_env",
-    )
+from tests.train.conftest import AGENTS
+from tests.train.conftest import sweep_config as _config
 
 
 def test_expand_uses_each_agents_grid(pendulum_datasets, tmp_path):
@@ -38,13 +21,6 @@ def test_expand_uses_each_agents_grid(pendulum_datasets, tmp_path):
     assert len({r.run_dir for r in runs}) == 16
     with pytest.raises(RluError, match="--dataset"):
         expand(SweepConfig(tasks=("x",), agents=AGENTS, datasets={}), tmp_path)
-
-
-@pytest.fixture(scope="module")
-def local_sweep(pendulum_datasets, tmp_path_factory):
-    out = tmp_path_factory.mktemp("sweep_local")
-    records = sweep(_config(pendulum_datasets), out, backend="local", workers=2)
-    return out, records
 
 
 def test_local_sweep_then_skip_completed(local_sweep, pendulum_datasets):

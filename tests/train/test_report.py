@@ -1,0 +1,122 @@
+"""rlu report: the tables' numbers against the run files, the paper's numbers beside ours, Atari
+normalised aggregates, and the files (Markdown, HTML, PNG) it writes."""
+
+from __future__ import annotations
+
+import json
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rlu.evaluation.report import build_report, paper_entry, write_report
+
+
+def test_report_tables_match_the_run_files(local_sweep, tmp_path):
+    pytest.importorskip("matplotlib")
+    sweep_dir, _ = local_sweep
+    paths = write_report(sweep_dir, tmp_path / "report")
+    names = sorted(p.name for p in paths)
+    assert names == ["other_tasks.png", "report.html", "report.json", "report.md"]
+    rep = json.loads((tmp_path / "report" / "report.json").read_text())
+    md = (tmp_path / "report" / "report.md").read_text()
+
+    # recompute every cell from the run folders' eval.jsonl: per (task, agent) the config with
+    # the best mean over seeds of the final evaluation's mean return
+    finals: dict = defaultdict(dict)
+    for run in Path(sweep_dir).glob("*/*/*/seed_*"):
+        last = json.loads((run / "eval.jsonl").read_text().splitlines()[-1])
+        task_dir, agent_dir, cfg_dir = run.parts[-4:-1]
+        finals[(task_dir, agent_dir)].setdefault(cfg_dir, []).append(np.mean(last["returns"]))
+    dom = rep["domains"]["other"]
+    assert len(dom["online"]["rows"]) == 2
+    for row in dom["online"]["rows"]:
+        best_mean = max(c["mean"] for c in row["cells"].values())
+        for agent, cell in row["cells"].items():
+            by_cfg = finals[(row["task"].replace("/", "__"), agent)]
+            means = {c: np.mean(v) for c, v in by_cfg.items()}
+            best = max(means, key=means.get)
+            assert len(by_cfg[best]) == 2  # two seeds
+            assert cell["mean"] == pytest.approx(np.mean(by_cfg[best]), rel=1e-12)
+            assert cell["std"] == pytest.approx(np.std(by_cfg[best]), rel=1e-12)
+            text = f"{cell['mean']:.1f} ± {cell['std']:.1f}"
+            assert (f"**{text}**" in md) == (cell["mean"] == best_mean) or text in md
+            assert cell["bold"] == (cell["mean"] == best_mean)
+    # the p90 line is the dataset's 90th-percentile return
+    from rlu.data import open_dataset
+
+    for task, p90 in dom["dataset_p90"].items():
+        ds_path = json.loads((Path(sweep_dir) / "sweep.json").read_text())["datasets"][task]
+        assert p90 == pytest.approx(np.percentile(open_dataset(ds_path).episode_returns(), 90))
+    agg = dom["aggregates"]
+    assert agg["statistic"] == "mean"
+    for agent in dom["agents"]:
+        cells = [row["cells"][agent]["mean"] for row in dom["online"]["rows"]]
+        assert agg[agent]["mean"] == pytest.approx(np.mean(cells))
+        lo, hi = agg[agent]["interval_25_75"]
+        assert lo <= agg[agent]["mean"] <= hi or np.isclose(lo, hi)
+    html = (tmp_path / "report" / "report.html").read_text()
+    assert html.count("<table>") == 2 and "<b>" in html and "other_tasks.png" in html
+    png = (tmp_path / "report" / "figures" / "other_tasks.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 5000
+
+
+def test_paper_numbers_beside_ours():
+    assert paper_entry("control_suite/cartpole_swingup", "bc") == {
+        "mean": 386.0,
+        "std": 6.0,
+        "bold": False,
+    }
+    assert paper_entry("locomotion/rodent_two_touch", "rabm")["mean"] == 599.0
+    assert paper_entry("atari/Pong", "iqn")["mean"] == 19.2
+    assert paper_entry("test/pendulum", "bc") is None
+    assert paper_entry("control_suite/cartpole_swingup", "tests.train.fake_agent") is None
+    rep = build_report(
+        [
+            {
+                "task": "control_suite/cartpole_swingup",
+                "agent": "bc",
+                "config": "a",
+                "seed": s,
+                "score": v,
+            }
+            for s, v in enumerate([300.0, 310.0])
+        ],  # fmt: skip
+        reps=200,
+    )
+    cell = rep["domains"]["control_suite"]["online"]["rows"][0]["cells"]["bc"]
+    assert cell["paper"]["mean"] == 386.0 and cell["mean"] == 305.0
+
+
+def test_atari_normalised_median_and_naive_offline_selection():
+    random = {"Pong": -20.0, "Breakout": 0.0, "Zaxxon": 0.0}
+    best = {"Pong": 20.0, "Breakout": 100.0, "Zaxxon": 1000.0}
+    recs = []
+    # online game Zaxxon: config "a" 500 (50 %), config "b" 100 (10 %)
+    # offline games Pong and Breakout run with both configs
+    table = {
+        ("atari/Zaxxon", "a"): 500.0,
+        ("atari/Zaxxon", "b"): 100.0,
+        ("atari/Pong", "a"): 0.0,  # 50 %
+        ("atari/Pong", "b"): 20.0,
+        ("atari/Breakout", "a"): 30.0,  # 30 %
+        ("atari/Breakout", "b"): 90.0,
+    }
+    for (task, cfg), v in table.items():
+        for seed in (0, 1):
+            recs.append({"task": task, "agent": "dqn", "config": cfg, "seed": seed, "score": v})
+    rep = build_report(recs, random_scores=random, best_behaviour=best, reps=500)
+    dom = rep["domains"]["atari"]
+    assert dom["normalised"]
+    assert dom["offline_naive"]["chosen"] == {"dqn": "a"}
+    off = {r["task"]: r["cells"]["dqn"]["mean"] for r in dom["offline_naive"]["rows"]}
+    assert off == {"atari/Breakout": 30.0, "atari/Pong": 0.0}
+    # online selection per game: Zaxxon a (50 %), Pong b (100 %), Breakout b (90 %) -> median 90
+    agg = dom["aggregates"]["dqn"]
+    assert agg["median"] == pytest.approx(90.0)
+    # IQM of the 6 (seed, game) values 50 50 90 90 100 100: cut 1 each end -> mean(50 90 90 100)
+    assert agg["iqm"] == pytest.approx(82.5)
+    # without reference scores for every game, no normalised aggregates are claimed
+    rep = build_report(recs, random_scores={}, best_behaviour=best, reps=100)
+    assert "aggregates" not in rep["domains"]["atari"]
