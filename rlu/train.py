@@ -127,6 +127,17 @@ def parse_overrides(items: list[str] | None) -> dict[str, Any]:
     return out
 
 
+def _gamma(agent_cfg: Any) -> float:
+    """The agent's discount for n-step views: its config's ``gamma`` (or ``discount``) field."""
+    for name in ("gamma", "discount"):
+        if hasattr(agent_cfg, name):
+            return float(getattr(agent_cfg, name))
+    raise RluError(
+        f"{type(agent_cfg).__name__} has n_step > 1 but no gamma field; add `gamma: float` to "
+        "the agent's config so the loop can build n-step targets"
+    )
+
+
 def dataset_specs(ds: Any) -> tuple[Any, Any]:
     """(observation spec as the agent sees it, action spec) from a dataset's schema."""
     schema = ds.schema
@@ -251,7 +262,7 @@ def train(
         view: Any = SequenceView(ds, agent.sequence_length)
     else:
         n_step = int(getattr(agent, "n_step", 1))
-        view = TransitionView(ds, n_step, float(agent_cfg.gamma) if n_step > 1 else 1.0)
+        view = TransitionView(ds, n_step, _gamma(agent_cfg) if n_step > 1 else 1.0)
     batch_size = int(getattr(agent_cfg, "batch_size", 256))
     sampler = Sampler(view, batch_size, seed=config.seed)
 
@@ -269,7 +280,8 @@ def train(
         lines = _read_jsonl(path, start)
         _write_atomic(path, "".join(line + "\n" for line in lines))
 
-    env_fn = task_env_factory(config.task, config.env)
+    # resolved on the first evaluation: a run that never evaluates needs no env
+    env_fn = task_env_factory(config.task, config.env) if config.eval_every >= 0 else None
     writer = None
     if tensorboard:
         try:
@@ -366,18 +378,11 @@ def load_run(path: str | os.PathLike) -> tuple[dict[str, Any], Path]:
     return json.loads(cfg_path.read_text()), ckpt
 
 
-def evaluate_run(
-    path: str | os.PathLike,
-    episodes: int = 10,
-    seed: int = 0,
-    num_envs: int = 4,
-    env: str | None = None,
-    max_steps: int | None = None,
-) -> Any:
-    """Roll out the greedy policy of a run folder's newest checkpoint (or a given checkpoint)."""
+def load_policy(path: str | os.PathLike) -> tuple[Any, dict[str, Any]]:
+    """(greedy policy callable on batched observations, resolved config) of a run folder's newest
+    checkpoint, or of a given checkpoint file."""
     import torch
 
-    from rlu.evaluation.rollout import evaluate, task_env_factory
     from rlu.types import ArraySpec as _AS
     from rlu.types import observation_spec_from_json
 
@@ -396,7 +401,76 @@ def evaluate_run(
     )
     agent = module.Agent(obs_spec, action_spec, agent_cfg, seed=int(train_cfg["seed"]))
     agent.load_state_dict(torch.load(ckpt, weights_only=True)["agent"])
+
+    def policy(obs: Any) -> np.ndarray:
+        return agent.act(obs, greedy=True)
+
+    return policy, cfg
+
+
+def evaluate_run(
+    path: str | os.PathLike,
+    episodes: int = 10,
+    seed: int = 0,
+    num_envs: int = 4,
+    env: str | None = None,
+    max_steps: int | None = None,
+) -> Any:
+    """Roll out the greedy policy of a run folder's newest checkpoint (or a given checkpoint)."""
+    from rlu.evaluation.rollout import evaluate, task_env_factory
+
+    policy, cfg = load_policy(path)
+    train_cfg = cfg["train"]
     env_fn = task_env_factory(train_cfg["task"], env if env is not None else train_cfg["env"])
-    return evaluate(
-        lambda obs: agent.act(obs, greedy=True), env_fn, episodes, seed, num_envs, max_steps
+    return evaluate(policy, env_fn, episodes, seed, num_envs, max_steps)
+
+
+def fqe_selection(sweep_dir: str | os.PathLike, config: Any = None) -> dict[str, Any]:
+    """Offline policy selection by FQE over a finished sweep: per (task, agent), every
+    configuration's policy (each seed's run) is valued by FQE on the task's dataset (data only);
+    the configuration with the best mean estimate is chosen and scored against the true returns
+    (Spearman rank correlation, regret@1). Writes and returns ``SWEEP_DIR/fqe.json``."""
+    from collections import defaultdict
+
+    from rlu.data import open_dataset
+    from rlu.evaluation.fqe import FQEConfig, dataset_fqe_inputs, fqe_estimate
+    from rlu.evaluation.protocols import select_by_estimate
+    from rlu.sweep import load_results
+    from rlu.types import ArraySpec as _AS
+
+    sweep_dir = Path(sweep_dir)
+    config = config or FQEConfig()
+    records = load_results(sweep_dir)
+    datasets = json.loads((sweep_dir / "sweep.json").read_text())["datasets"]
+    groups: dict[tuple[str, str], dict[str, list[dict[str, Any]]]] = defaultdict(
+        lambda: defaultdict(list)
     )
+    for r in records:
+        groups[(r["task"], r["agent"])][r["config"]].append(r)
+    inputs: dict[str, Any] = {}
+    out: dict[str, Any] = {"fqe_config": dataclasses.asdict(config), "selections": []}
+    for (task, agent), by_cfg in sorted(groups.items()):
+        if task not in inputs:
+            inputs[task] = dataset_fqe_inputs(open_dataset(datasets[task]))
+        transitions, init = inputs[task]
+        estimates, true = {}, {}
+        for label, runs in sorted(by_cfg.items()):
+            values = []
+            for r in runs:
+                policy, cfg = load_policy(r["run"])
+                spec = _AS.from_json(cfg["action_spec"])
+                values.append(fqe_estimate(transitions, init, policy, spec, config))
+            estimates[label] = float(np.mean(values))
+            true[label] = float(np.mean([r["score"] for r in runs]))
+        sel = select_by_estimate(estimates, true)
+        out["selections"].append(
+            {
+                "task": task,
+                "agent": agent,
+                "estimates": estimates,
+                "true_returns": true,
+                **dataclasses.asdict(sel),
+            }
+        )
+    _write_atomic(sweep_dir / "fqe.json", json.dumps(out, indent=2) + "\n")
+    return out

@@ -86,6 +86,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("report", help="tables and figures of a sweep (Markdown, HTML, PNG)")
     p.add_argument("sweep_dir", metavar="SWEEP_DIR")
     p.add_argument("--out", default=None, help="report folder (default: SWEEP_DIR/report)")
+    p.add_argument(
+        "--fqe",
+        action="store_true",
+        help="first run offline policy selection by FQE (writes SWEEP_DIR/fqe.json)",
+    )
+    p.add_argument("--fqe-steps", type=int, default=2000, help="FQE gradient steps")
     p.set_defaults(func=_report)
 
 
@@ -176,6 +182,11 @@ def _sweep(args: argparse.Namespace) -> int:
 def _report(args: argparse.Namespace) -> int:
     from rlu.evaluation.report import write_report
 
+    if args.fqe:
+        from rlu.evaluation.fqe import FQEConfig
+        from rlu.train import fqe_selection
+
+        fqe_selection(args.sweep_dir, FQEConfig(steps=args.fqe_steps))
     paths = write_report(args.sweep_dir, args.out)
     for p in paths:
         print(f"wrote {p}")

@@ -104,8 +104,10 @@ def build_report(
     random_scores: Mapping[str, float] | None = None,
     best_behaviour: Mapping[str, float] | None = None,
     reps: int = 2000,
+    fqe: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """Every number of the report (JSON-serialisable), from a sweep's result records."""
+    """Every number of the report (JSON-serialisable), from a sweep's result records (and, if
+    given, the FQE selections that ``rlu.train.fqe_selection`` wrote)."""
     paper = load_paper_results()
     by_domain: dict[str, list[Mapping[str, Any]]] = defaultdict(list)
     for r in records:
@@ -139,6 +141,8 @@ def build_report(
             }
         if domain != "atari" or norm is not None:
             dom["aggregates"] = _aggregates(online_selection(scored), tasks, agents, domain, reps)
+        if fqe:
+            dom["fqe"] = [x for x in fqe.get("selections", []) if x["task"] in tasks]
         if datasets:
             dom["dataset_p90"] = {
                 t: dataset_percentile(datasets[t]) for t in tasks if t in datasets
@@ -292,6 +296,21 @@ def _markdown(rep: Mapping[str, Any], figures: Mapping[str, list[str]]) -> str:
                 "(rlu/resources/random_scores.json, atari_best_behaviour.json).",
                 "",
             ]
+        if dom.get("fqe"):
+            lines += [
+                "Offline policy selection by FQE estimates (data only): the configuration "
+                "with the best estimate, scored against the true returns.",
+                "",
+                "| task | agent | chosen | its return | best return | Spearman | regret@1 |",
+                "|---|---|---|---|---|---|---|",
+            ]
+            for x in dom["fqe"]:
+                true = x["true_returns"]
+                lines.append(
+                    f"| {x['task']} | {x['agent']} | {x['chosen']} | {true[x['chosen']]:.1f} | "
+                    f"{max(true.values()):.1f} | {x['spearman']:.2f} | {x['regret_at_1']:.1f} |"
+                )
+            lines.append("")
         for fig in figures.get(domain, []):
             lines += [f"![{domain}]({fig})", ""]
     return "\n".join(lines)
@@ -418,7 +437,9 @@ def write_report(
     cfg = sweep_dir / "sweep.json"
     if cfg.exists():
         datasets = json.loads(cfg.read_text()).get("datasets")
-    rep = build_report(records, datasets, random_scores, best_behaviour)
+    fqe_path = sweep_dir / "fqe.json"
+    fqe = json.loads(fqe_path.read_text()) if fqe_path.exists() else None
+    rep = build_report(records, datasets, random_scores, best_behaviour, fqe=fqe)
     out = Path(out) if out is not None else sweep_dir / "report"
     out.mkdir(parents=True, exist_ok=True)
     figs = _figures(rep, out) if figures else {}

@@ -120,3 +120,32 @@ def test_atari_normalised_median_and_naive_offline_selection():
     # without reference scores for every game, no normalised aggregates are claimed
     rep = build_report(recs, random_scores={}, best_behaviour=best, reps=100)
     assert "aggregates" not in rep["domains"]["atari"]
+
+
+def test_fqe_selection_over_a_sweep(local_sweep, tmp_path):
+    import shutil
+
+    from rlu.evaluation.fqe import FQEConfig
+    from rlu.train import fqe_selection
+
+    sweep_dir = tmp_path / "sweep"
+    shutil.copytree(local_sweep[0], sweep_dir)  # fqe.json must not leak into the shared sweep
+    out = fqe_selection(sweep_dir, FQEConfig(steps=30, hidden=(16,), batch_size=64))
+    records = [json.loads(x) for x in (sweep_dir / "results.jsonl").read_text().splitlines()]
+    assert len(out["selections"]) == 4  # (task, agent) pairs
+    for sel in out["selections"]:
+        assert len(sel["estimates"]) == 2 and all(np.isfinite(list(sel["estimates"].values())))
+        for cfg, true in sel["true_returns"].items():
+            scores = [
+                r["score"]
+                for r in records
+                if (r["task"], r["agent"], r["config"]) == (sel["task"], sel["agent"], cfg)
+            ]
+            assert true == pytest.approx(np.mean(scores))
+        assert sel["chosen"] == max(sel["estimates"], key=sel["estimates"].get)
+        best = max(sel["true_returns"].values())
+        assert sel["regret_at_1"] == pytest.approx(best - sel["true_returns"][sel["chosen"]])
+        assert sel["spearman"] in (-1.0, 1.0)  # two candidates
+    write_report(sweep_dir, tmp_path / "report", figures=False)
+    md = (tmp_path / "report" / "report.md").read_text()
+    assert "Offline policy selection by FQE" in md and md.count("| test/pendulum") >= 4
