@@ -385,17 +385,38 @@ def _figures(rep: Mapping[str, Any], out: Path) -> dict[str, list[str]]:
             stds = [row["cells"].get(a, {}).get("std", 0.0) for a in agents]
             x = np.arange(len(agents))
             ax.bar(x, means, yerr=stds, color=[colors[i % len(colors)] for i in x], capsize=3)
+            paper_means = [
+                ((row["cells"].get(a) or {}).get("paper") or {}).get("mean") for a in agents
+            ]
+            if any(m is not None for m in paper_means):
+                px = [i for i, m in enumerate(paper_means) if m is not None]
+                ax.scatter(
+                    px,
+                    [paper_means[i] for i in px],
+                    marker="D",
+                    color="k",
+                    s=18,
+                    zorder=3,
+                    label="paper",
+                )
             p90 = (dom.get("dataset_p90") or {}).get(row["task"])
             if p90 is not None:
                 ax.axhline(p90, color="k", linestyle="--", linewidth=1, label="data p90")
-                ax.legend(fontsize=7, loc="best")
-            ax.set_title(row["task"], fontsize=9)
+            ax.set_title(row["task"].split("/", 1)[-1], fontsize=9)
             ax.set_xticks(x, [a.split(".")[-1] for a in agents], rotation=30, fontsize=7)
             ax.tick_params(axis="y", labelsize=7)
         for ax in list(axes.flat)[n:]:
             ax.axis("off")
         fig.suptitle(f"{domain}: online policy selection (episode return)", fontsize=10)
-        fig.tight_layout()
+        legend: dict[str, Any] = {}
+        for ax in axes.flat:  # one legend for the figure, outside the bars
+            for h, label in zip(*ax.get_legend_handles_labels(), strict=True):
+                legend.setdefault(label, h)
+        if legend:
+            fig.legend(
+                list(legend.values()), list(legend), loc="upper right", fontsize=7, ncol=len(legend)
+            )
+        fig.tight_layout(rect=(0, 0, 1, 0.94))
         name = f"figures/{domain}_tasks.png"
         fig.savefig(out / name, dpi=110)
         plt.close(fig)
