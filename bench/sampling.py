@@ -99,9 +99,11 @@ def main() -> None:
     valid = (np.arange(n_ep)[:, None] * steps_per_ep + np.arange(L)).ravel()
     rng = np.random.default_rng(0)
 
-    def numpy_batch():
+    disc_full = np.ones_like(rew_full)
+
+    def numpy_batch():  # the same tuple: (s, a, r, discount, s', a')
         i = valid[rng.integers(0, len(valid), B)]
-        return obs[i], act_full[i], rew_full[i], obs[i + 1], act_full[i + 1]
+        return obs[i], act_full[i], rew_full[i], disc_full[i], obs[i + 1], act_full[i + 1]
 
     results["(a) numpy in RAM"] = rate(numpy_batch, B, S)
 

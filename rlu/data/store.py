@@ -218,6 +218,9 @@ class DatasetWriter:
         self.dest = Path(dest)
         self.schema = schema
         self.provenance = dict(provenance or {})
+        from rlu import __version__
+
+        self.provenance.setdefault("rlu_version", __version__)
         self.overwrite = overwrite
         if self.dest.exists() and not overwrite:
             raise RluError(
