@@ -159,13 +159,19 @@ def _atari_normaliser(tasks, random_scores, best_behaviour):
             random_scores = {}
     if best_behaviour is None:
         best_behaviour = load_reference_scores("atari_best_behaviour")
-    games = [task_info(t)[2] for t in tasks]
-    if not all(g in random_scores and g in best_behaviour for g in games):
+
+    def ref(table: Mapping[str, float], task: str) -> float | None:
+        # reference files key by task id (random_scores.json) or by game name
+        for key in (task, task_info(task)[2]):
+            if key in table:
+                return table[key]
+        return None
+
+    if any(ref(random_scores, t) is None or ref(best_behaviour, t) is None for t in tasks):
         return None
 
     def norm(task: str, score: float) -> float:
-        g = task_info(task)[2]
-        return float(normalized_score(score, random_scores[g], best_behaviour[g]))
+        return float(normalized_score(score, ref(random_scores, task), ref(best_behaviour, task)))
 
     return norm
 

@@ -82,17 +82,34 @@ def best_behaviour_from_dataset(ds: Any) -> float:
 
 
 def load_reference_scores(name: str) -> dict[str, float]:
-    """``{game: score}`` from ``rlu/resources/<name>.json`` (its ``scores`` field)."""
-    try:
-        text = resources.files("rlu.resources").joinpath(f"{name}.json").read_text()
-    except FileNotFoundError:
-        raise RluError(
-            f"rlu/resources/{name}.json is missing; pass the scores explicitly or install the "
-            "part of rlu that provides it"
-        ) from None
+    """``{task or game: score}`` from ``rlu/resources/<name>.json`` or from a ``.json`` path.
+
+    The file's ``scores`` field (or the whole file) maps keys to a number or to a record with a
+    ``mean`` (the format of ``random_scores.json``)."""
+    from pathlib import Path
+
+    if name.endswith(".json"):
+        try:
+            text = Path(name).read_text()
+        except OSError as e:
+            raise RluError(f"reference scores {name}: {e.strerror}; check the path") from None
+    else:
+        try:
+            text = resources.files("rlu.resources").joinpath(f"{name}.json").read_text()
+        except FileNotFoundError:
+            raise RluError(
+                f"rlu/resources/{name}.json is missing; pass the scores explicitly or install "
+                "the part of rlu that provides it"
+            ) from None
     data = json.loads(text)
     scores = data.get("scores", data)
-    return {k: float(v) for k, v in scores.items() if isinstance(v, int | float)}
+    out = {}
+    for k, v in scores.items():
+        if isinstance(v, Mapping) and isinstance(v.get("mean"), int | float):
+            out[k] = float(v["mean"])
+        elif isinstance(v, int | float) and not isinstance(v, bool):
+            out[k] = float(v)
+    return out
 
 
 # --- aggregates over (runs, tasks) ----------------------------------------------------------

@@ -104,3 +104,15 @@ def test_reference_scores_files_load():
     assert isinstance(best, dict)
     with pytest.raises(RluError, match="missing"):
         scores.load_reference_scores("no_such_scores")
+
+
+def test_reference_scores_in_the_random_scores_format(tmp_path):
+    # the format of rlu/resources/random_scores.json: records with a mean, keyed by task id
+    path = tmp_path / "random_scores.json"
+    path.write_text(
+        '{"format": "rlu.random_scores/1", "provenance": {"seed": 0}, "scores": '
+        '{"atari/Pong": {"mean": -20.5, "std": 0.5, "returns": [-21, -20]}, "atari/Breakout": 1}}'
+    )
+    assert scores.load_reference_scores(str(path)) == {"atari/Pong": -20.5, "atari/Breakout": 1.0}
+    with pytest.raises(RluError, match="check the path"):
+        scores.load_reference_scores(str(tmp_path / "missing.json"))

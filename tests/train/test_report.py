@@ -106,6 +106,8 @@ def test_atari_normalised_median_and_naive_offline_selection():
     for (task, cfg), v in table.items():
         for seed in (0, 1):
             recs.append({"task": task, "agent": "dqn", "config": cfg, "seed": seed, "score": v})
+    # random scores keyed by task id (random_scores.json), best behaviour by game name
+    random = {f"atari/{g}": v for g, v in random.items()}
     rep = build_report(recs, random_scores=random, best_behaviour=best, reps=500)
     dom = rep["domains"]["atari"]
     assert dom["normalised"]
