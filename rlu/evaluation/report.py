@@ -34,6 +34,7 @@ import numpy as np
 
 from rlu.evaluation.protocols import Selection, offline_selection_naive, online_selection
 from rlu.evaluation.scores import (
+    best_behaviour_from_dataset,
     domain_statistic,
     load_reference_scores,
     normalized_score,
@@ -122,12 +123,14 @@ def build_report(
         offline = [t for t in tasks if task_info(t)[1] == "offline"]
         norm = None
         if domain == "atari":
-            norm = _atari_normaliser(tasks, random_scores, best_behaviour)
+            norm, refs = _atari_normaliser(tasks, random_scores, best_behaviour, datasets)
         scored = [
             {**r, "score": float(norm(r["task"], r["score"])) if norm else float(r["score"])}
             for r in recs
         ]
         dom: dict[str, Any] = {"agents": agents, "tasks": tasks, "normalised": norm is not None}
+        if norm is not None:
+            dom["reference_scores"] = refs
         # tables show raw returns (as the paper's appendix does); selection across tasks and
         # the aggregates use normalised scores for Atari
         dom["online"] = _table(online_selection(recs), tasks, agents, paper)
@@ -151,7 +154,11 @@ def build_report(
     return out
 
 
-def _atari_normaliser(tasks, random_scores, best_behaviour):
+def _atari_normaliser(tasks, random_scores, best_behaviour, datasets):
+    """(score normaliser, the reference scores used) or (None, None) where a game lacks one.
+
+    Best-behaviour scores missing from the given / stored ones are computed from the task's
+    dataset (``best_behaviour_from_dataset``) when the sweep names it."""
     if random_scores is None:
         try:
             random_scores = load_reference_scores("random_scores")
@@ -167,13 +174,22 @@ def _atari_normaliser(tasks, random_scores, best_behaviour):
                 return table[key]
         return None
 
-    if any(ref(random_scores, t) is None or ref(best_behaviour, t) is None for t in tasks):
-        return None
+    refs: dict[str, Any] = {}
+    for t in tasks:
+        rnd, best, source = ref(random_scores, t), ref(best_behaviour, t), "given"
+        if best is None and datasets and t in datasets:
+            from rlu.data import open_dataset
+
+            best, source = best_behaviour_from_dataset(open_dataset(datasets[t])), "dataset"
+        if rnd is None or best is None:
+            return None, None
+        refs[t] = {"random": rnd, "best_behaviour": best, "best_behaviour_source": source}
 
     def norm(task: str, score: float) -> float:
-        return float(normalized_score(score, ref(random_scores, task), ref(best_behaviour, task)))
+        r = refs[task]
+        return float(normalized_score(score, r["random"], r["best_behaviour"]))
 
-    return norm
+    return norm, refs
 
 
 def _table(

@@ -151,3 +151,53 @@ def test_fqe_selection_over_a_sweep(local_sweep, tmp_path):
     write_report(sweep_dir, tmp_path / "report", figures=False)
     md = (tmp_path / "report" / "report.md").read_text()
     assert "Offline policy selection by FQE" in md and md.count("| test/pendulum") >= 4
+
+
+def _episodes_dataset(path, returns_by_checkpoint):
+    from rlu.data.episode import make_episode
+    from rlu.data.store import DatasetWriter, Schema
+    from rlu.types import ArraySpec, DiscreteSpec
+
+    schema = Schema(ArraySpec((2,), "float32"), DiscreteSpec((), "int64", 3))
+    with DatasetWriter(path, schema, {"source": "test"}) as w:
+        i = 0
+        for ckpt, rets in returns_by_checkpoint.items():
+            for ret in rets:
+                w.append(
+                    make_episode(
+                        np.zeros((2, 2), np.float32),
+                        np.zeros(1, np.int64),
+                        np.array([ret], np.float32),
+                        terminal=True,
+                        metadata={"episode_id": i, "run": 1, "checkpoint": ckpt},
+                    )
+                )
+                i += 1
+    return str(path)
+
+
+def test_atari_best_behaviour_from_the_sweeps_datasets(tmp_path):
+    # best checkpoint means: Pong 10 (checkpoint 1), Breakout 200 (checkpoint 0)
+    datasets = {
+        "atari/Pong": _episodes_dataset(tmp_path / "pong", {0: [-20.0, -10.0], 1: [0.0, 20.0]}),
+        "atari/Breakout": _episodes_dataset(tmp_path / "brk", {0: [150.0, 250.0], 1: [10.0]}),
+    }
+    recs = [
+        {"task": t, "agent": "rem", "config": "c", "seed": s, "score": v}
+        for t, v in (("atari/Pong", -5.0), ("atari/Breakout", 100.0))
+        for s in (0, 1)
+    ]
+    rep = build_report(
+        recs, datasets, random_scores={"Pong": -20.0, "Breakout": 0.0}, best_behaviour={},
+        reps=200,
+    )  # fmt: skip
+    dom = rep["domains"]["atari"]
+    assert dom["reference_scores"]["atari/Pong"] == {
+        "random": -20.0,
+        "best_behaviour": 10.0,
+        "best_behaviour_source": "dataset",
+    }
+    # Pong 100 * (-5 + 20) / (10 + 20) = 50; Breakout 100 * 100 / 200 = 50
+    assert dom["aggregates"]["rem"]["median"] == pytest.approx(50.0)
+    # the dataset's p90 line: Pong returns -20 -10 0 20 -> 90th percentile 14
+    assert dom["dataset_p90"]["atari/Pong"] == pytest.approx(14.0)
