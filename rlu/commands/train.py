@@ -12,8 +12,9 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--eval-every",
         type=int,
-        default=0,
-        help="steps between evaluations (0: only at the end, -1: never)",
+        default=None,
+        help="steps between evaluations (default: steps / 10 for train, the end of each run "
+        "for sweep; 0: only at the end; -1: never)",
     )
     p.add_argument("--eval-episodes", type=int, default=5)
     p.add_argument("--eval-envs", type=int, default=4, help="envs stepped in lockstep")
@@ -95,11 +96,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_report)
 
 
-def _run_kwargs(args: argparse.Namespace) -> dict:
+def _run_kwargs(args: argparse.Namespace, periodic_eval: bool = True) -> dict:
+    # train evaluates 10 times by default; a sweep only at the end of each run
+    default_eval = max(1, args.steps // 10) if periodic_eval else 0
     return {
         "preset": args.preset,
         "steps": args.steps,
-        "eval_every": args.eval_every,
+        "eval_every": default_eval if args.eval_every is None else args.eval_every,
         "eval_episodes": args.eval_episodes,
         "eval_envs": args.eval_envs,
         "eval_max_steps": args.eval_max_steps,
@@ -172,7 +175,7 @@ def _sweep(args: argparse.Namespace) -> int:
         seeds=tuple(args.seeds),
         grid=grid,
         max_configs=args.max_configs,
-        **_run_kwargs(args),
+        **_run_kwargs(args, periodic_eval=False),
     )
     records = sweep(config, args.out, args.backend, args.workers, args.ray_address, progress=True)
     print(results_table(records), end="")

@@ -55,3 +55,33 @@ def test_sweep_refuses_a_different_config_in_the_same_folder(local_sweep, pendul
     other = SweepConfig(**{**cfg.__dict__, "steps": 31})
     with pytest.raises(RluError, match="different sweep configuration"):
         sweep(other, out)
+
+
+def test_cli_sweep_and_report(pendulum_datasets, tmp_path):
+    pytest.importorskip("matplotlib")
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[2]
+    out = tmp_path / "sweep"
+    args = [
+        sys.executable, "-m", "rlu", "sweep", "--tasks", "test/pendulum",
+        "--agents", "tests.train.fake_agent", "--grid", "learning_rate=0.01,0.02",
+        "--dataset", f"test/pendulum={pendulum_datasets['test/pendulum']}",
+        "--seeds", "0", "--steps", "5", "--eval-episodes", "1", "--eval-max-steps", "5",
+        "--env", "tests.train.pendulum:make_env", "--workers", "1", "--out", str(out),
+    ]  # fmt: skip
+    res = subprocess.run(args, cwd=root, capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    assert "learning_rate=0.02" in res.stdout and "learning_rate=0.01" in res.stdout
+    records = load_results(out)
+    assert [r["overrides"] for r in records] == [{"learning_rate": 0.01}, {"learning_rate": 0.02}]
+    cfg = json.loads((Path(records[1]["run"]) / "config.json").read_text())
+    assert cfg["agent_config"]["learning_rate"] == 0.02
+    assert cfg["train"]["eval_every"] == 0  # a sweep evaluates at the end of each run
+    res = subprocess.run(
+        [sys.executable, "-m", "rlu", "report", str(out)], cwd=root, capture_output=True, text=True
+    )
+    assert res.returncode == 0, res.stderr
+    assert (out / "report" / "report.html").exists()
+    assert (out / "report" / "figures" / "other_tasks.png").exists()
