@@ -14,6 +14,11 @@ parent agent class.
 Observations are uint8 (B, H, W, C) frame stacks, newest frame last; the networks scale by 1/255
 themselves. Permuting HWC to NCHW gives a channels-last strided tensor for free, which is the
 layout oneDNN's CPU convolutions prefer, so no copy is made before the first convolution.
+
+Determinism: every random draw goes through the agent's own generators (initialisation under a
+forked global RNG, one ``torch.Generator`` for the learner's draws, one for acting), all held in
+``state_dict``. On the CPU the same seed gives bit-identical numbers for the same torch thread
+count; a different thread count may change the last bits of a float reduction.
 """
 
 from __future__ import annotations

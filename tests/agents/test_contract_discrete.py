@@ -178,3 +178,11 @@ def test_read_only_batches_are_accepted():
 def test_bc_and_bcq_names_pick_the_discrete_variant_from_the_action_spec():
     assert type(build("bc")).__module__ == "rlu.agents.bc_discrete"
     assert type(build("bcq")).__module__ == "rlu.agents.bcq_discrete"
+
+
+@pytest.mark.parametrize("name", ["dqn", "iqn", "bcq", "rem"])
+def test_n_step_agents_discount_by_gamma_to_the_n(name):
+    # the views give the n-step reward sum and the product of discounts without gamma^n
+    agent = build(name, n_step=3)
+    assert agent.n_step == 3
+    assert agent.learner.loss.discount == pytest.approx(0.99**3)
