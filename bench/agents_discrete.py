@@ -46,13 +46,19 @@ LR, GAMMA, TARGET_PERIOD, EPS = 1e-4, 0.99, 2500, 1e-7
 
 
 def make_batch(size: int, seed: int = 0) -> Transition:
+    """Random frames laid out as rlu's views give them: (B, 84, 84, 4) views of frame-major
+    (B, 4, 84, 84) memory (the store gathers whole frames, then moves the stack axis last)."""
     rng = np.random.default_rng(seed)
+
+    def frames():
+        return rng.integers(0, 256, (size, 4, 84, 84), dtype=np.uint8).transpose(0, 2, 3, 1)
+
     return Transition(
-        observation=rng.integers(0, 256, (size, 84, 84, 4), dtype=np.uint8),
+        observation=frames(),
         action=rng.integers(0, NUM_ACTIONS, size).astype(np.int64),
         reward=rng.uniform(-1, 1, size).astype(np.float32),
         discount=(rng.random(size) > 0.05).astype(np.float32),
-        next_observation=rng.integers(0, 256, (size, 84, 84, 4), dtype=np.uint8),
+        next_observation=frames(),
         next_action=rng.integers(0, NUM_ACTIONS, size).astype(np.int64),
     )
 
@@ -99,7 +105,8 @@ def minimal_dqn_step(batch: Transition):
     steps = [0]
 
     def frames(x):
-        return x.permute(0, 3, 1, 2).float().mul_(1 / 255)
+        x = x.permute(0, 3, 1, 2).contiguous(memory_format=torch.channels_last)
+        return x.float().mul_(1 / 255)
 
     def step():
         q = net(frames(o)).gather(1, a[:, None]).squeeze(1)
@@ -140,7 +147,8 @@ def minimal_bcq_step(batch: Transition):
     log_threshold = float(np.log(0.5))
 
     def frames(x):
-        return x.permute(0, 3, 1, 2).float().mul_(1 / 255)
+        x = x.permute(0, 3, 1, 2).contiguous(memory_format=torch.channels_last)
+        return x.float().mul_(1 / 255)
 
     def step():
         q_all, logits = net(frames(o))
@@ -222,7 +230,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--updates", type=int, default=5, help="updates per contestant per round")
     parser.add_argument("--warmup", type=int, default=2)
+    parser.add_argument(
+        "--threads", type=int, default=0, help="torch threads (0: torch's default, one per core)"
+    )
     args = parser.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
 
     batch = make_batch(args.batch)
     steps = {
