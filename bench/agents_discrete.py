@@ -5,7 +5,8 @@
 
 Contestants, all on the same fixed batch of random Atari frame stacks, the Nature CNN, Adam and
 the same number of torch threads, timed in interleaved rounds (the median round counts, so a
-burst of load from elsewhere on a shared machine hits every contestant alike):
+burst of load from elsewhere on a shared machine hits every contestant alike; the order is
+shuffled every round):
 
 - rlu ``dqn`` (double-Q, the paper's preset) vs d3rlpy ``DoubleDQN`` (the same maths) and
   d3rlpy ``DQN`` (plain max target: one forward pass fewer per update);
@@ -215,8 +216,11 @@ def time_rounds(steps: dict, rounds: int, updates: int, warmup: int) -> dict[str
         for _ in range(warmup):
             step()
     per_round: dict[str, list[float]] = {name: [] for name in steps}
+    order = np.random.default_rng(0)
     for _ in range(rounds):
-        for name, step in steps.items():
+        # a fresh order every round, so no contestant always runs first after a quiet spell
+        for name in order.permutation(list(steps)):
+            step = steps[name]
             start = time.perf_counter()
             for _ in range(updates):
                 step()
