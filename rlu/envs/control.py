@@ -24,9 +24,7 @@ def make(task: TaskSpec, seed: int | None = None, **settings: Any) -> DmControlE
         )
     from dm_control import suite
 
-    env = suite.load(
-        task.env["suite_domain"], task.env["suite_task"], task_kwargs={"random": seed}
-    )
+    env = suite.load(task.env["suite_domain"], task.env["suite_task"], task_kwargs={"random": seed})
 
     def reseed(s: int) -> None:
         env.task.random.seed(s)

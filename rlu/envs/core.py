@@ -142,7 +142,9 @@ class DmControlEnv(gym.Env):
                 f"{sorted(raw)}. rlu/tasks.py and the env builder disagree"
             ) from e
         except ValueError as e:
-            raise SpecError(f"{self._name}: an observation does not fit its TaskSpec shape: {e}")
+            raise SpecError(
+                f"{self._name}: an observation does not fit its TaskSpec shape: {e}"
+            ) from e
         if not self._checked:
             check_observation(obs, self._spec, self._name)
             self._checked = True

@@ -134,9 +134,7 @@ def rodent_two_touch(seed: int | None):
     task = tasks.reach.TwoTouch(
         walker=walker,
         arena=arena,
-        target_builders=[
-            functools.partial(props.target_sphere.TargetSphereTwoTouch, radius=0.025)
-        ],
+        target_builders=[functools.partial(props.target_sphere.TargetSphereTwoTouch, radius=0.025)],
         randomize_spawn_rotation=True,
         target_type_rewards=[25.0],
         shuffle_target_builders=False,

@@ -37,7 +37,6 @@ Deviations from the original, on purpose:
 
 from __future__ import annotations
 
-import copy
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -528,7 +527,9 @@ def _make_environment(domain: str, task_name: str, settings: RwrlSettings, seed:
 
     class Environment(control.Environment):
         def __init__(self) -> None:
-            super().__init__(physics, task, time_limit=time_limit, control_timestep=control_timestep)
+            super().__init__(
+                physics, task, time_limit=time_limit, control_timestep=control_timestep
+            )
             self.restart(seed)
 
         def restart(self, s: int | None) -> None:
