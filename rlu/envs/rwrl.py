@@ -145,7 +145,7 @@ RELEASED_CHALLENGES = ("none", "easy")
 class Perturbation:
     param: str
     start: float
-    """Nominal value (the dm_control XML's)."""
+    """The schedulers' start value (rwrl/<domain>.py _setup_perturb); `uniform` ignores it."""
     levels: dict[str, tuple[float, float, float]] = field(default_factory=dict)
     """Level -> (min, max, std) of the combined challenges."""
 
