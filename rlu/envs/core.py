@@ -122,11 +122,13 @@ class DmControlEnv(gym.Env):
         shapes = self._shapes
         for k, rk in self._keys:
             shape, dtype = shapes[k]
-            out[k] = np.asarray(raw[rk], dtype=dtype).reshape(shape)
+            x = np.asarray(raw[rk], dtype=dtype)
+            out[k] = x if x.shape == shape else x.reshape(shape)
         return out
 
     def _action(self, action: Any) -> np.ndarray:
-        a = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
+        # Two ufuncs: np.clip's Python-level dispatch costs more than the rest of this method.
+        a = np.minimum(np.maximum(np.asarray(action, dtype=np.float64), -1.0), 1.0)
         if a.shape != self.action_space.shape:
             a = a.reshape(self.action_space.shape)
         if self._scale is not None:

@@ -416,6 +416,13 @@ class _RwrlTask:
             self.constraint_names, self._constraint_fn = (), None
         self.constraints_obs = np.ones(len(self.constraint_names), dtype=bool)
         self._last_action: np.ndarray | None = None
+        ch = settings.challenge
+        # Without a challenge the hooks pass straight through (the `none` datasets' env).
+        self._acts = any((ch.action_delay, ch.action_noise_std, ch.action_drop_prob,
+                          ch.action_stuck_prob, ch.action_repeat_prob))  # fmt: skip
+        self._obs = any((ch.observation_noise_std, ch.observation_drop_prob,
+                         ch.observation_stuck_prob))  # fmt: skip
+        self._bounds: tuple[np.ndarray, np.ndarray] | None = None
 
     # control.Task interface
     @property
@@ -443,9 +450,13 @@ class _RwrlTask:
         self._update_constraints(physics)
 
     def before_step(self, action, physics):
-        self._last_action = physics.control().copy()
-        spec = self.inner.action_spec(physics)
-        action = self.state.action(np.asarray(action, np.float64), spec.minimum, spec.maximum)
+        if self._constraint_fn is not None:
+            self._last_action = physics.control().copy()
+        if self._acts:
+            if self._bounds is None:
+                spec = self.inner.action_spec(physics)
+                self._bounds = (spec.minimum, spec.maximum)
+            action = self.state.action(np.asarray(action, np.float64), *self._bounds)
         self.inner.before_step(action, physics)
 
     def after_step(self, physics):
@@ -458,15 +469,19 @@ class _RwrlTask:
             self.constraints_obs = np.array(self._constraint_fn(physics), dtype=bool)
 
     def get_observation(self, physics):
-        obs = {k: np.array(v, dtype=np.float64, ndmin=1) for k, v in
-               self.inner.get_observation(physics).items()}  # fmt: skip
-        obs = self.state.observation(obs)
+        obs = self.inner.get_observation(physics)
+        if self._obs:
+            obs = {k: np.array(v, dtype=np.float64, ndmin=1) for k, v in obs.items()}
+            obs = self.state.observation(obs)
         s = self.settings
         if s.safety:
             obs["constraints"] = self.constraints_obs.copy()
         if s.challenge.observation_delay:
+            if not self._obs:  # suite observations may be views of physics data: copy them
+                obs = {k: np.array(v, copy=True) for k, v in obs.items()}
             obs = self.state.observation_delay(obs)
-        obs = dict(obs)
+        if s.challenge.num_dummy or s.multiobj_observed:
+            obs = dict(obs)
         for i in range(s.challenge.num_dummy):
             obs[f"dummy-{i}"] = np.array([self.state.rng.normal()])
         if s.multiobj_observed:
