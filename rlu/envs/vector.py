@@ -5,10 +5,13 @@
     obs, reward, terminated, truncated, info = venv.step(actions)
 
 Backends:
-- ``"async"`` (MuJoCo default): ``gymnasium.vector.AsyncVectorEnv``, one worker process per env
-  running ``rlu.make_env``; env i gets seed ``seed + i``, so every sub-env is exactly the single
-  env of that seed. MuJoCo workers start through ``forkserver`` so that no GL context is ever
-  inherited across a fork.
+- ``"process"`` (MuJoCo default): ``ProcessVectorEnv``, N envs over ``num_workers`` (default:
+  the available cores) worker processes, each stepping its share of envs in a loop, so one
+  message round trip serves N / W env steps. Env i is ``rlu.make_env(task, seed=seed + i)``, so
+  every sub-env is exactly the single env of that seed. MuJoCo workers start through
+  ``forkserver`` so that no GL context is ever inherited across a fork.
+- ``"async"``: ``gymnasium.vector.AsyncVectorEnv``, one process per env (shared-memory
+  observations), same seeding.
 - ``"ale"`` (Atari default): ale-py's C++ ``AtariVectorEnv`` with rlu's settings (sticky 0.25,
   no no-ops, no fire reset, frame skip 4 with max-pool, 84x84 grey, 4 frames zero-padded at an
   episode start, newest last). Its frames were checked to be bit-identical to ``AtariEnv``'s
@@ -54,6 +57,7 @@ def make_vector_env(
     seed: int | None = None,
     challenge: str = "none",
     backend: str = "auto",
+    num_workers: int | None = None,
     **settings: Any,
 ) -> gym.vector.VectorEnv:
     """``num_envs`` (default: the available cores) copies of ``task_id``; see the module doc."""
@@ -62,7 +66,7 @@ def make_vector_env(
     if n < 1:
         raise RluError(f"num_envs must be >= 1, got {num_envs}")
     if backend == "auto":
-        backend = "ale" if task.domain == "atari" else "async"
+        backend = "ale" if task.domain == "atari" else "process"
     if backend == "ale":
         if task.domain != "atari":
             raise RluError(f"{task.id}: backend 'ale' is for Atari tasks; use 'async'")
@@ -75,10 +79,130 @@ def make_vector_env(
     ]
     if backend == "sync":
         return gym.vector.SyncVectorEnv(fns)
+    context = "forkserver" if task.domain != "atari" else None
+    if backend == "process":
+        return ProcessVectorEnv(fns, num_workers=num_workers, context=context)
     if backend == "async":
-        context = "forkserver" if task.domain != "atari" else None
+        if num_workers not in (None, n):
+            raise RluError("backend 'async' runs one process per env; drop num_workers")
         return gym.vector.AsyncVectorEnv(fns, context=context)
-    raise RluError(f"unknown vector backend {backend!r}; use auto, async, ale or sync")
+    raise RluError(f"unknown vector backend {backend!r}; use auto, process, async, ale or sync")
+
+
+def _stack(items: list) -> Any:
+    if isinstance(items[0], dict):
+        return {k: np.stack([x[k] for x in items]) for k in items[0]}
+    return np.stack(items)
+
+
+def _merge_infos(infos: list[dict]) -> dict[str, np.ndarray]:
+    keys = set(infos[0]).intersection(*infos[1:]) if len(infos) > 1 else set(infos[0])
+    return {k: np.array([i[k] for i in infos]) for k in sorted(keys)}
+
+
+def _worker(conn, fns) -> None:
+    envs = [fn() for fn in fns]
+    done = [False] * len(envs)
+    try:
+        while True:
+            cmd, data = conn.recv()
+            if cmd == "reset":
+                out = [e.reset(seed=s) for e, s in zip(envs, data, strict=True)]
+                done = [False] * len(envs)
+                conn.send((_stack([o for o, _ in out]), [i for _, i in out]))
+            elif cmd == "step":
+                obs, rew, term, trunc, infos = [], [], [], [], []
+                for j, (e, a) in enumerate(zip(envs, data, strict=True)):
+                    if done[j]:  # Gymnasium's next-step autoreset: the action is ignored
+                        o, i = e.reset()
+                        r, te, tr = 0.0, False, False
+                    else:
+                        o, r, te, tr, i = e.step(a)
+                    done[j] = te or tr
+                    obs.append(o), rew.append(r), term.append(te), trunc.append(tr), infos.append(i)
+                conn.send((_stack(obs), np.array(rew), np.array(term), np.array(trunc), infos))
+            elif cmd == "close":
+                break
+    except (EOFError, KeyboardInterrupt):
+        pass
+    finally:
+        for e in envs:
+            e.close()
+        conn.close()
+
+
+class ProcessVectorEnv(gym.vector.VectorEnv):
+    """N envs spread over W worker processes, each stepping its share in a loop.
+
+    Unlike ``AsyncVectorEnv`` (one process per env) a worker holds several envs, so one message
+    round trip serves N / W env steps: for fast envs (control suite, thousands of steps/s) the
+    inter-process cost is paid once per worker instead of once per env. Env i keeps its own
+    seed; autoreset is Gymnasium's next-step mode.
+    """
+
+    def __init__(self, env_fns: list, num_workers: int | None = None, context: str | None = None):
+        import multiprocessing as mp
+
+        self.num_envs = len(env_fns)
+        w = max(1, min(int(num_workers or available_cores()), self.num_envs))
+        bounds = np.linspace(0, self.num_envs, w + 1).astype(int)
+        self._slices = [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+        probe = env_fns[0]()
+        self.single_observation_space = probe.observation_space
+        self.single_action_space = probe.action_space
+        probe.close()
+        self.observation_space = gym.vector.utils.batch_space(
+            self.single_observation_space, self.num_envs
+        )
+        self.action_space = gym.vector.utils.batch_space(self.single_action_space, self.num_envs)
+        self.metadata = {"autoreset_mode": gym.vector.AutoresetMode.NEXT_STEP}
+        ctx = mp.get_context(context)
+        self._conns, self._procs = [], []
+        for sl in self._slices:
+            parent, child = ctx.Pipe()
+            p = ctx.Process(target=_worker, args=(child, env_fns[sl]), daemon=True)
+            p.start()
+            child.close()
+            self._conns.append(parent)
+            self._procs.append(p)
+        self._closed = False
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        seeds = [None] * self.num_envs if seed is None else [seed + i for i in range(self.num_envs)]
+        for c, sl in zip(self._conns, self._slices, strict=True):
+            c.send(("reset", seeds[sl]))
+        parts = [c.recv() for c in self._conns]
+        obs = _concat([p[0] for p in parts])
+        return obs, _merge_infos([i for p in parts for i in p[1]])
+
+    def step(self, actions: Any):
+        actions = np.asarray(actions) if not isinstance(actions, dict) else actions
+        for c, sl in zip(self._conns, self._slices, strict=True):
+            c.send(("step", list(actions[sl])))
+        parts = [c.recv() for c in self._conns]
+        obs = _concat([p[0] for p in parts])
+        rew, term, trunc = (np.concatenate([p[k] for p in parts]) for k in (1, 2, 3))
+        return obs, rew, term, trunc, _merge_infos([i for p in parts for i in p[4]])
+
+    def close(self, **kwargs: Any) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        for c in self._conns:
+            try:
+                c.send(("close", None))
+            except (BrokenPipeError, OSError):
+                pass
+        for p in self._procs:
+            p.join(timeout=10)
+            if p.is_alive():
+                p.terminate()
+
+
+def _concat(parts: list) -> Any:
+    if isinstance(parts[0], dict):
+        return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    return np.concatenate(parts)
 
 
 class AleVectorEnv(gym.vector.VectorEnv):

@@ -7,21 +7,24 @@ import rlu  # noqa: E402
 from tests.envs.helpers import same  # noqa: E402
 
 
-def test_async_sub_envs_are_the_single_envs_of_seed_plus_i():
+@pytest.mark.parametrize("backend,n", [("process", 3), ("async", 2)])
+def test_sub_envs_are_the_single_envs_of_seed_plus_i(backend, n):
     pytest.importorskip("dm_control")
     from rlu.envs import make_vector_env
 
     tid = "control_suite/cartpole_swingup"
-    venv = make_vector_env(tid, num_envs=2, seed=10)
-    singles = [rlu.make_env(tid, seed=10 + i) for i in range(2)]
+    venv = make_vector_env(
+        tid, num_envs=n, seed=10, backend=backend, num_workers=2 if backend == "process" else None
+    )
+    singles = [rlu.make_env(tid, seed=10 + i) for i in range(n)]
     try:
         obs, _ = venv.reset()
         want = [e.reset()[0] for e in singles]
         rng = np.random.default_rng(0)
         for _ in range(20):
-            for i in range(2):
+            for i in range(n):
                 assert same({k: v[i] for k, v in obs.items()}, want[i])
-            a = rng.uniform(-1, 1, (2, 1)).astype(np.float32)
+            a = rng.uniform(-1, 1, (n, 1)).astype(np.float32)
             obs, r, term, trunc, _ = venv.step(a)
             steps = [e.step(a[i]) for i, e in enumerate(singles)]
             want = [s[0] for s in steps]
@@ -68,3 +71,19 @@ def test_default_backends_and_batch_shapes():
     venv.close()
     with pytest.raises(rlu.types.RluError, match="backend"):
         make_vector_env("atari/Pong", num_envs=2, backend="threads")
+
+
+def test_process_backend_autoresets_on_the_next_step():
+    pytest.importorskip("ale_py")
+    from rlu.envs import make_vector_env
+
+    venv = make_vector_env("atari/Pong", num_envs=2, seed=0, backend="process", max_episode_steps=3)
+    try:
+        obs, _ = venv.reset()
+        for _ in range(3):
+            obs, r, term, trunc, info = venv.step(np.zeros(2, np.int64))
+        assert trunc.all() and not term.any() and obs[:, :, :, 0].any()
+        obs, r, term, trunc, info = venv.step(np.zeros(2, np.int64))
+        assert not obs[:, :, :, :3].any() and (r == 0).all() and not trunc.any()
+    finally:
+        venv.close()
