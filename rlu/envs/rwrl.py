@@ -507,12 +507,6 @@ class _RwrlTask:
     def observation_spec(self, physics):
         raise NotImplementedError  # rlu takes the spec from rlu.tasks, never from a draw
 
-    def set_timelimit(self, time_limit):
-        pass
-
-    def after_compile(self, physics):
-        pass
-
 
 @dataclass(frozen=True)
 class RwrlSettings:
