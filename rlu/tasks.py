@@ -62,7 +62,8 @@ def _binding_fields(binding: str) -> dict[str, str]:
     if binding.startswith("run_"):
         return {"run": binding}
     challenge, size = binding.split("/")
-    return {"challenge": challenge, "size": size}
+    # paper sizes small / medium / large are the bucket's 20 / 40 / 100 percent folders
+    return {"challenge": challenge, "size": RWRL_SIZES.get(size, size)}
 
 
 @dataclass(frozen=True)

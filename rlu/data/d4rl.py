@@ -1,0 +1,196 @@
+"""The D4RL-style flat transition dict, out of and into the store.
+
+Keys: ``observations``, ``actions``, ``rewards``, ``terminals``, ``timeouts``,
+``next_observations``; a dict observation is flattened as ``observations/<key>`` and
+``next_observations/<key>`` (``observations/walker/joints_pos``).
+
+Export writes one row per transition of the SARSA view. ``terminals[i]`` is True when transition
+i enters a terminal state (discount 0); ``timeouts[i]`` is True on the last transition of every
+other segment (a time-limit end, or the end of a release window), so that import cuts the rows
+back into the same segments.
+
+Import cuts episodes at terminals and timeouts, and also wherever ``next_observations[i]`` differs
+from ``observations[i + 1]`` (files in the wild miss some timeouts); a trailing run with neither
+counts as truncated.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rlu.data.episode import Segment, make_episode
+from rlu.data.store import Dataset, DatasetWriter, Schema
+from rlu.data.views import TransitionView
+from rlu.types import ArraySpec, FormatError, RluError
+
+REQUIRED = ("actions", "rewards", "terminals", "timeouts")
+
+
+def to_d4rl(ds: Dataset) -> dict[str, np.ndarray]:
+    view = TransitionView(ds)
+    ids = np.arange(len(view))
+    b = view.batch(ids)
+    seg, _ = view.index.locate(ids)
+    last_of_segment = np.zeros(len(ids), bool)
+    if len(ids):
+        last_of_segment[np.asarray(view.index.cum[1:]) - 1] = True
+        last_of_segment &= view.index.counts[seg] > 0
+    terminals = b.discount == 0
+    out: dict[str, np.ndarray] = {}
+    for prefix, obs in (("observations", b.observation), ("next_observations", b.next_observation)):
+        if isinstance(obs, dict):
+            out.update({f"{prefix}/{k}": v for k, v in obs.items()})
+        else:
+            out[prefix] = obs
+    out["actions"] = b.action
+    out["rewards"] = b.reward
+    out["terminals"] = terminals
+    out["timeouts"] = last_of_segment & ~terminals
+    return out
+
+
+def export_d4rl(ds: Dataset, out: str | os.PathLike) -> Path:
+    """Write ``to_d4rl(ds)`` as an .npz file (atomically: a temp name, then rename)."""
+    out = Path(out)
+    tmp = out.with_name(f".{out.name}.partial.npz")
+    try:
+        np.savez(tmp, **to_d4rl(ds))
+        os.replace(tmp, out)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return out
+
+
+def _split_obs(d: Mapping[str, np.ndarray], prefix: str) -> Any:
+    if prefix in d:
+        return np.asarray(d[prefix])
+    keys = {k[len(prefix) + 1 :]: k for k in d if k.startswith(prefix + "/")}
+    if not keys:
+        raise FormatError(f"no {prefix!r} array and no '{prefix}/<key>' arrays")
+    return {k: np.asarray(d[full]) for k, full in keys.items()}
+
+
+def _rows(obs: Any, sl: slice | np.ndarray) -> Any:
+    if isinstance(obs, dict):
+        return {k: v[sl] for k, v in obs.items()}
+    return obs[sl]
+
+
+def d4rl_segments(d: Mapping[str, np.ndarray], frame_stack: int = 1) -> list[Segment]:
+    """Cut a D4RL-style dict into whole episodes (see the module docstring)."""
+    missing = [k for k in REQUIRED if k not in d]
+    if missing:
+        raise FormatError(f"missing array(s) {missing}; a D4RL dict has {', '.join(REQUIRED)}")
+    obs = _split_obs(d, "observations")
+    nxt = _split_obs(d, "next_observations")
+    actions = np.asarray(d["actions"])
+    rewards = np.asarray(d["rewards"], np.float32).reshape(-1)
+    terminals = np.asarray(d["terminals"]).astype(bool).reshape(-1)
+    timeouts = np.asarray(d["timeouts"]).astype(bool).reshape(-1)
+    n = len(rewards)
+    for name, arr in (("actions", actions), ("terminals", terminals), ("timeouts", timeouts)):
+        if len(arr) != n:
+            raise FormatError(f"array {name!r} has {len(arr)} rows, 'rewards' has {n}")
+    ends = terminals | timeouts
+    if n > 1:
+        # a row whose successor does not continue from its next observation ends an episode
+        if isinstance(obs, dict):
+            cont = np.ones(n - 1, bool)
+            for k in obs:
+                a, b = nxt[k][:-1].reshape(n - 1, -1), obs[k][1:].reshape(n - 1, -1)
+                cont &= (a == b).all(axis=1)
+        else:
+            cont = (nxt[:-1].reshape(n - 1, -1) == obs[1:].reshape(n - 1, -1)).all(axis=1)
+        ends[:-1] |= ~cont
+    if n:
+        ends[-1] = True
+    stops = np.flatnonzero(ends) + 1
+    starts = np.concatenate([[0], stops[:-1]])
+    segments = []
+    for a, b in zip(starts.tolist(), stops.tolist(), strict=True):
+        o = _rows(obs, slice(a, b))
+        last_next = _rows(nxt, slice(b - 1, b))
+        if isinstance(o, dict):
+            ep_obs = {k: np.concatenate([o[k], last_next[k]]) for k in o}
+        else:
+            ep_obs = np.concatenate([o, last_next])
+        prefix = None
+        if frame_stack > 1:  # stacked Atari observations -> frames stored once
+            if isinstance(ep_obs, dict):
+                raise FormatError("frame-stacked import needs a single 'observations' array")
+            prefix = np.moveaxis(ep_obs[0, ..., : frame_stack - 1], -1, 0)
+            ep_obs = ep_obs[..., -1]
+        segments.append(
+            make_episode(ep_obs, actions[a:b], rewards[a:b], bool(terminals[b - 1]), frame_prefix=prefix)
+        )
+    return segments
+
+
+def import_d4rl(
+    src: str | os.PathLike | Mapping[str, np.ndarray],
+    dest: str | os.PathLike,
+    task_id: str,
+    provenance: Mapping[str, Any] | None = None,
+) -> Path:
+    """Import a D4RL-style .npz (or dict) for ``task_id`` into a new dataset at ``dest``."""
+    from rlu.tasks import get_task
+
+    task = get_task(task_id)
+    if isinstance(src, (str, os.PathLike)):
+        path = Path(src)
+        if path.suffix == ".npz":
+            with np.load(path, allow_pickle=False) as z:
+                data = {k: z[k] for k in z.files}
+        elif path.suffix in (".hdf5", ".h5"):
+            data = _read_hdf5(path)
+        else:
+            raise RluError(f"{path}: unknown D4RL file type; give a .npz or .hdf5 file")
+    else:
+        data = dict(src)
+    schema = Schema.for_task(task)
+    if task.domain == "rwrl" and "observations/dummy-0" in data:
+        from rlu.tasks import rwrl_observation_spec
+
+        schema = Schema.for_task(task, observation=rwrl_observation_spec(task, "easy"))
+    segments = d4rl_segments(data, frame_stack=schema.frame_stack)
+    prov = {"source": "d4rl", "file": str(src) if not isinstance(src, Mapping) else None}
+    prov.update(provenance or {})
+    with DatasetWriter(dest, schema, prov) as w:
+        for i, seg in enumerate(segments):
+            w.append(_cast(seg, schema, i))
+    return Path(dest)
+
+
+def _cast(seg: Segment, schema: Schema, index: int) -> Segment:
+    def cast(v: np.ndarray, spec: ArraySpec) -> np.ndarray:
+        return np.asarray(v).astype(spec.dtype, copy=False).reshape(len(v), *spec.shape)
+
+    if isinstance(schema.observation, ArraySpec):
+        obs = cast(seg.observation, schema.observation)
+    else:
+        spec = schema.observation
+        obs = {k: cast(v, spec[k]) if k in spec else v for k, v in seg.observation.items()}
+    action = cast(seg.action, schema.action)
+    meta = {**seg.metadata, "episode_index": index}
+    return dataclasses.replace(seg, observation=obs, action=action, metadata=meta)
+
+
+def _read_hdf5(path: Path) -> dict[str, np.ndarray]:
+    try:
+        import h5py
+    except ImportError:
+        raise RluError("reading D4RL .hdf5 files needs h5py: pip install 'rlu[dev]' or h5py") from None
+    out: dict[str, np.ndarray] = {}
+    with h5py.File(path, "r") as f:
+        def visit(name: str, obj: Any) -> None:
+            if isinstance(obj, h5py.Dataset):
+                out[name] = obj[()]
+
+        f.visititems(visit)
+    return out

@@ -1,0 +1,170 @@
+"""``rlu validate``: every check a stored dataset must pass, each problem named with its file.
+
+Checks: manifest and file sizes, sha256 of every file, schema against the task registry, step
+flags (RLDS), discounts, stored episode returns against the rewards, NaN / inf in float columns.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from rlu.data.store import Dataset, ZlibColumn, open_dataset, read_manifest, verify_checksums
+from rlu.types import RluError, observation_spec_to_json
+
+_CHUNK = 1 << 20  # steps per chunk when scanning columns
+
+
+@dataclass
+class Report:
+    path: Path
+    problems: list[str] = field(default_factory=list)
+    checked: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+    def add(self, msg: str) -> None:
+        self.problems.append(msg)
+
+
+def validate(path: str | Path, checksums: bool = True) -> Report:
+    path = Path(path)
+    report = Report(path)
+    try:
+        manifest = read_manifest(path)
+        ds = open_dataset(path)
+    except RluError as e:
+        report.add(str(e))
+        return report
+    report.checked.append("manifest and file sizes")
+    if checksums:
+        for p in verify_checksums(path, manifest):
+            report.add(f"{p}: sha256 differs from the manifest (corrupt file)")
+        report.checked.append("sha256 of every file")
+    _check_task(ds, report)
+    _check_flags(ds, report)
+    _check_returns(ds, report)
+    _check_finite(ds, report)
+    return report
+
+
+def _check_task(ds: Dataset, report: Report) -> None:
+    task_id = ds.schema.task_id
+    if not task_id:
+        return
+    from rlu.tasks import TASKS, rwrl_observation_spec
+    from rlu.data.store import Schema
+
+    task = TASKS.get(task_id)
+    if task is None:
+        report.add(f"{ds.path / 'manifest.json'}: schema.task_id {task_id!r} is not a known task")
+        return
+    allowed = [Schema.for_task(task).to_json()]
+    if task.domain == "rwrl":
+        allowed.append(Schema.for_task(task, observation=rwrl_observation_spec(task, "easy")).to_json())
+    if task.domain == "atari":  # the release's transition files store whole stacks
+        allowed.append(Schema(task.observation_spec, task.action_spec, 1, "raw", task.id).to_json())
+    mine = ds.schema.to_json()
+    keys = ("observation", "action")
+    if not any(all(_norm(mine[k]) == _norm(a[k]) for k in keys) for a in allowed):
+        report.add(
+            f"{ds.path / 'manifest.json'}: schema does not match task {task_id}: stored "
+            f"observation {observation_spec_to_json(ds.schema.observation)} / action "
+            f"{mine['action']}; the task wants {allowed[0]['observation']} / {allowed[0]['action']}"
+        )
+    report.checked.append(f"schema matches task {task_id}")
+
+
+def _norm(x):
+    if isinstance(x, dict):
+        return {k: _norm(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_norm(v) for v in x]
+    return x
+
+
+def _check_flags(ds: Dataset, report: Report) -> None:
+    first = np.asarray(ds.column("is_first"))
+    last = np.asarray(ds.column("is_last"))
+    term = np.asarray(ds.column("is_terminal"))
+    disc = np.asarray(ds.column("discount"))
+    start = np.asarray(ds.start)
+    end = start + np.asarray(ds.length) - 1
+    f = ds.path / "steps"
+    if (np.asarray(ds.length) < 1).any():
+        report.add(f"{ds.path / 'segments/length.bin'}: a segment has no steps")
+        return
+    inner_first = first.copy()
+    inner_first[start] = False
+    if inner_first.any():
+        i = int(np.flatnonzero(inner_first)[0])
+        report.add(f"{f / 'is_first.bin'}: step {i} has is_first inside a segment (only step 0 may)")
+    inner_last = last.copy()
+    inner_last[end] = False
+    if inner_last.any():
+        i = int(np.flatnonzero(inner_last)[0])
+        report.add(f"{f / 'is_last.bin'}: step {i} has is_last before its segment's end")
+    bad = term & ~last
+    if bad.any():
+        report.add(f"{f / 'is_terminal.bin'}: step {int(np.flatnonzero(bad)[0])} is terminal, not last")
+    # the transition into a terminal final step has discount 0
+    ends_terminal = term[end]
+    has_prev = np.asarray(ds.length) >= 2
+    sel = end[ends_terminal & has_prev] - 1
+    if sel.size and (disc[sel] != 0).any():
+        i = int(sel[np.flatnonzero(disc[sel] != 0)[0]])
+        report.add(f"{f / 'discount.bin'}: step {i} leads into a terminal state but has discount != 0")
+    # inside a segment, a discount of 0 must be followed by the episode's end
+    zero = np.flatnonzero(disc == 0)
+    if zero.size:
+        seg = np.searchsorted(start, zero, side="right") - 1
+        bad_zero = zero[(zero < end[seg]) & ~(term[end[seg]] & (zero + 1 == end[seg]))]
+        if bad_zero.size:
+            report.add(
+                f"{f / 'discount.bin'}: step {int(bad_zero[0])} has discount 0 but its episode goes on"
+            )
+    if ((disc < 0) | (disc > 1)).any():
+        report.add(f"{f / 'discount.bin'}: discounts outside [0, 1]")
+    report.checked.append("step flags and discounts")
+
+
+def _check_returns(ds: Dataset, report: Report) -> None:
+    stored = np.asarray(ds.metadata("episode_return"), np.float64)
+    if not ds.num_segments:
+        return
+    sums = np.add.reduceat(np.asarray(ds.column("reward"), np.float64), np.asarray(ds.start))
+    has = ~np.isnan(stored)
+    first = np.asarray(ds.column("is_first"))[ds.start]
+    last = np.asarray(ds.column("is_last"))[np.asarray(ds.start) + np.asarray(ds.length) - 1]
+    whole = has & first & last
+    tol = 1e-3 * np.maximum(1.0, np.abs(stored))
+    bad = np.flatnonzero(whole & (np.abs(sums - np.where(has, stored, 0)) > tol))
+    if bad.size:
+        i = int(bad[0])
+        report.add(
+            f"{ds.path / 'segments/meta_episode_return.bin'}: segment {i} stores return "
+            f"{stored[i]:.6g} but its rewards ({ds.path / 'steps/reward.bin'}) sum to {sums[i]:.6g}"
+        )
+    report.checked.append(f"episode returns of {int(whole.sum())} whole episodes")
+
+
+def _check_finite(ds: Dataset, report: Report) -> None:
+    specs = {**ds.schema.step_columns(), **ds.schema.frame_columns()}
+    for name, spec in specs.items():
+        if not np.issubdtype(np.dtype(spec.dtype), np.floating):
+            continue
+        col = ds.column(name)
+        if isinstance(col, ZlibColumn):
+            continue
+        for a in range(0, len(col), _CHUNK):
+            block = np.asarray(col[a : a + _CHUNK])
+            ok = np.isfinite(block)
+            if not ok.all():
+                row = a + int(np.flatnonzero(~ok.reshape(len(block), -1).all(axis=1))[0])
+                report.add(f"{ds.path / 'steps' / name}.bin: NaN or inf at step {row}")
+                break
+    report.checked.append("no NaN / inf in float columns")

@@ -1,0 +1,237 @@
+"""Vectorised views of a stored dataset: SARSA and n-step transitions, sequences, frame stacks.
+
+Every view turns an array of indices into a named batch with numpy fancy indexing; there is no
+per-step Python. Indices are *eligible start steps*, numbered per view:
+
+- transitions: every step that is not the last step of its segment (a segment of T steps holds
+  T - 1 transitions: ``(o_t, a_t, r_t, d_t, o_t+1, a_t+1)``, the paper's SARSA tuple);
+- n-step transitions: steps t whose n-step window fits in the segment, or whose segment ends in a
+  terminal state inside the window (past a terminal, rewards are 0 and the discount stays 0). A
+  window that would cross a truncated end is left out, so every sample bootstraps exactly n steps
+  ahead: the target is ``reward + gamma**n * discount * Q(next_observation, next_action)``;
+- sequences: windows of ``length`` steps starting every ``stride`` steps of a segment (at least one
+  window per segment), padded past the segment's end with zeros and ``mask`` False.
+
+Atari frames (``frame_stack > 1``) are stored once and stacked here: the observation of step t is
+frames ``t - stack + 1 .. t`` on the last axis, newest last. Frames before an episode's first step
+are zeros (stored as the segment's frame prefix, as in the Dopamine replay that recorded the data),
+so a stack never mixes two episodes.
+"""
+
+from __future__ import annotations
+
+import mmap
+from collections.abc import Iterator
+
+import numpy as np
+
+from rlu.data.store import Dataset, ZlibColumn
+from rlu.types import ArraySpec, RluError, Sequence, Transition
+
+# Raw columns above this size give their pages back after every batch so that sampling a dataset
+# larger than RAM keeps the resident memory bounded (the pages stay in the OS page cache).
+_RELEASE_BYTES = 256 << 20
+
+
+def _take(col, rows: np.ndarray) -> np.ndarray:
+    if isinstance(col, ZlibColumn):
+        return col.take(rows)
+    out = col[rows]
+    return np.asarray(out)
+
+
+def _release(col) -> None:
+    mm = getattr(col, "_mmap", None)
+    if isinstance(mm, mmap.mmap) and col.nbytes >= _RELEASE_BYTES:
+        mm.madvise(mmap.MADV_DONTNEED)
+
+
+class _Index:
+    """Maps eligible-start numbers to global steps: ``counts[s]`` starts in segment s, the k-th
+    of them at ``start[s] + k * stride``."""
+
+    def __init__(self, ds: Dataset, counts: np.ndarray, stride: int = 1):
+        self.start = np.asarray(ds.start, np.int64)
+        self.counts = counts.astype(np.int64)
+        self.cum = np.concatenate([[0], np.cumsum(self.counts)])
+        self.stride = stride
+        self.size = int(self.cum[-1])
+
+    def locate(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(segment, global step) of eligible starts ``ids``."""
+        ids = np.asarray(ids, np.int64)
+        if ids.size and (ids.min() < 0 or ids.max() >= self.size):
+            raise IndexError(f"start ids must lie in [0, {self.size})")
+        seg = np.searchsorted(self.cum, ids, side="right") - 1
+        return seg, self.start[seg] + (ids - self.cum[seg]) * self.stride
+
+
+class DatasetView:
+    """Gathers observations (stacking frames where the schema says so) for global steps."""
+
+    def __init__(self, ds: Dataset):
+        self.ds = ds
+        self.schema = ds.schema
+        self.length = np.asarray(ds.length, np.int64)
+        self.start = np.asarray(ds.start, np.int64)
+        self.last = self.start + self.length - 1
+        self.frame_start = np.asarray(ds.frame_start, np.int64)
+
+    def observation(self, seg: np.ndarray, steps: np.ndarray):
+        """Observations at global ``steps`` (any shape) lying in segments ``seg`` (same shape)."""
+        if self.schema.frame_stack > 1:
+            k = self.schema.frame_stack
+            first = self.frame_start[seg] + (steps - self.start[seg])  # frame row of step - k + 1
+            rows = first[..., None] + np.arange(k)
+            col = self.ds.column("observation")
+            frames = _take(col, rows)  # (..., k, H, W)
+            _release(col)
+            return np.moveaxis(frames, -3, -1)
+        if not isinstance(self.schema.observation, ArraySpec):
+            out = {}
+            for key in self.schema.observation:
+                col = self.ds.column(f"observation/{key}")
+                out[key] = _take(col, steps)
+                _release(col)
+            return out
+        col = self.ds.column("observation")
+        out = _take(col, steps)
+        _release(col)
+        return out
+
+    def column(self, name: str, steps: np.ndarray) -> np.ndarray:
+        return np.asarray(self.ds.column(name)[steps])
+
+
+# --- SARSA transitions ----------------------------------------------------------------------
+class TransitionView(DatasetView):
+    """The paper's SARSA tuples ``(s, a, r, discount, s', a')``, optionally n-step."""
+
+    def __init__(self, ds: Dataset, n_step: int = 1, gamma: float = 1.0):
+        super().__init__(ds)
+        if n_step < 1:
+            raise RluError(f"n_step={n_step}; use 1 or more")
+        self.n_step, self.gamma = int(n_step), float(gamma)
+        if self.n_step == 1:
+            counts = self.length - 1
+        else:
+            terminal_end = np.asarray(ds.column("is_terminal"))[self.last]
+            counts = np.where(terminal_end, self.length - 1, np.maximum(self.length - self.n_step, 0))
+        self.index = _Index(ds, np.maximum(counts, 0))
+
+    def __len__(self) -> int:
+        return self.index.size
+
+    def batch(self, ids: np.ndarray) -> Transition:
+        seg, t = self.index.locate(ids)
+        if self.n_step == 1:
+            nxt = t + 1
+            reward = self.column("reward", t)
+            discount = self.column("discount", t)
+        else:
+            n = self.n_step
+            window = t[:, None] + np.arange(n)
+            valid = window < self.last[seg][:, None]  # steps that hold a transition
+            window = np.minimum(window, self.last[seg][:, None])
+            r = np.where(valid, self.column("reward", window), 0.0)
+            d = np.where(valid, self.column("discount", window), 0.0)
+            # weight of r_{t+i}: gamma^i * prod_{j<i} d_{t+j}
+            alive = np.cumprod(np.concatenate([np.ones((len(t), 1)), d[:, :-1]], axis=1), axis=1)
+            reward = (r * alive * self.gamma ** np.arange(n)).sum(axis=1).astype(np.float32)
+            discount = np.prod(d, axis=1).astype(np.float32)
+            nxt = np.minimum(t + n, self.last[seg])
+        return Transition(
+            observation=self.observation(seg, t),
+            action=self.column("action", t),
+            reward=reward,
+            discount=discount,
+            next_observation=self.observation(seg, nxt),
+            next_action=self.column("action", nxt),
+        )
+
+    def all(self) -> Transition:
+        return self.batch(np.arange(len(self)))
+
+
+# --- sequences ------------------------------------------------------------------------------
+class SequenceView(DatasetView):
+    """Fixed-length windows with a padding mask (recurrent agents, the seq-40 tasks)."""
+
+    def __init__(self, ds: Dataset, length: int, stride: int = 1):
+        super().__init__(ds)
+        if length < 1 or stride < 1:
+            raise RluError(f"sequence length={length}, stride={stride}; both must be >= 1")
+        self.seq_length, self.stride = int(length), int(stride)
+        # windows start at step 0, stride, 2*stride ... up to the last step that holds a
+        # transition (a one-step segment still gives one window)
+        counts = (np.maximum(self.length - 2, 0) // stride) + 1
+        self.index = _Index(ds, counts, stride)
+
+    def __len__(self) -> int:
+        return self.index.size
+
+    def batch(self, ids: np.ndarray) -> Sequence:
+        seg, t = self.index.locate(ids)
+        steps = t[:, None] + np.arange(self.seq_length)
+        mask = steps <= self.last[seg][:, None]
+        steps = np.minimum(steps, self.last[seg][:, None])
+        segs = np.broadcast_to(seg[:, None], steps.shape)
+
+        def padded(x: np.ndarray) -> np.ndarray:
+            m = mask.reshape(mask.shape + (1,) * (x.ndim - 2))
+            return np.where(m, x, np.zeros((), x.dtype))
+
+        obs = self.observation(segs, steps)
+        obs = {k: padded(v) for k, v in obs.items()} if isinstance(obs, dict) else padded(obs)
+        return Sequence(
+            observation=obs,
+            action=padded(self.column("action", steps)),
+            reward=padded(self.column("reward", steps)),
+            discount=padded(self.column("discount", steps)),
+            is_first=padded(self.column("is_first", steps)),
+            is_last=padded(self.column("is_last", steps)),
+            mask=mask,
+        )
+
+
+# --- samplers -------------------------------------------------------------------------------
+class Sampler:
+    """Uniform random minibatches from a view, with an explicit seeded generator."""
+
+    def __init__(self, view: TransitionView | SequenceView, batch_size: int, seed: int = 0):
+        if len(view) == 0:
+            raise RluError(f"{view.ds.path}: the dataset has no {type(view).__name__} samples")
+        self.view, self.batch_size = view, int(batch_size)
+        self.rng = np.random.default_rng(seed)
+
+    def sample(self):
+        return self.view.batch(self.rng.integers(0, len(self.view), size=self.batch_size))
+
+    def __iter__(self) -> Iterator:
+        while True:
+            yield self.sample()
+
+    def epoch(self, shuffle: bool = True, drop_last: bool = False) -> Iterator:
+        """Every sample once, in batches (a permutation drawn from this sampler's generator)."""
+        order = self.rng.permutation(len(self.view)) if shuffle else np.arange(len(self.view))
+        stop = len(order) - (len(order) % self.batch_size if drop_last else 0)
+        for i in range(0, stop, self.batch_size):
+            yield self.view.batch(order[i : i + self.batch_size])
+
+    def get_state(self) -> dict:
+        return {"bit_generator": self.rng.bit_generator.state}
+
+    def set_state(self, state: dict) -> None:
+        self.rng.bit_generator.state = state["bit_generator"]
+
+
+def transition_sampler(
+    ds: Dataset, batch_size: int, seed: int = 0, n_step: int = 1, gamma: float = 1.0
+) -> Sampler:
+    return Sampler(TransitionView(ds, n_step, gamma), batch_size, seed)
+
+
+def sequence_sampler(
+    ds: Dataset, batch_size: int, length: int, seed: int = 0, stride: int = 1
+) -> Sampler:
+    return Sampler(SequenceView(ds, length, stride), batch_size, seed)

@@ -1,0 +1,302 @@
+"""Every view equals a slow, obviously-correct reference built step by step from the segments."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from rlu.data import DatasetWriter, Schema, Segment, SequenceView, TransitionView, open_dataset
+from rlu.types import ArraySpec, BoundedSpec, DiscreteSpec
+
+DICT_SCHEMA = Schema(
+    {"a": ArraySpec((2,), "float32"), "cam": ArraySpec((3, 3, 2), "uint8")},
+    BoundedSpec((1,), "float32"),
+)
+FRAME_SCHEMA = Schema(ArraySpec((3, 2), "uint8"), DiscreteSpec((), "int64", 4), frame_stack=4)
+
+
+@st.composite
+def segments(draw, frames: bool):
+    """Random segments: whole episodes (terminal or truncated), length-1 episodes, bare windows."""
+    n_seg = draw(st.integers(1, 5))
+    seed = draw(st.integers(0, 2**31))
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(n_seg):
+        n = draw(st.sampled_from([1, 2, 2, 3, 5, 8]))
+        kind = draw(st.sampled_from(["terminal", "truncated", "window", "window_end"]))
+        first = np.zeros(n, bool)
+        last = np.zeros(n, bool)
+        term = np.zeros(n, bool)
+        disc = np.ones(n, np.float32)
+        if kind in ("terminal", "truncated"):
+            first[0], last[-1] = True, True
+            disc[-1] = 0.0
+            if kind == "terminal":
+                term[-1] = True
+                if n >= 2:
+                    disc[-2] = 0.0
+        elif kind == "window_end":  # a release window that reaches its episode's terminal end
+            last[-1], term[-1] = True, True
+            disc[-1] = 0.0
+            if n >= 2:
+                disc[-2] = 0.0
+        reward = rng.standard_normal(n).astype(np.float32)
+        if frames:
+            obs = rng.integers(0, 256, (n, 3, 2), dtype=np.uint8)
+            action = rng.integers(0, 4, n).astype(np.int64)
+            prefix = None if first[0] else rng.integers(0, 256, (3, 3, 2), dtype=np.uint8)
+        else:
+            obs = {
+                "a": rng.standard_normal((n, 2)).astype(np.float32),
+                "cam": rng.integers(0, 256, (n, 3, 3, 2), dtype=np.uint8),
+            }
+            action = rng.uniform(-1, 1, (n, 1)).astype(np.float32)
+            prefix = None
+        out.append(Segment(obs, action, reward, disc, first, last, term, {}, prefix))
+    return out
+
+
+def write(tmp_path, segs, schema, encoding="raw"):
+    import dataclasses
+
+    schema = dataclasses.replace(schema, image_encoding=encoding)
+    path = tmp_path / f"ds_{np.random.default_rng().integers(1 << 60)}"
+    with DatasetWriter(path, schema) as w:
+        for s in segs:
+            w.append(s)
+    return open_dataset(path, verify=True)
+
+
+def obs_at(seg: Segment, t: int, stack: int):
+    """Reference observation of step t: the stored one, or the last ``stack`` frames."""
+    if stack == 1:
+        if isinstance(seg.observation, dict):
+            return {k: v[t] for k, v in seg.observation.items()}
+        return seg.observation[t]
+    prefix = seg.frame_prefix
+    if prefix is None:
+        prefix = np.zeros((stack - 1, *seg.observation.shape[1:]), np.uint8)
+    frames = np.concatenate([prefix, seg.observation])
+    return np.stack([frames[t + j] for j in range(stack)], axis=-1)
+
+
+def ref_transitions(segs, stack, n_step=1, gamma=1.0):
+    rows = []
+    for seg in segs:
+        T = len(seg)
+        for t in range(T - 1):
+            if n_step > 1 and t + n_step > T - 1 and not seg.is_terminal[-1]:
+                continue  # window would cross a truncated end: left out
+            ret, disc, k = 0.0, 1.0, 0
+            for i in range(n_step):
+                if t + i >= T - 1:
+                    disc = 0.0  # past a terminal end
+                    break
+                ret += (gamma**i) * disc * float(seg.reward[t + i])
+                disc *= float(seg.discount[t + i])
+                k = i + 1
+            nxt = min(t + n_step, T - 1) if n_step > 1 else t + 1
+            if n_step == 1:
+                ret, disc = float(seg.reward[t]), float(seg.discount[t])
+            rows.append((obs_at(seg, t, stack), seg.action[t], ret, disc, obs_at(seg, nxt, stack),
+                         seg.action[nxt]))
+            del k
+    return rows
+
+
+def assert_obs_equal(got, want):
+    if isinstance(want, dict):
+        assert set(got) == set(want)
+        for k in want:
+            np.testing.assert_array_equal(got[k], want[k])
+    else:
+        np.testing.assert_array_equal(got, want)
+
+
+def pick(obs, i):
+    return {k: v[i] for k, v in obs.items()} if isinstance(obs, dict) else obs[i]
+
+
+FAST = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+
+
+@FAST
+@given(segs=segments(frames=False), encoding=st.sampled_from(["raw", "zlib"]))
+def test_transitions_equal_reference(tmp_path, segs, encoding):
+    ds = write(tmp_path, segs, DICT_SCHEMA, encoding)
+    view = TransitionView(ds)
+    ref = ref_transitions(segs, 1)
+    assert len(view) == len(ref) == sum(len(s) - 1 for s in segs)
+    if not ref:
+        return
+    b = view.all()
+    for i, (o, a, r, d, o2, a2) in enumerate(ref):
+        assert_obs_equal(pick(b.observation, i), o)
+        np.testing.assert_array_equal(b.action[i], a)
+        assert b.reward[i] == np.float32(r) and b.discount[i] == np.float32(d)
+        assert_obs_equal(pick(b.next_observation, i), o2)
+        np.testing.assert_array_equal(b.next_action[i], a2)
+
+
+@FAST
+@given(
+    segs=segments(frames=False),
+    n_step=st.integers(2, 4),
+    gamma=st.sampled_from([1.0, 0.9]),
+)
+def test_nstep_equal_reference(tmp_path, segs, n_step, gamma):
+    ds = write(tmp_path, segs, DICT_SCHEMA)
+    view = TransitionView(ds, n_step=n_step, gamma=gamma)
+    ref = ref_transitions(segs, 1, n_step, gamma)
+    assert len(view) == len(ref)
+    if not ref:
+        return
+    b = view.all()
+    for i, (o, a, r, d, o2, a2) in enumerate(ref):
+        assert_obs_equal(pick(b.observation, i), o)
+        np.testing.assert_allclose(b.reward[i], r, rtol=1e-5, atol=1e-6)
+        assert b.discount[i] == np.float32(d)
+        assert_obs_equal(pick(b.next_observation, i), o2)
+        np.testing.assert_array_equal(b.next_action[i], a2)
+
+
+@FAST
+@given(segs=segments(frames=True), encoding=st.sampled_from(["raw", "zlib"]))
+def test_frame_stacks_equal_reference(tmp_path, segs, encoding):
+    ds = write(tmp_path, segs, FRAME_SCHEMA, encoding)
+    view = TransitionView(ds)
+    ref = ref_transitions(segs, 4)
+    assert len(view) == len(ref)
+    if not ref:
+        return
+    b = view.all()
+    assert b.observation.shape[1:] == (3, 2, 4)
+    for i, (o, a, r, d, o2, a2) in enumerate(ref):
+        np.testing.assert_array_equal(b.observation[i], o)
+        np.testing.assert_array_equal(b.next_observation[i], o2)
+        assert b.action[i] == a and b.next_action[i] == a2
+
+
+def test_frame_stack_at_episode_start_is_zero_padded(tmp_path):
+    frames = np.arange(1, 4, dtype=np.uint8)[:, None, None] * np.ones((3, 3, 2), np.uint8)
+    seg = Segment(
+        frames,
+        np.zeros(3, np.int64),
+        np.zeros(3, np.float32),
+        np.array([1, 1, 0], np.float32),
+        np.array([1, 0, 0], bool),
+        np.array([0, 0, 1], bool),
+        np.zeros(3, bool),
+    )
+    ds = write(tmp_path, [seg], FRAME_SCHEMA)
+    b = TransitionView(ds).all()
+    # step 0: three zero frames then frame 1, newest last
+    assert b.observation[0, 0, 0].tolist() == [0, 0, 0, 1]
+    assert b.next_observation[1, 0, 0].tolist() == [0, 1, 2, 3]
+
+
+@FAST
+@given(
+    segs=segments(frames=False),
+    length=st.integers(1, 6),
+    stride=st.integers(1, 3),
+)
+def test_sequences_equal_reference(tmp_path, segs, length, stride):
+    ds = write(tmp_path, segs, DICT_SCHEMA)
+    view = SequenceView(ds, length, stride)
+    ref = []
+    for seg in segs:
+        T = len(seg)
+        starts = list(range(0, max(T - 1, 1), stride))
+        for t in starts:
+            ref.append((seg, t))
+    assert len(view) == len(ref)
+    b = view.batch(np.arange(len(view)))
+    for i, (seg, t) in enumerate(ref):
+        for j in range(length):
+            real = t + j < len(seg)
+            assert b.mask[i, j] == real
+            if real:
+                np.testing.assert_array_equal(b.observation["a"][i, j], seg.observation["a"][t + j])
+                np.testing.assert_array_equal(
+                    b.observation["cam"][i, j], seg.observation["cam"][t + j]
+                )
+                assert b.reward[i, j] == seg.reward[t + j]
+                assert b.is_last[i, j] == seg.is_last[t + j]
+            else:
+                assert b.reward[i, j] == 0 and not b.observation["cam"][i, j].any()
+
+
+@FAST
+@given(segs=segments(frames=True), length=st.integers(1, 5))
+def test_sequence_frame_stacks(tmp_path, segs, length):
+    ds = write(tmp_path, segs, FRAME_SCHEMA, "zlib")
+    view = SequenceView(ds, length)
+    b = view.batch(np.arange(len(view)))
+    i = 0
+    for seg in segs:
+        for t in range(0, max(len(seg) - 1, 1)):
+            for j in range(length):
+                if t + j < len(seg):
+                    np.testing.assert_array_equal(b.observation[i, j], obs_at(seg, t + j, 4))
+            i += 1
+
+
+def test_two_step_window_is_one_transition(tmp_path):
+    """A release seq2 window (no episode boundary) gives exactly the loader's SARSA tuple."""
+    obs = {"a": np.array([[1, 2], [3, 4]], np.float32), "cam": np.zeros((2, 3, 3, 2), np.uint8)}
+    seg = Segment(
+        obs,
+        np.array([[0.5], [-0.5]], np.float32),
+        np.array([0.25, 0.75], np.float32),
+        np.array([1.0, 1.0], np.float32),
+        np.zeros(2, bool),
+        np.zeros(2, bool),
+        np.zeros(2, bool),
+    )
+    b = TransitionView(write(tmp_path, [seg], DICT_SCHEMA)).all()
+    assert b.reward.tolist() == [0.25] and b.discount.tolist() == [1.0]
+    assert b.action.tolist() == [[0.5]] and b.next_action.tolist() == [[-0.5]]
+    assert b.next_observation["a"].tolist() == [[3, 4]]
+
+
+def test_sampler_is_seeded_and_epoch_covers_everything(tmp_path):
+    from rlu.data import Sampler
+    from rlu.data.synthetic import random_episodes
+
+    segs = list(random_episodes(DICT_SCHEMA, 6, 7, seed=3, vary_length=True))
+    ds = write(tmp_path, segs, DICT_SCHEMA)
+    view = TransitionView(ds)
+    a = Sampler(view, 5, seed=1).sample()
+    b = Sampler(view, 5, seed=1).sample()
+    c = Sampler(view, 5, seed=2).sample()
+    np.testing.assert_array_equal(a.reward, b.reward)
+    assert not np.array_equal(a.reward, c.reward)
+    seen = np.concatenate([x.reward for x in Sampler(view, 4, seed=0).epoch()])
+    np.testing.assert_array_equal(np.sort(seen), np.sort(view.all().reward))
+    s = Sampler(view, 5, seed=9)
+    state = s.get_state()
+    first = s.sample().reward
+    s.set_state(state)
+    np.testing.assert_array_equal(s.sample().reward, first)
+
+
+def test_empty_view_raises_clear_error(tmp_path):
+    from rlu.data import Sampler
+    from rlu.types import RluError
+
+    seg = Segment(
+        {"a": np.zeros((1, 2), np.float32), "cam": np.zeros((1, 3, 3, 2), np.uint8)},
+        np.zeros((1, 1), np.float32),
+        np.zeros(1, np.float32),
+        np.zeros(1, np.float32),
+        np.ones(1, bool),
+        np.ones(1, bool),
+        np.zeros(1, bool),
+    )
+    ds = write(tmp_path, [seg], DICT_SCHEMA)
+    with pytest.raises(RluError, match="no TransitionView samples"):
+        Sampler(TransitionView(ds), 4)
