@@ -188,7 +188,7 @@ class BCQAgent:
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True) -> np.ndarray:
         n, reps = self.nets, self.config.num_samples
-        g = torch.Generator().manual_seed(self.seed) if greedy else self.generator
+        g = torch.Generator().manual_seed(0) if greedy else self.generator
         obs = nets.to_torch(observation)
         sv = n.vae_enc(obs).repeat_interleave(reps, 0)
         sa = n.actor_enc(obs).repeat_interleave(reps, 0)

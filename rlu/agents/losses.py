@@ -19,13 +19,14 @@ def n_step_return(rewards: torch.Tensor, discounts: torch.Tensor, gamma: float):
     ``rlu.types.Transition`` (the data layer builds these; the agent adds gamma^n).
     """
     n = rewards.shape[-1]
-    alive = torch.cumprod(torch.cat([torch.ones_like(discounts[..., :1]), discounts[..., :-1]], -1), -1)
+    before = torch.cat([torch.ones_like(discounts[..., :1]), discounts[..., :-1]], -1)
+    alive = torch.cumprod(before, -1)  # prod_{j<k} d_j
     powers = gamma ** torch.arange(n, dtype=rewards.dtype)
     return (rewards * alive * powers).sum(-1), discounts.prod(-1)
 
 
 def bootstrap_values(reward, discount, gamma: float, n_step: int, next_values):
-    """r + gamma^n d v for every value (atom or sample) v of the next state: (B,), (B, N) -> (B, N)."""
+    """r + gamma^n d v for every value v (atom or sample) of the next state: (B, N) -> (B, N)."""
     return reward[:, None] + (gamma**n_step) * discount[:, None] * next_values
 
 
@@ -56,13 +57,16 @@ def gaussian_log_prob(mean, std, x):
 
 
 def mixture_log_prob(logits, mean, std, action):
-    """log sum_k softmax(logits)_k N(action; mean_k, std_k): (B,K), (B,K,A), (B,K,A), (B,A) -> (B,)."""
+    """log sum_k softmax(logits)_k N(action; mean_k, std_k).
+
+    Shapes (B, K), (B, K, A), (B, K, A), (B, A) -> (B,).
+    """
     comp = gaussian_log_prob(mean, std, action.unsqueeze(-2))
     return torch.logsumexp(F.log_softmax(logits, -1) + comp, -1)
 
 
 def vae_loss(recon, action, mean, std, kl_weight: float = 0.5):
-    """BCQ's VAE loss (Fujimoto et al. 2019): MSE reconstruction + 0.5 * KL(N(mean, std) || N(0, 1))."""
+    """BCQ's VAE loss (Fujimoto et al. 2019): MSE + 0.5 KL(N(mean, std) || N(0, 1))."""
     recon_loss = F.mse_loss(recon, action)
     kl = -0.5 * (1 + torch.log(std.pow(2)) - mean.pow(2) - std.pow(2)).mean()
     return recon_loss + kl_weight * kl, {"vae/recon_loss": recon_loss, "vae/kl": kl}
@@ -105,9 +109,10 @@ def mpo_e_step(q_values: torch.Tensor, temperature: torch.Tensor, epsilon: float
     q = q_values.detach()
     weights = torch.softmax(q / temperature, 0).detach()
     n = q.shape[0]
-    dual = temperature * epsilon + temperature * (
-        torch.logsumexp(q / temperature, 0) - math.log(n)
-    ).mean()
+    dual = (
+        temperature * epsilon
+        + temperature * (torch.logsumexp(q / temperature, 0) - math.log(n)).mean()
+    )
     return weights, dual
 
 

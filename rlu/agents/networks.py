@@ -191,7 +191,9 @@ class Torso(nn.Module):
         super().__init__()
         self.encoder = Encoder(observation_spec, torso_hidden, torso_norm_elu)
         self.mlp = ResidualMLP(self.encoder.output_dim + extra_dim, hidden, num_layers)
-        self.lstm = nn.LSTM(hidden, lstm_hidden, num_layers=2, batch_first=True) if lstm_hidden else None
+        self.lstm = (
+            nn.LSTM(hidden, lstm_hidden, num_layers=2, batch_first=True) if lstm_hidden else None
+        )
         self.output_dim = lstm_hidden or hidden
 
     def forward(self, obs, extra: torch.Tensor | None = None, state=None, sequence: bool = False):
@@ -331,7 +333,7 @@ def agent_state(modules, optimizers, generator: torch.Generator, step: int, extr
         "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
         "generator": generator.get_state(),
         "step": int(step),
-        "extra": {k: (v.detach().clone() if torch.is_tensor(v) else v) for k, v in (extra or {}).items()},
+        "extra": dict(extra or {}),
     }
 
 
@@ -349,7 +351,6 @@ def finite_metrics(metrics: dict[str, torch.Tensor]) -> dict[str, float]:
     keys = list(metrics)
     values = torch.stack([metrics[k].detach().float().reshape(()) for k in keys]).tolist()
     return {k: float(v) for k, v in zip(keys, values, strict=True)}
-
 
 
 def map_batch(obs, fn):

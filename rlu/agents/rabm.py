@@ -108,16 +108,20 @@ GRID: dict[str, list] = {}  # the paper reports no sweep for RABM
 class GaussianPolicy(nn.Module):
     def __init__(self, observation_spec, action_dim: int, c: RABMConfig):
         super().__init__()
-        self.torso = nets.Torso(observation_spec, c.hidden_size, c.num_layers,
-                                c.lstm_hidden if c.recurrent else 0, torso_hidden=c.torso_hidden)  # fmt: skip
+        lstm = c.lstm_hidden if c.recurrent else 0
+        self.torso = nets.Torso(
+            observation_spec, c.hidden_size, c.num_layers, lstm, torso_hidden=c.torso_hidden
+        )
         self.head = nets.GaussianHead(self.torso.output_dim, action_dim)
 
 
 class Critic(nn.Module):
     def __init__(self, observation_spec, action_dim: int, c: RABMConfig):
         super().__init__()
-        self.torso = nets.Torso(observation_spec, c.hidden_size, c.num_layers,
-                                c.lstm_hidden if c.recurrent else 0, torso_hidden=c.torso_hidden)  # fmt: skip
+        lstm = c.lstm_hidden if c.recurrent else 0
+        self.torso = nets.Torso(
+            observation_spec, c.hidden_size, c.num_layers, lstm, torso_hidden=c.torso_hidden
+        )
         h = self.torso.output_dim
         self.joint = nn.Linear(h + action_dim, h)
         self.head = nets.CategoricalHead(h, c.num_atoms, c.vmin, c.vmax)
@@ -205,7 +209,8 @@ class RABMAgent:
         def feats(module, which):
             return self._features(module.torso, b, seq, valid, which)
 
-        pol_h, prior_h, crit_h = feats(self.policy, "cur"), feats(self.prior, "cur"), feats(self.critic, "cur")
+        pol_h, prior_h = feats(self.policy, "cur"), feats(self.prior, "cur")
+        crit_h = feats(self.critic, "cur")
         with torch.no_grad():
             # Critic target: the target policy's actions at s', distributions averaged over them.
             t_mean, t_std = self.target_policy.head(feats(self.target_policy, "next"))
