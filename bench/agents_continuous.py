@@ -254,9 +254,11 @@ def main() -> None:
             print(f"\n{algo.upper()}")
             for name, ups in best.items():
                 print(f"  {name:20s} {ups:8.1f} updates/s")
-            print(f"  rlu / minimal loop   {best['rlu'] / best['minimal loop']:8.2f}  (target >= 0.90)")
+            ratio = best["rlu"] / best["minimal loop"]
+            print(f"  rlu / minimal loop   {ratio:8.2f}  (target >= 0.90)")
             if "d3rlpy" in best:
-                print(f"  rlu / d3rlpy         {best['rlu'] / best['d3rlpy']:8.2f}x (target >= 1.5x)")
+                ratio = best["rlu"] / best["d3rlpy"]
+                print(f"  rlu / d3rlpy         {ratio:8.2f}x (target >= 1.5x)")
 
 
 if __name__ == "__main__":

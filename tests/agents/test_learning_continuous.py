@@ -6,8 +6,8 @@ controller with a PD balancer, plus Gaussian action noise whose scale varies by 
 "swingup")``, written with ``DatasetWriter`` and sampled through ``rlu.data.views``. Each agent
 trains for a fixed number of updates on one thread (the check must fit in ~5 minutes on 2
 shared cores; several threads on a busy machine are many times slower), then acts greedily in
-fresh environments. Bars: every agent clearly beats the uniform random policy (3x its return), BC reaches 80 % of
-the data's mean return. Run with ``-s`` to see the numbers.
+fresh environments. Bars: every agent clearly beats the uniform random policy (3x its return),
+BC reaches 80 % of the data's mean return. Run with ``-s`` to see the numbers.
 """
 
 from __future__ import annotations
