@@ -42,7 +42,7 @@ class BCConfig:
     learning_rate: float = 1e-4
     """Adam learning rate."""
     batch_size: int = 1024
-    """Transitions per update (the paper's 1024; 128 windows when recurrent)."""
+    """Transitions per update; windows per update when recurrent (the paper: 1024 and 128)."""
     recurrent: bool = False
     """Two LSTM layers after the MLP; trains on sequence windows."""
     lstm_hidden: int = 1024
@@ -54,6 +54,7 @@ class BCConfig:
 Config = BCConfig
 PRESETS = {
     "paper": BCConfig(),
+    "paper_recurrent": BCConfig(recurrent=True, batch_size=128),  # the sequence tasks
     "small": BCConfig(hidden_size=256, num_layers=2, learning_rate=1e-3, batch_size=256,
                       lstm_hidden=64, sequence_length=10),
 }  # fmt: skip

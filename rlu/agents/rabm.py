@@ -92,12 +92,13 @@ class RABMConfig:
     advantage_temperature: float = 1.0
     """Temperature of the 'exp' advantage weights."""
     batch_size: int = 1024
-    """Transitions (or windows, when recurrent) per update."""
+    """Transitions per update; windows per update when recurrent (as BC: 1024 and 128)."""
 
 
 Config = RABMConfig
 PRESETS = {
     "paper": RABMConfig(),
+    "paper_recurrent": RABMConfig(recurrent=True, batch_size=128),  # the sequence tasks
     # Minutes on a CPU: the trust region may move further, and its anchor sooner, than at
     # paper scale (where 100-step targets and eps_mean 2.5e-3 act over a million updates).
     "small": RABMConfig(hidden_size=256, num_layers=2, lstm_hidden=64, sequence_length=10,

@@ -90,8 +90,7 @@ def train(name: str, ds, updates: int, seed: int = 0, **overrides):
                        **{**SMALL_OVERRIDES.get(name, {}), **overrides})  # fmt: skip
     c = agent.config
     if agent.batch_kind == "sequence":
-        sampler = sequence_sampler(ds, c.batch_size // agent.sequence_length,
-                                   agent.sequence_length, seed=seed)  # fmt: skip
+        sampler = sequence_sampler(ds, c.batch_size, agent.sequence_length, seed=seed)
     else:
         sampler = transition_sampler(ds, c.batch_size, seed=seed, n_step=agent.n_step,
                                      gamma=getattr(c, "gamma", 1.0))  # fmt: skip
