@@ -103,7 +103,7 @@ class BCAgent:
         loss.backward()
         self.optimizer.step()
         self.step += 1
-        return nets.finite_metrics(metrics)
+        return nets.metrics_to_floats(metrics)
 
     def reset(self) -> None:
         """Forget the LSTM state between episodes (recurrent configs)."""

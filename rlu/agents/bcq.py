@@ -184,7 +184,7 @@ class BCQAgent:
 
         nets.soft_update(self.target, self.nets, c.tau)
         self.step += 1
-        return nets.finite_metrics(metrics)
+        return nets.metrics_to_floats(metrics)
 
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True) -> np.ndarray:

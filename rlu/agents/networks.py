@@ -346,7 +346,7 @@ def load_agent_state(state, modules, optimizers, generator: torch.Generator) -> 
     return int(state["step"])
 
 
-def finite_metrics(metrics: dict[str, torch.Tensor]) -> dict[str, float]:
+def metrics_to_floats(metrics: dict[str, torch.Tensor]) -> dict[str, float]:
     """One synchronisation for all metrics (``.item()`` per metric stalls once each)."""
     keys = list(metrics)
     values = torch.stack([metrics[k].detach().float().reshape(()) for k in keys]).tolist()

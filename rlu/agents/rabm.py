@@ -261,7 +261,7 @@ class RABMAgent:
         if self.step % c.target_update_period == 0:
             nets.hard_update(self.target_policy, self.policy)
             nets.hard_update(self.target_critic, self.critic)
-        return nets.finite_metrics(metrics)
+        return nets.metrics_to_floats(metrics)
 
     def reset(self) -> None:
         """Forget the LSTM state between episodes (recurrent configs)."""

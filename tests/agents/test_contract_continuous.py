@@ -87,7 +87,7 @@ def test_every_continuous_agent_is_registered_with_presets_and_grid():
 
 
 @pytest.mark.parametrize("name,kind", CASES)
-def test_update_gives_finite_metrics_and_moves_every_parameter(name, kind):
+def test_update_gives_metrics_to_floats_and_moves_every_parameter(name, kind):
     agent, spec = build(name, kind)
     assert agent.batch_kind == ("sequence" if kind == "sequence" else "transition")
     before = parameters(agent)
