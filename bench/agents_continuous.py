@@ -48,7 +48,9 @@ OBS = {
 }
 ACTION = BoundedSpec((6,), "float32", -1.0, 1.0)
 OBS_DIM, ACT_DIM = 24, 6
-BC_CONFIG = dict(hidden_size=256, num_layers=2, learning_rate=1e-3)
+BC_CONFIG = dict(  # on the paper preset: 5 mixture components, sizes as below
+    hidden_size=256, num_layers=2, learning_rate=1e-3
+)
 BCQ_CONFIG: dict = {}  # the paper preset networks (400-300, 750-750)
 
 
@@ -240,11 +242,11 @@ def main() -> None:
         for algo in args.algos:
             overrides = BC_CONFIG if algo == "bc" else BCQ_CONFIG
             contenders = {}
-            agent = make_agent(algo, OBS, ACTION, seed=0, batch_size=args.batch, **overrides)
+            agent = make_agent(algo, OBS, ACTION, "paper", 0, batch_size=args.batch, **overrides)
             contenders["rlu"] = (agent.update, batches)
             adam = nets.adam
             nets.adam = lambda params, lr: torch.optim.Adam(params, lr=lr, foreach=True)
-            slow = make_agent(algo, OBS, ACTION, seed=0, batch_size=args.batch, **overrides)
+            slow = make_agent(algo, OBS, ACTION, "paper", 0, batch_size=args.batch, **overrides)
             nets.adam = adam
             contenders["rlu, foreach Adam"] = (slow.update, batches)
             contenders["minimal loop"] = (minimal_bc if algo == "bc" else minimal_bcq)(batches)
