@@ -13,15 +13,29 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("export", help="export a stored dataset to another format")
     p.add_argument("path")
-    p.add_argument("--format", required=True, choices=["d4rl"])
-    p.add_argument("-o", "--out", required=True, help="output file (.npz for d4rl)")
+    p.add_argument("--format", required=True, choices=["d4rl", "minari"])
+    p.add_argument("-o", "--out", help="output file (.npz) for d4rl")
+    p.add_argument("--id", help="Minari dataset id NAMESPACE/NAME-vN (minari)")
+    p.add_argument(
+        "--minari-dir",
+        help="Minari datasets directory (default: $MINARI_DATASETS_PATH or ~/.minari/datasets)",
+    )
     p.set_defaults(func=_export)
 
     p = sub.add_parser("import", help="import a dataset of another format into the store")
-    p.add_argument("src", help="input file (.npz or .hdf5 for d4rl)")
-    p.add_argument("--format", required=True, choices=["d4rl"])
-    p.add_argument("--task", required=True, help="task id, e.g. control_suite/cartpole_swingup")
+    p.add_argument(
+        "src",
+        help="d4rl: .npz or .hdf5 file; d3rlpy: the .h5 of MDPDataset.dump; minari: a dataset id "
+        "or directory",
+    )
+    p.add_argument("--format", required=True, choices=["d4rl", "d3rlpy", "minari"])
+    p.add_argument(
+        "--task",
+        help="task id, e.g. control_suite/cartpole_swingup (required for d4rl and d3rlpy; "
+        "for minari the default schema comes from the dataset's spaces)",
+    )
     p.add_argument("--out", required=True, help="new dataset directory")
+    p.add_argument("--minari-dir", help="Minari datasets directory, for a dataset id (minari)")
     p.set_defaults(func=_import)
 
 
@@ -38,19 +52,44 @@ def _validate(args: argparse.Namespace) -> int:
 
 
 def _export(args: argparse.Namespace) -> int:
-    from rlu.data.d4rl import export_d4rl
     from rlu.data.store import open_dataset
+    from rlu.types import RluError
 
-    out = export_d4rl(open_dataset(args.path), args.out)
+    ds = open_dataset(args.path)
+    if args.format == "d4rl":
+        if not args.out:
+            raise RluError("--format d4rl needs -o/--out FILE.npz")
+        from rlu.data.d4rl import export_d4rl
+
+        out = export_d4rl(ds, args.out)
+    else:
+        if not args.id:
+            raise RluError("--format minari needs --id NAMESPACE/NAME-vN")
+        from rlu.data.minari import export_minari
+
+        out = export_minari(ds, args.id, root=args.minari_dir)
     print(f"wrote {out}")
     return 0
 
 
 def _import(args: argparse.Namespace) -> int:
-    from rlu.data.d4rl import import_d4rl
     from rlu.data.store import open_dataset
+    from rlu.types import RluError
 
-    dest = import_d4rl(args.src, args.out, args.task)
+    if args.format in ("d4rl", "d3rlpy") and not args.task:
+        raise RluError(f"--format {args.format} needs --task TASK (the schema to store into)")
+    if args.format == "d4rl":
+        from rlu.data.d4rl import import_d4rl
+
+        dest = import_d4rl(args.src, args.out, args.task)
+    elif args.format == "d3rlpy":
+        from rlu.data.d3rlpy_io import import_d3rlpy
+
+        dest = import_d3rlpy(args.src, args.out, args.task)
+    else:
+        from rlu.data.minari import import_minari
+
+        dest = import_minari(args.src, args.out, args.task, root=args.minari_dir)
     ds = open_dataset(dest)
     print(f"wrote {dest}: {len(ds)} episodes, {ds.num_steps} steps")
     return 0

@@ -43,7 +43,9 @@ def _run(args: argparse.Namespace) -> int:
     ds = open_dataset(path)
     print(f"1. wrote {ds.num_steps} steps in {len(ds)} synthetic episodes of {task.id} -> {path}")
     report = validate(path)
-    print(f"2. validate: {'valid' if report.ok else report.problems} ({len(report.checked)} checks)")
+    print(
+        f"2. validate: {'valid' if report.ok else report.problems} ({len(report.checked)} checks)"
+    )
     b = transition_sampler(ds, 256, seed=args.seed).sample()
     nb = transition_sampler(ds, 256, seed=args.seed, n_step=5, gamma=0.99).sample()
     sb = sequence_sampler(ds, 16, length=40, seed=args.seed).sample()

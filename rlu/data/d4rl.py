@@ -11,7 +11,9 @@ back into the same segments.
 
 Import cuts episodes at terminals and timeouts, and also wherever ``next_observations[i]`` differs
 from ``observations[i + 1]`` (files in the wild miss some timeouts); a trailing run with neither
-counts as truncated.
+counts as truncated. D4RL's own .hdf5 files (flat ``observations``, ``infos/...`` and
+``metadata/...`` groups, which are ignored) are read as they are; those without
+``next_observations`` are cut at terminals and timeouts only (see ``_segments_without_next``).
 """
 
 from __future__ import annotations
@@ -82,13 +84,8 @@ def _rows(obs: Any, sl: slice | np.ndarray) -> Any:
     return obs[sl]
 
 
-def d4rl_segments(d: Mapping[str, np.ndarray], frame_stack: int = 1) -> list[Segment]:
-    """Cut a D4RL-style dict into whole episodes (see the module docstring)."""
-    missing = [k for k in REQUIRED if k not in d]
-    if missing:
-        raise FormatError(f"missing array(s) {missing}; a D4RL dict has {', '.join(REQUIRED)}")
-    obs = _split_obs(d, "observations")
-    nxt = _split_obs(d, "next_observations")
+def _step_columns(d: Mapping[str, np.ndarray]) -> tuple[np.ndarray, ...]:
+    """actions, rewards, terminals, timeouts of a D4RL dict, checked to have one row each."""
     actions = np.asarray(d["actions"])
     rewards = np.asarray(d["rewards"], np.float32).reshape(-1)
     terminals = np.asarray(d["terminals"]).astype(bool).reshape(-1)
@@ -97,6 +94,20 @@ def d4rl_segments(d: Mapping[str, np.ndarray], frame_stack: int = 1) -> list[Seg
     for name, arr in (("actions", actions), ("terminals", terminals), ("timeouts", timeouts)):
         if len(arr) != n:
             raise FormatError(f"array {name!r} has {len(arr)} rows, 'rewards' has {n}")
+    return actions, rewards, terminals, timeouts
+
+
+def d4rl_segments(d: Mapping[str, np.ndarray], frame_stack: int = 1) -> list[Segment]:
+    """Cut a D4RL-style dict into whole episodes (see the module docstring)."""
+    missing = [k for k in REQUIRED if k not in d]
+    if missing:
+        raise FormatError(f"missing array(s) {missing}; a D4RL dict has {', '.join(REQUIRED)}")
+    obs = _split_obs(d, "observations")
+    if "next_observations" not in d and not any(k.startswith("next_observations/") for k in d):
+        return _segments_without_next(d, obs, frame_stack)
+    nxt = _split_obs(d, "next_observations")
+    actions, rewards, terminals, timeouts = _step_columns(d)
+    n = len(rewards)
     ends = terminals | timeouts
     if n > 1:
         # a row whose successor does not continue from its next observation ends an episode
@@ -127,8 +138,40 @@ def d4rl_segments(d: Mapping[str, np.ndarray], frame_stack: int = 1) -> list[Seg
             prefix = np.moveaxis(ep_obs[0, ..., : frame_stack - 1], -1, 0)
             ep_obs = ep_obs[..., -1]
         segments.append(
-            make_episode(ep_obs, actions[a:b], rewards[a:b], bool(terminals[b - 1]), frame_prefix=prefix)
+            make_episode(
+                ep_obs, actions[a:b], rewards[a:b], bool(terminals[b - 1]), frame_prefix=prefix
+            )
         )
+    return segments
+
+
+def _segments_without_next(
+    d: Mapping[str, np.ndarray], obs: Any, frame_stack: int
+) -> list[Segment]:
+    """Files without ``next_observations`` (several of D4RL's, AntMaze among them): cut at
+    terminals and timeouts only, and read as d3rlpy does: after a terminal the final observation is
+    zeros;
+    a timeout row (or a trailing run) holds the final observation, its action and reward unused."""
+    actions, rewards, terminals, timeouts = _step_columns(d)
+    n = len(rewards)
+    if frame_stack > 1:
+        raise FormatError("frame-stacked import needs 'next_observations'")
+    ends = terminals | timeouts
+    if n:
+        ends[-1] = True
+    stops = np.flatnonzero(ends) + 1
+    starts = np.concatenate([[0], stops[:-1]])
+    segments = []
+    for a, b in zip(starts.tolist(), stops.tolist(), strict=True):
+        o = _rows(obs, slice(a, b))
+        if terminals[b - 1]:
+            if isinstance(o, dict):
+                o = {k: np.concatenate([v, np.zeros_like(v[:1])]) for k, v in o.items()}
+            else:
+                o = np.concatenate([o, np.zeros_like(o[:1])])
+            segments.append(make_episode(o, actions[a:b], rewards[a:b], True))
+        else:
+            segments.append(make_episode(o, actions[a : b - 1], rewards[a : b - 1], False))
     return segments
 
 
@@ -145,8 +188,7 @@ def import_d4rl(
     if isinstance(src, (str, os.PathLike)):
         path = Path(src)
         if path.suffix == ".npz":
-            with np.load(path, allow_pickle=False) as z:
-                data = {k: z[k] for k in z.files}
+            data = _read_npz(path)
         elif path.suffix in (".hdf5", ".h5"):
             data = _read_hdf5(path)
         else:
@@ -163,8 +205,34 @@ def import_d4rl(
     prov.update(provenance or {})
     with DatasetWriter(dest, schema, prov) as w:
         for i, seg in enumerate(segments):
+            if isinstance(schema.observation, Mapping) and not isinstance(seg.observation, Mapping):
+                obs = split_flat(seg.observation, schema.observation, f"{src}: 'observations'")
+                seg = dataclasses.replace(seg, observation=obs)
             w.append(_cast(seg, schema, i))
     return Path(dest)
+
+
+def _read_npz(path: Path) -> dict[str, np.ndarray]:
+    """The arrays of an .npz file; object arrays (pickles) are refused, never unpickled."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if not hasattr(z, "files"):
+                raise FormatError(f"{path}: a single .npy array, not an .npz archive of arrays")
+            data = {}
+            for k in z.files:
+                try:
+                    data[k] = z[k]
+                except ValueError as e:
+                    raise FormatError(
+                        f"{path}: array {k!r} holds Python objects, which only a pickle can "
+                        f"load ({e}); rlu never unpickles: save it as a numeric array"
+                    ) from None
+            return data
+    except (ValueError, OSError) as e:  # np.load refuses a pickle file outright
+        raise FormatError(
+            f"{path}: not an .npz archive of numeric arrays ({e}); rlu never unpickles data: "
+            "write it with numpy.savez"
+        ) from None
 
 
 def _cast(seg: Segment, schema: Schema, index: int) -> Segment:
@@ -181,13 +249,33 @@ def _cast(seg: Segment, schema: Schema, index: int) -> Segment:
     return dataclasses.replace(seg, observation=obs, action=action, metadata=meta)
 
 
+def split_flat(obs: np.ndarray, spec: Mapping[str, Any], where: str) -> dict[str, np.ndarray]:
+    """(T, D) rows -> the task's observation dict, keys in spec order (D = sum of their sizes)."""
+    obs = np.asarray(obs)
+    sizes = [int(np.prod(s.shape, dtype=np.int64)) for s in spec.values()]
+    if obs.ndim != 2 or obs.shape[1] != sum(sizes):
+        raise FormatError(
+            f"{where}: observations of shape {obs.shape[1:]}; the task's keys "
+            f"{list(spec)} flatten to ({sum(sizes)},)"
+        )
+    parts = np.split(obs, np.cumsum(sizes)[:-1], axis=1)
+    return {k: p.reshape(len(obs), *s.shape) for (k, s), p in zip(spec.items(), parts, strict=True)}
+
+
 def _read_hdf5(path: Path) -> dict[str, np.ndarray]:
     try:
         import h5py
     except ImportError:
-        raise RluError("reading D4RL .hdf5 files needs h5py: pip install 'rlu[dev]' or h5py") from None
+        raise RluError(
+            "reading D4RL .hdf5 files needs h5py: pip install 'rlu[dev]' or h5py"
+        ) from None
     out: dict[str, np.ndarray] = {}
-    with h5py.File(path, "r") as f:
+    try:
+        f = h5py.File(path, "r")
+    except OSError as e:
+        raise FormatError(f"{path}: not an HDF5 file ({e}); give D4RL's .hdf5 or an .npz") from None
+    with f:
+
         def visit(name: str, obj: Any) -> None:
             if isinstance(obj, h5py.Dataset):
                 out[name] = obj[()]

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import mmap
 import os
 import shutil
 import zlib
@@ -217,6 +218,9 @@ class DatasetWriter:
         self.dest = Path(dest)
         self.schema = schema
         self.provenance = dict(provenance or {})
+        from rlu import __version__
+
+        self.provenance.setdefault("rlu_version", __version__)
         self.overwrite = overwrite
         if self.dest.exists() and not overwrite:
             raise RluError(
@@ -328,7 +332,9 @@ class DatasetWriter:
                     f"{(want_n, *spec.shape)} (steps first, then {spec.shape})"
                 )
             if not np.can_cast(v.dtype, spec.dtype, casting="same_kind"):
-                raise SpecError(f"column {name!r} has dtype {v.dtype}; the schema wants {spec.dtype}")
+                raise SpecError(
+                    f"column {name!r} has dtype {v.dtype}; the schema wants {spec.dtype}"
+                )
         return cols
 
     def close(self) -> Path:
@@ -359,9 +365,7 @@ class DatasetWriter:
                 "frames": self.num_frames,
                 "episodes": self.num_episodes,
             },
-            "files": {
-                str(p.relative_to(self.tmp)): files[p] for p in sorted(files, key=str)
-            },
+            "files": {str(p.relative_to(self.tmp)): files[p] for p in sorted(files, key=str)},
             "provenance": self.provenance,
         }
         with open(self.tmp / MANIFEST, "w") as fh:
@@ -396,6 +400,7 @@ class Dataset:
         self.num_steps = int(counts["steps"])
         self.num_frames = int(counts["frames"])
         self._cache: dict[str, Any] = {}
+        self._mmaps: dict[str, np.memmap] = {}
         self.start = self._segment_column("start", "int64")
         self.length = self._segment_column("length", "int64")
         self.frame_start = self._segment_column("frame_start", "int64")
@@ -429,9 +434,22 @@ class Dataset:
         if expected == 0:
             arr = np.zeros(shape, dtype)
         else:
-            arr = np.memmap(path, dtype=np.dtype(dtype).newbyteorder("<"), mode="r", shape=shape)
+            mm = np.memmap(path, dtype=np.dtype(dtype).newbyteorder("<"), mode="r", shape=shape)
+            self._mmaps[rel] = mm
+            # a plain ndarray view indexes faster than the np.memmap subclass
+            arr = mm.view(np.ndarray)
         self._cache[rel] = arr
         return arr
+
+    def release_pages(self, name: str, min_bytes: int = 256 << 20) -> None:
+        """Give the resident pages of a large raw column back to the OS page cache.
+
+        Sampling a dataset larger than RAM calls this after every batch, so the process's
+        resident memory stays bounded; the data stays cached by the OS for the next batch.
+        """
+        mm = self._mmaps.get(f"steps/{name}.bin")
+        if mm is not None and mm.nbytes >= min_bytes:
+            mm._mmap.madvise(mmap.MADV_DONTNEED)
 
     def column(self, name: str) -> Any:
         """A step (or frame) column: a read-only memmap, or a ``ZlibColumn`` for compressed images."""

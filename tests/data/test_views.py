@@ -101,8 +101,16 @@ def ref_transitions(segs, stack, n_step=1, gamma=1.0):
             nxt = min(t + n_step, T - 1) if n_step > 1 else t + 1
             if n_step == 1:
                 ret, disc = float(seg.reward[t]), float(seg.discount[t])
-            rows.append((obs_at(seg, t, stack), seg.action[t], ret, disc, obs_at(seg, nxt, stack),
-                         seg.action[nxt]))
+            rows.append(
+                (
+                    obs_at(seg, t, stack),
+                    seg.action[t],
+                    ret,
+                    disc,
+                    obs_at(seg, nxt, stack),
+                    seg.action[nxt],
+                )
+            )
             del k
     return rows
 
@@ -120,7 +128,9 @@ def pick(obs, i):
     return {k: v[i] for k, v in obs.items()} if isinstance(obs, dict) else obs[i]
 
 
-FAST = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+FAST = settings(
+    max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
 
 
 @FAST
@@ -300,3 +310,21 @@ def test_empty_view_raises_clear_error(tmp_path):
     ds = write(tmp_path, [seg], DICT_SCHEMA)
     with pytest.raises(RluError, match="no TransitionView samples"):
         Sampler(TransitionView(ds), 4)
+
+
+@settings(max_examples=60, deadline=None)
+@given(counts=st.lists(st.integers(0, 50), min_size=1, max_size=40).filter(lambda c: sum(c) > 0))
+def test_index_locate_equals_binary_search(counts):
+    """The guide-table lookup agrees with a plain binary search, zero-count and very uneven
+    segments included (the fallback path)."""
+    from rlu.data.views import _Index
+
+    class FakeDs:
+        start = np.concatenate([[0], np.cumsum(np.asarray(counts) + 1)[:-1]])
+
+    index = _Index(FakeDs, np.asarray(counts))
+    ids = np.arange(index.size)
+    seg, step = index.locate(ids)
+    want = np.searchsorted(index.cum, ids, side="right") - 1
+    np.testing.assert_array_equal(seg, want)
+    np.testing.assert_array_equal(step, FakeDs.start[want] + ids - index.cum[want])

@@ -1,0 +1,462 @@
+"""Minari datasets out of and into the store (Minari's own code writes and reads the files).
+
+Export (``export_minari``) turns every stored segment into one Minari episode through
+``minari.create_dataset_from_buffers`` / ``update_dataset_from_buffer`` (HDF5 storage, JPEG
+encoding off so that image observations stay exact):
+
+- a segment of T steps becomes T observations and T - 1 actions, rewards, terminations and
+  truncations; ``terminations[-1]`` is the segment's ``is_terminal`` end, ``truncations[-1]`` is
+  set on every other end (a time limit, or the end of a release window);
+- spaces: an array observation is a ``Box``; a dict observation is a *nested* ``Dict`` space, one
+  level per ``/`` in rlu's flat keys
+  (``walker/joints_pos`` -> ``Dict(walker=Dict(joints_pos=Box))``).
+  Minari's HDF5 storage turns a ``/`` inside a key into nested HDF5 groups anyway, so a flat
+  ``Dict`` keyed ``walker/joints_pos`` would not load back; the nested form round-trips exactly;
+  a ``BoundedSpec`` action is a ``Box(minimum, maximum)``, a ``DiscreteSpec`` a ``Discrete(n)``;
+- Atari (frames stored once, ``frame_stack`` k): Minari has no frame sharing, so each step is
+  exported stacked, ``(84, 84, k)`` uint8 with the newest frame last (frames before an episode
+  start are zeros, as rlu's views give them); import takes the newest frame of each step back and
+  the first step's older frames as the segment's frame prefix;
+- episode metadata: rlu's per-segment metadata as episode attributes ``rlu_<field>``, plus
+  ``rlu_is_first`` / ``rlu_is_last`` so that release windows (segments that are not whole
+  episodes) come back as windows; a window's last step (which starts the next, unstored,
+  transition) keeps its action, reward and discount in ``rlu_final_action`` / ``_reward`` /
+  ``_discount``.
+
+Import (``import_minari``) reads any Minari dataset (an id in ``MINARI_DATASETS_PATH`` or a
+dataset directory) with Minari's own iteration; an episode that ends with neither a termination
+nor a truncation (a recording cut short) counts as truncated. The final step of each imported
+episode holds no action or reward (rlu's step semantics). rlu's segments, windows included,
+round-trip column for column.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import shutil
+import warnings
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rlu.data.episode import METADATA_FIELDS, Segment, make_episode
+from rlu.data.store import Dataset, DatasetWriter, Schema
+from rlu.types import ArraySpec, BoundedSpec, DiscreteSpec, FormatError, RluError, SpecError
+
+CHUNK_STEPS = 1 << 16  # episodes are handed to Minari in chunks of about this many steps
+
+
+def _require_minari() -> Any:
+    try:
+        import minari
+    except ImportError as e:
+        raise RluError(
+            f"Minari interop needs minari, pillow and h5py ({e}): pip install 'rlu[dev]'"
+        ) from None
+    return minari
+
+
+# --- spaces -----------------------------------------------------------------------------------
+def _box(spec: ArraySpec) -> Any:
+    import gymnasium as gym
+
+    dtype = np.dtype(spec.dtype)
+    if isinstance(spec, BoundedSpec):
+        return gym.spaces.Box(spec.minimum, spec.maximum, spec.shape, dtype)
+    if dtype == np.uint8:
+        return gym.spaces.Box(0, 255, spec.shape, dtype)
+    if np.issubdtype(dtype, np.integer):
+        info = np.iinfo(dtype)
+        return gym.spaces.Box(info.min, info.max, spec.shape, dtype)
+    if dtype == np.bool_:
+        return gym.spaces.Box(0, 1, spec.shape, dtype)
+    return gym.spaces.Box(-np.inf, np.inf, spec.shape, dtype)
+
+
+def _nest(flat: Mapping[str, Any]) -> dict[str, Any]:
+    """``{'a/b': x, 'c': y}`` -> ``{'a': {'b': x}, 'c': y}``."""
+    out: dict[str, Any] = {}
+    for key, v in flat.items():
+        parts = key.split("/")
+        node = out
+        for p in parts[:-1]:
+            node = node.setdefault(p, {})
+            if not isinstance(node, dict):
+                raise SpecError(f"observation key {key!r} clashes with key {p!r}")
+        node[parts[-1]] = v
+    return out
+
+
+def _flatten(nested: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in nested.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, Mapping):
+            out.update(_flatten(v, key + "/"))
+        else:
+            out[key] = v
+    return out
+
+
+def spaces_for(schema: Schema) -> tuple[Any, Any]:
+    """(observation_space, action_space) of ``schema``'s episodes as exported to Minari."""
+    import gymnasium as gym
+
+    obs = schema.observation
+    if isinstance(obs, ArraySpec):
+        if schema.frame_stack > 1:
+            obs = ArraySpec((*obs.shape, schema.frame_stack), obs.dtype)
+        obs_space: Any = _box(obs)
+    else:
+
+        def to_space(node: Mapping[str, Any]) -> Any:
+            return gym.spaces.Dict(
+                {k: to_space(v) if isinstance(v, dict) else _box(v) for k, v in node.items()}
+            )
+
+        obs_space = to_space(_nest(obs))
+    act = schema.action
+    if isinstance(act, DiscreteSpec):
+        act_space: Any = gym.spaces.Discrete(act.num_values)
+    else:
+        act_space = _box(act)
+    return obs_space, act_space
+
+
+def schema_from_spaces(observation_space: Any, action_space: Any) -> Schema:
+    """A schema for a Minari dataset's spaces (Box, nested Dict of Box, Box or Discrete action)."""
+    import gymnasium as gym
+
+    def spec(space: Any, where: str) -> ArraySpec:
+        if not isinstance(space, gym.spaces.Box):
+            raise SpecError(f"{where} is a {type(space).__name__} space; rlu stores Box spaces")
+        return ArraySpec(tuple(int(x) for x in space.shape), np.dtype(space.dtype).name)
+
+    if isinstance(observation_space, gym.spaces.Dict):
+        flat = _flatten(_space_tree(observation_space))
+        obs: Any = {k: spec(s, f"observation {k!r}") for k, s in flat.items()}
+    else:
+        obs = spec(observation_space, "the observation")
+    if isinstance(action_space, gym.spaces.Discrete):
+        action: Any = DiscreteSpec((), "int64", int(action_space.n))
+    elif isinstance(action_space, gym.spaces.Box):
+        lo, hi = np.asarray(action_space.low), np.asarray(action_space.high)
+        if not (np.all(lo == lo.flat[0]) and np.all(hi == hi.flat[0])):
+            raise SpecError("the action Box has per-element bounds; rlu's BoundedSpec has one pair")
+        action = BoundedSpec(
+            tuple(int(x) for x in action_space.shape),
+            np.dtype(action_space.dtype).name,
+            float(lo.flat[0]),
+            float(hi.flat[0]),
+        )
+    else:
+        raise SpecError(f"the action space is {type(action_space).__name__}; use Box or Discrete")
+    return Schema(obs, action)
+
+
+def _space_tree(space: Any) -> dict[str, Any]:
+    import gymnasium as gym
+
+    return {
+        k: _space_tree(s) if isinstance(s, gym.spaces.Dict) else s for k, s in space.spaces.items()
+    }
+
+
+# --- export -----------------------------------------------------------------------------------
+def _stacked(frames: np.ndarray, k: int) -> np.ndarray:
+    """(k - 1 + T, *frame) -> (T, *frame, k), newest frame last."""
+    win = np.lib.stride_tricks.sliding_window_view(frames, k, axis=0)  # (T, *frame, k)
+    return np.ascontiguousarray(win)
+
+
+def episode_buffer(seg: Segment, schema: Schema) -> Any:
+    """One stored segment as a Minari ``EpisodeBuffer`` (see the module docstring)."""
+    from minari.data_collector import EpisodeBuffer
+
+    n = len(seg) - 1
+    if schema.frame_stack > 1:
+        k = schema.frame_stack
+        prefix = seg.frame_prefix
+        if prefix is None:
+            prefix = np.zeros(
+                (k - 1, *np.shape(seg.observation)[1:]), np.asarray(seg.observation).dtype
+            )
+        obs: Any = _stacked(np.concatenate([prefix, seg.observation]), k)
+    elif isinstance(seg.observation, Mapping):
+        obs = _nest({k: np.asarray(v) for k, v in seg.observation.items()})
+    else:
+        obs = np.asarray(seg.observation)
+    action = np.asarray(seg.action)[:n]
+    if isinstance(schema.action, DiscreteSpec):
+        action = action.astype(np.int64)
+    terminal = bool(seg.is_terminal[-1])
+    terminations = np.zeros(n, bool)
+    truncations = np.zeros(n, bool)
+    if n:
+        terminations[-1] = terminal
+        truncations[-1] = not terminal
+    return EpisodeBuffer(
+        observations=obs,
+        actions=action,
+        rewards=np.asarray(seg.reward, np.float32)[:n],
+        terminations=terminations,
+        truncations=truncations,
+    )
+
+
+def _episode_attrs(seg: Segment) -> dict[str, Any]:
+    attrs = {f"rlu_{k}": v for k, v in seg.metadata.items()}
+    attrs["rlu_is_first"] = bool(seg.is_first[0])
+    attrs["rlu_is_last"] = bool(seg.is_last[-1])
+    if not seg.is_last[-1]:  # a window's last step holds real data (the next transition's start)
+        attrs["rlu_final_action"] = np.asarray(seg.action[-1])
+        attrs["rlu_final_reward"] = np.float32(seg.reward[-1])
+        attrs["rlu_final_discount"] = np.float32(seg.discount[-1])
+    return attrs
+
+
+def export_minari(
+    ds: Dataset,
+    dataset_id: str,
+    root: str | os.PathLike | None = None,
+    description: str | None = None,
+    chunk_steps: int = CHUNK_STEPS,
+) -> Path:
+    """Write ``ds`` as Minari dataset ``dataset_id`` (``namespace/name-vN``); returns its directory.
+
+    ``root`` is the Minari datasets directory (default: ``MINARI_DATASETS_PATH`` or
+    ``~/.minari/datasets``). Episodes go to Minari in chunks of about ``chunk_steps`` steps. A
+    single-step segment holds no transition and Minari cannot store it: it is left out, with a
+    warning, and its index listed in the dataset metadata (``rlu_skipped_single_step_segments``).
+    On any error the half-written dataset is removed.
+    """
+    minari = _require_minari()
+    from minari.dataset.minari_dataset import parse_dataset_id
+
+    try:
+        parse_dataset_id(dataset_id)
+    except Exception as e:  # noqa: BLE001 (minari raises several types)
+        raise RluError(f"--id {dataset_id!r}: {e}; use NAMESPACE/NAME-vN") from None
+    if "-v" not in dataset_id.rsplit("/", 1)[-1]:
+        raise RluError(f"--id {dataset_id!r} has no version; use NAMESPACE/NAME-vN")
+    with _datasets_root(root), warnings.catch_warnings():
+        from minari.storage import get_dataset_path
+
+        path = Path(get_dataset_path(dataset_id))
+        if path.exists():
+            raise RluError(f"{path}: Minari dataset {dataset_id} already exists; use another --id")
+        obs_space, act_space = spaces_for(ds.schema)
+        prov = ds.manifest.get("provenance", {})
+        desc = description or (
+            f"Exported by rlu from {ds.path} (task {ds.schema.task_id}, source "
+            f"{prov.get('source', 'unknown')})."
+        )
+        skipped: list[int] = []
+        try:
+            mds = None
+            index = 0
+            warnings.filterwarnings("ignore", module="minari")  # author, permalink, env_spec unset
+            for chunk in _chunks(ds, chunk_steps, skipped):
+                buffers = [episode_buffer(s, ds.schema) for s in chunk]
+                if mds is None:
+                    mds = minari.create_dataset_from_buffers(
+                        dataset_id,
+                        buffers,
+                        observation_space=obs_space,
+                        action_space=act_space,
+                        algorithm_name="rlu export",
+                        description=desc,
+                        data_format="hdf5",
+                        jpeg_encoding=False,
+                    )
+                else:
+                    mds.update_dataset_from_buffer(buffers)
+                mds.storage.update_episode_metadata(
+                    [_episode_attrs(s) for s in chunk], range(index, index + len(chunk))
+                )
+                index += len(chunk)
+            if mds is None:
+                raise RluError(f"{ds.path}: every segment is a single step; nothing to export")
+            if skipped:
+                mds.storage.update_metadata({"rlu_skipped_single_step_segments": skipped})
+        except BaseException:
+            shutil.rmtree(path, ignore_errors=True)
+            raise
+    if skipped:
+        warnings.warn(
+            f"{len(skipped)} single-step segment(s) of {ds.path} hold no transition and were left "
+            f"out (Minari cannot store an episode without a step): {skipped[:10]}",
+            stacklevel=2,
+        )
+    return path
+
+
+def _chunks(ds: Dataset, chunk_steps: int, skipped: list[int]) -> Iterator[list[Segment]]:
+    """Segments with at least one transition, in chunks of about ``chunk_steps`` steps; the
+    indices of the others (single-step segments, which Minari cannot store) go to ``skipped``."""
+    chunk: list[Segment] = []
+    steps = 0
+    for i in range(len(ds)):
+        seg = ds.segment(i)
+        if len(seg) < 2:
+            skipped.append(i)
+            continue
+        chunk.append(seg)
+        steps += len(seg)
+        if steps >= chunk_steps:
+            yield chunk
+            chunk, steps = [], 0
+    if chunk:
+        yield chunk
+
+
+class _datasets_root:
+    """Point Minari at ``root`` for the duration of a block (it reads MINARI_DATASETS_PATH)."""
+
+    def __init__(self, root: str | os.PathLike | None):
+        self.root = None if root is None else str(Path(root).resolve())
+
+    def __enter__(self) -> None:
+        self.old = os.environ.get("MINARI_DATASETS_PATH")
+        if self.root is not None:
+            os.environ["MINARI_DATASETS_PATH"] = self.root
+
+    def __exit__(self, *exc: Any) -> None:
+        if self.root is None:
+            return
+        if self.old is None:
+            os.environ.pop("MINARI_DATASETS_PATH", None)
+        else:
+            os.environ["MINARI_DATASETS_PATH"] = self.old
+
+
+# --- import -----------------------------------------------------------------------------------
+def load_minari(id_or_path: str | os.PathLike, root: str | os.PathLike | None = None) -> Any:
+    """A ``MinariDataset`` from a dataset directory (or its ``data`` folder) or a local id."""
+    minari = _require_minari()
+    path = Path(id_or_path)
+    if path.is_dir():
+        data = path / "data" if (path / "data").is_dir() else path
+        if not (data / "metadata.json").exists():
+            raise FormatError(f"{data}: no metadata.json; not a Minari dataset directory")
+        try:
+            return minari.MinariDataset(data)
+        except (ValueError, UnicodeDecodeError) as e:  # json.JSONDecodeError is a ValueError
+            raise FormatError(
+                f"{data / 'metadata.json'}: not a Minari metadata JSON file ({e}); rlu reads only "
+                "JSON metadata and never unpickles: re-create the dataset"
+            ) from None
+    with _datasets_root(root):
+        try:
+            return minari.load_dataset(str(id_or_path))
+        except FileNotFoundError as e:
+            raise RluError(
+                f"{id_or_path}: no such directory and no local Minari dataset of that id ({e}); "
+                "give a dataset directory or set MINARI_DATASETS_PATH"
+            ) from None
+
+
+def minari_segments(mds: Any, schema: Schema) -> Iterator[Segment]:
+    """The episodes of Minari dataset ``mds`` as segments in ``schema`` (see module docstring)."""
+    indices = [int(i) for i in mds.episode_indices]
+    metas = mds.storage.get_episode_metadata(indices)
+    for ep, meta in zip(mds.iterate_episodes(indices), metas, strict=True):
+        yield _segment(ep, dict(meta), schema)
+
+
+def _segment(ep: Any, meta: Mapping[str, Any], schema: Schema) -> Segment:
+    n = len(ep.rewards)
+    where = f"Minari episode {ep.id}"
+    term = np.asarray(ep.terminations, bool).reshape(-1)
+    trunc = np.asarray(ep.truncations, bool).reshape(-1)
+    if len(term) != n or len(trunc) != n:
+        raise FormatError(
+            f"{where}: {n} rewards but {len(term)} terminations, {len(trunc)} truncations"
+        )
+    if n > 1 and (term[:-1].any() or trunc[:-1].any()):
+        raise FormatError(f"{where}: terminated or truncated before its last step")
+    terminal = bool(n and term[-1])
+    obs: Any = ep.observations
+    prefix = None
+    if isinstance(obs, Mapping):
+        obs = _flatten(obs)
+    if schema.frame_stack > 1:
+        if isinstance(obs, Mapping):
+            raise FormatError(f"{where}: dict observations for a frame-stacked task")
+        obs, prefix = _unstack(np.asarray(obs), schema.frame_stack, where)
+    meta_out: dict[str, Any] = {}
+    for k in METADATA_FIELDS:
+        if f"rlu_{k}" in meta:
+            meta_out[k] = np.asarray(meta[f"rlu_{k}"]).item()
+    if "episode_id" not in meta_out:
+        meta_out["episode_id"] = int(ep.id)
+    if "seed" not in meta_out and meta.get("seed") is not None:
+        meta_out["seed"] = int(meta["seed"])
+    seg = make_episode(
+        obs, np.asarray(ep.actions), np.asarray(ep.rewards), terminal, meta_out, prefix
+    )
+    is_first = bool(np.asarray(meta.get("rlu_is_first", True)))
+    is_last = bool(np.asarray(meta.get("rlu_is_last", True)))
+    if not (is_first and is_last):
+        flags_first = seg.is_first.copy()
+        flags_first[0] = is_first
+        flags_last = seg.is_last.copy()
+        flags_last[-1] = is_last
+        action, reward, discount = seg.action.copy(), seg.reward.copy(), seg.discount.copy()
+        if not is_last:
+            action[-1] = np.asarray(meta.get("rlu_final_action", 0)).astype(action.dtype)
+            reward[-1] = np.float32(meta.get("rlu_final_reward", 0.0))
+            discount[-1] = np.float32(meta.get("rlu_final_discount", 1.0))
+        seg = dataclasses.replace(
+            seg,
+            is_first=flags_first,
+            is_last=flags_last,
+            action=action,
+            reward=reward,
+            discount=discount,
+        )
+    return seg
+
+
+def _unstack(obs: np.ndarray, k: int, where: str) -> tuple[np.ndarray, np.ndarray]:
+    """Stacked (T, ..., k) observations -> frames (T, ...) and step 0's k - 1 older frames."""
+    if obs.shape[-1] != k:
+        raise FormatError(f"{where}: observations of shape {obs.shape[1:]}; want (..., {k}) frames")
+    frames = obs[..., -1]
+    prefix = np.moveaxis(obs[0, ..., :-1], -1, 0)
+    if not np.array_equal(_stacked(np.concatenate([prefix, frames]), k), obs):
+        raise FormatError(
+            f"{where}: consecutive stacked observations do not share frames; rlu stores each "
+            "frame once and cannot import independent stacks"
+        )
+    return frames, prefix
+
+
+def import_minari(
+    id_or_path: str | os.PathLike,
+    dest: str | os.PathLike,
+    task_id: str | None = None,
+    root: str | os.PathLike | None = None,
+) -> Path:
+    """Import a Minari dataset into a new rlu dataset at ``dest``.
+
+    With ``task_id`` the task's schema is used (observations cast to its dtypes); without, the
+    schema comes from the Minari dataset's spaces.
+    """
+    from rlu.data.d4rl import _cast
+
+    mds = load_minari(id_or_path, root)
+    if task_id is not None:
+        from rlu.tasks import get_task
+
+        schema = Schema.for_task(get_task(task_id))
+    else:
+        schema = schema_from_spaces(mds.observation_space, mds.action_space)
+    prov = {"source": "minari", "minari_id": str(mds.id), "from": str(id_or_path)}
+    with DatasetWriter(dest, schema, prov) as w:
+        for i, seg in enumerate(minari_segments(mds, schema)):
+            w.append(_cast(seg, schema, i))
+    return Path(dest)
