@@ -207,7 +207,7 @@ def d3rlpy_setup(algo: str, ds, batch: int, count: int):
             batch_size=batch,
             learning_rate=BC_CONFIG["learning_rate"],
             policy_type="stochastic",
-            encoder_factory=VectorEncoderFactory(hidden_units=[256, 256, 256]),
+            encoder_factory=VectorEncoderFactory(hidden_units=[BC_CONFIG["hidden_size"]] * 3),
         )
     else:
         config = d3rlpy.algos.BCQConfig(
@@ -231,7 +231,9 @@ def main() -> None:
     p.add_argument("--threads", type=int, default=1, help="torch intra-op threads for all")
     p.add_argument("--no-d3rlpy", action="store_true", help="skip d3rlpy (not installed)")
     p.add_argument("--algos", nargs="+", default=["bc", "bcq"])
+    p.add_argument("--bc-hidden", type=int, default=256, help="BC width (all three contenders)")
     args = p.parse_args()
+    BC_CONFIG["hidden_size"] = args.bc_hidden
     torch.set_num_threads(args.threads)
     count = args.updates + args.warmup
     print(f"torch {torch.__version__}, {args.threads} thread(s), batch {args.batch}, "

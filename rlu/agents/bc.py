@@ -61,11 +61,14 @@ PRESETS = {
 GRID: dict[str, list] = {}  # the paper reports no sweep for BC
 
 
-def bc_loss(logits, mean, std, action, weight):
-    """Weighted negative log-likelihood of the data's actions under the mixture."""
+def bc_loss(logits, mean, std, action, weight=None):
+    """Negative log-likelihood of the data's actions under the mixture (``weight``: step mask)."""
     log_prob = mixture_log_prob(logits, mean, std, action)
-    loss = -(log_prob * weight).sum() / weight.sum().clamp(min=1.0)
-    return loss, {"actor/bc_loss": loss, "actor/log_prob": -loss}
+    if weight is None:
+        loss = -log_prob.mean()
+    else:
+        loss = -(log_prob * weight).sum() / weight.sum().clamp(min=1.0)
+    return loss, {"actor/bc_loss": loss}
 
 
 class BCAgent:
@@ -93,10 +96,7 @@ class BCAgent:
         seq = isinstance(batch, Sequence)
         obs = nets.to_torch(batch.observation)
         action = self.scaler.to_unit(nets.to_torch(batch.action))
-        if seq:
-            weight = nets.to_torch(batch.mask & ~batch.is_last).float()
-        else:
-            weight = torch.ones(action.shape[0])
+        weight = nets.to_torch(batch.mask & ~batch.is_last).float() if seq else None
         h, _ = self.policy["torso"](obs, sequence=seq)
         loss, metrics = bc_loss(*self.policy["head"](h), action, weight)
         self.optimizer.zero_grad(set_to_none=True)
