@@ -58,8 +58,10 @@ class D4PGConfig:
 Config = D4PGConfig
 PRESETS = {
     "paper": D4PGConfig(),
+    # 1-step targets: n-step returns of a noisy behaviour policy are uncorrected off-policy
+    # targets, and on the small cartpole learning check n = 5 scored 21, n = 1 154.
     "small": D4PGConfig(policy_layers=(256, 256), critic_layers=(256, 256), torso_hidden=64,
-                        vmin=-100.0, vmax=100.0, n_step=3, policy_lr=3e-4, critic_lr=3e-4),
+                        vmin=-100.0, vmax=100.0, n_step=1, policy_lr=3e-4, critic_lr=3e-4),
 }  # fmt: skip
 GRID: dict[str, list] = {}  # the paper reports no sweep for D4PG
 
