@@ -1,0 +1,133 @@
+"""Behaviour cloning with a Gaussian-mixture policy (paper appendix A.1, "BC").
+
+Paper: Gulcehre et al. 2020, RL Unplugged, appendix A.1 and table 5. The policy is the shared
+torso (ResNet for cameras, residual MLP 8 x 1024, two LSTM-1024 layers for the sequence tasks)
+followed by a 5-component diagonal Gaussian mixture; it maximises the log-likelihood of the
+data's actions with Adam at 1e-4, batch 1024 (128 windows when recurrent).
+
+Deviations and choices:
+- Actions are learnt in [-1, 1] (the spec's box rescaled) and clipped into the box in ``act``.
+- The paper evaluates by sampling the mixture with every component's variance fixed to 1e-4.
+  ``act(greedy=False)`` does exactly that; ``act(greedy=True)`` returns the mean of the most
+  probable component (the zero-variance limit), which is deterministic.
+- Recurrent windows start from a zero LSTM state; the loss skips padded steps and each
+  episode's final step (its action carries no information, RLDS semantics).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from rlu.agents import networks as nets
+from rlu.agents.losses import mixture_log_prob
+from rlu.types import Sequence, Transition
+
+
+@dataclass(frozen=True)
+class BCConfig:
+    hidden_size: int = 1024
+    """Width of the residual MLP."""
+    num_layers: int = 8
+    """Layers of the residual MLP (normalised every two)."""
+    torso_hidden: int = 64
+    """Embedding size of the ResNet camera torso (table 5, ABM & BC column)."""
+    mixture_components: int = 5
+    """Gaussian components of the policy head."""
+    eval_variance: float = 1e-4
+    """Variance of every component when sampling for evaluation (``act(greedy=False)``)."""
+    learning_rate: float = 1e-4
+    """Adam learning rate."""
+    batch_size: int = 1024
+    """Transitions per update (the paper's 1024; 128 windows when recurrent)."""
+    recurrent: bool = False
+    """Two LSTM layers after the MLP; trains on sequence windows."""
+    lstm_hidden: int = 1024
+    """Hidden size of each LSTM layer."""
+    sequence_length: int = 40
+    """Window length of recurrent batches."""
+
+
+Config = BCConfig
+PRESETS = {
+    "paper": BCConfig(),
+    "small": BCConfig(hidden_size=256, num_layers=2, learning_rate=1e-3, batch_size=256,
+                      lstm_hidden=64, sequence_length=10),
+}  # fmt: skip
+GRID: dict[str, list] = {}  # the paper reports no sweep for BC
+
+
+def bc_loss(logits, mean, std, action, weight):
+    """Weighted negative log-likelihood of the data's actions under the mixture."""
+    log_prob = mixture_log_prob(logits, mean, std, action)
+    loss = -(log_prob * weight).sum() / weight.sum().clamp(min=1.0)
+    return loss, {"actor/bc_loss": loss, "actor/log_prob": -loss}
+
+
+class BCAgent:
+    def __init__(self, observation_spec, action_spec, config: BCConfig, seed: int = 0):
+        self.config = config
+        self.scaler = nets.ActionScaler(action_spec)
+        self.batch_kind = "sequence" if config.recurrent else "transition"
+        self.n_step = 1
+        self.sequence_length = config.sequence_length
+        self.generator = torch.Generator().manual_seed(seed)
+        with nets.seeded_init(seed):
+            torso = nets.Torso(
+                observation_spec, config.hidden_size, config.num_layers,
+                lstm_hidden=config.lstm_hidden if config.recurrent else 0,
+                torso_hidden=config.torso_hidden,
+            )  # fmt: skip
+            head = nets.MixtureHead(torso.output_dim, self.scaler.dim, config.mixture_components)
+            self.policy = nn.ModuleDict({"torso": torso, "head": head})
+        self.optimizer = nets.adam(self.policy.parameters(), config.learning_rate)
+        self.modules = {"policy": self.policy}
+        self.step = 0
+        self._rollout_state = None
+
+    def update(self, batch: Transition | Sequence) -> dict[str, float]:
+        seq = isinstance(batch, Sequence)
+        obs = nets.to_torch(batch.observation)
+        action = self.scaler.to_unit(nets.to_torch(batch.action))
+        if seq:
+            weight = nets.to_torch(batch.mask & ~batch.is_last).float()
+        else:
+            weight = torch.ones(action.shape[0])
+        h, _ = self.policy["torso"](obs, sequence=seq)
+        loss, metrics = bc_loss(*self.policy["head"](h), action, weight)
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
+        self.step += 1
+        return nets.finite_metrics(metrics)
+
+    def reset(self) -> None:
+        """Forget the LSTM state between episodes (recurrent configs)."""
+        self._rollout_state = None
+
+    @torch.inference_mode()
+    def act(self, observation, greedy: bool = True) -> np.ndarray:
+        h, state = self.policy["torso"](nets.to_torch(observation), state=self._rollout_state)
+        self._rollout_state = state
+        logits, mean, std = self.policy["head"](h)
+        if greedy:
+            action = nets.mixture_mode(logits, mean)
+        else:
+            sd = self.config.eval_variance**0.5
+            action = nets.mixture_sample(logits, mean, std, self.generator, std_override=sd)
+        return self.scaler.from_unit(action)
+
+    def state_dict(self) -> dict:
+        return nets.agent_state(self.modules, {"policy": self.optimizer}, self.generator, self.step)
+
+    def load_state_dict(self, state: dict) -> None:
+        self.step = nets.load_agent_state(
+            state, self.modules, {"policy": self.optimizer}, self.generator
+        )
+        self._rollout_state = None
+
+
+Agent = BCAgent

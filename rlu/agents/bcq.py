@@ -1,0 +1,208 @@
+"""Continuous BCQ (Fujimoto, Meger and Precup 2019; paper appendix A.1, "BCQ").
+
+The paper uses "the exact same network architecture and algorithm" as the original
+(github.com/sfujim/BCQ, ``continuous_BCQ/BCQ.py``): a conditional VAE of the behaviour policy
+(encoder and decoder 750-750, latent 2 x action dims, decoder latents clipped to [-0.5, 0.5]),
+a perturbation network (400-300) that moves each VAE action by at most phi = 0.05, twin
+critics (400-300) with the soft clipped double-Q target lambda min + (1 - lambda) max,
+lambda = 0.75, the target maximising over 10 sampled actions, Polyak targets tau = 0.005, Adam
+1e-3 everywhere; batch 1024 (the paper's batch, not the original's 100).
+
+Choices: dict observations go through ``networks.Encoder`` (each network its own, so camera
+images get one ResNet per network); actions live in [-1, 1]. ``act(greedy=True)`` scores
+``num_samples`` perturbed VAE actions with Q1 and returns the best (as the original's
+``select_action``) using a generator reseeded on every call, so it is a deterministic function of
+the observation; ``greedy=False`` draws from the agent's own generator.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from rlu.agents import networks as nets
+from rlu.agents.losses import vae_loss
+from rlu.types import Transition
+
+
+@dataclass(frozen=True)
+class BCQConfig:
+    actor_layers: tuple[int, ...] = (400, 300)
+    """Perturbation network hidden sizes."""
+    critic_layers: tuple[int, ...] = (400, 300)
+    """Hidden sizes of each of the twin critics."""
+    vae_layers: tuple[int, ...] = (750, 750)
+    """Hidden sizes of the VAE encoder and of its decoder."""
+    torso_hidden: int = 64
+    """Camera ResNet embedding size."""
+    phi: float = 0.05
+    """Largest perturbation, in units of the action range's half-width."""
+    lmbda: float = 0.75
+    """Weight of the min in the soft clipped double-Q target."""
+    num_samples: int = 10
+    """VAE actions sampled per next state (target) and per state (acting)."""
+    gamma: float = 0.99
+    """Discount."""
+    tau: float = 0.005
+    """Polyak rate of the target networks, every update."""
+    actor_lr: float = 1e-3
+    """Adam learning rate of the perturbation network."""
+    critic_lr: float = 1e-3
+    """Adam learning rate of the critics."""
+    vae_lr: float = 1e-3
+    """Adam learning rate of the VAE."""
+    batch_size: int = 1024
+    """Transitions per update."""
+
+
+Config = BCQConfig
+PRESETS = {
+    "paper": BCQConfig(),
+    "small": BCQConfig(actor_layers=(256, 256), critic_layers=(256, 256),
+                       vae_layers=(256, 256), batch_size=256),
+}  # fmt: skip
+GRID: dict[str, list] = {}  # the paper reports no sweep for continuous BCQ
+
+
+class VAE(nn.Module):
+    def __init__(self, feature_dim: int, action_dim: int, layers: tuple[int, ...]):
+        super().__init__()
+        self.latent_dim = 2 * action_dim
+        self.encoder = nets.mlp(feature_dim + action_dim, layers, 2 * self.latent_dim)
+        self.decoder = nets.mlp(feature_dim + self.latent_dim, layers, action_dim)
+
+    def forward(self, s: torch.Tensor, a: torch.Tensor, generator: torch.Generator):
+        mean, log_std = self.encoder(torch.cat([s, a], -1)).chunk(2, -1)
+        std = log_std.clamp(-4, 15).exp()
+        z = mean + std * torch.randn(std.shape, generator=generator)
+        return self.decode(s, z=z), mean, std
+
+    def decode(self, s, generator: torch.Generator | None = None, z=None) -> torch.Tensor:
+        if z is None:
+            z = torch.randn((s.shape[0], self.latent_dim), generator=generator).clamp(-0.5, 0.5)
+        return torch.tanh(self.decoder(torch.cat([s, z], -1)))
+
+
+class BCQNets(nn.Module):
+    """Encoders plus the three networks; one module so targets copy it whole."""
+
+    def __init__(self, observation_spec, action_dim: int, c: BCQConfig):
+        super().__init__()
+        self.actor_enc = nets.Encoder(observation_spec, c.torso_hidden)
+        self.critic_enc = nets.Encoder(observation_spec, c.torso_hidden)
+        self.vae_enc = nets.Encoder(observation_spec, c.torso_hidden)
+        f = self.actor_enc.output_dim
+        self.actor = nets.mlp(f + action_dim, c.actor_layers, action_dim)
+        self.q1 = nets.mlp(f + action_dim, c.critic_layers, 1)
+        self.q2 = nets.mlp(f + action_dim, c.critic_layers, 1)
+        self.vae = VAE(f, action_dim, c.vae_layers)
+
+    def perturb(self, s: torch.Tensor, a: torch.Tensor, phi: float) -> torch.Tensor:
+        return (a + phi * torch.tanh(self.actor(torch.cat([s, a], -1)))).clamp(-1.0, 1.0)
+
+    def q(self, s: torch.Tensor, a: torch.Tensor):
+        sa = torch.cat([s, a], -1)
+        return self.q1(sa).squeeze(-1), self.q2(sa).squeeze(-1)
+
+
+def clipped_double_q(q1: torch.Tensor, q2: torch.Tensor, lmbda: float) -> torch.Tensor:
+    """BCQ's soft clipped double-Q: lambda min(q1, q2) + (1 - lambda) max(q1, q2)."""
+    return lmbda * torch.minimum(q1, q2) + (1.0 - lmbda) * torch.maximum(q1, q2)
+
+
+def critic_loss(q1, q2, target):
+    loss = (q1 - target).pow(2).mean() + (q2 - target).pow(2).mean()
+    return loss, {"critic/loss": loss, "critic/q_mean": q1.mean()}
+
+
+class BCQAgent:
+    batch_kind = "transition"
+    n_step = 1
+    sequence_length = 1
+
+    def __init__(self, observation_spec, action_spec, config: BCQConfig, seed: int = 0):
+        self.config, self.seed = config, seed
+        self.scaler = nets.ActionScaler(action_spec)
+        self.generator = torch.Generator().manual_seed(seed)
+        with nets.seeded_init(seed):
+            self.nets = BCQNets(observation_spec, self.scaler.dim, config)
+        self.target = nets.frozen_copy(self.nets)
+        n = self.nets
+        self.actor_params = [*n.actor_enc.parameters(), *n.actor.parameters()]
+        self.critic_params = [*n.critic_enc.parameters(), *n.q1.parameters(), *n.q2.parameters()]
+        self.vae_params = [*n.vae_enc.parameters(), *n.vae.parameters()]
+        self.optimizers = {
+            "actor": nets.adam(self.actor_params, config.actor_lr),
+            "critic": nets.adam(self.critic_params, config.critic_lr),
+            "vae": nets.adam(self.vae_params, config.vae_lr),
+        }
+        self.modules = {"nets": self.nets, "target": self.target}
+        self.step = 0
+
+    def update(self, batch: Transition) -> dict[str, float]:
+        c, n, t, g = self.config, self.nets, self.target, self.generator
+        obs, next_obs = nets.to_torch(batch.observation), nets.to_torch(batch.next_observation)
+        action = self.scaler.to_unit(nets.to_torch(batch.action))
+        reward, discount = nets.to_torch(batch.reward), nets.to_torch(batch.discount)
+        batch_size = action.shape[0]
+
+        s_vae = n.vae_enc(obs)
+        recon, mean, std = n.vae(s_vae, action, g)
+        loss_v, metrics = vae_loss(recon, action, mean, std)
+        self.optimizers["vae"].zero_grad(set_to_none=True)
+        loss_v.backward()
+        self.optimizers["vae"].step()
+
+        with torch.no_grad():
+            reps = c.num_samples
+            sv = n.vae_enc(next_obs).repeat_interleave(reps, 0)  # the online VAE, as the original
+            sa = t.actor_enc(next_obs).repeat_interleave(reps, 0)
+            sc = t.critic_enc(next_obs).repeat_interleave(reps, 0)
+            next_a = t.perturb(sa, n.vae.decode(sv, g), c.phi)
+            q1_t, q2_t = t.q(sc, next_a)
+            q_t = clipped_double_q(q1_t, q2_t, c.lmbda).reshape(batch_size, reps).amax(1)
+            target_q = reward + c.gamma * discount * q_t
+        s_c = n.critic_enc(obs)
+        loss_c, m = critic_loss(*n.q(s_c, action), target_q)
+        metrics.update(m)
+        self.optimizers["critic"].zero_grad(set_to_none=True)
+        loss_c.backward()
+        self.optimizers["critic"].step()
+
+        with torch.no_grad():
+            sampled = n.vae.decode(s_vae.detach(), g)
+        perturbed = n.perturb(n.actor_enc(obs), sampled, c.phi)
+        loss_a = -n.q(n.critic_enc(obs), perturbed)[0].mean()
+        metrics["actor/loss"] = loss_a
+        self.optimizers["actor"].zero_grad(set_to_none=True)
+        loss_a.backward(inputs=self.actor_params)
+        self.optimizers["actor"].step()
+
+        nets.soft_update(self.target, self.nets, c.tau)
+        self.step += 1
+        return nets.finite_metrics(metrics)
+
+    @torch.inference_mode()
+    def act(self, observation, greedy: bool = True) -> np.ndarray:
+        n, reps = self.nets, self.config.num_samples
+        g = torch.Generator().manual_seed(0) if greedy else self.generator
+        obs = nets.to_torch(observation)
+        sv = n.vae_enc(obs).repeat_interleave(reps, 0)
+        sa = n.actor_enc(obs).repeat_interleave(reps, 0)
+        sc = n.critic_enc(obs).repeat_interleave(reps, 0)
+        a = n.perturb(sa, n.vae.decode(sv, g), self.config.phi)
+        q1 = n.q(sc, a)[0].reshape(-1, reps)
+        best = q1.argmax(1) + torch.arange(q1.shape[0]) * reps
+        return self.scaler.from_unit(a[best])
+
+    def state_dict(self) -> dict:
+        return nets.agent_state(self.modules, self.optimizers, self.generator, self.step)
+
+    def load_state_dict(self, state: dict) -> None:
+        self.step = nets.load_agent_state(state, self.modules, self.optimizers, self.generator)
+
+
+Agent = BCQAgent

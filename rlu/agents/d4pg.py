@@ -1,0 +1,173 @@
+"""D4PG run offline (Barth-Maron et al. 2018; paper appendix A.1, "D4PG").
+
+The paper uses Acme's D4PG "following their network architectures and hyper-parameters":
+policy LayerNormMLP(256, 256, 256) -> linear -> tanh, critic on [observation, action]
+LayerNormMLP(512, 512, 256) -> 51 logits over returns in [-150, 150], n-step returns (Acme's
+default n = 5), discount 0.99, hard target updates every 100 learner steps, Adam 1e-4 for both,
+batch 256. Camera images go through the ResNet torso with 512 ReLU units (table 5).
+
+Batches are n-step Transitions from the data layer: ``reward`` is the gamma-discounted n-step
+sum (``gamma`` below is the gamma it must use), ``discount`` the product of per-step discounts;
+the agent bootstraps with gamma^n * discount.
+
+Deviations: offline, so no exploration noise; the policy gradient is taken through the mean of
+the critic's distribution (Acme does the same).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from rlu.agents import networks as nets
+from rlu.agents.losses import bootstrap_values, categorical_cross_entropy, categorical_projection
+from rlu.types import Transition
+
+
+@dataclass(frozen=True)
+class D4PGConfig:
+    policy_layers: tuple[int, ...] = (256, 256, 256)
+    """Acme's policy LayerNormMLP sizes."""
+    critic_layers: tuple[int, ...] = (512, 512, 256)
+    """Acme's critic LayerNormMLP sizes."""
+    torso_hidden: int = 512
+    """Camera ResNet embedding size (table 5, D4PG column: 512, ReLU)."""
+    num_atoms: int = 51
+    """Atoms of the categorical critic."""
+    vmin: float = -150.0
+    """Lowest atom."""
+    vmax: float = 150.0
+    """Highest atom."""
+    gamma: float = 0.99
+    """Per-step discount; the data layer's n-step reward must be discounted with this gamma."""
+    n_step: int = 5
+    """Steps of the n-step return."""
+    target_update_period: int = 100
+    """Learner steps between hard copies into the target networks."""
+    policy_lr: float = 1e-4
+    """Adam learning rate of the policy."""
+    critic_lr: float = 1e-4
+    """Adam learning rate of the critic."""
+    batch_size: int = 256
+    """Transitions per update."""
+
+
+Config = D4PGConfig
+PRESETS = {
+    "paper": D4PGConfig(),
+    "small": D4PGConfig(policy_layers=(256, 256), critic_layers=(256, 256), torso_hidden=64,
+                        vmin=-100.0, vmax=100.0, n_step=3, policy_lr=3e-4, critic_lr=3e-4),
+}  # fmt: skip
+GRID: dict[str, list] = {}  # the paper reports no sweep for D4PG
+
+
+class Policy(nn.Module):
+    def __init__(self, observation_spec, action_dim: int, config: D4PGConfig):
+        super().__init__()
+        self.encoder = nets.Encoder(observation_spec, config.torso_hidden, torso_norm_elu=False)
+        self.mlp = nets.layer_norm_mlp(self.encoder.output_dim, config.policy_layers)
+        self.out = nn.Linear(config.policy_layers[-1], action_dim)
+        with torch.no_grad():  # Acme's NearZeroInitializedLinear
+            self.out.weight.mul_(1e-4)
+            self.out.bias.zero_()
+
+    def forward(self, obs) -> torch.Tensor:
+        return torch.tanh(self.out(self.mlp(self.encoder(obs))))
+
+
+class Critic(nn.Module):
+    def __init__(self, observation_spec, action_dim: int, config: D4PGConfig):
+        super().__init__()
+        self.encoder = nets.Encoder(observation_spec, config.torso_hidden, torso_norm_elu=False)
+        self.mlp = nets.layer_norm_mlp(self.encoder.output_dim + action_dim, config.critic_layers)
+        self.head = nets.CategoricalHead(
+            config.critic_layers[-1], config.num_atoms, config.vmin, config.vmax
+        )
+
+    def forward(self, obs, action: torch.Tensor) -> torch.Tensor:
+        return self.head(self.mlp(torch.cat([self.encoder(obs), action], -1)))
+
+
+def critic_loss(logits, target_logits, reward, discount, atoms, gamma: float, n_step: int):
+    """Cross-entropy to the projected n-step distributional target."""
+    values = bootstrap_values(reward, discount, gamma, n_step, atoms.expand(reward.shape[0], -1))
+    target = categorical_projection(values, torch.softmax(target_logits, -1), atoms).detach()
+    loss = categorical_cross_entropy(logits, target).mean()
+    q = (torch.softmax(logits, -1) * atoms).sum(-1).mean()
+    return loss, {"critic/loss": loss, "critic/q_mean": q}
+
+
+def policy_loss(q_logits, atoms):
+    """Deterministic policy gradient through the critic's mean: -E[Q(s, pi(s))]."""
+    q = (torch.softmax(q_logits, -1) * atoms).sum(-1)
+    loss = -q.mean()
+    return loss, {"actor/loss": loss}
+
+
+class D4PGAgent:
+    batch_kind = "transition"
+    sequence_length = 1
+
+    def __init__(self, observation_spec, action_spec, config: D4PGConfig, seed: int = 0):
+        self.config = config
+        self.scaler = nets.ActionScaler(action_spec)
+        self.n_step = config.n_step
+        self.generator = torch.Generator().manual_seed(seed)
+        with nets.seeded_init(seed):
+            self.policy = Policy(observation_spec, self.scaler.dim, config)
+            self.critic = Critic(observation_spec, self.scaler.dim, config)
+        self.target_policy = nets.frozen_copy(self.policy)
+        self.target_critic = nets.frozen_copy(self.critic)
+        self.optimizers = {
+            "policy": nets.adam(self.policy.parameters(), config.policy_lr),
+            "critic": nets.adam(self.critic.parameters(), config.critic_lr),
+        }
+        self.modules = {
+            "policy": self.policy, "critic": self.critic,
+            "target_policy": self.target_policy, "target_critic": self.target_critic,
+        }  # fmt: skip
+        self.step = 0
+
+    def update(self, batch: Transition) -> dict[str, float]:
+        c = self.config
+        obs, next_obs = nets.to_torch(batch.observation), nets.to_torch(batch.next_observation)
+        action = self.scaler.to_unit(nets.to_torch(batch.action))
+        reward, discount = nets.to_torch(batch.reward), nets.to_torch(batch.discount)
+        atoms = self.critic.head.atoms
+        with torch.no_grad():
+            target_logits = self.target_critic(next_obs, self.target_policy(next_obs))
+        loss_c, metrics = critic_loss(
+            self.critic(obs, action), target_logits, reward, discount, atoms, c.gamma, c.n_step
+        )
+        self.optimizers["critic"].zero_grad(set_to_none=True)
+        loss_c.backward()
+        self.optimizers["critic"].step()
+
+        loss_p, m = policy_loss(self.critic(obs, self.policy(obs)), atoms)
+        self.optimizers["policy"].zero_grad(set_to_none=True)
+        loss_p.backward(inputs=list(self.policy.parameters()))
+        self.optimizers["policy"].step()
+        metrics.update(m)
+
+        self.step += 1
+        if self.step % c.target_update_period == 0:
+            nets.hard_update(self.target_policy, self.policy)
+            nets.hard_update(self.target_critic, self.critic)
+        return nets.finite_metrics(metrics)
+
+    @torch.inference_mode()
+    def act(self, observation, greedy: bool = True) -> np.ndarray:
+        # Deterministic policy: greedy or not, the action is pi(s) (offline, no exploration).
+        return self.scaler.from_unit(self.policy(nets.to_torch(observation)))
+
+    def state_dict(self) -> dict:
+        return nets.agent_state(self.modules, self.optimizers, self.generator, self.step)
+
+    def load_state_dict(self, state: dict) -> None:
+        self.step = nets.load_agent_state(state, self.modules, self.optimizers, self.generator)
+
+
+Agent = D4PGAgent

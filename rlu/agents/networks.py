@@ -1,0 +1,360 @@
+"""Shared network pieces and plumbing of the continuous agents (paper appendix A.1).
+
+- ``Encoder``: dict observation -> one feature vector. Float entries are flattened and
+  concatenated in **sorted-key order** (so the layout does not depend on the order a spec or a
+  file happened to list its keys); every uint8 rank-3 entry (a camera image, HWC) goes through
+  its own ``ResNetTorso`` and the embeddings are concatenated after the features.
+- ``ResNetTorso``: IMPALA-style residual stacks, blocks (2, 2, 2), channels (16, 32, 32),
+  3x3 convolutions, stride-2 downsampling, then a linear layer (512 units for D4PG with ReLU,
+  64 for ABM / BC with instance norm + ELU: appendix table 5).
+- ``ResidualMLP``: the paper's 8 x 1024 MLP with residual connections and a normalisation after
+  every two layers. The paper's "instance normalisation" of a feature vector normalises each
+  example over its features, which is ``nn.LayerNorm``; that is what we use.
+- ``Torso``: Encoder -> ResidualMLP -> optional 2-layer LSTM (the sequence tasks).
+- ``MixtureHead``: 5-component diagonal Gaussian mixture policy (evaluation variance 1e-4);
+  ``GaussianHead`` the single Gaussian of RABM; ``CategoricalHead`` the distributional critic.
+
+Everything random goes through a ``torch.Generator`` owned by the agent; parameters are
+initialised inside ``torch.random.fork_rng`` seeded from the agent's seed, so building or
+training an agent never touches (or depends on) the global RNG.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator, Mapping
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from rlu.types import ArraySpec, BoundedSpec, ObservationSpec, SpecError
+
+
+def is_image(spec: ArraySpec) -> bool:
+    return np.dtype(spec.dtype) == np.uint8 and len(spec.shape) == 3
+
+
+def _as_dict(spec: ObservationSpec) -> dict[str, ArraySpec]:
+    if isinstance(spec, ArraySpec):
+        return {"": spec}
+    return dict(spec)
+
+
+@contextlib.contextmanager
+def seeded_init(seed: int) -> Iterator[None]:
+    """Build modules under a private copy of the global RNG seeded with ``seed``."""
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        yield
+
+
+class ResNetTorso(nn.Module):
+    """IMPALA-style ResNet for HWC uint8 images (appendix table 5)."""
+
+    def __init__(
+        self,
+        image_shape: tuple[int, ...],
+        channels: tuple[int, ...] = (16, 32, 32),
+        blocks: tuple[int, ...] = (2, 2, 2),
+        hidden: int = 64,
+        norm_elu: bool = True,
+    ):
+        super().__init__()
+        h, w, c = image_shape
+        act: type[nn.Module] = nn.ELU if norm_elu else nn.ReLU
+        layers: list[nn.Module] = []
+        for ch, nb in zip(channels, blocks, strict=True):
+            layers += [nn.Conv2d(c, ch, 3, padding=1), nn.MaxPool2d(3, stride=2, padding=1)]
+            layers += [_ResBlock(ch, act) for _ in range(nb)]
+            c = ch
+            h, w = (h + 1) // 2, (w + 1) // 2
+        layers += [act(), nn.Flatten(), nn.Linear(c * h * w, hidden)]
+        if norm_elu:
+            layers.append(nn.LayerNorm(hidden))
+        layers.append(act())
+        self.net = nn.Sequential(*layers)
+        self.output_dim = hidden
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        x = image.permute(0, 3, 1, 2).float() * (1.0 / 255.0)
+        return self.net(x)
+
+
+class _ResBlock(nn.Module):
+    def __init__(self, channels: int, act: type[nn.Module]):
+        super().__init__()
+        self.net = nn.Sequential(
+            act(), nn.Conv2d(channels, channels, 3, padding=1),
+            act(), nn.Conv2d(channels, channels, 3, padding=1),
+        )  # fmt: skip
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x + self.net(x)
+
+
+class Encoder(nn.Module):
+    """Dict observation -> feature vector; features in sorted-key order, then image embeddings."""
+
+    def __init__(
+        self,
+        observation_spec: ObservationSpec,
+        torso_hidden: int = 64,
+        torso_norm_elu: bool = True,
+        channels: tuple[int, ...] = (16, 32, 32),
+        blocks: tuple[int, ...] = (2, 2, 2),
+    ):
+        super().__init__()
+        specs = _as_dict(observation_spec)
+        self.feature_keys = sorted(k for k, s in specs.items() if not is_image(s))
+        self.image_keys = sorted(k for k, s in specs.items() if is_image(s))
+        self.feature_shapes = {k: specs[k].shape for k in self.feature_keys}
+        self.torsos = nn.ModuleList(
+            ResNetTorso(specs[k].shape, channels, blocks, torso_hidden, torso_norm_elu)
+            for k in self.image_keys
+        )
+        self.output_dim = sum(specs[k].size for k in self.feature_keys) + sum(
+            t.output_dim for t in self.torsos
+        )
+        if self.output_dim == 0:
+            raise SpecError("observation spec has no entries; pass at least one ArraySpec")
+
+    def forward(self, obs: Mapping[str, torch.Tensor] | torch.Tensor, batch_dims: int = 1):
+        if not isinstance(obs, Mapping):
+            obs = {"": obs}
+        first = obs[(self.feature_keys or self.image_keys)[0]]
+        lead = first.shape[:batch_dims]
+        parts = [obs[k].reshape(*lead, -1).float() for k in self.feature_keys]
+        for key, torso in zip(self.image_keys, self.torsos, strict=True):
+            img = obs[key]
+            parts.append(torso(img.reshape(-1, *img.shape[batch_dims:])).reshape(*lead, -1))
+        return parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1)
+
+
+class ResidualMLP(nn.Module):
+    """Linear projection, then ``num_layers // 2`` blocks h <- norm(h + W2 act(W1 act(h)))."""
+
+    def __init__(self, input_dim: int, hidden: int = 1024, num_layers: int = 8):
+        super().__init__()
+        if num_layers < 2 or num_layers % 2:
+            raise ValueError(f"ResidualMLP num_layers must be even and >= 2, got {num_layers}")
+        self.inp = nn.Linear(input_dim, hidden)
+        self.blocks = nn.ModuleList(
+            nn.Sequential(nn.ELU(), nn.Linear(hidden, hidden), nn.ELU(), nn.Linear(hidden, hidden))
+            for _ in range(num_layers // 2)
+        )
+        self.norms = nn.ModuleList(nn.LayerNorm(hidden) for _ in range(num_layers // 2))
+        self.output_dim = hidden
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        h = self.inp(x)
+        for block, norm in zip(self.blocks, self.norms, strict=True):
+            h = norm(h + block(h))
+        return F.elu(h)
+
+
+def layer_norm_mlp(input_dim: int, sizes: tuple[int, ...], activate_final: bool = True):
+    """Acme's LayerNormMLP: Linear -> LayerNorm -> tanh, then Linear -> ELU layers."""
+    layers: list[nn.Module] = [nn.Linear(input_dim, sizes[0]), nn.LayerNorm(sizes[0]), nn.Tanh()]
+    for i, size in enumerate(sizes[1:]):
+        layers.append(nn.Linear(sizes[i], size))
+        if activate_final or i < len(sizes) - 2:
+            layers.append(nn.ELU())
+    return nn.Sequential(*layers)
+
+
+def mlp(input_dim: int, sizes: tuple[int, ...], output_dim: int) -> nn.Sequential:
+    """Plain ReLU MLP (the BCQ and BRAC papers' networks)."""
+    layers: list[nn.Module] = []
+    for size in sizes:
+        layers += [nn.Linear(input_dim, size), nn.ReLU()]
+        input_dim = size
+    layers.append(nn.Linear(input_dim, output_dim))
+    return nn.Sequential(*layers)
+
+
+class Torso(nn.Module):
+    """Encoder -> ResidualMLP -> optional two-layer LSTM; ``extra_dim`` joins the MLP input."""
+
+    def __init__(
+        self,
+        observation_spec: ObservationSpec,
+        hidden: int,
+        num_layers: int,
+        lstm_hidden: int = 0,
+        extra_dim: int = 0,
+        torso_hidden: int = 64,
+        torso_norm_elu: bool = True,
+    ):
+        super().__init__()
+        self.encoder = Encoder(observation_spec, torso_hidden, torso_norm_elu)
+        self.mlp = ResidualMLP(self.encoder.output_dim + extra_dim, hidden, num_layers)
+        self.lstm = (
+            nn.LSTM(hidden, lstm_hidden, num_layers=2, batch_first=True) if lstm_hidden else None
+        )
+        self.output_dim = lstm_hidden or hidden
+
+    def forward(self, obs, extra: torch.Tensor | None = None, state=None, sequence: bool = False):
+        """(B, ...) -> (B, H), or with ``sequence`` (B, T, ...) -> (B, T, H) and the LSTM state."""
+        h = self.encoder(obs, batch_dims=2 if sequence else 1)
+        if extra is not None:
+            h = torch.cat([h, extra], dim=-1)
+        h = self.mlp(h)
+        if self.lstm is None:
+            return h, None
+        if not sequence:  # one step of a rollout: (B, H) -> (B, 1, H)
+            out, state = self.lstm(h.unsqueeze(1), state)
+            return out.squeeze(1), state
+        return self.lstm(h, state)
+
+
+class MixtureHead(nn.Module):
+    """Mixture of ``components`` diagonal Gaussians over the unit-scaled action."""
+
+    def __init__(self, input_dim: int, action_dim: int, components: int = 5, min_std=1e-3):
+        super().__init__()
+        self.k, self.a, self.min_std = components, action_dim, min_std
+        self.linear = nn.Linear(input_dim, components * (1 + 2 * action_dim))
+
+    def forward(self, h: torch.Tensor):
+        out = self.linear(h)
+        logits = out[..., : self.k]
+        rest = out[..., self.k :].reshape(*out.shape[:-1], self.k, 2, self.a)
+        mean, std = rest[..., 0, :], F.softplus(rest[..., 1, :]) + self.min_std
+        return logits, mean, std
+
+
+class GaussianHead(nn.Module):
+    """One diagonal Gaussian (RABM's prior and policy: MPO's update is built for Gaussians)."""
+
+    def __init__(self, input_dim: int, action_dim: int, min_std: float = 1e-3):
+        super().__init__()
+        self.linear = nn.Linear(input_dim, 2 * action_dim)
+        self.min_std = min_std
+
+    def forward(self, h: torch.Tensor):
+        mean, raw = self.linear(h).chunk(2, dim=-1)
+        return mean, F.softplus(raw) + self.min_std
+
+
+class CategoricalHead(nn.Module):
+    """Logits over ``num_atoms`` evenly spaced returns in [vmin, vmax] (C51 / D4PG)."""
+
+    def __init__(self, input_dim: int, num_atoms: int, vmin: float, vmax: float):
+        super().__init__()
+        self.linear = nn.Linear(input_dim, num_atoms)
+        self.register_buffer("atoms", torch.linspace(vmin, vmax, num_atoms))
+
+    def forward(self, h: torch.Tensor) -> torch.Tensor:
+        return self.linear(h)
+
+    def mean(self, logits: torch.Tensor) -> torch.Tensor:
+        return (torch.softmax(logits, -1) * self.atoms).sum(-1)
+
+
+def mixture_sample(logits, mean, std, generator: torch.Generator, std_override=None):
+    """One action per row: a component drawn by weight, then Gaussian noise."""
+    flat = torch.softmax(logits, -1).reshape(-1, logits.shape[-1])
+    idx = torch.multinomial(flat, 1, generator=generator).reshape(*logits.shape[:-1], 1, 1)
+    idx = idx.expand(*mean.shape[:-2], 1, mean.shape[-1])
+    mu, sd = mean.gather(-2, idx).squeeze(-2), std.gather(-2, idx).squeeze(-2)
+    if std_override is not None:
+        sd = torch.full_like(sd, std_override)
+    return mu + sd * torch.randn(mu.shape, generator=generator)
+
+
+def mixture_mode(logits, mean):
+    """The mean of the most probable component: the paper's evaluation policy as variance -> 0."""
+    idx = logits.argmax(-1)[..., None, None].expand(*mean.shape[:-2], 1, mean.shape[-1])
+    return mean.gather(-2, idx).squeeze(-2)
+
+
+class ActionScaler:
+    """Maps the spec's [minimum, maximum] box to [-1, 1] and back; agents learn in [-1, 1]."""
+
+    def __init__(self, spec: BoundedSpec):
+        if not isinstance(spec, BoundedSpec):
+            raise SpecError(f"continuous agents need a BoundedSpec action spec, got {spec!r}")
+        self.lo, self.hi, self.dim = float(spec.minimum), float(spec.maximum), spec.size
+        self.shape, self.dtype = spec.shape, spec.dtype
+
+    def to_unit(self, a: torch.Tensor) -> torch.Tensor:
+        a = a.reshape(*a.shape[: a.dim() - len(self.shape)], self.dim).float()
+        return (2.0 * (a - self.lo) / (self.hi - self.lo) - 1.0).clamp(-1.0, 1.0)
+
+    def from_unit(self, a: torch.Tensor) -> np.ndarray:
+        a = (a.clamp(-1.0, 1.0) + 1.0) * 0.5 * (self.hi - self.lo) + self.lo
+        a = a.clamp(self.lo, self.hi)  # float rounding can step just outside the box
+        return a.reshape(*a.shape[:-1], *self.shape).numpy().astype(self.dtype)
+
+
+def to_torch(x: Any) -> Any:
+    """numpy (or dict / tuple of numpy) -> torch without copying where the dtype allows."""
+    if isinstance(x, Mapping):
+        return {k: to_torch(v) for k, v in x.items()}
+    a = np.asarray(x)
+    if a.dtype == np.float64:
+        a = a.astype(np.float32)
+    if a.dtype == np.bool_:
+        return torch.from_numpy(a.copy())
+    return torch.as_tensor(a)
+
+
+def adam(params, lr: float) -> torch.optim.Adam:
+    # fused CPU Adam: one kernel per step instead of one per tensor (measured in the bench).
+    return torch.optim.Adam(params, lr=lr, fused=True)
+
+
+def hard_update(target: nn.Module, source: nn.Module) -> None:
+    with torch.no_grad():
+        for t, s in zip(target.parameters(), source.parameters(), strict=True):
+            t.copy_(s)
+
+
+def soft_update(target: nn.Module, source: nn.Module, tau: float) -> None:
+    with torch.no_grad():
+        torch._foreach_lerp_(list(target.parameters()), list(source.parameters()), tau)
+
+
+def frozen_copy(module: nn.Module) -> nn.Module:
+    import copy
+
+    target = copy.deepcopy(module)
+    target.requires_grad_(False)
+    return target
+
+
+def agent_state(modules, optimizers, generator: torch.Generator, step: int, extra=None):
+    """Everything an agent needs to resume: plain tensors, dicts and numbers only."""
+    return {
+        "modules": {k: m.state_dict() for k, m in modules.items()},
+        "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
+        "generator": generator.get_state(),
+        "step": int(step),
+        "extra": dict(extra or {}),
+    }
+
+
+def load_agent_state(state, modules, optimizers, generator: torch.Generator) -> int:
+    for k, m in modules.items():
+        m.load_state_dict(state["modules"][k])
+    for k, o in optimizers.items():
+        o.load_state_dict(state["optimizers"][k])
+    generator.set_state(state["generator"])
+    return int(state["step"])
+
+
+def finite_metrics(metrics: dict[str, torch.Tensor]) -> dict[str, float]:
+    """One synchronisation for all metrics (``.item()`` per metric stalls once each)."""
+    keys = list(metrics)
+    values = torch.stack([metrics[k].detach().float().reshape(()) for k in keys]).tolist()
+    return {k: float(v) for k, v in zip(keys, values, strict=True)}
+
+
+def map_batch(obs, fn):
+    """Apply ``fn`` to the tensor or to every tensor of a dict observation."""
+    if isinstance(obs, Mapping):
+        return {k: fn(v) for k, v in obs.items()}
+    return fn(obs)

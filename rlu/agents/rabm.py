@@ -1,0 +1,303 @@
+"""RABM: distributional, optionally recurrent ABM (Siegel et al. 2020; paper appendix A.1).
+
+ABM ("Keep doing what worked") learns a prior pi_prior by advantage-weighted behaviour cloning,
+weights f(A) = 1[A >= 0] with A(s, a) = Q(s, a) - E_{a'~pi} Q(s, a'), then improves the policy
+MPO-style (Abdolmaleki et al. 2018) inside a trust region around the prior:
+
+- E-step: N actions a_i ~ pi_prior(s); weights q_i = softmax_i(Q(s, a_i) / eta), with the
+  temperature eta trained on the dual g(eta) = eta eps + eta mean_s log mean_i exp(Q / eta);
+- M-step: maximise sum_i q_i log pi(a_i | s) under decoupled KL limits (mean eps_mean, std eps_std)
+  to the target policy, with Lagrange multipliers trained on their duals.
+
+The "R" of the paper: a categorical distributional critic (21 atoms on [0, 100], table 5) trained
+on the policy's own actions with target networks copied every 100 updates, and optional
+recurrence (two LSTM-1024 layers after the residual MLP). Prior, policy and critic use BC's
+torso (ResNet for cameras, residual MLP 8 x 1024); prior and policy end in one diagonal Gaussian
+(MPO's M-step is built for Gaussians). Adam 1e-4 for prior, policy and critic; MPO's dual
+variables use Adam 1e-2 and Acme's MPO defaults (eps 0.1, eps_mean 2.5e-3, eps_std 1e-6,
+20 samples).
+
+Deviations: the critic concatenates the action after the observation torso (one torso pass
+serves all N sampled actions; with recurrence the LSTM then never sees sampled actions) where
+the paper concatenates it before the MLP. Recurrent windows start from a zero state and train
+on every real transition t -> t+1 inside the window (1-step targets).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from rlu.agents import networks as nets
+from rlu.agents.losses import (
+    abm_weights,
+    bootstrap_values,
+    categorical_cross_entropy,
+    categorical_projection,
+    gaussian_kl,
+    gaussian_log_prob,
+    mpo_e_step,
+)
+from rlu.types import Sequence, Transition
+
+
+@dataclass(frozen=True)
+class RABMConfig:
+    hidden_size: int = 1024
+    """Width of the residual MLPs."""
+    num_layers: int = 8
+    """Layers of the residual MLPs."""
+    torso_hidden: int = 64
+    """Camera ResNet embedding size (table 5, ABM & BC column)."""
+    recurrent: bool = False
+    """Two LSTM layers after each MLP; trains on sequence windows."""
+    lstm_hidden: int = 1024
+    """Hidden size of each LSTM layer."""
+    sequence_length: int = 40
+    """Window length of recurrent batches."""
+    num_atoms: int = 21
+    """Atoms of the categorical critic."""
+    vmin: float = 0.0
+    """Lowest atom."""
+    vmax: float = 100.0
+    """Highest atom."""
+    gamma: float = 0.99
+    """Discount (of the n-step reward too)."""
+    n_step: int = 1
+    """Steps of the return the data layer sums (transition batches only)."""
+    target_update_period: int = 100
+    """Learner steps between hard copies into the target policy and critic."""
+    prior_lr: float = 1e-4
+    """Adam learning rate of the ABM prior."""
+    policy_lr: float = 1e-4
+    """Adam learning rate of the policy."""
+    critic_lr: float = 1e-4
+    """Adam learning rate of the critic."""
+    dual_lr: float = 1e-2
+    """Adam learning rate of MPO's temperature and KL multipliers."""
+    num_samples: int = 20
+    """Actions sampled per state for the E-step, the advantage baseline and the critic target."""
+    epsilon: float = 0.1
+    """KL bound of the E-step (temperature dual)."""
+    epsilon_mean: float = 2.5e-3
+    """KL bound on the policy mean's move per update."""
+    epsilon_std: float = 1e-6
+    """KL bound on the policy standard deviation's move per update."""
+    advantage_weights: str = "binary"
+    """ABM prior weights: 'binary' (1[A >= 0], ABM+) or 'exp' (exp(A / advantage_temperature))."""
+    advantage_temperature: float = 1.0
+    """Temperature of the 'exp' advantage weights."""
+    batch_size: int = 1024
+    """Transitions (or windows, when recurrent) per update."""
+
+
+Config = RABMConfig
+PRESETS = {
+    "paper": RABMConfig(),
+    "small": RABMConfig(hidden_size=256, num_layers=2, lstm_hidden=64, sequence_length=10,
+                        prior_lr=1e-3, policy_lr=1e-3, critic_lr=1e-3, batch_size=256,
+                        target_update_period=100),
+}  # fmt: skip
+GRID: dict[str, list] = {}  # the paper reports no sweep for RABM
+
+
+class GaussianPolicy(nn.Module):
+    def __init__(self, observation_spec, action_dim: int, c: RABMConfig):
+        super().__init__()
+        lstm = c.lstm_hidden if c.recurrent else 0
+        self.torso = nets.Torso(
+            observation_spec, c.hidden_size, c.num_layers, lstm, torso_hidden=c.torso_hidden
+        )
+        self.head = nets.GaussianHead(self.torso.output_dim, action_dim)
+
+
+class Critic(nn.Module):
+    def __init__(self, observation_spec, action_dim: int, c: RABMConfig):
+        super().__init__()
+        lstm = c.lstm_hidden if c.recurrent else 0
+        self.torso = nets.Torso(
+            observation_spec, c.hidden_size, c.num_layers, lstm, torso_hidden=c.torso_hidden
+        )
+        h = self.torso.output_dim
+        self.joint = nn.Linear(h + action_dim, h)
+        self.head = nets.CategoricalHead(h, c.num_atoms, c.vmin, c.vmax)
+
+    def logits(self, features: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """(M, H) features with (M, A) or (N, M, A) actions -> logits (..., atoms)."""
+        f = features.expand(*action.shape[:-1], features.shape[-1])
+        return self.head(F.elu(self.joint(torch.cat([f, action], -1))))
+
+
+def prior_loss(log_prob, advantage, kind: str, temperature: float):
+    """ABM: advantage-weighted log-likelihood of the data's actions under the prior."""
+    w = abm_weights(advantage.detach(), kind, temperature)
+    loss = -(w * log_prob).mean()
+    return loss, {"prior/loss": loss, "prior/weight_mean": w.mean()}
+
+
+def mpo_m_step(weights, samples, mean, std, target_mean, target_std, duals, c: RABMConfig):
+    """Decoupled MPO M-step: weighted ML of the prior's samples plus KL trust regions."""
+    logp_mean = gaussian_log_prob(mean, target_std, samples)  # (N, M): mean moves, std fixed
+    logp_std = gaussian_log_prob(target_mean, std, samples)
+    loss_fit = -(weights * (logp_mean + logp_std)).sum(0).mean()
+    kl_mean = gaussian_kl(target_mean, target_std, mean, target_std).mean()
+    kl_std = gaussian_kl(target_mean, target_std, target_mean, std).mean()
+    alpha_mean = F.softplus(duals["log_alpha_mean"]) + 1e-8
+    alpha_std = F.softplus(duals["log_alpha_std"]) + 1e-8
+    loss_kl = alpha_mean.detach() * kl_mean + alpha_std.detach() * kl_std
+    loss_alpha = alpha_mean * (c.epsilon_mean - kl_mean.detach()) + alpha_std * (
+        c.epsilon_std - kl_std.detach()
+    )
+    metrics = {"actor/loss": loss_fit, "actor/kl_mean": kl_mean, "actor/kl_std": kl_std,
+               "dual/alpha_mean": alpha_mean, "dual/alpha_std": alpha_std}  # fmt: skip
+    return loss_fit + loss_kl + loss_alpha, metrics
+
+
+class RABMAgent:
+    def __init__(self, observation_spec, action_spec, config: RABMConfig, seed: int = 0):
+        self.config = config
+        self.scaler = nets.ActionScaler(action_spec)
+        self.batch_kind = "sequence" if config.recurrent else "transition"
+        self.n_step = 1 if config.recurrent else config.n_step
+        self.sequence_length = config.sequence_length
+        self.generator = torch.Generator().manual_seed(seed)
+        a = self.scaler.dim
+        with nets.seeded_init(seed):
+            self.prior = GaussianPolicy(observation_spec, a, config)
+            self.policy = GaussianPolicy(observation_spec, a, config)
+            self.critic = Critic(observation_spec, a, config)
+        self.target_policy = nets.frozen_copy(self.policy)
+        self.target_critic = nets.frozen_copy(self.critic)
+        self.duals = nn.ParameterDict({
+            "log_temperature": nn.Parameter(torch.tensor(1.0)),
+            "log_alpha_mean": nn.Parameter(torch.tensor(1.0)),
+            "log_alpha_std": nn.Parameter(torch.tensor(10.0)),
+        })  # fmt: skip
+        self.optimizers = {
+            "prior": nets.adam(self.prior.parameters(), config.prior_lr),
+            "policy": nets.adam(self.policy.parameters(), config.policy_lr),
+            "critic": nets.adam(self.critic.parameters(), config.critic_lr),
+            "dual": nets.adam(self.duals.parameters(), config.dual_lr),
+        }
+        self.modules = {
+            "prior": self.prior, "policy": self.policy, "critic": self.critic, "duals": self.duals,
+            "target_policy": self.target_policy, "target_critic": self.target_critic,
+        }  # fmt: skip
+        self.step = 0
+        self._rollout_state = None
+
+    def _features(self, torso, batch, seq: bool, valid, which: str) -> torch.Tensor:
+        """Torso output at s ('cur') or s' ('next') of every valid transition: (M, H)."""
+        if seq:
+            h, _ = torso(batch.obs, sequence=True)
+            h = h[:, :-1] if which == "cur" else h[:, 1:]
+            return h.reshape(-1, h.shape[-1])[valid]
+        return torso(batch.obs if which == "cur" else batch.next_obs)[0]
+
+    def update(self, batch: Transition | Sequence) -> dict[str, float]:
+        c, g = self.config, self.generator
+        seq = isinstance(batch, Sequence)
+        b = _Prepared(batch, self.scaler, seq)
+        valid = b.valid
+        atoms = self.critic.head.atoms
+        n = c.num_samples
+
+        def feats(module, which):
+            return self._features(module.torso, b, seq, valid, which)
+
+        pol_h, prior_h = feats(self.policy, "cur"), feats(self.prior, "cur")
+        crit_h = feats(self.critic, "cur")
+        with torch.no_grad():
+            # Critic target: the target policy's actions at s', distributions averaged over them.
+            t_mean, t_std = self.target_policy.head(feats(self.target_policy, "next"))
+            next_a = (t_mean + t_std * torch.randn((n, *t_mean.shape), generator=g)).clamp(-1, 1)
+            t_logits = self.target_critic.logits(feats(self.target_critic, "next"), next_a)
+            t_probs = torch.softmax(t_logits, -1).mean(0)
+            values = bootstrap_values(b.reward, b.discount, c.gamma, self.n_step,
+                                      atoms.expand(b.reward.shape[0], -1))  # fmt: skip
+            target = categorical_projection(values, t_probs, atoms)
+        loss_critic = categorical_cross_entropy(self.critic.logits(crit_h, b.action), target).mean()
+        metrics = {"critic/loss": loss_critic}
+
+        mean, std = self.policy.head(pol_h)
+        prior_mean, prior_std = self.prior.head(prior_h)
+        with torch.no_grad():
+            crit_d = crit_h.detach()
+            q_data = self.critic.head.mean(self.critic.logits(crit_d, b.action))
+            pi_a = (mean + std * torch.randn((n, *mean.shape), generator=g)).clamp(-1, 1)
+            advantage = q_data - self.critic.head.mean(self.critic.logits(crit_d, pi_a)).mean(0)
+            prior_a = prior_mean + prior_std * torch.randn((n, *mean.shape), generator=g)
+            prior_a = prior_a.clamp(-1, 1)
+            q_prior = self.critic.head.mean(self.critic.logits(crit_d, prior_a))
+            tp_mean, tp_std = self.target_policy.head(feats(self.target_policy, "cur"))
+        metrics["critic/q_mean"] = q_data.mean()
+        loss_prior, m = prior_loss(
+            gaussian_log_prob(prior_mean, prior_std, b.action), advantage,
+            c.advantage_weights, c.advantage_temperature,
+        )  # fmt: skip
+        metrics.update(m)
+        temperature = F.softplus(self.duals["log_temperature"]) + 1e-8
+        weights, loss_temperature = mpo_e_step(q_prior, temperature, c.epsilon)
+        loss_policy, m = mpo_m_step(weights, prior_a, mean, std, tp_mean, tp_std, self.duals, c)
+        metrics.update(m)
+        metrics["dual/temperature"] = temperature
+
+        for opt in self.optimizers.values():
+            opt.zero_grad(set_to_none=True)
+        # Each loss reaches only its own network's parameters, so one backward serves all four.
+        (loss_critic + loss_prior + loss_policy + loss_temperature).backward()
+        for opt in self.optimizers.values():
+            opt.step()
+
+        self.step += 1
+        if self.step % c.target_update_period == 0:
+            nets.hard_update(self.target_policy, self.policy)
+            nets.hard_update(self.target_critic, self.critic)
+        return nets.finite_metrics(metrics)
+
+    def reset(self) -> None:
+        """Forget the LSTM state between episodes (recurrent configs)."""
+        self._rollout_state = None
+
+    @torch.inference_mode()
+    def act(self, observation, greedy: bool = True) -> np.ndarray:
+        h, state = self.policy.torso(nets.to_torch(observation), state=self._rollout_state)
+        self._rollout_state = state
+        mean, std = self.policy.head(h)
+        if not greedy:
+            mean = mean + std * torch.randn(mean.shape, generator=self.generator)
+        return self.scaler.from_unit(mean)
+
+    def state_dict(self) -> dict:
+        return nets.agent_state(self.modules, self.optimizers, self.generator, self.step)
+
+    def load_state_dict(self, state: dict) -> None:
+        self.step = nets.load_agent_state(state, self.modules, self.optimizers, self.generator)
+        self._rollout_state = None
+
+
+class _Prepared:
+    """A batch as tensors, flattened to its valid transitions (all of them for Transitions)."""
+
+    def __init__(self, batch, scaler: nets.ActionScaler, seq: bool):
+        self.obs = nets.to_torch(batch.observation)
+        action = scaler.to_unit(nets.to_torch(batch.action))
+        reward, discount = nets.to_torch(batch.reward), nets.to_torch(batch.discount)
+        if seq:
+            m = np.asarray(batch.mask)
+            valid = m[:, :-1] & m[:, 1:] & ~np.asarray(batch.is_last)[:, :-1]
+            self.valid = torch.from_numpy(valid.reshape(-1).copy())
+            action = action[:, :-1].reshape(-1, action.shape[-1])[self.valid]
+            reward = reward[:, :-1].reshape(-1)[self.valid]
+            discount = discount[:, :-1].reshape(-1)[self.valid]
+        else:
+            self.valid = None
+            self.next_obs = nets.to_torch(batch.next_observation)
+        self.action, self.reward, self.discount = action, reward.float(), discount.float()
+
+
+Agent = RABMAgent

@@ -1,0 +1,91 @@
+"""Every environment of the suite, built from its TaskSpec, configured as the data was recorded.
+
+    env = rlu.make_env("control_suite/cartpole_swingup", seed=0)
+    env = rlu.make_env("rwrl/walker_walk", seed=0, challenge="easy")
+    env = rlu.make_env("atari/Pong", seed=0)            # (84, 84, 4) uint8, newest frame last
+    venv = rlu.envs.make_vector_env("atari/Pong", num_envs=2, seed=0)
+
+Each factory returns a Gymnasium env whose observations equal the TaskSpec (and so the dataset
+schema): a flat dict keyed as the release without its ``observation/`` prefix for the MuJoCo
+domains, one uint8 array for Atari. The factory checks the first observation against the spec.
+MuJoCo envs also offer ``env.dm_env``, a dm_env view of the same environment.
+
+Settings per domain (keyword arguments of ``make_env``):
+
+- control suite: none.
+- locomotion: ``camera`` (default True: the 64x64x3 egocentric camera rendered every step, as
+  in the data; False drops it from observations and spec, ~10-40x faster).
+- atari: ``max_episode_steps`` (27,000 agent steps = the paper's 108K frames; the original
+  evaluation wrapper counted 108,000 agent steps, pass ``ATARI_ORIGINAL_EVAL_STEPS``),
+  ``clip_rewards`` (default True; ``info["raw_reward"]`` always holds the unclipped reward),
+  ``sticky_action_prob`` (0.25), ``frame_skip`` (4).
+- rwrl: ``challenge`` ("none" or "easy" as released; "medium"/"hard" also exist),
+  ``safety`` / ``safety_coeff``, ``multiobj_coeff`` / ``multiobj_reward`` /
+  ``multiobj_observed`` (see rlu.envs.rwrl).
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+from typing import Any
+
+from rlu.tasks import get_task
+from rlu.types import RluError
+
+_FACTORIES = {
+    "control_suite": "rlu.envs.control",
+    "locomotion": "rlu.envs.locomotion",
+    "atari": "rlu.envs.atari",
+    "rwrl": "rlu.envs.rwrl",
+}
+_EXTRAS = {
+    "control_suite": "control",
+    "locomotion": "locomotion",
+    "atari": "atari",
+    "rwrl": "control",
+}
+
+__all__ = ["make_env", "make_vector_env", "ATARI_ORIGINAL_EVAL_STEPS"]
+
+# rl_unplugged/atari.py's evaluation env truncated after 108,000 *wrapper* (agent) steps,
+# i.e. 432K frames; rlu's default is the paper's 108K frames = 27,000 agent steps.
+ATARI_ORIGINAL_EVAL_STEPS = 108_000
+
+
+def _factory(domain: str):
+    if domain in ("control_suite", "locomotion", "rwrl"):
+        # MuJoCo needs a GL backend for any rendering; EGL works headless on CPU (Mesa).
+        os.environ.setdefault("MUJOCO_GL", "egl")
+    try:
+        return importlib.import_module(_FACTORIES[domain])
+    except ImportError as e:
+        extra = _EXTRAS[domain]
+        raise RluError(
+            f"environments of domain {domain!r} need the {extra!r} extra ({e.name} is missing); "
+            f"install it with: bash scripts/install.sh {extra}"
+        ) from e
+
+
+def make_env(task_id: str, seed: int | None = None, challenge: str = "none", **settings: Any):
+    """A Gymnasium env for ``task_id`` (see the module docstring for ``settings``)."""
+    task = get_task(task_id)
+    module = _factory(task.domain)
+    if task.domain == "rwrl":
+        return module.make(task, seed=seed, challenge=challenge, **settings)
+    if challenge != "none":
+        raise RluError(f"{task.id}: `challenge` applies to rwrl tasks only; drop it")
+    return module.make(task, seed=seed, **settings)
+
+
+def make_vector_env(
+    task_id: str,
+    num_envs: int | None = None,
+    seed: int | None = None,
+    challenge: str = "none",
+    **kwargs: Any,
+):
+    """N copies of the task stepping in worker processes (see rlu.envs.vector)."""
+    from rlu.envs.vector import make_vector_env as _make
+
+    return _make(task_id, num_envs=num_envs, seed=seed, challenge=challenge, **kwargs)

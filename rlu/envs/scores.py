@@ -1,0 +1,181 @@
+"""Random-policy returns per task, measured with rlu's own envs and stored with provenance.
+
+Atari normalisation (paper appendix: ``100 * (score - random) / (best_behaviour - random)``)
+needs a random score per game. The paper gives none in numbers, so rlu measures them with the
+same envs the agents are evaluated in (uniform random actions, sticky actions 0.25, the
+episode cap recorded in the provenance) and ships the result as ``rlu/resources/
+random_scores.json``. ``rlu envs random-scores`` re-measures and writes such a file.
+
+File layout::
+
+    {"format": "rlu.random_scores/1",
+     "provenance": {"date", "code_version", "seed", "episodes", "settings", "packages", ...},
+     "scores": {"atari/Pong": {"mean", "std", "returns", "lengths", "challenge", "settings"},
+                "rwrl/walker_walk@easy": {...}, ...}}
+
+Keys are task ids, with ``@<challenge>`` for RWRL challenges other than ``none``.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import os
+import subprocess
+from collections.abc import Callable, Iterable
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rlu.types import FormatError, RluError
+
+FORMAT = "rlu.random_scores/1"
+
+
+def score_key(task_id: str, challenge: str = "none") -> str:
+    return task_id if challenge == "none" else f"{task_id}@{challenge}"
+
+
+def random_returns(
+    task_id: str,
+    episodes: int,
+    seed: int = 0,
+    challenge: str = "none",
+    **settings: Any,
+) -> tuple[list[float], list[int]]:
+    """Undiscounted returns and lengths of ``episodes`` uniform-random episodes.
+
+    Atari returns sum ``info["raw_reward"]`` (the unclipped game score). Episode i resets with
+    seed ``seed + i``; the action sampler is seeded with ``seed``.
+    """
+    from rlu.envs import make_env
+
+    env = make_env(task_id, seed=seed, challenge=challenge, **settings)
+    env.action_space.seed(seed)
+    returns, lengths = [], []
+    try:
+        for i in range(episodes):
+            env.reset(seed=seed + i)
+            total, n, done = 0.0, 0, False
+            while not done:
+                _, r, term, trunc, info = env.step(env.action_space.sample())
+                total += float(info.get("raw_reward", r))
+                n += 1
+                done = term or trunc
+            returns.append(total)
+            lengths.append(n)
+    finally:
+        env.close()
+    return returns, lengths
+
+
+def code_version() -> str:
+    import rlu
+
+    try:
+        root = Path(__file__).resolve().parents[2]
+        rev = subprocess.run(
+            ["git", "-C", str(root), "rev-parse", "--short", "HEAD"],
+            capture_output=True,
+            text=True,
+            timeout=10,
+        ).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        rev = ""
+    return f"rlu {rlu.__version__}" + (f" (git {rev})" if rev else "")
+
+
+def _packages() -> dict[str, str]:
+    from importlib import metadata
+
+    out = {}
+    for name in ("ale-py", "dm-control", "mujoco", "gymnasium", "opencv-python-headless"):
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            pass
+    return out
+
+
+def measure(
+    tasks: Iterable[tuple[str, str, dict[str, Any]]],
+    episodes: int,
+    seed: int = 0,
+    progress: Callable[[str, dict[str, Any]], None] | None = None,
+    existing: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Measure every ``(task_id, challenge, settings)``; returns the file's dict.
+
+    ``existing`` (a loaded file) is extended: tasks already in it are kept, not re-measured,
+    so an interrupted measurement resumes.
+    """
+    doc = existing or {
+        "format": FORMAT,
+        "provenance": {
+            "date": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+            "code_version": code_version(),
+            "seed": seed,
+            "episodes": episodes,
+            "policy": "uniform random actions (env.action_space.sample(), seeded)",
+            "packages": _packages(),
+            "cpu_count": os.cpu_count(),
+        },
+        "scores": {},
+    }
+    for task_id, challenge, settings in tasks:
+        key = score_key(task_id, challenge)
+        if key in doc["scores"]:
+            continue
+        returns, lengths = random_returns(task_id, episodes, seed, challenge, **settings)
+        entry = {
+            "mean": float(np.mean(returns)),
+            "std": float(np.std(returns)),
+            "episodes": len(returns),
+            "returns": returns,
+            "lengths": lengths,
+            "challenge": challenge,
+            "settings": settings,
+        }
+        doc["scores"][key] = entry
+        if progress is not None:
+            progress(key, entry)
+    return doc
+
+
+def write(doc: dict[str, Any], path: str | os.PathLike) -> None:
+    """Write atomically (temp file + rename): a crash never leaves half a file."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(doc, indent=1) + "\n")
+    os.replace(tmp, path)
+
+
+def load(path: str | os.PathLike | None = None) -> dict[str, Any]:
+    """The shipped random scores (or the file at ``path``)."""
+    if path is None:
+        text = resources.files("rlu").joinpath("resources/random_scores.json").read_text()
+        where = "rlu/resources/random_scores.json"
+    else:
+        text, where = Path(path).read_text(), str(path)
+    try:
+        doc = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise FormatError(f"{where}: not JSON ({e}); re-run `rlu envs random-scores`") from e
+    if doc.get("format") != FORMAT or "scores" not in doc:
+        raise FormatError(f"{where}: not an {FORMAT} file; re-run `rlu envs random-scores`")
+    return doc
+
+
+def random_score(task_id: str, challenge: str = "none", path: str | None = None) -> float:
+    """Mean random-policy return of a task (Atari: the raw game score)."""
+    doc = load(path)
+    key = score_key(task_id, challenge)
+    try:
+        return float(doc["scores"][key]["mean"])
+    except KeyError:
+        raise RluError(
+            f"no random score for {key!r} in {path or 'rlu/resources/random_scores.json'}; "
+            f"measure it with: rlu envs random-scores --task {task_id}"
+        ) from None

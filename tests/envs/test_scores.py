@@ -1,0 +1,71 @@
+"""Random-policy scores: measurement, the file format with provenance, and the CLI."""
+
+import json
+
+import pytest
+
+pytest.importorskip("dm_control")
+
+from rlu.cli import main  # noqa: E402
+from rlu.envs import scores  # noqa: E402
+from rlu.types import FormatError, RluError  # noqa: E402
+
+
+def test_measure_write_load_and_resume(tmp_path):
+    tid = "control_suite/cartpole_swingup"
+    doc = scores.measure([(tid, "none", {})], episodes=2, seed=0)
+    entry = doc["scores"][tid]
+    assert entry["episodes"] == 2 and entry["lengths"] == [1000, 1000]
+    assert entry["mean"] == pytest.approx(sum(entry["returns"]) / 2)
+    again, _ = scores.random_returns(tid, 2, seed=0)
+    assert again == entry["returns"]
+    prov = doc["provenance"]
+    assert {"date", "code_version", "seed", "episodes", "packages"} <= set(prov)
+    path = tmp_path / "rs.json"
+    scores.write(doc, path)
+    assert scores.random_score(tid, path=str(path)) == entry["mean"]
+    with pytest.raises(RluError, match="rlu envs random-scores"):
+        scores.random_score("control_suite/walker_walk", path=str(path))
+    # Resuming keeps measured tasks (same numbers) and adds the new one.
+    loaded = scores.load(path)
+    scores.measure(
+        [(tid, "none", {}), ("rwrl/cartpole_swingup", "easy", {})], 1, 0, existing=loaded
+    )
+    assert loaded["scores"][tid] == entry and "rwrl/cartpole_swingup@easy" in loaded["scores"]
+
+
+def test_cli_writes_a_file(tmp_path, capsys):
+    out = tmp_path / "scores.json"
+    rc = main(["envs", "random-scores", "--task", "control_suite/cartpole_swingup",
+               "--episodes", "1", "--out", str(out)])  # fmt: skip
+    assert rc == 0
+    doc = json.loads(out.read_text())
+    assert list(doc["scores"]) == ["control_suite/cartpole_swingup"]
+    assert "cartpole_swingup: mean" in capsys.readouterr().out
+    assert main(["envs", "random-scores", "--task", "atari/NoSuchGame", "--out", str(out)]) == 2
+
+
+def test_corrupt_file_is_a_clear_error(tmp_path):
+    bad = tmp_path / "bad.json"
+    bad.write_text("{not json")
+    with pytest.raises(FormatError, match="not JSON"):
+        scores.load(bad)
+    bad.write_text("{}")
+    with pytest.raises(FormatError, match="rlu.random_scores"):
+        scores.load(bad)
+
+
+def test_shipped_scores_cover_the_suite_with_provenance():
+    from rlu.tasks import list_tasks
+
+    doc = scores.load()
+    prov = doc["provenance"]
+    assert prov["code_version"].startswith("rlu ") and prov["seed"] == 0
+    have = doc["scores"]
+    for t in list_tasks():
+        assert t.id in have, t.id
+        assert have[t.id]["episodes"] >= 3 and len(have[t.id]["returns"]) == have[t.id]["episodes"]
+    for t in list_tasks("rwrl"):
+        assert f"{t.id}@easy" in have
+    for t in list_tasks("atari"):
+        assert have[t.id]["settings"].get("max_episode_steps", 27_000) == 27_000
