@@ -1,0 +1,147 @@
+"""rlu generate: the recorder's step semantics, selection, determinism and crash resumption."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rlu.generate.recipe import select_episodes
+
+TASK = "control_suite/cartpole_swingup"
+
+
+def _files(path: Path) -> dict[str, bytes]:
+    files = sorted(p for p in path.rglob("*") if p.is_file())
+    return {str(p.relative_to(path)): p.read_bytes() for p in files}
+
+
+def test_select_keeps_a_third_of_successes_then_subsamples():
+    success = np.zeros(30, bool)
+    success[[2, 5, 7, 11, 13, 17]] = True
+    keep, counts = select_episodes(success, None, np.random.default_rng(0))
+    assert counts["successful"] == 6 and counts["successful_kept_after_third"] == 2
+    assert success[keep].sum() == 2 and keep.size == 26
+    assert np.all(np.diff(keep) > 0)
+    keep, counts = select_episodes(success, 10, np.random.default_rng(0))
+    assert keep.size == 10 and counts["kept"] == 10
+    assert set(keep) <= set(np.flatnonzero(~success)) | set(np.flatnonzero(success))
+
+
+def test_replay_n_step_targets_by_hand():
+    pytest.importorskip("torch")
+    from rlu.data import make_episode
+    from rlu.generate.online import Replay
+    from rlu.tasks import get_task
+
+    task = get_task(TASK)
+    replay = Replay(task, capacity=10, n_step=2, gamma=0.5)
+    obs = {k: np.arange(5, dtype=np.float32)[:, None].repeat(s.shape[0], 1) for k, s in
+           task.observation_spec.items()}  # fmt: skip
+    # 4 transitions ending in a terminal state: rewards 1, 2, 3, 4
+    ep = make_episode(obs, np.zeros((4, 1), np.float32), [1, 2, 3, 4], terminal=True)
+    replay.add(ep)
+    assert replay.size == 4  # terminal: the last windows are cut at the terminal
+    np.testing.assert_allclose(replay.reward[:4], [1 + 0.5 * 2, 2 + 0.5 * 3, 3 + 0.5 * 4, 4])
+    np.testing.assert_array_equal(replay.discount[:4], [1, 1, 0, 0])
+    np.testing.assert_array_equal(replay.next[:4], [2, 3, 4, 4])
+    # a truncated episode leaves out windows that would cross its end
+    ep2 = make_episode(obs, np.zeros((4, 1), np.float32), [1, 1, 1, 1], terminal=False)
+    replay.add(ep2)  # does not fit after the first (5 + 5 = 10): fits exactly
+    assert replay.size == 4 + 3
+    replay.add(ep)  # wraps to 0 and overwrites the first episode whole
+    assert replay.size == 3 + 4
+    batch = replay.sample(np.random.default_rng(0), 8)
+    assert batch.observation["position"].shape == (8, 3)
+
+
+def test_recorder_terminal_and_truncation():
+    pytest.importorskip("dm_control")
+    from rlu.envs import make_env
+    from rlu.generate.recorder import EpisodeRecorder, record_policy
+    from rlu.tasks import get_task
+
+    task = get_task(TASK)
+    env = make_env(TASK, seed=0)
+    rec = EpisodeRecorder(task)
+    seg = record_policy(env, lambda o: np.zeros(1, np.float32), rec, seed=3, metadata={"run": 1})
+    assert len(seg) == task.episode_length + 1
+    assert seg.is_first[0] and seg.is_last[-1] and not seg.is_terminal[-1]
+    assert seg.discount[-2] == 1.0  # truncation keeps the discount
+    assert seg.metadata["run"] == 1
+    np.testing.assert_allclose(seg.metadata["episode_return"], seg.reward.sum(), rtol=1e-6)
+    again = record_policy(env, lambda o: np.zeros(1, np.float32), rec, seed=3)
+    np.testing.assert_array_equal(again.observation["position"], seg.observation["position"])
+
+
+_CHILD = textwrap.dedent(
+    """
+    import sys
+    from rlu.generate import generate
+    TASK, OUT = sys.argv[1:3]
+
+    def on_chunk(run, chunk):
+        print("chunk", run, chunk, flush=True)
+        sys.stdin.read()  # block until the parent kills us
+
+    generate(TASK, OUT, scale="tiny", runs=1, seed=7, progress=False, on_chunk=on_chunk)
+    """
+)
+
+
+def test_tiny_generation_is_deterministic_and_resumes_after_sigkill(tmp_path):
+    pytest.importorskip("torch")
+    pytest.importorskip("dm_control")
+    from rlu.data import open_dataset
+    from rlu.data.validate import validate
+    from rlu.generate import generate
+
+    ref = generate(TASK, tmp_path / "ref", scale="tiny", runs=1, seed=7, progress=False)
+    assert validate(ref).ok
+    ds = open_dataset(ref)
+    assert len(ds) == 2
+    assert [ds.segment(i).metadata["episode_index"] for i in range(2)] == [0, 1]
+    assert ds.manifest["provenance"]["command"].startswith(f"rlu generate {TASK} --scale tiny")
+
+    out = tmp_path / "crashed"
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    child = subprocess.Popen(
+        [sys.executable, "-c", _CHILD, TASK, str(out)],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env,
+    )  # fmt: skip
+    line = child.stdout.readline()  # the child has written run 0's first chunk and its state
+    assert line.strip() == "chunk 0 0", line
+    child.send_signal(signal.SIGKILL)
+    child.wait()
+    child.stdin.close()
+    child.stdout.close()
+    work = tmp_path / ".crashed.generate"
+    assert (work / "run_000" / "state.pt").exists() and not out.exists()
+
+    resumed_chunks = []
+    got = generate(
+        TASK, out, scale="tiny", runs=1, seed=7, progress=False,
+        on_chunk=lambda r, c: resumed_chunks.append((r, c)),
+    )  # fmt: skip
+    assert resumed_chunks == [(0, 1)]  # chunk 0 was not played again
+    assert _files(got) == _files(ref)
+    assert not work.exists()
+
+
+def test_resume_with_other_settings_is_refused(tmp_path):
+    from rlu.generate import generate
+    from rlu.types import RluError
+
+    work = tmp_path / ".d.generate"
+    work.mkdir()
+    (work / "settings.json").write_text(
+        '{"task": "control_suite/cartpole_swingup", "scale": "small", "runs": 3, "seed": 1}'
+    )
+    with pytest.raises(RluError, match="other settings"):
+        generate(TASK, tmp_path / "d", scale="tiny", runs=1, seed=7, progress=False)
