@@ -90,7 +90,7 @@ def _scales(domain: str) -> dict[str, Scale]:
     if domain == "atari":
         return {
             "tiny": Scale(1, OnlineConfig("dqn", episodes=2, agent_overrides=_TINY_DQN,
-                                          replay_capacity=2_000, min_replay=100, update_every=4,
+                                          replay_capacity=2_000, min_replay=50, update_every=4,
                                           epsilon_decay_steps=1_000, checkpoint_steps=100,
                                           chunk_episodes=1,
                                           env_settings={"max_episode_steps": 100}), None),

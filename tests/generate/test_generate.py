@@ -145,3 +145,78 @@ def test_resume_with_other_settings_is_refused(tmp_path):
     )
     with pytest.raises(RluError, match="other settings"):
         generate(TASK, tmp_path / "d", scale="tiny", runs=1, seed=7, progress=False)
+
+
+def _record(task_id: str, episodes: int, settings: dict, tmp_path: Path):
+    """Random-policy episodes through the recorder, stored, plus the env's own observations."""
+    from rlu.data import DatasetWriter, open_dataset
+    from rlu.envs import make_env
+    from rlu.generate.recorder import EpisodeRecorder, schema_for
+    from rlu.tasks import get_task
+
+    task = get_task(task_id)
+    env = make_env(task_id, seed=0, **settings)
+    rec = EpisodeRecorder(task, settings.get("max_episode_steps"))
+    rng = np.random.default_rng(0)
+    segs, seen = [], []
+    for e in range(episodes):
+        obs, _ = env.reset(seed=e)
+        rec.begin(obs)
+        seen.append(obs)
+        while True:
+            if task.discrete:
+                a = np.int64(rng.integers(task.action_dim))
+            else:
+                a = rng.uniform(-1, 1, task.action_spec.shape).astype(np.float32)
+            obs, r, term, trunc, info = env.step(a)
+            seg = rec.step(a, r, obs, term, trunc, info, {"episode_index": e})
+            if seg is None:
+                seen.append(obs)
+            else:
+                segs.append(seg)
+                break
+    with DatasetWriter(tmp_path / "ds", schema_for(task)) as w:
+        for s in segs:
+            w.append(s)
+    return task, segs, seen, open_dataset(tmp_path / "ds")
+
+
+def test_atari_frames_stack_back_to_the_envs_observations_in_store_and_replay(tmp_path):
+    pytest.importorskip("ale_py")
+    pytest.importorskip("torch")
+    from rlu.data import TransitionView
+    from rlu.generate.online import Replay
+
+    task, segs, seen, ds = _record("atari/Pong", 2, {"max_episode_steps": 12}, tmp_path)
+    view = TransitionView(ds).all()
+    # every transition's observation is exactly the env's (84, 84, 4) stack at that step
+    np.testing.assert_array_equal(view.observation, np.stack(seen))
+    replay = Replay(task, capacity=100, n_step=1, gamma=0.99)
+    for s in segs:
+        replay.add(s)
+    got = replay._observation(replay._eligible)
+    np.testing.assert_array_equal(got, view.observation)
+    np.testing.assert_array_equal(replay._observation(replay.next[replay._eligible]),
+                                  view.next_observation)  # fmt: skip
+    assert (
+        ds.segment(0).metadata["clipped_episode_return"] == ds.segment(0).metadata["episode_return"]
+    )
+
+
+def test_replay_n_step_transitions_equal_the_store_view(tmp_path):
+    pytest.importorskip("dm_control")
+    pytest.importorskip("torch")
+    from rlu.data import TransitionView
+    from rlu.generate.online import Replay
+
+    task, segs, _, ds = _record(TASK, 2, {}, tmp_path)
+    view = TransitionView(ds, n_step=3, gamma=0.9).all()
+    replay = Replay(task, capacity=5_000, n_step=3, gamma=0.9)
+    for s in segs:
+        replay.add(s)
+    idx = replay._eligible
+    assert idx.size == len(view.reward)
+    np.testing.assert_allclose(replay.reward[idx], view.reward, rtol=1e-6)
+    np.testing.assert_array_equal(replay.discount[idx], view.discount)
+    for k in task.observation_spec:
+        np.testing.assert_array_equal(replay.obs[k][replay.next[idx]], view.next_observation[k])
