@@ -1,0 +1,427 @@
+"""Our release reader vs TensorFlow on the same gzip shards of control-suite seq2 windows.
+
+    .venv/bin/python bench/release_reader.py [--records 800000] [--shards 4] [--decoders] [--png]
+
+Writes ``--shards`` gzip TFRecord shards in the exact ``dm_control_suite/cartpole_swingup`` schema
+(237-byte Examples, as the TF-written fixture), then times, in one run:
+
+- rlu: framing + CRC only; framing + columnar Example decoding; the full loader-shaped parse
+  (``families.iter_raw``); conversion into the store (1 and 2 processes);
+- TensorFlow (in its own venv, never a dependency of rlu; ``--tf`` names its python):
+  the original loader's pipeline (``dm_control_suite.py``: TFRecordDataset, interleave with block
+  length 5, shuffle, ``parse_single_example`` per record, shuffle, batch) and TF's fastest form
+  (TFRecordDataset, batch, then ``parse_example`` on the batch);
+- ``--decoders``: the protobuf runtime (upb, with our own Example descriptor) vs the hand-written
+  decoder, record by record and in batches;
+- ``--png``: Pillow vs zlib inflate alone on 84x84 grey frames.
+
+Prints records/s and MB/s (of the decompressed record stream) and the ratios.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+KEYS = {  # key -> values per step (cartpole_swingup, rlu_release_format.md §3.3)
+    "observation/position": 3,
+    "observation/velocity": 2,
+    "action": 1,
+    "discount": 1,
+    "reward": 1,
+    "episodic_reward": 1,
+    "step_type": 1,
+}
+SCALARS = ("discount", "reward", "episodic_reward", "step_type")
+CPU_NOTES: list[str] = []
+
+
+# --- TensorFlow side (runs under the TF venv's python) ---------------------------------------
+
+
+def tf_worker(files: list[str], mode: str, batch: int, shuffle: int) -> dict:
+    os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
+    import tensorflow as tf
+
+    spec = {
+        k: tf.io.FixedLenSequenceFeature(
+            [] if k in SCALARS else [d], tf.float32, allow_missing=True
+        )
+        for k, d in KEYS.items()
+    }
+    if mode == "original":
+        # dm_control_suite.py: file list, interleave (block 5), shuffle, parse per record, batch
+        ds = tf.data.Dataset.from_tensor_slices(files)
+        ds = ds.interleave(
+            lambda f: tf.data.TFRecordDataset(f, compression_type="GZIP"),
+            cycle_length=tf.data.AUTOTUNE,
+            block_length=5,
+            num_parallel_calls=tf.data.AUTOTUNE,
+        )
+        ds = ds.shuffle(shuffle)
+        ds = ds.map(
+            lambda r: tf.io.parse_single_example(r, spec), num_parallel_calls=tf.data.AUTOTUNE
+        )
+        ds = ds.shuffle(batch * 10)
+        ds = ds.batch(batch)
+    else:
+        # the fastest form: read, batch raw records, parse a whole batch at once
+        ds = tf.data.TFRecordDataset(files, compression_type="GZIP", num_parallel_reads=len(files))
+        ds = ds.batch(batch)
+        ds = ds.map(lambda r: tf.io.parse_example(r, spec), num_parallel_calls=tf.data.AUTOTUNE)
+    ds = ds.prefetch(tf.data.AUTOTUNE)
+    t0 = time.perf_counter()
+    n = 0
+    for b in ds:
+        n += int(b["reward"].shape[0])
+    return {"records": n, "seconds": time.perf_counter() - t0, "tf": tf.__version__}
+
+
+# --- rlu side --------------------------------------------------------------------------------
+
+
+def make_shards(folder: str, records: int, shards: int) -> list[str]:
+    import numpy as np
+
+    from rlu.data.release import families as Fm
+
+    rng = np.random.default_rng(0)
+    files = []
+    per = records // shards
+    for s in range(shards):
+        path = os.path.join(
+            folder, "dm_control_suite", "cartpole_swingup", f"train-{s:05d}-of-{shards:05d}"
+        )
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        recs = []
+        for i in range(per):
+            st = [0.0, 1.0] if i % 500 == 0 else ([1.0, 2.0] if i % 500 == 499 else [1.0, 1.0])
+            rec = {k: rng.standard_normal((2, d)).astype(np.float32) for k, d in KEYS.items()}
+            for k in SCALARS:
+                rec[k] = rec[k][:, 0]
+            rec["step_type"] = np.float32(st)
+            rec["discount"] = np.ones(2, np.float32)
+            recs.append(rec)
+        Fm.write_shard(path, "dm_control_suite", recs)
+        files.append(path)
+    return files
+
+
+def time_it(fn, repeat: int = 3) -> float:
+    best = float("inf")
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def rlu_rows(
+    files: list[str], stream_bytes: int, records: int, tmp: str
+) -> list[tuple[str, float]]:
+    from rlu.data.release import example as E
+    from rlu.data.release import families as Fm
+    from rlu.data.release.convert import convert
+    from rlu.data.release.framing import RecordReader
+
+    def framing():
+        n = 0
+        for f in files:
+            for b in RecordReader(f).batches():
+                n += len(b)
+        assert n == records
+
+    def columns():
+        n = 0
+        for f in files:
+            pending: list[bytes] = []
+            for b in RecordReader(f).batches():
+                pending.extend(b)
+                while len(pending) >= 4096:
+                    cols = E.decode_batch(pending[:4096])
+                    pending = pending[4096:]
+                    n += cols["reward"].shape[0]
+            if pending:
+                n += E.decode_batch(pending)["reward"].shape[0]
+        assert n == records
+
+    def parsed():
+        n = 0
+        for f in files:
+            for raw in Fm.iter_raw(f, "dm_control_suite"):
+                n += raw["reward"].shape[0]
+        assert n == records
+
+    def framing_prefetch():
+        for f in files:
+            for _ in RecordReader(f, prefetch=True).batches():
+                pass
+
+    rows = [
+        ("rlu framing + CRC", time_it(framing)),
+        ("rlu framing + CRC, inflate in a second thread", time_it(framing_prefetch)),
+        ("rlu framing + CRC + Example columns", time_it(columns)),
+        ("rlu loader-shaped arrays (iter_raw)", time_it(parsed)),
+    ]
+    for w in (1, 2):
+        out = os.path.join(tmp, f"converted{w}")
+
+        def conv(w=w, out=out):
+            import shutil
+
+            if os.path.exists(out):
+                shutil.rmtree(out)
+            convert(files, "dm_control_suite", "control_suite/cartpole_swingup", out, workers=w)
+
+        import resource
+
+        before = resource.getrusage(resource.RUSAGE_CHILDREN)
+        me0 = resource.getrusage(resource.RUSAGE_SELF)
+        secs = time_it(conv, 1)
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
+        me1 = resource.getrusage(resource.RUSAGE_SELF)
+        cpu_children = (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime)
+        cpu_self = (me1.ru_utime + me1.ru_stime) - (me0.ru_utime + me0.ru_stime)
+        label = f"rlu convert into the store, {w} process{'es' if w > 1 else ''}"
+        rows.append((label, secs))
+        CPU_NOTES.append(
+            f"{label}: {secs:.2f} s wall, CPU {cpu_self:.2f} s parent"
+            f" + {cpu_children:.2f} s readers"
+        )
+    return rows
+
+
+def decoder_rows(files: list[str], n: int = 50_000) -> list[tuple[str, float, int]]:
+    import numpy as np
+    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+
+    from rlu.data.release import example as E
+    from rlu.data.release.framing import RecordReader
+
+    recs = []
+    for b in RecordReader(files[0]).batches():
+        recs.extend(b)
+        if len(recs) >= n:
+            break
+    recs = recs[:n]
+
+    # Our own Example / Features / Feature messages for the protobuf runtime (no TF).
+    fdp = descriptor_pb2.FileDescriptorProto(
+        name="rlu_example.proto", package="rlu_bench", syntax="proto3"
+    )
+
+    def msg(name, fields):
+        m = fdp.message_type.add(name=name)
+        for fname, num, ftype, label, tname in fields:
+            f = m.field.add(name=fname, number=num, type=ftype, label=label)
+            if tname:
+                f.type_name = tname
+        return m
+
+    T = descriptor_pb2.FieldDescriptorProto
+    msg("BytesList", [("value", 1, T.TYPE_BYTES, T.LABEL_REPEATED, None)])
+    msg("FloatList", [("value", 1, T.TYPE_FLOAT, T.LABEL_REPEATED, None)])
+    msg("Int64List", [("value", 1, T.TYPE_INT64, T.LABEL_REPEATED, None)])
+    feat = msg(
+        "Feature",
+        [
+            ("bytes_list", 1, T.TYPE_MESSAGE, T.LABEL_OPTIONAL, ".rlu_bench.BytesList"),
+            ("float_list", 2, T.TYPE_MESSAGE, T.LABEL_OPTIONAL, ".rlu_bench.FloatList"),
+            ("int64_list", 3, T.TYPE_MESSAGE, T.LABEL_OPTIONAL, ".rlu_bench.Int64List"),
+        ],
+    )
+    del feat
+    fs = fdp.message_type.add(name="Features")
+    entry = fs.nested_type.add(name="FeatureEntry")
+    entry.options.map_entry = True
+    entry.field.add(name="key", number=1, type=T.TYPE_STRING, label=T.LABEL_OPTIONAL)
+    entry.field.add(
+        name="value",
+        number=2,
+        type=T.TYPE_MESSAGE,
+        label=T.LABEL_OPTIONAL,
+        type_name=".rlu_bench.Feature",
+    )
+    fs.field.add(
+        name="feature",
+        number=1,
+        type=T.TYPE_MESSAGE,
+        label=T.LABEL_REPEATED,
+        type_name=".rlu_bench.Features.FeatureEntry",
+    )
+    msg("Example", [("features", 1, T.TYPE_MESSAGE, T.LABEL_OPTIONAL, ".rlu_bench.Features")])
+    pool = descriptor_pool.DescriptorPool()
+    pool.Add(fdp)
+    Example = message_factory.GetMessageClass(pool.FindMessageTypeByName("rlu_bench.Example"))
+
+    def pb():
+        for r in recs:
+            ex = Example()
+            ex.ParseFromString(r)
+            out = {}
+            for k, f in ex.features.feature.items():
+                kind = f.WhichOneof("kind") if False else None
+                del kind
+                if f.HasField("float_list"):
+                    out[k] = np.array(f.float_list.value, np.float32)
+                elif f.HasField("int64_list"):
+                    out[k] = np.array(f.int64_list.value, np.int64)
+                else:
+                    out[k] = list(f.bytes_list.value)
+
+    # sanity: both decoders agree on the first record
+    ex = Example()
+    ex.ParseFromString(recs[0])
+    ours = E.decode_example(recs[0])
+    for k, f in ex.features.feature.items():
+        assert np.array_equal(np.array(f.float_list.value, np.float32), ours[k])
+
+    def hand():
+        for r in recs:
+            E.decode_example(r)
+
+    def batch():
+        for i in range(0, len(recs), 4096):
+            E.decode_batch(recs[i : i + 4096])
+
+    def pb_parse_only():
+        for r in recs:
+            Example().ParseFromString(r)
+
+    return [
+        ("protobuf runtime (upb), parse only", time_it(pb_parse_only), len(recs)),
+        ("protobuf runtime (upb), parse + numpy arrays", time_it(pb), len(recs)),
+        ("hand-written decoder, record by record", time_it(hand), len(recs)),
+        ("hand-written decoder, columnar batches", time_it(batch), len(recs)),
+    ]
+
+
+def png_rows() -> list[tuple[str, float, int]]:
+    import io
+    import zlib
+
+    import numpy as np
+    from PIL import Image
+
+    from rlu.data.release.png import decode_png
+
+    rng = np.random.default_rng(0)
+    frames = []
+    for i in range(200):  # noise and Pong-like rectangles, Paeth-filtered by Pillow's encoder
+        img = (
+            rng.integers(0, 256, (84, 84), dtype=np.uint8)
+            if i % 2
+            else np.zeros((84, 84), np.uint8)
+        )
+        if i % 2 == 0:
+            img[20:30, 10:14] = 200
+            img[40:44, 40:44] = 255
+        buf = io.BytesIO()
+        Image.fromarray(img).save(buf, format="PNG")
+        frames.append(buf.getvalue())
+
+    def pil():
+        for f in frames:
+            decode_png(f, 1)
+
+    def pil_open():
+        for f in frames:
+            np.asarray(Image.open(io.BytesIO(f), formats=("PNG",)))
+
+    def inflate():
+        for f in frames:
+            zlib.decompress(f[41:-12])
+
+    return [
+        ("Pillow Image.open + np.asarray (84x84 grey)", time_it(pil_open), len(frames)),
+        ("rlu decode_png: Pillow's C decoder direct (84x84 grey)", time_it(pil), len(frames)),
+        ("zlib inflate alone (lower bound)", time_it(inflate), len(frames)),
+    ]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("--records", type=int, default=800_000)
+    ap.add_argument("--shards", type=int, default=4)
+    ap.add_argument("--tf", default=os.path.join(ROOT, ".venv-tf", "bin", "python"))
+    ap.add_argument("--batch", type=int, default=256)
+    ap.add_argument("--shuffle", type=int, default=100_000, help="the original loader's buffer")
+    ap.add_argument("--decoders", action="store_true")
+    ap.add_argument("--png", action="store_true")
+    ap.add_argument("--tf-worker", nargs=2, metavar=("MODE", "FILES_JSON"), help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.tf_worker:
+        mode, files = args.tf_worker
+        print(json.dumps(tf_worker(json.loads(files), mode, args.batch, args.shuffle)))
+        return
+
+    sys.path.insert(0, ROOT)
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        files = make_shards(tmp, args.records, args.shards)
+        records = (args.records // args.shards) * args.shards
+        gz = sum(os.path.getsize(f) for f in files)
+        stream = records * (237 + 16)
+        print(
+            f"{records:,} records in {len(files)} gzip shards: {gz / 1e6:.1f} MB on disk, "
+            f"{stream / 1e6:.1f} MB of records (written in {time.perf_counter() - t0:.0f} s)"
+        )
+        rows = [(name, s) for name, s in rlu_rows(files, stream, records, tmp)]
+        tf_rows = []
+        if os.path.exists(args.tf):
+            for mode, label in (
+                ("original", "TF original loader pipeline"),
+                ("fastest", "TF fastest form (batch, parse_example)"),
+            ):
+                out = subprocess.run(
+                    [
+                        args.tf,
+                        os.path.abspath(__file__),
+                        "--tf-worker",
+                        mode,
+                        json.dumps(files),
+                        "--batch",
+                        str(args.batch),
+                        "--shuffle",
+                        str(args.shuffle),
+                    ],
+                    capture_output=True,
+                    text=True,
+                    check=True,
+                )
+                res = json.loads(out.stdout.strip().splitlines()[-1])
+                assert res["records"] == records, res
+                tf_rows.append((f"{label} (TF {res['tf']})", res["seconds"]))
+        else:
+            print(f"(no TensorFlow venv at {args.tf}: TF rows skipped)")
+        print(f"\n{'reader':58s} {'records/s':>12s} {'MB/s':>8s}")
+        for name, s in tf_rows + rows:
+            print(f"{name:58s} {records / s:12,.0f} {stream / s / 1e6:8.1f}")
+        if tf_rows:
+            orig, fast = tf_rows[0][1], tf_rows[1][1]
+            print()
+            for name, s in rows:
+                print(f"{name:58s} {orig / s:6.1f}x original pipeline  {fast / s:5.2f}x TF fastest")
+        for note in CPU_NOTES:
+            print(note)
+        print(f"load average during the run: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
+        if args.decoders:
+            print(f"\n{'Example decoder':58s} {'records/s':>12s}")
+            for name, s, n in decoder_rows(files):
+                print(f"{name:58s} {n / s:12,.0f}")
+        if args.png:
+            print(f"\n{'PNG':58s} {'us/frame':>12s}")
+            for name, s, n in png_rows():
+                print(f"{name:58s} {s / n * 1e6:12.1f}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,127 @@
+"""``rlu download`` and ``rlu convert``: the original release, fetched and converted."""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+
+def _dataset_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--run", help="Atari run: 1..5 or run_1..run_5 (default 1)")
+    p.add_argument("--challenge", choices=["none", "easy"], help="RWRL combined challenge")
+    p.add_argument("--size", choices=["small", "medium", "large"], help="RWRL dataset size")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("download", help="download release shards of a task into the cache")
+    p.add_argument("task", help="task id, e.g. control_suite/cartpole_swingup")
+    p.add_argument("--family", help="release family (bucket folder); default: the task's first")
+    p.add_argument("--shards", help="shard indices, e.g. 0-3,7 (default: all)")
+    _dataset_args(p)
+    p.add_argument("--base-url", help="mirror of the bucket (default: the public bucket)")
+    p.add_argument("--cache-dir", help="cache directory (default: $RLU_CACHE_DIR or ~/.cache/rlu)")
+    p.add_argument("--workers", type=int, default=4, help="parallel downloads")
+    p.add_argument("--retries", type=int, default=5)
+    p.add_argument("--list", action="store_true", help="print the URLs and exit")
+    p.set_defaults(func=_download)
+
+    p = sub.add_parser(
+        "convert",
+        help="convert release shard files into a native dataset",
+        description="Convert FILE... (or every shard of the dataset under a bucket-shaped --src "
+        "ROOT) into a new dataset at --out. A failed conversion leaves nothing at --out.",
+    )
+    p.add_argument("files", nargs="*", metavar="FILE", help="shard files")
+    p.add_argument(
+        "--family",
+        required=True,
+        help="atari, atari_episodes_ordered, "
+        "dm_control_suite, dm_control_suite_episodes, dm_locomotion, "
+        "dm_locomotion_episodes, rwrl",
+    )
+    p.add_argument("--task", required=True, help="task id, e.g. control_suite/cartpole_swingup")
+    p.add_argument("--out", required=True, help="new dataset directory")
+    p.add_argument("--src", help="bucket-shaped root holding the shards (instead of FILE...)")
+    p.add_argument("--shards", help="with --src: shard indices, e.g. 0-3,7")
+    _dataset_args(p)
+    p.add_argument("--workers", type=int, help="processes (default: one per core)")
+    p.add_argument(
+        "--skip-corrupt",
+        action="store_true",
+        help="drop damaged records and report how many, instead of failing",
+    )
+    p.add_argument("--no-verify", action="store_true", help="skip the record CRC checks")
+    p.add_argument(
+        "--image-encoding",
+        choices=["raw", "zlib"],
+        help="store images raw or zlib-compressed (default: zlib for Atari)",
+    )
+    p.add_argument("--overwrite", action="store_true")
+    p.set_defaults(func=_convert)
+
+
+def _download(args: argparse.Namespace) -> int:
+    from rlu.data.release import catalog
+    from rlu.data.release.download import Downloader
+
+    sel = catalog.select(args.task, args.family, args.run, args.challenge, args.size, args.shards)
+    if args.list:
+        for u in sel.urls(args.base_url):
+            print(u)
+        return 0
+    d = Downloader(
+        cache_dir=args.cache_dir, base_url=args.base_url, workers=args.workers, retries=args.retries
+    )
+    got = d.fetch(sel.objects)
+    reused = sum(f.reused for f in got)
+    total = sum(f.size for f in got)
+    what = f"{sel.family} {sel.binding}".strip()
+    print(
+        f"{len(got)} shards of {sel.task.id} ({what})"
+        f" in {d.root}: {total / 1e6:,.1f} MB, {len(got) - reused} downloaded, {reused} reused"
+    )
+    return 0
+
+
+def _convert(args: argparse.Namespace) -> int:
+    from rlu.data.release import catalog
+    from rlu.data.release.convert import convert
+    from rlu.types import RluError
+
+    files = list(args.files)
+    if args.src:
+        if files:
+            raise RluError("give either FILE... or --src ROOT, not both")
+        sel = catalog.select(args.task, args.family, args.run, args.challenge, args.size)
+        files = catalog.find_shards(args.src, sel, args.shards)
+    elif args.shards:
+        raise RluError("--shards picks shards under --src; with FILE... list the files instead")
+    challenge = args.challenge
+    if challenge is None and args.task.startswith("rwrl/"):
+        challenge = _challenge_from_path(files)
+    report = convert(
+        files,
+        args.family,
+        args.task,
+        args.out,
+        challenge=challenge,
+        run=args.run,
+        workers=args.workers,
+        verify=not args.no_verify,
+        on_error="skip" if args.skip_corrupt else "raise",
+        image_encoding=args.image_encoding,
+        overwrite=args.overwrite,
+        progress=os.isatty(2),
+    )
+    print(
+        f"wrote {report.out}: {report.segments:,} segments, {report.steps:,} steps from "
+        f"{report.records:,} records of {len(report.files)} shards in {report.seconds:.1f} s"
+    )
+    if report.skipped:
+        print(f"skipped {report.skipped} damaged records (--skip-corrupt)")
+    return 0
+
+
+def _challenge_from_path(files: list[str]) -> str | None:
+    found = {c for f in files for c in ("none", "easy") if f"combined_challenge_{c}" in f}
+    return found.pop() if len(found) == 1 else None

@@ -1,0 +1,196 @@
+"""``rlu train``, ``rlu evaluate``, ``rlu sweep`` and ``rlu report``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+
+def _add_run_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--preset", default="small", choices=["small", "paper"])
+    p.add_argument("--steps", type=int, default=1000, help="gradient steps")
+    p.add_argument(
+        "--eval-every",
+        type=int,
+        default=None,
+        help="steps between evaluations (default: steps / 10 for train, the end of each run "
+        "for sweep; 0: only at the end; -1: never)",
+    )
+    p.add_argument("--eval-episodes", type=int, default=5)
+    p.add_argument("--eval-envs", type=int, default=4, help="envs stepped in lockstep")
+    p.add_argument(
+        "--eval-max-steps", type=int, default=None, help="cap on an evaluation episode's steps"
+    )
+    p.add_argument("--log-every", type=int, default=100)
+    p.add_argument("--checkpoint-every", type=int, default=1000)
+    p.add_argument(
+        "--env", default=None, help="env factory 'module:function' (default: rlu.envs.make_env)"
+    )
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("train", help="train an agent on a dataset, evaluating in the env")
+    p.add_argument("--task", required=True, help="task id, e.g. control_suite/cartpole_swingup")
+    p.add_argument("--agent", required=True, help="agent name (bc, d4pg, ...) or module path")
+    p.add_argument("--dataset", required=True, help="rlu dataset directory")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", required=True, help="run folder")
+    p.add_argument("--resume", action="store_true", help="continue from the last checkpoint")
+    p.add_argument("--threads", type=int, default=None, help="torch threads")
+    p.add_argument("--tensorboard", action="store_true", help="also log to OUT/tensorboard")
+    p.add_argument("--no-progress", action="store_true")
+    _add_run_options(p)
+    p.add_argument(
+        "overrides",
+        nargs="*",
+        metavar="FIELD=VALUE",
+        help="agent config overrides, e.g. learning_rate=3e-4",
+    )
+    p.set_defaults(func=_train)
+
+    p = sub.add_parser("evaluate", help="roll out a trained run's greedy policy in its env")
+    p.add_argument("run", metavar="RUN_OR_CHECKPOINT")
+    p.add_argument("--episodes", type=int, default=10)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--envs", type=int, default=4, help="envs stepped in lockstep")
+    p.add_argument("--max-steps", type=int, default=None)
+    p.add_argument("--env", default=None, help="env factory 'module:function'")
+    p.add_argument("--json", action="store_true", help="print the result as JSON")
+    p.set_defaults(func=_evaluate)
+
+    p = sub.add_parser("sweep", help="tasks x agents x grids x seeds, locally or on Ray")
+    p.add_argument("--tasks", nargs="+", required=True)
+    p.add_argument("--agents", nargs="+", required=True)
+    p.add_argument(
+        "--dataset",
+        action="append",
+        required=True,
+        metavar="TASK=PATH",
+        help="dataset of a task (repeat per task)",
+    )
+    p.add_argument("--seeds", type=int, nargs="+", default=[0])
+    p.add_argument(
+        "--grid",
+        action="append",
+        default=None,
+        metavar="FIELD=V1,V2",
+        help="grid for every agent instead of each agent's paper grid",
+    )
+    p.add_argument("--max-configs", type=int, default=None)
+    p.add_argument("--backend", default="local", choices=["local", "ray"])
+    p.add_argument("--workers", type=int, default=2, help="local pool size")
+    p.add_argument("--ray-address", default=None, help="Ray cluster address (default: local)")
+    p.add_argument("--out", required=True)
+    _add_run_options(p)
+    p.set_defaults(func=_sweep)
+
+    p = sub.add_parser("report", help="tables and figures of a sweep (Markdown, HTML, PNG)")
+    p.add_argument("sweep_dir", metavar="SWEEP_DIR")
+    p.add_argument("--out", default=None, help="report folder (default: SWEEP_DIR/report)")
+    p.add_argument(
+        "--fqe",
+        action="store_true",
+        help="first run offline policy selection by FQE (writes SWEEP_DIR/fqe.json)",
+    )
+    p.add_argument("--fqe-steps", type=int, default=2000, help="FQE gradient steps")
+    p.set_defaults(func=_report)
+
+
+def _run_kwargs(args: argparse.Namespace, periodic_eval: bool = True) -> dict:
+    # train evaluates 10 times by default; a sweep only at the end of each run
+    default_eval = max(1, args.steps // 10) if periodic_eval else 0
+    return {
+        "preset": args.preset,
+        "steps": args.steps,
+        "eval_every": default_eval if args.eval_every is None else args.eval_every,
+        "eval_episodes": args.eval_episodes,
+        "eval_envs": args.eval_envs,
+        "eval_max_steps": args.eval_max_steps,
+        "log_every": args.log_every,
+        "checkpoint_every": args.checkpoint_every,
+        "env": args.env,
+    }
+
+
+def _train(args: argparse.Namespace) -> int:
+    from rlu.train import TrainConfig, parse_overrides, train
+
+    config = TrainConfig(
+        task=args.task,
+        agent=args.agent,
+        dataset=args.dataset,
+        seed=args.seed,
+        overrides=parse_overrides(args.overrides),
+        torch_threads=args.threads,
+        **_run_kwargs(args),
+    )
+    result = train(
+        config,
+        args.out,
+        resume=args.resume,
+        progress=not args.no_progress,
+        tensorboard=args.tensorboard,
+    )
+    print(f"{args.out}: step {result['steps']}, final evaluation return {result['score']}")
+    return 0
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    from rlu.train import evaluate_run
+
+    res = evaluate_run(args.run, args.episodes, args.seed, args.envs, args.env, args.max_steps)
+    if args.json:
+        print(json.dumps(res.to_json()))
+    else:
+        print(
+            f"{len(res.returns)} episodes: mean return {res.mean:.3f}, returns "
+            + ", ".join(f"{r:.2f}" for r in res.returns)
+        )
+    return 0
+
+
+def _sweep(args: argparse.Namespace) -> int:
+    from rlu.sweep import SweepConfig, results_table, sweep
+    from rlu.train import parse_overrides
+    from rlu.types import RluError
+
+    datasets = {}
+    for item in args.dataset:
+        task, sep, path = item.partition("=")
+        if not sep:
+            raise RluError(f"--dataset {item!r}; write it as TASK=PATH")
+        datasets[task] = path
+    grid = None
+    if args.grid:
+        grid = {}
+        for item in args.grid:
+            key, sep, values = item.partition("=")
+            if not sep:
+                raise RluError(f"--grid {item!r}; write it as FIELD=V1,V2")
+            grid[key] = [parse_overrides([f"v={v}"])["v"] for v in values.split(",")]
+    config = SweepConfig(
+        tasks=tuple(args.tasks),
+        agents=tuple(args.agents),
+        datasets=datasets,
+        seeds=tuple(args.seeds),
+        grid=grid,
+        max_configs=args.max_configs,
+        **_run_kwargs(args, periodic_eval=False),
+    )
+    records = sweep(config, args.out, args.backend, args.workers, args.ray_address, progress=True)
+    print(results_table(records), end="")
+    return 0
+
+
+def _report(args: argparse.Namespace) -> int:
+    from rlu.evaluation.report import write_report
+
+    if args.fqe:
+        from rlu.evaluation.fqe import FQEConfig
+        from rlu.train import fqe_selection
+
+        fqe_selection(args.sweep_dir, FQEConfig(steps=args.fqe_steps))
+    paths = write_report(args.sweep_dir, args.out)
+    for p in paths:
+        print(f"wrote {p}")
+    return 0

@@ -1,0 +1,12 @@
+"""The original RL Unplugged release without TensorFlow.
+
+- :mod:`.framing`: TFRecord reader / writer (masked CRC-32C, whole-file gzip, streaming);
+- :mod:`.example`: ``tf.train.Example`` <-> numpy;
+- :mod:`.png`: the release's PNG frames;
+- :mod:`.families`: per-family decoding into loader-shaped arrays and into Segments;
+- :mod:`.catalog`: bucket paths and shard counts for every registered task;
+- :mod:`.download`: resumable, checksum-recorded HTTPS download into a cache dir;
+- :mod:`.convert`: shards -> native store; :mod:`.load`: ``load_dataset(..., source="release")``.
+
+Reading needs the ``release`` extra (google-crc32c, Pillow); importing this package does not.
+"""

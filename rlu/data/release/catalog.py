@@ -1,0 +1,194 @@
+"""Where every registered task's release files live: object names, shard counts, URLs.
+
+Built on ``TaskSpec.release`` (rlu.tasks), which carries each family's path pattern and its
+per-dataset shard counts; this module binds the dataset (Atari run, RWRL challenge and size),
+expands ``-%05d-of-%05d`` names, and finds already-downloaded shards under a bucket-shaped root.
+bsuite and DMLab are not registry tasks; their object names are built here from the facts file.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from rlu.tasks import (
+    BASE_URL,
+    RWRL_DATASETS,
+    ReleaseDataset,
+    TaskSpec,
+    _binding_fields,
+    get_task,
+)
+from rlu.types import RluError
+
+SHARD_RE = re.compile(r"-(\d{5})-of-(\d{5})$")
+DMLAB_SHARDS = 500
+
+
+@dataclass(frozen=True)
+class ReleaseSelection:
+    """One dataset of one family for one task: its objects in the bucket."""
+
+    task: TaskSpec
+    release: ReleaseDataset
+    binding: str
+    objects: tuple[str, ...]
+
+    @property
+    def family(self) -> str:
+        return self.release.family
+
+    @property
+    def num_shards(self) -> int:
+        return self.release.shards[self.binding]
+
+    def urls(self, base_url: str | None = None) -> list[str]:
+        return [object_url(o, base_url) for o in self.objects]
+
+
+def object_url(obj: str, base_url: str | None = None) -> str:
+    return f"{(base_url or BASE_URL).rstrip('/')}/{obj}"
+
+
+def dataset_binding(
+    task: TaskSpec,
+    run: str | int | None = None,
+    challenge: str | None = None,
+    size: str | None = None,
+) -> str:
+    """The key of ``ReleaseDataset.shards`` for a task's dataset (``run_1``, ``none/large``, '')."""
+    if task.domain == "atari":
+        r = run if run is not None else 1
+        r = f"run_{r}" if not str(r).startswith("run_") else str(r)
+        if r not in task.datasets:
+            raise RluError(f"{task.id}: unknown run {run!r}; use one of {', '.join(task.datasets)}")
+        return r
+    if task.domain == "rwrl":
+        b = f"{challenge or 'none'}/{size or 'large'}"
+        if b not in RWRL_DATASETS:
+            raise RluError(
+                f"{task.id}: no released dataset for challenge={challenge!r} size={size!r}; "
+                f"released: {', '.join(RWRL_DATASETS)} (challenge/size)"
+            )
+        return b
+    if run is not None or challenge is not None or size is not None:
+        raise RluError(f"{task.id} has one dataset; drop --run/--challenge/--size")
+    return ""
+
+
+def parse_shards(spec: str | Sequence[int] | None, n: int) -> list[int]:
+    """``"0-3,7"`` / [0, 7] / None (all) -> sorted shard indices, each checked against ``n``."""
+    if spec is None:
+        return list(range(n))
+    out: set[int] = set()
+    items = spec.split(",") if isinstance(spec, str) else [str(i) for i in spec]
+    for item in items:
+        item = item.strip()
+        if not item:
+            continue
+        try:
+            if "-" in item:
+                a, b = item.split("-", 1)
+                out.update(range(int(a), int(b) + 1))
+            else:
+                out.add(int(item))
+        except ValueError:
+            raise RluError(f"bad shard selection {item!r}; use e.g. 0-3,7") from None
+    bad = sorted(i for i in out if not 0 <= i < n)
+    if bad:
+        raise RluError(f"shard indices {bad} are out of range: this dataset has {n} (0..{n - 1})")
+    return sorted(out)
+
+
+def select(
+    task_id: str,
+    family: str | None = None,
+    run: str | int | None = None,
+    challenge: str | None = None,
+    size: str | None = None,
+    shards: str | Sequence[int] | None = None,
+) -> ReleaseSelection:
+    """The release objects of a task's dataset (all shards unless ``shards`` picks some)."""
+    task = get_task(task_id)
+    rel = task.release_dataset(family)
+    binding = dataset_binding(task, run, challenge, size)
+    names = rel.shard_names(binding)
+    picked = parse_shards(shards, len(names))
+    return ReleaseSelection(task, rel, binding, tuple(names[i] for i in picked))
+
+
+def catalog() -> list[dict]:
+    """Every registered task's release datasets: family, binding, shard count, first object."""
+    from rlu.tasks import TASKS
+
+    rows = []
+    for t in TASKS.values():
+        for rel in t.release:
+            for binding, n in rel.shards.items():
+                rows.append(
+                    {
+                        "task": t.id,
+                        "family": rel.family,
+                        "dataset": binding,
+                        "shards": n,
+                        "first": rel.shard_names(binding)[0],
+                    }
+                )
+    return rows
+
+
+def find_shards(
+    root: str | os.PathLike, selection: ReleaseSelection, shards: str | Sequence[int] | None = None
+) -> list[str]:
+    """The dataset's shard files under a bucket-shaped ``root``, in shard order.
+
+    Files are found by name, ``<prefix>-%05d-of-%05d``, so a copy renumbered as the README does
+    (``...-00000-of-00001``) is found too; all N shards of the count in the names must be there.
+    """
+    root = os.fspath(root)
+    prefix = selection.release.path.format(**_binding_fields(selection.binding))
+    folder = os.path.join(root, *prefix.split("/")[:-1])
+    base = prefix.split("/")[-1]
+    pat = re.compile(re.escape(base) + r"-(\d{5})-of-(\d{5})$")
+    found: dict[int, dict[int, str]] = {}
+    names = os.listdir(folder) if os.path.isdir(folder) else []
+    for name in names:
+        m = pat.match(name)
+        if m:
+            found.setdefault(int(m.group(2)), {})[int(m.group(1))] = os.path.join(folder, name)
+    hint = (
+        f"Fetch them with `rlu download {selection.task.id} --family {selection.family}` "
+        f"or pass the files themselves"
+    )
+    if not found:
+        raise RluError(
+            f"no shards {base}-NNNNN-of-NNNNN of {selection.task.id} in {folder}. {hint}"
+        )
+    if len(found) > 1:
+        raise RluError(f"{folder} mixes shard counts {sorted(found)} for {base}; keep one set")
+    ((n, by_index),) = found.items()
+    missing = [i for i in range(n) if i not in by_index]
+    picked = parse_shards(shards, n)
+    gone = [i for i in picked if i not in by_index]
+    if gone:
+        raise RluError(
+            f"{len(missing)} of {n} shards of {base} are missing in {folder} (first: "
+            f"{base}-{missing[0]:05d}-of-{n:05d}). {hint}"
+        )
+    return [by_index[i] for i in picked]
+
+
+def bsuite_objects(env: str, noise: float, k: int = 0, split: str = "full") -> list[str]:
+    """bsuite shards (one each): ``bsuite/{env}/0_{noise}/{k}_{split}-00000-of-00001``."""
+    if env not in ("cartpole", "catch", "mountain_car"):
+        raise RluError(f"unknown bsuite environment {env!r}; use cartpole, catch or mountain_car")
+    return [f"bsuite/{env}/0_{noise:.1f}/{k}_{split}-00000-of-00001"]
+
+
+def dmlab_objects(level: str, run: str) -> list[str]:
+    """DMLab shards: ``dmlab/{level}/{run}/tfrecord-{i}-of-00500``."""
+    return [
+        f"dmlab/{level}/{run}/tfrecord-{i:05d}-of-{DMLAB_SHARDS:05d}" for i in range(DMLAB_SHARDS)
+    ]

@@ -1,0 +1,345 @@
+"""Release shards -> the native store, streaming and parallel over shards.
+
+Worker processes read and decode shards (inflate, CRC, Example, PNG: the CPU-heavy part) and hand
+bounded batches of segments to the parent through one bounded queue per shard; the parent appends
+them to one :class:`~rlu.data.store.DatasetWriter` in shard order, so the output is the same for
+any number of workers and memory stays at a few batches per worker. Any failure (a damaged shard,
+a schema mismatch, Ctrl-C) aborts the writer: nothing is left at ``out``.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import queue
+import re
+import sys
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rlu.data.episode import METADATA_FIELDS, METADATA_MISSING
+from rlu.data.release.families import SegmentBatch, get_family, iter_raw
+from rlu.data.release.framing import RecordReader
+from rlu.data.store import DatasetWriter, Schema
+from rlu.tasks import TaskSpec, get_task, rwrl_observation_spec
+from rlu.types import ArraySpec, FormatError, RluError, SpecError
+
+_RUN_RE = re.compile(r"run_(\d+)")
+_QUEUE_BATCHES = 4
+
+
+@dataclass
+class ConvertReport:
+    out: Path
+    segments: int = 0
+    steps: int = 0
+    records: int = 0
+    skipped: int = 0
+    files: list[dict[str, Any]] = field(default_factory=list)
+    seconds: float = 0.0
+
+
+def schema_for(
+    task: TaskSpec, family: str, challenge: str | None = None, image_encoding: str | None = None
+) -> Schema:
+    """The store schema of a task's release family (Atari transitions keep their 4-frame stacks)."""
+    if image_encoding is None:
+        image_encoding = "zlib" if family.startswith("atari") else "raw"
+    if family == "atari":
+        return Schema.for_task(task, image_encoding, observation=task.observation_spec)
+    if task.domain == "rwrl":
+        return Schema.for_task(
+            task, image_encoding, observation=rwrl_observation_spec(task, challenge or "none")
+        )
+    return Schema.for_task(task, image_encoding)
+
+
+def _fit(batch: SegmentBatch, schema: Schema, where: str) -> SegmentBatch:
+    """Keep the schema's observation keys (files hold extra ones), cast dtypes, check shapes."""
+    spec = schema.observation
+    obs = batch.observation
+    if isinstance(spec, Mapping):
+        if not isinstance(obs, Mapping):
+            raise SpecError(f"{where}: the file holds one observation array, the task a dict")
+        missing = sorted(set(spec) - set(obs))
+        if missing:
+            raise SpecError(
+                f"{where}: observation keys {missing} of the task are not in the file (it has "
+                f"{sorted(obs)}); is --task right for these files?"
+            )
+        obs = {k: _cast(obs[k], spec[k], f"{where}: observation {k!r}") for k in spec}
+    else:
+        if isinstance(obs, Mapping):
+            raise SpecError(f"{where}: the file holds a dict observation, the task one array")
+        obs = _cast(obs, spec, f"{where}: observation")
+    action = _cast(batch.action, schema.action, f"{where}: action")
+    return SegmentBatch(
+        obs,
+        action,
+        batch.reward,
+        batch.discount,
+        batch.is_first,
+        batch.is_last,
+        batch.is_terminal,
+        batch.metadata,
+        batch.lengths,
+    )
+
+
+def _cast(v: np.ndarray, spec: ArraySpec, what: str) -> np.ndarray:
+    if tuple(v.shape[2:]) != tuple(spec.shape):
+        raise SpecError(
+            f"{what} has per-step shape {tuple(v.shape[2:])}; the task wants {tuple(spec.shape)}"
+        )
+    return v.astype(spec.dtype, copy=False)
+
+
+def _with_meta(batch: SegmentBatch, meta: Mapping[str, Any]) -> SegmentBatch:
+    n = len(batch)
+    md = dict(batch.metadata)
+    for k, v in meta.items():
+        md.setdefault(k, np.full(n, v, METADATA_FIELDS[k]))
+    batch.metadata = md
+    return batch
+
+
+def append_batch(writer: DatasetWriter, batch: SegmentBatch) -> None:
+    """Append N equal-length segments at once (the column files get one write each).
+
+    Equivalent to ``writer.append`` per segment (``tests/release/test_convert.py`` checks the
+    bytes); trimmed batches and frame-stacked schemas go segment by segment.
+    """
+    n = len(batch)
+    if n == 0:
+        return
+    if batch.lengths is not None or writer.schema.frame_stack > 1 or n == 1:
+        for seg in batch:
+            writer.append(seg)
+        return
+    t = batch.reward.shape[1]
+    writer._check(next(iter(batch)))  # keys, shapes and dtypes, with the store's own messages
+    flat = lambda a: np.asarray(a).reshape(n * t, *np.asarray(a).shape[2:])  # noqa: E731
+    cols: dict[str, np.ndarray] = {}
+    if isinstance(batch.observation, Mapping):
+        cols.update({f"observation/{k}": flat(v) for k, v in batch.observation.items()})
+    else:
+        cols["observation"] = flat(batch.observation)
+    cols.update(
+        action=flat(batch.action),
+        reward=flat(batch.reward),
+        discount=flat(batch.discount),
+        is_first=flat(batch.is_first),
+        is_last=flat(batch.is_last),
+        is_terminal=flat(batch.is_terminal),
+    )
+    unknown = set(batch.metadata) - set(METADATA_FIELDS)
+    if unknown:
+        raise SpecError(f"segment metadata has unknown key(s) {sorted(unknown)}")
+    for name, values in cols.items():
+        writer._steps[name].append(values)
+    starts = writer.num_steps + t * np.arange(n)
+    writer._seg["start"].extend(starts.tolist())
+    writer._seg["length"].extend([t] * n)
+    writer._seg["frame_start"].extend([writer.num_frames] * n)
+    for k, dtype in METADATA_FIELDS.items():
+        if k in batch.metadata:
+            writer._meta[k].extend(np.asarray(batch.metadata[k]).tolist())
+        else:
+            writer._meta[k].extend([METADATA_MISSING[dtype]] * n)
+    writer.num_steps += n * t
+    writer.num_episodes += int((batch.is_first[:, 0] & batch.is_last[:, -1]).sum())
+
+
+# --- workers -------------------------------------------------------------------------------
+
+
+def _shard_batches(path: str, family: str, verify: bool, on_error: str):
+    """(batch, None)... then (None, stats) for one shard."""
+    fam = get_family(family)
+    reader = RecordReader(path, verify=verify, on_error=on_error)
+    for raw in iter_raw(path, family, reader=reader, on_error=on_error):
+        yield fam.segments(raw), None
+    yield (
+        None,
+        {
+            "path": path,
+            "records": reader.stats.records,
+            "skipped": reader.stats.skipped,
+            "errors": reader.stats.errors[:20],
+            "bytes": os.path.getsize(path),
+        },
+    )
+
+
+def _worker(path: str, family: str, verify: bool, on_error: str, q: Any) -> None:
+    try:
+        for batch, stats in _shard_batches(path, family, verify, on_error):
+            q.put(("batch", batch) if stats is None else ("done", stats))
+    except RluError as e:
+        q.put(("error", (type(e).__name__, str(e))))
+    except BaseException as e:  # reported to the parent, which aborts the dataset
+        q.put(("error", ("Error", f"{path}: {type(e).__name__}: {e}")))
+
+
+class _Pool:
+    """Up to ``workers`` shard readers running ahead of the parent, each with its own queue."""
+
+    def __init__(
+        self, files: Sequence[str], family: str, verify: bool, on_error: str, workers: int
+    ):
+        self.ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
+        self.files, self.family, self.verify, self.on_error = files, family, verify, on_error
+        self.workers = workers
+        self.procs: dict[int, Any] = {}
+        self.queues: dict[int, Any] = {}
+        self.next = 0
+
+    def _start_upto(self, i: int) -> None:
+        while self.next < len(self.files) and self.next <= i:
+            q = self.ctx.Queue(maxsize=_QUEUE_BATCHES)
+            p = self.ctx.Process(
+                target=_worker,
+                args=(self.files[self.next], self.family, self.verify, self.on_error, q),
+                daemon=True,
+            )
+            p.start()
+            self.procs[self.next], self.queues[self.next] = p, q
+            self.next += 1
+
+    def shard(self, i: int):
+        self._start_upto(i + self.workers - 1)
+        q, p = self.queues[i], self.procs[i]
+        while True:
+            try:
+                kind, payload = q.get(timeout=1.0)
+            except queue.Empty:
+                if not p.is_alive() and q.empty():
+                    raise RluError(
+                        f"{self.files[i]}: the reader process died (exit code {p.exitcode}); "
+                        "out of memory? Try --workers 1"
+                    ) from None
+                continue
+            if kind == "batch":
+                yield payload, None
+            elif kind == "done":
+                yield None, payload
+                break
+            else:
+                name, msg = payload
+                raise FormatError(msg) if name != "Error" else RluError(msg)
+        p.join()
+        del self.procs[i], self.queues[i]
+
+    def close(self) -> None:
+        for p in self.procs.values():
+            if p.is_alive():
+                p.terminate()
+            p.join()
+        self.procs.clear()
+
+
+def convert(
+    files: Sequence[str | os.PathLike],
+    family: str,
+    task_id: str,
+    out: str | os.PathLike,
+    *,
+    challenge: str | None = None,
+    run: str | int | None = None,
+    workers: int | None = None,
+    verify: bool = True,
+    on_error: str = "raise",
+    image_encoding: str | None = None,
+    overwrite: bool = False,
+    progress: bool = False,
+    provenance: Mapping[str, Any] | None = None,
+) -> ConvertReport:
+    """Convert release shard files of one family into a new dataset at ``out``."""
+    get_family(family)
+    task = get_task(task_id)
+    if family in ("bsuite", "dmlab"):
+        raise RluError(
+            f"{family} files decode with rlu.data.release.families, but {family} has no task in "
+            "the registry to convert into; read them with families.iter_segments"
+        )
+    task.release_dataset(family)  # the family must belong to the task
+    if task.domain == "rwrl" and challenge is None:
+        raise RluError(f"{task.id}: say which challenge the files are from: --challenge none|easy")
+    paths = [os.fspath(f) for f in files]
+    if not paths:
+        raise RluError("no shard files to convert; give FILE... or --src ROOT")
+    for p in paths:
+        if not os.path.isfile(p):
+            raise RluError(f"{p}: no such shard file")
+    schema = schema_for(task, family, challenge, image_encoding)
+    meta: dict[str, Any] = {}
+    if task.domain == "atari":
+        r = run if run is not None else _run_from_names(paths)
+        if r is not None:
+            meta["run"] = int(str(r).removeprefix("run_"))
+    workers = workers if workers is not None else min(os.cpu_count() or 1, len(paths) + 1, 8)
+    report = ConvertReport(Path(out))
+    t0 = time.monotonic()
+    prov = {
+        "source": "rl_unplugged release",
+        "family": family,
+        "task": task.id,
+        "challenge": challenge,
+        "run": meta.get("run"),
+        "code_version": _version(),
+        **(provenance or {}),
+    }
+    pool = _Pool(paths, family, verify, on_error, max(1, workers - 1)) if workers > 1 else None
+    try:
+        with DatasetWriter(out, schema, provenance=prov, overwrite=overwrite) as writer:
+            for i, path in enumerate(paths):
+                stream = pool.shard(i) if pool else _shard_batches(path, family, verify, on_error)
+                for batch, stats in stream:
+                    if stats is not None:
+                        report.files.append(stats)
+                        report.records += stats["records"]
+                        report.skipped += stats["skipped"]
+                        continue
+                    batch = _with_meta(_fit(batch, schema, path), meta)
+                    append_batch(writer, batch)
+                if progress:
+                    sys.stderr.write(
+                        f"\r{i + 1}/{len(paths)} shards  {writer.num_steps:,} steps  "
+                        f"{writer.num_episodes:,} episodes"
+                    )
+                    sys.stderr.flush()
+            writer.provenance["files"] = [
+                {
+                    "name": os.path.basename(f["path"]),
+                    "bytes": f["bytes"],
+                    "records": f["records"],
+                    "skipped": f["skipped"],
+                }
+                for f in report.files
+            ]
+            writer.provenance["skipped_records"] = report.skipped
+            report.segments = len(writer._seg["start"])
+            report.steps = writer.num_steps
+    finally:
+        if pool is not None:
+            pool.close()
+        if progress:
+            sys.stderr.write("\n")
+    report.seconds = time.monotonic() - t0
+    return report
+
+
+def _run_from_names(paths: Sequence[str]) -> int | None:
+    runs = {m.group(1) for p in paths if (m := _RUN_RE.search(os.path.basename(p)))}
+    return int(runs.pop()) if len(runs) == 1 else None
+
+
+def _version() -> str:
+    import rlu
+
+    return rlu.__version__

@@ -1,0 +1,467 @@
+"""TFRecord framing without TensorFlow: reader and writer, whole-file gzip, CRC-32C checks.
+
+A TFRecord file is a concatenation of records, each ``uint64 length (LE)``,
+``uint32 masked_crc32c(length bytes)``, ``length`` bytes of payload, ``uint32
+masked_crc32c(payload)`` (rlu_release_format.md §1.1). The release gzips whole files (every family
+but RWRL); the reader sniffs the gzip magic ``1F 8B`` rather than trusting a file name.
+
+Reading streams in constant memory: the file is inflated in chunks of ``CHUNK`` bytes and records
+are cut from a rolling buffer. Both CRCs are verified by default. Any damage (CRC mismatch,
+truncated record, cut or corrupt gzip stream) raises one :class:`RecordError` naming the file and
+the byte offset of the record in the (decompressed) record stream; ``on_error="skip"`` instead
+drops bad records, resynchronises on the next valid header and counts what it skipped in
+:class:`ReadStats`.
+
+Runs of records of equal length (control-suite and locomotion windows) are framed with numpy: the
+length and its CRC are compared as columns of a strided view, so the per-record Python work is one
+C call for the payload CRC.
+"""
+
+from __future__ import annotations
+
+import gzip
+import os
+import queue
+import struct
+import threading
+import zlib
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from typing import BinaryIO
+
+import numpy as np
+
+from rlu.types import FormatError
+
+GZIP_MAGIC = b"\x1f\x8b"
+CHUNK = 1 << 22  # bytes of compressed input per read; memory stays O(CHUNK + largest record)
+_MASK_DELTA = 0xA282EAD8
+_HEADER = struct.Struct("<QI")
+_U32 = struct.Struct("<I")
+# A length header beyond this is damage, not a record (the release's largest records, DMLab
+# episodes of 1801 PNG frames, are tens of MB).
+MAX_RECORD_BYTES = 1 << 31
+
+
+def _crc_impl():
+    try:
+        import google_crc32c
+    except ImportError as e:  # pragma: no cover - the release extra installs it
+        raise ImportError(
+            "reading RL Unplugged release files needs the C-backed CRC-32C: "
+            "pip install 'rlu[release]' (google-crc32c)"
+        ) from e
+    return google_crc32c.value
+
+
+_crc32c = None
+
+
+def _crc32c_fn():
+    global _crc32c
+    if _crc32c is None:
+        _crc32c = _crc_impl()
+    return _crc32c
+
+
+def crc32c(data: bytes) -> int:
+    """Plain CRC-32C (Castagnoli) of ``data``."""
+    return _crc32c_fn()(data if isinstance(data, bytes) else bytes(data))
+
+
+def mask(crc: int) -> int:
+    """TFRecord's CRC mask: rotate right by 15 bits, add 0xA282EAD8 (mod 2^32)."""
+    return ((((crc >> 15) | (crc << 17)) & 0xFFFFFFFF) + _MASK_DELTA) & 0xFFFFFFFF
+
+
+def masked_crc32c(data: bytes) -> int:
+    return mask(crc32c(data))
+
+
+class RecordError(FormatError):
+    """A damaged TFRecord file; the message names the file and the byte offset."""
+
+    def __init__(self, path: str, offset: int, what: str, fix: str = ""):
+        self.path = path
+        self.offset = offset
+        self.what = what
+        hint = fix or (
+            "the file is damaged: download it again (rlu download verifies sha256), or pass "
+            "on_error='skip' (--skip-corrupt) to drop bad records"
+        )
+        super().__init__(f"{path}: {what} at byte offset {offset}; {hint}")
+
+
+@dataclass
+class ReadStats:
+    """What a read saw: records returned, records skipped in ``on_error="skip"`` mode, and why."""
+
+    records: int = 0
+    skipped: int = 0
+    errors: list[str] = field(default_factory=list)
+    compressed: bool = False
+    bytes_read: int = 0
+    """Bytes of the decompressed record stream consumed."""
+
+
+def is_gzip(path: str | os.PathLike) -> bool:
+    with open(path, "rb") as f:
+        return f.read(2) == GZIP_MAGIC
+
+
+def _gzip_chunks(f: BinaryIO, path: str) -> Iterator[bytes]:
+    """Inflate a gzip file (one or more members) chunk by chunk; cut or corrupt streams raise.
+
+    The offset in a raised error is the number of decompressed bytes produced before the damage.
+    """
+    d = zlib.decompressobj(31)
+    consumed = 0  # compressed bytes fed so far
+    produced = 0
+    pending = b""
+    started = False
+    while True:
+        data = pending or f.read(CHUNK)
+        pending = b""
+        if not data:
+            break
+        started = True
+        try:
+            out = d.decompress(data)
+        except zlib.error as e:
+            raise RecordError(
+                path,
+                produced,
+                f"corrupt gzip stream ({e}) near compressed byte {consumed}",
+                "the download is damaged: fetch it again (rlu download re-verifies sha256)",
+            ) from None
+        consumed += len(data) - len(d.unused_data)
+        if out:
+            produced += len(out)
+            yield out
+        if d.eof:
+            rest = d.unused_data or f.read(CHUNK)
+            if not rest:
+                return
+            if rest[:2] == GZIP_MAGIC:  # another member (concatenated gzip files)
+                d = zlib.decompressobj(31)
+                pending = rest
+                continue
+            while rest and not rest.strip(b"\0"):  # zero padding after the stream is harmless
+                rest = f.read(CHUNK)
+            if rest:
+                raise RecordError(path, produced, "garbage after the end of the gzip stream")
+            return
+    if not started:
+        raise RecordError(path, 0, "empty file where a gzip stream was expected")
+    raise RecordError(
+        path,
+        produced,
+        f"gzip stream cut after {consumed} compressed bytes (the file is truncated)",
+        "the download is incomplete: fetch it again (rlu download resumes and verifies)",
+    )
+
+
+def _plain_chunks(f: BinaryIO) -> Iterator[bytes]:
+    while True:
+        raw = f.read(CHUNK)
+        if not raw:
+            return
+        yield raw
+
+
+def _prefetch(chunks: Iterator[bytes], depth: int = 2) -> Iterator[bytes]:
+    """Run a chunk iterator in a thread, ``depth`` chunks ahead.
+
+    zlib releases the GIL while it inflates, so the next chunk is inflated while this thread
+    frames and decodes the current one. Errors are re-raised here, in order.
+    """
+    q: queue.Queue = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+    done = object()
+
+    def run() -> None:
+        try:
+            for c in chunks:
+                while not stop.is_set():
+                    try:
+                        q.put(c, timeout=0.1)
+                        break
+                    except queue.Full:
+                        continue
+                if stop.is_set():
+                    return
+            q.put(done)
+        except BaseException as e:  # handed to the consumer
+            q.put(e)
+
+    t = threading.Thread(target=run, name="rlu-inflate", daemon=True)
+    t.start()
+    try:
+        while True:
+            item = q.get()
+            if item is done:
+                return
+            if isinstance(item, BaseException):
+                raise item
+            yield item
+    finally:
+        stop.set()
+        t.join()
+
+
+class RecordReader:
+    """Streams the payloads of one TFRecord file (gzip or plain) with CRC checks.
+
+    ``batches()`` yields lists of payloads (bytes), a chunk's worth at a time; ``__iter__`` yields
+    payloads one by one. ``stats`` says what was read and skipped.
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        *,
+        verify: bool = True,
+        on_error: str = "raise",
+        compression: str | None = None,
+        prefetch: bool = False,
+    ):
+        if on_error not in ("raise", "skip"):
+            raise ValueError("on_error must be 'raise' or 'skip'")
+        self.path = os.fspath(path)
+        self.verify = verify
+        self.skip = on_error == "skip"
+        self.compression = compression
+        self.prefetch = prefetch
+        self.stats = ReadStats()
+        self._len_crc: dict[int, bytes] = {}
+
+    def __iter__(self) -> Iterator[bytes]:
+        for batch in self.batches():
+            yield from batch
+
+    def _header_crc(self, header: bytes) -> bytes:
+        got = self._len_crc.get(header)  # type: ignore[call-overload]
+        if got is None:
+            got = _U32.pack(masked_crc32c(header))
+            if len(self._len_crc) < 4096:
+                self._len_crc[header] = got  # type: ignore[index]
+        return got
+
+    def _bad(self, offset: int, what: str) -> None:
+        if not self.skip:
+            raise RecordError(self.path, offset, what)
+        self.stats.skipped += 1
+        self.stats.errors.append(f"{what} at byte offset {offset}")
+
+    def _resync(self, buf: bytes, start: int) -> int:
+        """First offset >= start where a plausible header with a valid length CRC begins."""
+        end = len(buf) - 12
+        for o in range(start, end + 1):
+            header = buf[o : o + 8]
+            (length,) = struct.unpack("<Q", header)
+            if length > MAX_RECORD_BYTES:
+                continue
+            if buf[o + 8 : o + 12] == self._header_crc(header):
+                return o
+        return -1
+
+    def batches(self) -> Iterator[list[bytes]]:
+        with open(self.path, "rb") as f:
+            magic = f.read(2)
+            f.seek(0)
+            gz = self.compression == "gzip" or (self.compression is None and magic == GZIP_MAGIC)
+            self.stats.compressed = gz
+            chunks = _gzip_chunks(f, self.path) if gz else _plain_chunks(f)
+            if gz and self.prefetch:
+                chunks = _prefetch(chunks)
+            yield from self._frame(chunks)
+
+    def _frame(self, chunks: Iterable[bytes]) -> Iterator[list[bytes]]:
+        buf = b""
+        base = 0  # stream offset of buf[0]
+        skipping = False  # resynchronising after a bad header
+        cut: RecordError | None = None
+        it = iter(chunks)
+        final = False
+        while not final:
+            try:
+                new = next(it)
+            except StopIteration:
+                new, final = b"", True
+            except RecordError as e:  # a cut or corrupt gzip stream: frame what was inflated
+                new, final, cut = b"", True, e
+            buf = buf + new if buf else new
+            out, pos, skipping = self._cut(buf, base, skipping, final, cut)
+            base += pos
+            buf = buf[pos:]
+            self.stats.bytes_read = base
+            if out:
+                self.stats.records += len(out)
+                yield out
+
+    def _cut(
+        self, buf: bytes, base: int, skipping: bool, final: bool, cut: RecordError | None
+    ) -> tuple[list[bytes], int, bool]:
+        """Cut complete records from ``buf``; returns (payloads, bytes consumed, skipping)."""
+        out: list[bytes] = []
+        pos = 0
+        n = len(buf)
+        crc = _crc32c_fn() if self.verify else None
+        header_crc = self._header_crc
+        while True:
+            if skipping:
+                o = self._resync(buf, pos)
+                if o < 0:
+                    # keep the last 11 bytes: a header may straddle the chunk boundary
+                    pos = n if final else max(pos, n - 11)
+                    break
+                pos = o
+                skipping = False
+            if n - pos < 12:
+                break
+            header = buf[pos : pos + 8]
+            if crc is not None and buf[pos + 8 : pos + 12] != header_crc(header):
+                self._bad(base + pos, "length CRC mismatch (corrupt record header)")
+                skipping = True
+                pos += 1
+                continue
+            (length,) = struct.unpack("<Q", header)
+            if length > MAX_RECORD_BYTES:
+                self._bad(base + pos, f"record length {length} is implausible")
+                skipping = True
+                pos += 1
+                continue
+            stride = length + 16
+            if pos + stride > n:
+                break
+            # Fast path: a run of records of this same length, framed as columns of a 2D view:
+            # the headers are compared as a block, the payload CRCs masked and compared in numpy.
+            m = (n - pos) // stride
+            if m >= 8:
+                rows = np.frombuffer(buf, np.uint8, count=m * stride, offset=pos).reshape(m, stride)
+                same = (rows[:, :12] == rows[0, :12]).all(axis=1)
+                run = m if same.all() else int(np.argmin(same))
+                if run >= 8:
+                    p0 = pos + 12
+                    payloads = [buf[o : o + length] for o in range(p0, p0 + run * stride, stride)]
+                    if crc is not None:
+                        got = np.fromiter(map(crc, payloads), np.uint32, run)
+                        got = ((got >> 15) | (got << 17)) + np.uint32(_MASK_DELTA)
+                        want = np.ascontiguousarray(rows[:run, 12 + length :]).view("<u4")[:, 0]
+                        bad = np.flatnonzero(got != want)
+                        for i in bad:  # raises on the first in the default mode
+                            self._bad(base + pos + int(i) * stride, "payload CRC mismatch")
+                        if bad.size:
+                            keep = np.ones(run, bool)
+                            keep[bad] = False
+                            payloads = [
+                                q for q, k in zip(payloads, keep.tolist(), strict=True) if k
+                            ]
+                    out.extend(payloads)
+                    pos += run * stride
+                    continue
+            p = pos + 12
+            payload = buf[p : p + length]
+            if crc is not None and buf[p + length : pos + stride] != _U32.pack(mask(crc(payload))):
+                self._bad(base + pos, "payload CRC mismatch")
+            else:
+                out.append(payload)
+            pos += stride
+        if final and pos < n and not skipping:
+            rest = buf[pos:]
+            if len(rest) >= 12:
+                (length,) = struct.unpack("<Q", rest[:8])
+                what = (
+                    f"truncated record (its header says {length} payload bytes; "
+                    f"{len(rest) - 12} bytes of payload and CRC remain)"
+                )
+            else:
+                what = f"truncated record header ({len(rest)} of 12 bytes)"
+            if cut is not None:
+                what = f"{what}: {cut.what}"
+            self._bad(base + pos, what)
+            pos = n
+        elif final and cut is not None:
+            self._bad(base + pos, cut.what)
+            self.stats.skipped -= 1  # no record was lost, only the stream's end
+        return out, pos, skipping
+
+
+def read_records(
+    path: str | os.PathLike, *, verify: bool = True, on_error: str = "raise"
+) -> Iterator[bytes]:
+    """Every payload of a TFRecord file, in order (gzip sniffed)."""
+    return iter(RecordReader(path, verify=verify, on_error=on_error))
+
+
+def count_records(path: str | os.PathLike, *, verify: bool = True) -> int:
+    return sum(len(b) for b in RecordReader(path, verify=verify).batches())
+
+
+def frame(payload: bytes) -> bytes:
+    """One framed record."""
+    header = struct.pack("<Q", len(payload))
+    return b"".join(
+        (
+            header,
+            _U32.pack(masked_crc32c(header)),
+            payload,
+            _U32.pack(masked_crc32c(payload)),
+        )
+    )
+
+
+class RecordWriter:
+    """Writes framed records; ``compression="gzip"`` wraps the whole file in one gzip member.
+
+    Writes go to ``path + ".partial"`` and are renamed into place on a clean close, so a failed
+    write leaves no file under the final name.
+    """
+
+    def __init__(self, path: str | os.PathLike, compression: str | None = "gzip", level: int = 6):
+        self.path = os.fspath(path)
+        self._tmp = self.path + ".partial"
+        raw = open(self._tmp, "wb")
+        self._raw = raw
+        if compression == "gzip":
+            # mtime=0 keeps the bytes reproducible; one member, as TF writes it.
+            self._f: BinaryIO = gzip.GzipFile(fileobj=raw, mode="wb", compresslevel=level, mtime=0)
+        elif compression in (None, "", "none"):
+            self._f = raw
+        else:
+            raise ValueError(f"unknown compression {compression!r}; use 'gzip' or None")
+
+    def write(self, payload: bytes) -> None:
+        self._f.write(frame(payload))
+
+    def close(self) -> None:
+        if self._f is not self._raw:
+            self._f.close()
+        self._raw.close()
+        os.replace(self._tmp, self.path)
+
+    def abort(self) -> None:
+        try:
+            if self._f is not self._raw:
+                self._f.close()
+            self._raw.close()
+        finally:
+            if os.path.exists(self._tmp):
+                os.remove(self._tmp)
+
+    def __enter__(self) -> RecordWriter:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+def write_records(
+    path: str | os.PathLike, payloads: Iterable[bytes], compression: str | None = "gzip"
+) -> None:
+    with RecordWriter(path, compression=compression) as w:
+        for p in payloads:
+            w.write(p)

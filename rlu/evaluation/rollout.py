@@ -1,0 +1,129 @@
+"""Vectorised evaluation rollouts: ``num_envs`` Gymnasium envs stepped in lockstep, one batched
+policy call per step. The policy sees observations only (a callable, never the agent).
+
+Episode ``i`` is reset with seed ``seed + i`` and runs on whichever env is free, so the returns
+(listed in episode order) do not depend on ``num_envs``. Envs come from a factory: any callable
+returning a Gymnasium env; ``task_env_factory`` builds ``rlu.envs.make_env`` for a task id.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from rlu.types import RluError
+
+EnvFactory = Callable[[], Any]
+
+
+@dataclass(frozen=True)
+class EvalResult:
+    returns: tuple[float, ...]
+    """Undiscounted return of each episode, in episode order."""
+    lengths: tuple[int, ...]
+    """Steps of each episode."""
+
+    @property
+    def mean(self) -> float:
+        return float(np.mean(self.returns))
+
+    def to_json(self) -> dict[str, Any]:
+        return {"returns": list(self.returns), "lengths": list(self.lengths), "mean": self.mean}
+
+
+def resolve_env_fn(spec: str) -> Callable[..., Any]:
+    """``"package.module:function"`` -> the function (an env factory taking (task_id, seed))."""
+    module, _, attr = spec.partition(":")
+    if not module or not attr:
+        raise RluError(f"env factory {spec!r}; write it as 'package.module:function'")
+    try:
+        return getattr(importlib.import_module(module), attr)
+    except (ImportError, AttributeError) as e:
+        raise RluError(f"env factory {spec!r} cannot be imported: {e}") from None
+
+
+def task_env_factory(
+    task_id: str, make_env: str | Callable[..., Any] | None = None, **kwargs: Any
+) -> EnvFactory:
+    """A zero-argument factory for ``task_id``'s env: ``rlu.envs.make_env`` unless ``make_env``
+    (a callable or 'module:function' with the same signature) is given."""
+    if make_env is None:
+        try:
+            mod = importlib.import_module("rlu.envs")
+        except ImportError as e:
+            raise RluError(
+                f"rlu.envs cannot be imported ({e}); install the env extras "
+                "(bash scripts/install.sh control locomotion atari) or pass an env factory"
+            ) from None
+        fn = mod.make_env
+    elif isinstance(make_env, str):
+        fn = resolve_env_fn(make_env)
+    else:
+        fn = make_env
+
+    def factory() -> Any:
+        return fn(task_id, **kwargs)
+
+    return factory
+
+
+def _stack(obs_list: list[Any]) -> Any:
+    if isinstance(obs_list[0], Mapping):
+        return {k: np.stack([np.asarray(o[k]) for o in obs_list]) for k in obs_list[0]}
+    return np.stack([np.asarray(o) for o in obs_list])
+
+
+def evaluate(
+    policy: Callable[[Any], np.ndarray],
+    env_fn: EnvFactory,
+    num_episodes: int = 10,
+    seed: int = 0,
+    num_envs: int = 4,
+    max_steps: int | None = None,
+) -> EvalResult:
+    """Run ``num_episodes`` episodes of ``policy`` (batched observations -> batched actions).
+
+    ``max_steps`` caps an episode's length on top of the env's own time limit.
+    """
+    if num_episodes < 1:
+        raise RluError(f"num_episodes={num_episodes}; evaluate at least one episode")
+    num_envs = max(1, min(int(num_envs), num_episodes))
+    envs = [env_fn() for _ in range(num_envs)]
+    returns = np.zeros(num_episodes, np.float64)
+    lengths = np.zeros(num_episodes, np.int64)
+    episode = [-1] * num_envs  # episode index running on each env (-1: idle)
+    obs: list[Any] = [None] * num_envs
+    next_episode = 0
+    try:
+        for i in range(num_envs):
+            obs[i], _ = envs[i].reset(seed=seed + next_episode)
+            episode[i] = next_episode
+            next_episode += 1
+        while True:
+            active = [i for i in range(num_envs) if episode[i] >= 0]
+            if not active:
+                break
+            actions = np.asarray(policy(_stack([obs[i] for i in active])))
+            for j, i in enumerate(active):
+                o, r, terminated, truncated, _ = envs[i].step(actions[j])
+                e = episode[i]
+                returns[e] += float(r)
+                lengths[e] += 1
+                if max_steps is not None and lengths[e] >= max_steps:
+                    truncated = True
+                if terminated or truncated:
+                    if next_episode < num_episodes:
+                        o, _ = envs[i].reset(seed=seed + next_episode)
+                        episode[i] = next_episode
+                        next_episode += 1
+                    else:
+                        episode[i] = -1
+                obs[i] = o
+    finally:
+        for env in envs:
+            env.close()
+    return EvalResult(tuple(float(x) for x in returns), tuple(int(x) for x in lengths))

@@ -1,0 +1,56 @@
+"""Vectorised rollouts on a real Gymnasium env: returns independent of the number of envs, the
+policy sees batched observations only, clear errors."""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import pytest
+
+from rlu.evaluation.rollout import evaluate, task_env_factory
+from rlu.types import RluError
+
+pytest.importorskip("gymnasium")
+
+
+def _factory():
+    return task_env_factory("test/pendulum", "tests.train.pendulum:make_env")
+
+
+def _pd_policy(seen):
+    def policy(obs):
+        seen.append(obs)
+        th = np.arctan2(obs["orientation"][:, 1], obs["orientation"][:, 0])
+        return np.clip(-(6.0 * th + 1.5 * obs["velocity"][:, 0]), -2, 2)[:, None].astype(np.float32)
+
+    return policy
+
+
+def test_returns_do_not_depend_on_num_envs():
+    seen: list = []
+    one = evaluate(_pd_policy(seen), _factory(), num_episodes=5, seed=3, num_envs=1)
+    three = evaluate(_pd_policy([]), _factory(), num_episodes=5, seed=3, num_envs=3)
+    assert one.returns == three.returns
+    assert one.lengths == (50,) * 5
+    assert len(set(one.returns)) == 5  # episode i is seeded with seed + i
+    # batched dict observations, nothing else
+    assert all(set(o) == {"orientation", "velocity"} for o in seen)
+    assert {o["orientation"].shape for o in seen} == {(1, 2)}
+    other_seed = evaluate(_pd_policy([]), _factory(), num_episodes=5, seed=4, num_envs=2)
+    assert other_seed.returns[:4] == one.returns[1:]  # seeds 4..7 are episodes 1..4 of seed 3
+
+
+def test_max_steps_and_errors(monkeypatch):
+    res = evaluate(_pd_policy([]), _factory(), num_episodes=2, seed=0, num_envs=2, max_steps=7)
+    assert res.lengths == (7, 7)
+    assert res.to_json()["mean"] == pytest.approx(np.mean(res.returns))
+    with pytest.raises(RluError, match="at least one episode"):
+        evaluate(_pd_policy([]), _factory(), num_episodes=0)
+    with pytest.raises(RluError, match="module:function"):
+        task_env_factory("x", "no_colon")
+    with pytest.raises(RluError, match="cannot be imported"):
+        task_env_factory("x", "no_such_module_xyz:make_env")
+    monkeypatch.setitem(sys.modules, "rlu.envs", None)  # as if rlu.envs were not installed
+    with pytest.raises(RluError, match="rlu.envs cannot be imported"):
+        task_env_factory("control_suite/cartpole_swingup")

@@ -1,0 +1,206 @@
+"""The downloader against HTTP servers on 127.0.0.1 that misbehave: a cut connection, HTTP 500s,
+a wrong byte. Final files equal the source; nothing partial is left under a final name."""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import http.server
+import os
+import threading
+
+import google_crc32c
+import numpy as np
+import pytest
+
+from rlu.data.release.download import Downloader, DownloadError
+
+
+class _Handler(http.server.BaseHTTPRequestHandler):
+    def log_message(self, *a):  # quiet
+        pass
+
+    def do_GET(self):  # noqa: N802
+        srv = self.server
+        name = self.path.lstrip("/")
+        srv.requests.append((name, self.headers.get("Range")))
+        body = srv.files.get(name)
+        if body is None:
+            self.send_error(404)
+            return
+        plan = srv.plans.get(name, [])
+        action = plan.pop(0) if plan else "ok"
+        if action == "500":
+            self.send_error(500, "try again")
+            return
+        start = 0
+        rng = self.headers.get("Range")
+        if rng and srv.ranges:
+            start = int(rng.split("=")[1].split("-")[0])
+        data = body[start:]
+        if action == "flip":
+            data = bytearray(data)
+            data[len(data) // 2] ^= 0x01
+            data = bytes(data)
+        self.send_response(206 if start else 200)
+        self.send_header("Content-Length", str(len(data)))
+        if start:
+            self.send_header("Content-Range", f"bytes {start}-{len(body) - 1}/{len(body)}")
+        if srv.hashes:
+            md5 = base64.b64encode(hashlib.md5(body).digest()).decode()
+            crc = base64.b64encode(google_crc32c.Checksum(body).digest()).decode()
+            self.send_header("x-goog-hash", f"crc32c={crc}")
+            self.send_header("x-goog-hash", f"md5={md5}")
+        self.send_header("ETag", '"v1"')
+        self.end_headers()
+        if action == "cut":
+            self.wfile.write(data[: len(data) // 3])
+            self.wfile.flush()
+            self.close_connection = True
+            self.connection.shutdown(2)
+            return
+        self.wfile.write(data)
+
+
+@pytest.fixture
+def server():
+    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), _Handler)
+    srv.files, srv.plans, srv.requests = {}, {}, []
+    srv.ranges, srv.hashes = True, True
+    t = threading.Thread(target=srv.serve_forever, daemon=True)
+    t.start()
+    srv.url = f"http://127.0.0.1:{srv.server_address[1]}"
+    yield srv
+    srv.shutdown()
+    srv.server_close()
+
+
+def _blob(n=300_000, seed=0):
+    return np.random.default_rng(seed).integers(0, 256, n, dtype=np.uint8).tobytes()
+
+
+def _downloader(tmp_path, server, **kw):
+    d = Downloader(cache_dir=tmp_path / "cache", base_url=server.url, progress=False, **kw)
+    d.sleeps = []
+    d.sleep = d.sleeps.append  # record the backoff instead of waiting
+    return d
+
+
+def _no_partials(root):
+    for dirpath, _, names in os.walk(root):
+        for n in names:
+            assert not n.endswith((".part", ".part.json")), os.path.join(dirpath, n)
+
+
+def test_cut_connection_resumes_with_range(tmp_path, server):
+    obj = "dm_control_suite/x/train-00000-of-00001"
+    server.files[obj] = body = _blob()
+    server.plans[obj] = ["cut"]
+    d = _downloader(tmp_path, server)
+    (f,) = d.fetch([obj])
+    assert open(f.path, "rb").read() == body
+    assert f.sha256 == hashlib.sha256(body).hexdigest() and f.size == len(body)
+    (first, r1), (second, r2) = server.requests
+    assert r1 is None and r2 is not None and r2.startswith("bytes=") and r2 != "bytes=0-"
+    _no_partials(d.root)
+    assert d.manifest.get(obj)["sha256"] == f.sha256
+
+
+def test_server_that_ignores_range_restarts(tmp_path, server):
+    obj = "a/b-00000-of-00001"
+    server.files[obj] = body = _blob(seed=1)
+    server.plans[obj] = ["cut"]
+    server.ranges = False
+    (f,) = _downloader(tmp_path, server).fetch([obj])
+    assert open(f.path, "rb").read() == body
+
+
+def test_http_500_twice_then_ok_with_backoff(tmp_path, server):
+    obj = "a/c-00000-of-00001"
+    server.files[obj] = body = _blob(seed=2)
+    server.plans[obj] = ["500", "500"]
+    d = _downloader(tmp_path, server, backoff=0.5)
+    (f,) = d.fetch([obj])
+    assert open(f.path, "rb").read() == body
+    assert d.sleeps == [0.5, 1.0] and len(server.requests) == 3
+
+
+def test_wrong_byte_is_caught_by_the_checksum(tmp_path, server):
+    obj = "a/d-00000-of-00001"
+    server.files[obj] = body = _blob(seed=3)
+    server.plans[obj] = ["flip"]
+    d = _downloader(tmp_path, server)
+    (f,) = d.fetch([obj])
+    assert open(f.path, "rb").read() == body and len(server.requests) == 2
+    _no_partials(d.root)
+
+
+def test_persistent_corruption_fails_and_leaves_no_final_file(tmp_path, server):
+    obj = "a/e-00000-of-00001"
+    server.files[obj] = _blob(seed=4)
+    server.plans[obj] = ["flip"] * 10
+    d = _downloader(tmp_path, server, retries=2)
+    with pytest.raises(DownloadError, match="MD5 mismatch"):
+        d.fetch([obj])
+    assert not os.path.exists(d.path_of(obj))
+    assert d.manifest.get(obj) is None
+
+
+def test_missing_object_is_a_clear_error(tmp_path, server):
+    with pytest.raises(DownloadError, match="404"):
+        _downloader(tmp_path, server).fetch(["nope-00000-of-00001"])
+
+
+def test_reuse_verifies_sha256(tmp_path, server):
+    objs = [f"g/run_1-{i:05d}-of-00004" for i in range(4)]
+    for i, o in enumerate(objs):
+        server.files[o] = _blob(50_000, seed=10 + i)
+    d = _downloader(tmp_path, server, workers=4)
+    got = d.fetch(objs)  # parallel
+    assert [open(f.path, "rb").read() for f in got] == [server.files[o] for o in objs]
+    n = len(server.requests)
+    again = _downloader(tmp_path, server).fetch(objs)
+    assert all(f.reused for f in again) and len(server.requests) == n
+    # local damage after the download: caught by the recorded sha256, fetched again
+    p = got[1].path
+    data = bytearray(open(p, "rb").read())
+    data[100] ^= 0xFF
+    open(p, "wb").write(bytes(data))
+    third = _downloader(tmp_path, server).fetch(objs)
+    assert not third[1].reused and open(p, "rb").read() == server.files[objs[1]]
+    assert len(server.requests) == n + 1
+
+
+def test_mirror_without_hashes_checks_size(tmp_path, server):
+    obj = "m/h-00000-of-00001"
+    server.files[obj] = body = _blob(seed=5)
+    server.hashes = False
+    server.plans[obj] = ["cut", "cut"]
+    (f,) = _downloader(tmp_path, server).fetch([obj])
+    assert open(f.path, "rb").read() == body
+
+
+def test_cache_dir_from_environment(tmp_path, monkeypatch, server):
+    monkeypatch.setenv("RLU_CACHE_DIR", str(tmp_path / "envcache"))
+    d = Downloader(base_url=server.url, progress=False)
+    assert d.root == str(tmp_path / "envcache" / "release")
+
+
+def test_load_release_dataset_downloads_converts_then_reuses(fixtures, tmp_path, server):
+    from rlu.data.release.load import load_release_dataset
+
+    obj = "dm_control_suite/cartpole_swingup/train-00000-of-00100"
+    shard = fixtures / "data" / "dm_control_suite/cartpole_swingup/train-00000-of-00001"
+    server.files[obj] = shard.read_bytes()
+    kw = dict(cache_dir=tmp_path / "c", base_url=server.url, shards="0", workers=1)
+    ds = load_release_dataset("control_suite/cartpole_swingup", **kw)
+    assert len(ds) == 30 and ds.num_steps == 60
+    assert ds.manifest["provenance"]["family"] == "dm_control_suite"
+    n = len(server.requests)
+    server.files.clear()  # a second call needs no network
+    ds2 = load_release_dataset("control_suite/cartpole_swingup", **kw)
+    assert ds2.path == ds.path and len(server.requests) == n
+    import rlu
+
+    ds3 = rlu.load_dataset("control_suite/cartpole_swingup", source="release", **kw)
+    assert ds3.path == ds.path

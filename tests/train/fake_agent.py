@@ -1,0 +1,99 @@
+"""A small real PyTorch agent following the agent-module convention (Config, Agent, PRESETS,
+GRID), for the training-loop tests: behaviour cloning with a linear (or one-hidden-layer) policy
+and Gaussian input noise drawn from the agent's own generator, so an exact resume must restore
+that generator, the optimiser and the weights."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import signal
+from collections.abc import Mapping
+
+import numpy as np
+import torch
+
+from rlu.types import BoundedSpec
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    learning_rate: float = 1e-2
+    """Adam learning rate."""
+    batch_size: int = 64
+    """Transitions per update."""
+    gamma: float = 0.99
+    """Unused by BC; the loop reads it for n-step views."""
+    hidden: int = 0
+    """Hidden units (0: a linear policy)."""
+    input_noise: float = 0.05
+    """Std of Gaussian noise added to observations during updates."""
+
+
+PRESETS = {"small": Config(), "paper": Config(hidden=64)}
+GRID = {"learning_rate": [1e-2, 3e-3]}
+
+
+def _flat(obs) -> torch.Tensor:
+    if isinstance(obs, Mapping):
+        parts = [np.asarray(obs[k], np.float32).reshape(len(obs[k]), -1) for k in sorted(obs)]
+        return torch.from_numpy(np.concatenate(parts, axis=1))
+    return torch.from_numpy(np.asarray(obs, np.float32).reshape(len(obs), -1))
+
+
+class Agent:
+    batch_kind = "transition"
+    n_step = 1
+    sequence_length = 1
+
+    def __init__(self, observation_spec, action_spec: BoundedSpec, config: Config, seed: int = 0):
+        self.config, self.spec = config, action_spec
+        obs_dim = sum(s.size for s in observation_spec.values())
+        act_dim = action_spec.size
+        self.gen = torch.Generator().manual_seed(seed)
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            if config.hidden:
+                self.net = torch.nn.Sequential(
+                    torch.nn.Linear(obs_dim, config.hidden),
+                    torch.nn.Tanh(),
+                    torch.nn.Linear(config.hidden, act_dim),
+                )
+            else:
+                self.net = torch.nn.Linear(obs_dim, act_dim)
+        self.opt = torch.optim.Adam(self.net.parameters(), lr=config.learning_rate)
+        self.scale = float(action_spec.maximum)
+
+    def _forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.scale * torch.tanh(self.net(x))
+
+    def update(self, batch) -> dict[str, float]:
+        # test hook: the process SIGKILLs itself at its N-th update (a crash at a chosen step)
+        self._updates = getattr(self, "_updates", 0) + 1
+        if self._updates == int(os.environ.get("RLU_TEST_SIGKILL_AT_UPDATE", "0")):
+            os.kill(os.getpid(), signal.SIGKILL)
+        x = _flat(batch.observation)
+        x = x + self.config.input_noise * torch.randn(x.shape, generator=self.gen)
+        target = torch.from_numpy(np.asarray(batch.action, np.float32).reshape(len(x), -1))
+        loss = torch.nn.functional.mse_loss(self._forward(x), target)
+        self.opt.zero_grad()
+        loss.backward()
+        self.opt.step()
+        return {"actor/bc_loss": float(loss.detach())}
+
+    def act(self, observation, greedy: bool = True) -> np.ndarray:
+        with torch.no_grad():
+            a = self._forward(_flat(observation)).numpy()
+        return a.reshape(len(a), *self.spec.shape).astype(self.spec.dtype)
+
+    def state_dict(self) -> dict:
+        return {
+            "net": self.net.state_dict(),
+            "opt": self.opt.state_dict(),
+            "gen": self.gen.get_state(),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.net.load_state_dict(state["net"])
+        self.opt.load_state_dict(state["opt"])
+        self.gen.set_state(state["gen"])

@@ -1,0 +1,203 @@
+"""rlu report: the tables' numbers against the run files, the paper's numbers beside ours, Atari
+normalised aggregates, and the files (Markdown, HTML, PNG) it writes."""
+
+from __future__ import annotations
+
+import json
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rlu.evaluation.report import build_report, paper_entry, write_report
+
+
+def test_report_tables_match_the_run_files(local_sweep, tmp_path):
+    pytest.importorskip("matplotlib")
+    sweep_dir, _ = local_sweep
+    paths = write_report(sweep_dir, tmp_path / "report")
+    names = sorted(p.name for p in paths)
+    assert names == ["other_tasks.png", "report.html", "report.json", "report.md"]
+    rep = json.loads((tmp_path / "report" / "report.json").read_text())
+    md = (tmp_path / "report" / "report.md").read_text()
+
+    # recompute every cell from the run folders' eval.jsonl: per (task, agent) the config with
+    # the best mean over seeds of the final evaluation's mean return
+    finals: dict = defaultdict(dict)
+    for run in Path(sweep_dir).glob("*/*/*/seed_*"):
+        last = json.loads((run / "eval.jsonl").read_text().splitlines()[-1])
+        task_dir, agent_dir, cfg_dir = run.parts[-4:-1]
+        finals[(task_dir, agent_dir)].setdefault(cfg_dir, []).append(np.mean(last["returns"]))
+    dom = rep["domains"]["other"]
+    assert len(dom["online"]["rows"]) == 2
+    for row in dom["online"]["rows"]:
+        best_mean = max(c["mean"] for c in row["cells"].values())
+        for agent, cell in row["cells"].items():
+            by_cfg = finals[(row["task"].replace("/", "__"), agent)]
+            means = {c: np.mean(v) for c, v in by_cfg.items()}
+            best = max(means, key=means.get)
+            assert len(by_cfg[best]) == 2  # two seeds
+            assert cell["mean"] == pytest.approx(np.mean(by_cfg[best]), rel=1e-12)
+            assert cell["std"] == pytest.approx(np.std(by_cfg[best]), rel=1e-12)
+            text = f"{cell['mean']:.1f} ± {cell['std']:.1f}"
+            assert (f"**{text}**" in md) == (cell["mean"] == best_mean) or text in md
+            assert cell["bold"] == (cell["mean"] == best_mean)
+    # the p90 line is the dataset's 90th-percentile return
+    from rlu.data import open_dataset
+
+    for task, p90 in dom["dataset_p90"].items():
+        ds_path = json.loads((Path(sweep_dir) / "sweep.json").read_text())["datasets"][task]
+        assert p90 == pytest.approx(np.percentile(open_dataset(ds_path).episode_returns(), 90))
+    agg = dom["aggregates"]
+    assert agg["statistic"] == "mean"
+    for agent in dom["agents"]:
+        cells = [row["cells"][agent]["mean"] for row in dom["online"]["rows"]]
+        assert agg[agent]["mean"] == pytest.approx(np.mean(cells))
+        lo, hi = agg[agent]["interval_25_75"]
+        assert lo <= agg[agent]["mean"] <= hi or np.isclose(lo, hi)
+    html = (tmp_path / "report" / "report.html").read_text()
+    assert html.count("<table>") == 2 and "<b>" in html and "other_tasks.png" in html
+    png = (tmp_path / "report" / "figures" / "other_tasks.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 5000
+
+
+def test_paper_numbers_beside_ours():
+    assert paper_entry("control_suite/cartpole_swingup", "bc") == {
+        "mean": 386.0,
+        "std": 6.0,
+        "bold": False,
+    }
+    assert paper_entry("locomotion/rodent_two_touch", "rabm")["mean"] == 599.0
+    assert paper_entry("atari/Pong", "iqn")["mean"] == 19.2
+    assert paper_entry("test/pendulum", "bc") is None
+    assert paper_entry("control_suite/cartpole_swingup", "tests.train.fake_agent") is None
+    rep = build_report(
+        [
+            {
+                "task": "control_suite/cartpole_swingup",
+                "agent": "bc",
+                "config": "a",
+                "seed": s,
+                "score": v,
+            }
+            for s, v in enumerate([300.0, 310.0])
+        ],  # fmt: skip
+        reps=200,
+    )
+    cell = rep["domains"]["control_suite"]["online"]["rows"][0]["cells"]["bc"]
+    assert cell["paper"]["mean"] == 386.0 and cell["mean"] == 305.0
+
+
+def test_atari_normalised_median_and_naive_offline_selection():
+    random = {"Pong": -20.0, "Breakout": 0.0, "Zaxxon": 0.0}
+    best = {"Pong": 20.0, "Breakout": 100.0, "Zaxxon": 1000.0}
+    recs = []
+    # online game Zaxxon: config "a" 500 (50 %), config "b" 100 (10 %)
+    # offline games Pong and Breakout run with both configs
+    table = {
+        ("atari/Zaxxon", "a"): 500.0,
+        ("atari/Zaxxon", "b"): 100.0,
+        ("atari/Pong", "a"): 0.0,  # 50 %
+        ("atari/Pong", "b"): 20.0,
+        ("atari/Breakout", "a"): 30.0,  # 30 %
+        ("atari/Breakout", "b"): 90.0,
+    }
+    for (task, cfg), v in table.items():
+        for seed in (0, 1):
+            recs.append({"task": task, "agent": "dqn", "config": cfg, "seed": seed, "score": v})
+    # random scores keyed by task id (random_scores.json), best behaviour by game name
+    random = {f"atari/{g}": v for g, v in random.items()}
+    rep = build_report(recs, random_scores=random, best_behaviour=best, reps=500)
+    dom = rep["domains"]["atari"]
+    assert dom["normalised"]
+    assert dom["offline_naive"]["chosen"] == {"dqn": "a"}
+    off = {r["task"]: r["cells"]["dqn"]["mean"] for r in dom["offline_naive"]["rows"]}
+    assert off == {"atari/Breakout": 30.0, "atari/Pong": 0.0}
+    # online selection per game: Zaxxon a (50 %), Pong b (100 %), Breakout b (90 %) -> median 90
+    agg = dom["aggregates"]["dqn"]
+    assert agg["median"] == pytest.approx(90.0)
+    # IQM of the 6 (seed, game) values 50 50 90 90 100 100: cut 1 each end -> mean(50 90 90 100)
+    assert agg["iqm"] == pytest.approx(82.5)
+    # without reference scores for every game, no normalised aggregates are claimed
+    rep = build_report(recs, random_scores={}, best_behaviour=best, reps=100)
+    assert "aggregates" not in rep["domains"]["atari"]
+
+
+def test_fqe_selection_over_a_sweep(local_sweep, tmp_path):
+    import shutil
+
+    from rlu.evaluation.fqe import FQEConfig
+    from rlu.train import fqe_selection
+
+    sweep_dir = tmp_path / "sweep"
+    shutil.copytree(local_sweep[0], sweep_dir)  # fqe.json must not leak into the shared sweep
+    out = fqe_selection(sweep_dir, FQEConfig(steps=30, hidden=(16,), batch_size=64))
+    records = [json.loads(x) for x in (sweep_dir / "results.jsonl").read_text().splitlines()]
+    assert len(out["selections"]) == 4  # (task, agent) pairs
+    for sel in out["selections"]:
+        assert len(sel["estimates"]) == 2 and all(np.isfinite(list(sel["estimates"].values())))
+        for cfg, true in sel["true_returns"].items():
+            scores = [
+                r["score"]
+                for r in records
+                if (r["task"], r["agent"], r["config"]) == (sel["task"], sel["agent"], cfg)
+            ]
+            assert true == pytest.approx(np.mean(scores))
+        assert sel["chosen"] == max(sel["estimates"], key=sel["estimates"].get)
+        best = max(sel["true_returns"].values())
+        assert sel["regret_at_1"] == pytest.approx(best - sel["true_returns"][sel["chosen"]])
+        assert sel["spearman"] in (-1.0, 1.0)  # two candidates
+    write_report(sweep_dir, tmp_path / "report", figures=False)
+    md = (tmp_path / "report" / "report.md").read_text()
+    assert "Offline policy selection by FQE" in md and md.count("| test/pendulum") >= 4
+
+
+def _episodes_dataset(path, returns_by_checkpoint):
+    from rlu.data.episode import make_episode
+    from rlu.data.store import DatasetWriter, Schema
+    from rlu.types import ArraySpec, DiscreteSpec
+
+    schema = Schema(ArraySpec((2,), "float32"), DiscreteSpec((), "int64", 3))
+    with DatasetWriter(path, schema, {"source": "test"}) as w:
+        i = 0
+        for ckpt, rets in returns_by_checkpoint.items():
+            for ret in rets:
+                w.append(
+                    make_episode(
+                        np.zeros((2, 2), np.float32),
+                        np.zeros(1, np.int64),
+                        np.array([ret], np.float32),
+                        terminal=True,
+                        metadata={"episode_id": i, "run": 1, "checkpoint": ckpt},
+                    )
+                )
+                i += 1
+    return str(path)
+
+
+def test_atari_best_behaviour_from_the_sweeps_datasets(tmp_path):
+    # best checkpoint means: Pong 10 (checkpoint 1), Breakout 200 (checkpoint 0)
+    datasets = {
+        "atari/Pong": _episodes_dataset(tmp_path / "pong", {0: [-20.0, -10.0], 1: [0.0, 20.0]}),
+        "atari/Breakout": _episodes_dataset(tmp_path / "brk", {0: [150.0, 250.0], 1: [10.0]}),
+    }
+    recs = [
+        {"task": t, "agent": "rem", "config": "c", "seed": s, "score": v}
+        for t, v in (("atari/Pong", -5.0), ("atari/Breakout", 100.0))
+        for s in (0, 1)
+    ]
+    rep = build_report(
+        recs, datasets, random_scores={"Pong": -20.0, "Breakout": 0.0}, best_behaviour={},
+        reps=200,
+    )  # fmt: skip
+    dom = rep["domains"]["atari"]
+    assert dom["reference_scores"]["atari/Pong"] == {
+        "random": -20.0,
+        "best_behaviour": 10.0,
+        "best_behaviour_source": "dataset",
+    }
+    # Pong 100 * (-5 + 20) / (10 + 20) = 50; Breakout 100 * 100 / 200 = 50
+    assert dom["aggregates"]["rem"]["median"] == pytest.approx(50.0)
+    # the dataset's p90 line: Pong returns -20 -10 0 20 -> 90th percentile 14
+    assert dom["dataset_p90"]["atari/Pong"] == pytest.approx(14.0)

@@ -1,0 +1,87 @@
+"""Sweeps: 2 tasks x 2 agents x 2 configurations x 2 seeds on the local pool and on a local Ray
+instance give the same results table; completed runs are skipped on a second run."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from rlu.sweep import SweepConfig, expand, load_results, results_table, sweep
+from rlu.types import RluError
+from tests.train.conftest import AGENTS
+from tests.train.conftest import sweep_config as _config
+
+
+def test_expand_uses_each_agents_grid(pendulum_datasets, tmp_path):
+    runs = expand(_config(pendulum_datasets), tmp_path)
+    assert len(runs) == 2 * 2 * 2 * 2
+    assert {r.config for r in runs} == {"learning_rate=0.01", "learning_rate=0.003"}
+    assert len({r.run_dir for r in runs}) == 16
+    with pytest.raises(RluError, match="--dataset"):
+        expand(SweepConfig(tasks=("x",), agents=AGENTS, datasets={}), tmp_path)
+
+
+def test_local_sweep_then_skip_completed(local_sweep, pendulum_datasets):
+    out, records = local_sweep
+    assert len(records) == 16
+    assert all(isinstance(r["score"], float) for r in records)
+    assert load_results(out) == records
+    # a record's score is its run's last evaluation
+    for r in records:
+        evals = (Path(r["run"]) / "eval.jsonl").read_text().splitlines()
+        assert json.loads(evals[-1])["mean"] == r["score"]
+    # running it again trains nothing: every run folder is left as it was
+    stamps = {r["run"]: (Path(r["run"]) / "result.json").stat().st_mtime_ns for r in records}
+    again = sweep(_config(pendulum_datasets), out, backend="local", workers=1)
+    assert again == records
+    assert stamps == {
+        r["run"]: (Path(r["run"]) / "result.json").stat().st_mtime_ns for r in records
+    }
+
+
+def test_ray_sweep_gives_the_same_table(local_sweep, pendulum_datasets, tmp_path):
+    pytest.importorskip("ray")
+    _, local_records = local_sweep
+    records = sweep(_config(pendulum_datasets), tmp_path / "ray", backend="ray")
+    assert results_table(records) == results_table(local_records)
+    assert [r["returns"] for r in records] == [r["returns"] for r in local_records]
+
+
+def test_sweep_refuses_a_different_config_in_the_same_folder(local_sweep, pendulum_datasets):
+    out, _ = local_sweep
+    cfg = _config(pendulum_datasets)
+    other = SweepConfig(**{**cfg.__dict__, "steps": 31})
+    with pytest.raises(RluError, match="different sweep configuration"):
+        sweep(other, out)
+
+
+def test_cli_sweep_and_report(pendulum_datasets, tmp_path):
+    pytest.importorskip("matplotlib")
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[2]
+    out = tmp_path / "sweep"
+    args = [
+        sys.executable, "-m", "rlu", "sweep", "--tasks", "test/pendulum",
+        "--agents", "tests.train.fake_agent", "--grid", "learning_rate=0.01,0.02",
+        "--dataset", f"test/pendulum={pendulum_datasets['test/pendulum']}",
+        "--seeds", "0", "--steps", "5", "--eval-episodes", "1", "--eval-max-steps", "5",
+        "--env", "tests.train.pendulum:make_env", "--workers", "1", "--out", str(out),
+    ]  # fmt: skip
+    res = subprocess.run(args, cwd=root, capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    assert "learning_rate=0.02" in res.stdout and "learning_rate=0.01" in res.stdout
+    records = load_results(out)
+    assert [r["overrides"] for r in records] == [{"learning_rate": 0.01}, {"learning_rate": 0.02}]
+    cfg = json.loads((Path(records[1]["run"]) / "config.json").read_text())
+    assert cfg["agent_config"]["learning_rate"] == 0.02
+    assert cfg["train"]["eval_every"] == 0  # a sweep evaluates at the end of each run
+    res = subprocess.run(
+        [sys.executable, "-m", "rlu", "report", str(out)], cwd=root, capture_output=True, text=True
+    )
+    assert res.returncode == 0, res.stderr
+    assert (out / "report" / "report.html").exists()
+    assert (out / "report" / "figures" / "other_tasks.png").exists()
