@@ -329,3 +329,20 @@ def _merge(task, work: Path, runs: int, settings, target, seed: int, out: Path) 
             i, j = where[k]
             w.append(parts[i].segment(j))
     return out
+
+
+BUNDLED_TASK = "control_suite/cartpole_swingup"
+
+
+def bundled_dataset(task_id: str = BUNDLED_TASK) -> Path:
+    """The dataset shipped in the package (made by ``rlu generate``; its manifest holds the
+    command and seed)."""
+    from importlib import resources
+
+    path = Path(str(resources.files("rlu"))) / "resources" / "datasets" / task_id
+    if not (path / "manifest.json").exists():
+        raise RluError(
+            f"{path}: no bundled dataset for {task_id!r}; the package ships {BUNDLED_TASK} only "
+            "(reinstall rlu if it is missing)"
+        )
+    return path
