@@ -13,7 +13,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         "keeps a third of the successful ones and sub-samples to the paper's episode count. "
         "Re-running an interrupted command resumes it (same seed, same bytes).",
     )
-    p.add_argument("task", help="task id, e.g. control_suite/cartpole_swingup or atari/Pong")
+    p.add_argument(
+        "task",
+        help="task id, e.g. control_suite/cartpole_swingup, atari/Pong or rwrl/cartpole_swingup "
+        "(rwrl writes OUT/{none,easy}_{small,medium,large})",
+    )
     p.add_argument("--out", required=True, help="new dataset directory")
     p.add_argument("--scale", default="small", choices=["tiny", "small", "paper"])
     p.add_argument("--seeds", type=int, default=None, help="runs (default: the scale's: 2/3/3)")
@@ -41,14 +45,19 @@ def _run(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
         keep_work=args.keep_work,
     )
-    ds = open_dataset(path)
-    info = ds.info()
-    r = info["returns"]
-    sel = ds.manifest["provenance"]["selection"]
-    print(
-        f"{path}: {r.get('episodes', 0)} episodes ({sel['recorded']} recorded, "
-        f"{sel['successful']} successful), {ds.num_steps} steps, return mean "
-        f"{r.get('mean', float('nan')):.1f} p90 {r.get('p90', float('nan')):.1f}, "
-        f"{time.perf_counter() - t0:.0f}s"
-    )
+    from pathlib import Path
+
+    paths = [path]
+    if (Path(path) / "rwrl.json").exists():  # rwrl: one dataset per challenge and size
+        paths = sorted(p for p in Path(path).iterdir() if (p / "manifest.json").exists())
+    for p in paths:
+        ds = open_dataset(p)
+        r = ds.info()["returns"]
+        sel = ds.manifest["provenance"].get("selection")
+        made = f" ({sel['recorded']} recorded, {sel['successful']} successful)" if sel else ""
+        print(
+            f"{p}: {r.get('episodes', 0)} episodes{made}, {ds.num_steps} steps, return mean "
+            f"{r.get('mean', float('nan')):.1f} p90 {r.get('p90', float('nan')):.1f}"
+        )
+    print(f"{time.perf_counter() - t0:.0f}s")
     return 0

@@ -213,10 +213,12 @@ def run_online(
     write_chunk: Callable[[int, list[Segment]], None],
     on_episode: Callable[[int, int, Segment], None] | None = None,
     on_chunk: Callable[[int, int], None] | None = None,
+    on_snapshot: Callable[[int, Any, list[Segment]], None] | None = None,
 ) -> None:
     """Play run ``run`` of ``cfg`` (resuming from ``run_dir/state.pt``), handing each finished
     chunk of recorded episodes to ``write_chunk(chunk_index, segments)``, then saving its state
-    and calling ``on_chunk(run, chunk_index)``."""
+    and calling ``on_chunk(run, chunk_index)``. ``on_snapshot(chunk_index, agent, segments)``
+    sees the agent after each chunk (RWRL keeps policy snapshots this way)."""
     import torch
 
     from rlu.envs import make_env
@@ -297,6 +299,8 @@ def run_online(
             if len(chunk) == cfg.chunk_episodes or finished():
                 chunk_index = (episode - 1) // cfg.chunk_episodes
                 write_chunk(chunk_index, chunk)
+                if on_snapshot is not None:
+                    on_snapshot(chunk_index, agent, chunk)
                 chunk = []
                 done = finished()
                 _save_atomic(

@@ -27,8 +27,10 @@ from its last saved chunk and gives the bytes of an uninterrupted run; the work 
 removed once the dataset is written. Settings that differ from the interrupted run's are an
 error.
 
-Not implemented yet: RWRL's fixed sub-optimal snapshots (≈75 % of converged return) and the
-locomotion recipe (``record_policy`` in ``rlu.generate.recorder`` records any policy).
+RWRL (fixed sub-optimal snapshots rolled out under challenge none and easy) is in
+``rlu.generate.rwrl``; it writes one dataset per ``{challenge}_{size}`` under ``out``. Not
+implemented: the locomotion recipe (``record_policy`` in ``rlu.generate.recorder`` records any
+policy one episode at a time).
 """
 
 from __future__ import annotations
@@ -108,7 +110,7 @@ def _scales(domain: str) -> dict[str, Scale]:
     raise RluError(
         f"rlu generate supports the control_suite and atari domains; {domain!r} is not "
         "implemented yet (locomotion: record your own policy with "
-        "rlu.generate.recorder.record_policy; rwrl: snapshots not implemented)"
+        "rlu.generate.recorder.record_policy)"
     )
 
 
@@ -232,6 +234,14 @@ def generate(
 ) -> Path:
     """Run the recipe (see the module docstring); returns the dataset's path."""
     task = get_task(task_id)
+    if task.domain == "rwrl":
+        from rlu.generate.rwrl import generate_rwrl
+
+        if scale not in SCALES:
+            raise RluError(f"unknown --scale {scale!r}; use one of {', '.join(SCALES)}")
+        if backend != "local":
+            raise RluError("rwrl generation runs with --backend local only")
+        return generate_rwrl(task, Path(out), scale, runs, seed, progress, keep_work)
     sc = get_scale(task, scale)
     runs = sc.runs if runs is None else int(runs)
     if runs < 1:

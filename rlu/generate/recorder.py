@@ -40,11 +40,13 @@ def schema_for(task: TaskSpec) -> Schema:
 
 
 class EpisodeRecorder:
-    def __init__(self, task: TaskSpec, max_steps: int | None = None):
+    def __init__(self, task: TaskSpec, max_steps: int | None = None, observation_spec=None):
+        """``observation_spec``: what the env returns when it differs from the TaskSpec (RWRL's
+        easy challenge adds dummy keys)."""
         self.task = task
         self.atari = task.domain == "atari"
         self.capacity = int(max_steps or task.episode_length)
-        spec = schema_for(task).observation
+        spec = observation_spec if observation_spec is not None else schema_for(task).observation
         n = self.capacity + 1
         if isinstance(spec, ArraySpec):
             self._obs: Any = np.zeros((n, *spec.shape), spec.dtype)

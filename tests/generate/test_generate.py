@@ -220,3 +220,28 @@ def test_replay_n_step_transitions_equal_the_store_view(tmp_path):
     np.testing.assert_array_equal(replay.discount[idx], view.discount)
     for k in task.observation_spec:
         np.testing.assert_array_equal(replay.obs[k][replay.next[idx]], view.next_observation[k])
+
+
+def test_rwrl_snapshot_rollouts_at_tiny_scale(tmp_path):
+    pytest.importorskip("torch")
+    pytest.importorskip("dm_control")
+    import json
+
+    from rlu.data import open_dataset
+    from rlu.data.validate import validate
+    from rlu.generate import generate
+    from rlu.tasks import RWRL_EASY_DUMMY_KEYS
+
+    out = generate("rwrl/cartpole_swingup", tmp_path / "rw", scale="tiny", runs=1, seed=1,
+                   progress=False)  # fmt: skip
+    names = json.loads((out / "rwrl.json").read_text())["datasets"]
+    assert names == [f"{c}_{s}" for c in ("easy", "none") for s in ("large", "medium", "small")]
+    for name in names:
+        assert validate(out / name).ok, name
+    easy, none = open_dataset(out / "easy_large"), open_dataset(out / "none_large")
+    assert set(RWRL_EASY_DUMMY_KEYS) <= set(easy.schema.observation)
+    assert not set(RWRL_EASY_DUMMY_KEYS) & set(none.schema.observation)
+    assert len(none) == 2 and len(open_dataset(out / "none_small")) == 1
+    snap = none.manifest["provenance"]["snapshots"][0]
+    assert snap["return"] >= 0.75 * snap["converged"]
+    assert not (out / ".work").exists()
