@@ -305,11 +305,17 @@ def _run_ray(task_id: str, online: OnlineConfig, seed: int, runs: int, work: str
         raise RluError(
             "--backend ray needs the 'distributed' extra: bash scripts/install.sh distributed"
         ) from e
-    if not ray.is_initialized():
-        ray.init(ignore_reinit_error=True, log_to_driver=False)
-    remote = ray.remote(num_cpus=1)(_run_one)
-    # Runs share nothing but the work folder, which must be on a filesystem every node sees.
-    ray.get([remote.remote(task_id, online, seed, r, work) for r in range(runs)])
+    started = not ray.is_initialized()
+    if started:
+        ray.init(ignore_reinit_error=True, log_to_driver=False, include_dashboard=False)
+    try:
+        remote = ray.remote(num_cpus=1)(_run_one)
+        # Runs share nothing but the work folder, which must be on a filesystem every node sees;
+        # each run is a function of (seed, run) alone, so the bytes equal the local backend's.
+        ray.get([remote.remote(task_id, online, seed, r, work) for r in range(runs)])
+    finally:
+        if started:
+            ray.shutdown()
 
 
 def _paper_count(task: TaskSpec) -> int | None:

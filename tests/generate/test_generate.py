@@ -245,3 +245,16 @@ def test_rwrl_snapshot_rollouts_at_tiny_scale(tmp_path):
     snap = none.manifest["provenance"]["snapshots"][0]
     assert snap["return"] >= 0.75 * snap["converged"]
     assert not (out / ".work").exists()
+
+
+@pytest.mark.slow  # a local Ray instance: ~30 s idle, minutes on a loaded machine
+def test_ray_backend_gives_the_local_bytes(tmp_path):
+    pytest.importorskip("ray")
+    pytest.importorskip("torch")
+    pytest.importorskip("dm_control")
+    from rlu.generate import generate
+
+    kw = dict(scale="tiny", runs=2, seed=3, progress=False)
+    local = generate(TASK, tmp_path / "local", backend="local", **kw)
+    ray = generate(TASK, tmp_path / "ray", backend="ray", **kw)
+    assert _files(ray) == _files(local)
