@@ -35,6 +35,7 @@ def _row(name: str, returns) -> dict:
 
 
 def _run(args: argparse.Namespace) -> int:
+    import importlib.util
     import json
     import shutil
     import time
@@ -42,6 +43,14 @@ def _run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
+    from rlu.types import RluError
+
+    missing = [m for m in ("torch", "dm_control") if importlib.util.find_spec(m) is None]
+    if missing:
+        raise RluError(
+            f"rlu quickstart trains agents (torch) in the control suite (dm_control); "
+            f"{', '.join(missing)} missing: bash scripts/install.sh control agents"
+        )
     from rlu.data import open_dataset
     from rlu.data.validate import validate
     from rlu.evaluation.rollout import evaluate, task_env_factory
