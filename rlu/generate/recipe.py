@@ -108,7 +108,7 @@ def _scales(domain: str) -> dict[str, Scale]:
                                            checkpoint_steps=1_000_000, chunk_episodes=50), None),
         }  # fmt: skip
     raise RluError(
-        f"rlu generate supports the control_suite and atari domains; {domain!r} is not "
+        f"rlu generate supports the control_suite, atari and rwrl domains; {domain!r} is not "
         "implemented yet (locomotion: record your own policy with "
         "rlu.generate.recorder.record_policy)"
     )
@@ -186,11 +186,11 @@ class Progress:
         self.done += 1
         if not self.enabled:
             return
-        frac = self.done / max(1, self.total)
-        bar = "#" * int(30 * frac)
+        frac = self.done / self.total if self.total else 0.0  # 0: a budget in env steps
+        bar = "#" * int(30 * min(1.0, frac))
         el = time.perf_counter() - self.t0
         msg = (
-            f"{self.label} [{bar:<30}] {self.done}/{self.total} episodes  run {run} ep {episode} "
+            f"{self.label} [{bar:<30}] {self.done}/{self.total or '?'} episodes  run {run} ep {episode} "
             f"return {float(seg.metadata['episode_return']):8.1f}  {el:6.0f}s"
         )
         if self.tty:
