@@ -190,8 +190,8 @@ class Progress:
         bar = "#" * int(30 * min(1.0, frac))
         el = time.perf_counter() - self.t0
         msg = (
-            f"{self.label} [{bar:<30}] {self.done}/{self.total or '?'} episodes  run {run} ep {episode} "
-            f"return {float(seg.metadata['episode_return']):8.1f}  {el:6.0f}s"
+            f"{self.label} [{bar:<30}] {self.done}/{self.total or '?'} episodes  run {run} "
+            f"ep {episode} return {float(seg.metadata['episode_return']):8.1f}  {el:6.0f}s"
         )
         if self.tty:
             print("\r" + msg, end="", file=sys.stderr, flush=True)
