@@ -23,6 +23,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seeds", type=int, default=None, help="runs (default: the scale's: 2/3/3)")
     p.add_argument("--seed", type=int, default=0, help="base seed of every run")
     p.add_argument("--backend", default="local", choices=["local", "ray"])
+    p.add_argument(
+        "--policy",
+        default=None,
+        metavar="MODULE:FACTORY",
+        help="record this policy instead of training D4PG/DQN (required for locomotion): "
+        "factory(task_id, seed) -> policy(observation) -> action",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     p.add_argument("--keep-work", action="store_true", help="keep the per-run parts afterwards")
     p.set_defaults(func=_run)
@@ -44,6 +51,7 @@ def _run(args: argparse.Namespace) -> int:
         backend=args.backend,
         progress=not args.no_progress,
         keep_work=args.keep_work,
+        policy=args.policy,
     )
     from pathlib import Path
 

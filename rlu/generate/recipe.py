@@ -28,9 +28,9 @@ removed once the dataset is written. Settings that differ from the interrupted r
 error.
 
 RWRL (fixed sub-optimal snapshots rolled out under challenge none and easy) is in
-``rlu.generate.rwrl``; it writes one dataset per ``{challenge}_{size}`` under ``out``. Not
-implemented: the locomotion recipe (``record_policy`` in ``rlu.generate.recorder`` records any
-policy one episode at a time).
+``rlu.generate.rwrl``; it writes one dataset per ``{challenge}_{size}`` under ``out``.
+Locomotion records a policy the user supplies (``--policy module:factory``,
+``rlu.generate.policy``); its success: the episode reached its time limit.
 """
 
 from __future__ import annotations
@@ -124,12 +124,17 @@ def get_scale(task: TaskSpec, scale: str) -> Scale:
 def success_rule(task: TaskSpec) -> str:
     if task.domain == "atari":
         return "none: Atari keeps every recorded episode (the paper keeps DQN's replay)"
+    if task.domain == "locomotion":
+        return "the episode reached its time limit (the walker did not fall or fail: not terminal)"
     return f"episode_return >= {CONTROL_SUCCESS_RETURN:g} (80% of the maximum 1000)"
 
 
-def is_success(task: TaskSpec, returns: np.ndarray) -> np.ndarray:
+def is_success(task: TaskSpec, returns: np.ndarray, terminal: np.ndarray) -> np.ndarray:
+    """``terminal``: whether each episode ended in a terminal state (not a time limit)."""
     if task.domain == "atari":
         return np.zeros(returns.shape, bool)
+    if task.domain == "locomotion":
+        return ~terminal
     return returns >= CONTROL_SUCCESS_RETURN
 
 
@@ -231,9 +236,24 @@ def generate(
     progress: bool = True,
     on_chunk: Callable[[int, int], None] | None = None,
     keep_work: bool = False,
+    policy: str | None = None,
 ) -> Path:
-    """Run the recipe (see the module docstring); returns the dataset's path."""
+    """Run the recipe (see the module docstring); returns the dataset's path. ``policy``
+    ('module:factory', see ``rlu.generate.policy``) records a user policy instead of training
+    the behaviour agent (required for locomotion)."""
     task = get_task(task_id)
+    if policy is not None or task.domain == "locomotion":
+        from rlu.generate.policy import generate_with_policy
+
+        if policy is None:
+            raise RluError(
+                f"{task.id}: locomotion data comes from a policy you supply: pass --policy "
+                "package.module:factory, factory(task_id, seed) -> policy(observation) -> action"
+            )
+        if scale not in SCALES or backend != "local":
+            raise RluError(f"--policy runs with --backend local and --scale one of {SCALES}")
+        return generate_with_policy(task, Path(out), scale, runs, seed, policy, progress,
+                                    keep_work)  # fmt: skip
     if task.domain == "rwrl":
         from rlu.generate.rwrl import generate_rwrl
 
@@ -324,18 +344,22 @@ def _paper_count(task: TaskSpec) -> int | None:
     return int(task.episodes[""]) if "" in task.episodes else None
 
 
-def _merge(task, work: Path, runs: int, settings, target, seed: int, out: Path) -> Path:
+def _merge(task, work: Path, runs: int, settings, target, seed: int, out: Path,
+           command: str | None = None) -> Path:  # fmt: skip
     parts = []
     for r in range(runs):
         run_parts = sorted((work / f"run_{r:03d}").glob("part_*"))
         parts += [open_dataset(p) for p in run_parts if (p / "manifest.json").exists()]
     returns = np.concatenate([np.asarray(p.metadata("episode_return")) for p in parts])
+    terminal = np.concatenate(
+        [np.asarray(p.column("is_terminal"))[p.start + p.length - 1] for p in parts]
+    )
     where = [(i, j) for i, p in enumerate(parts) for j in range(len(p))]
     rng = np.random.default_rng([seed, 3])
-    keep, counts = select_episodes(is_success(task, returns), target, rng)
+    keep, counts = select_episodes(is_success(task, returns, terminal), target, rng)
     provenance = {
         "generator": "rlu generate",
-        "command": command_line(task.id, settings["scale"], runs, seed) + " --out DIR",
+        "command": command or command_line(task.id, settings["scale"], runs, seed) + " --out DIR",
         "settings": settings,
         "selection": counts,
         "versions": _versions(task),

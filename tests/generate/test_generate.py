@@ -258,3 +258,36 @@ def test_ray_backend_gives_the_local_bytes(tmp_path):
     local = generate(TASK, tmp_path / "local", backend="local", **kw)
     ray = generate(TASK, tmp_path / "ray", backend="ray", **kw)
     assert _files(ray) == _files(local)
+
+
+def test_user_policy_recipe_is_deterministic_and_skips_finished_chunks(tmp_path):
+    pytest.importorskip("dm_control")
+    from rlu.data import open_dataset
+    from rlu.generate import generate
+    from tests.generate import policies
+
+    spec = "tests.generate.policies:uniform"
+    kw = dict(scale="tiny", runs=1, seed=5, progress=False, policy=spec)
+    ref = generate(TASK, tmp_path / "ref", **kw)
+    ds = open_dataset(ref)
+    assert len(ds) == 2
+    assert ds.manifest["provenance"]["command"].endswith(f"--policy {spec} --out DIR")
+    # an interrupted run: chunk 0 finished, chunk 1 lost
+    again = generate(TASK, tmp_path / "again", keep_work=True, **kw)
+    work = tmp_path / ".again.generate"
+    import shutil
+
+    shutil.rmtree(again)
+    shutil.rmtree(work / "run_000" / "part_00001")
+    policies.BUILT.clear()
+    again = generate(TASK, tmp_path / "again", **kw)
+    assert len(policies.BUILT) == 1  # only the lost chunk was played again
+    assert _files(again) == _files(ref)
+
+
+def test_locomotion_needs_a_policy(tmp_path):
+    from rlu.generate import generate
+    from rlu.types import RluError
+
+    with pytest.raises(RluError, match="--policy"):
+        generate("locomotion/rodent_gaps", tmp_path / "x", scale="tiny", progress=False)
