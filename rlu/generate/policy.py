@@ -50,9 +50,21 @@ def policy_scale(task: TaskSpec, scale: str) -> PolicyScale:
 
 
 def load_factory(spec: str) -> Any:
-    from rlu.evaluation.rollout import resolve_env_fn
+    """``'package.module:function'`` -> the function; the working directory is importable, as
+    for ``python -m``."""
+    import importlib
+    import os
+    import sys
 
-    return resolve_env_fn(spec)  # the same 'module:function' resolution as env factories
+    module, _, attr = spec.partition(":")
+    if not module or not attr:
+        raise RluError(f"--policy {spec!r}; write it as 'package.module:factory'")
+    if os.getcwd() not in sys.path:
+        sys.path.append(os.getcwd())
+    try:
+        return getattr(importlib.import_module(module), attr)
+    except (ImportError, AttributeError) as e:
+        raise RluError(f"--policy {spec!r} cannot be imported: {e}") from None
 
 
 def generate_with_policy(task: TaskSpec, out: Path, scale: str, runs: int | None, seed: int,
