@@ -291,3 +291,22 @@ def test_locomotion_needs_a_policy(tmp_path):
 
     with pytest.raises(RluError, match="--policy"):
         generate("locomotion/rodent_gaps", tmp_path / "x", scale="tiny", progress=False)
+
+
+@pytest.mark.slow  # ~75 s CPU: rodent episodes of 1500 steps with the camera rendered
+def test_locomotion_records_a_user_policy_with_its_camera(tmp_path):
+    pytest.importorskip("dm_control")
+    from rlu.data import open_dataset
+    from rlu.data.validate import validate
+    from rlu.generate import generate
+
+    out = generate("locomotion/rodent_gaps", tmp_path / "loco", scale="tiny", progress=False,
+                   policy="tests.generate.policies:uniform")  # fmt: skip
+    assert validate(out).ok
+    ds = open_dataset(out)
+    sel = ds.manifest["provenance"]["selection"]
+    assert (
+        sel["recorded"] == 2
+        and sel["kept"] == sel["recorded"] - sel["successful"] + (sel["successful"] + 2) // 3
+    )
+    assert ds.segment(0).observation["walker/egocentric_camera"].shape[1:] == (64, 64, 3)
