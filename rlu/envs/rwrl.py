@@ -32,7 +32,9 @@ Deviations from the original, on purpose:
 - the ``constraints`` observation is copied when delayed (the original delayed a reference to
   one array that later steps overwrite, so delayed constraint vectors showed current values);
 - only the perturbation parameters of the combined challenges are implemented (pole_length,
-  thigh_length, shin_length, contact_friction), with the schedulers of rwrl/realworld_env.py.
+  thigh_length, shin_length, contact_friction), with the schedulers of rwrl/realworld_env.py;
+- safety uses each task's default constraint list (the optional ``action_roc_constraint`` and
+  user-supplied constraint functions are not offered).
 """
 
 from __future__ import annotations
@@ -415,7 +417,6 @@ class _RwrlTask:
         else:
             self.constraint_names, self._constraint_fn = (), None
         self.constraints_obs = np.ones(len(self.constraint_names), dtype=bool)
-        self._last_action: np.ndarray | None = None
         ch = settings.challenge
         # Without a challenge the hooks pass straight through (the `none` datasets' env).
         self._acts = any((ch.action_delay, ch.action_noise_std, ch.action_drop_prob,
@@ -450,8 +451,6 @@ class _RwrlTask:
         self._update_constraints(physics)
 
     def before_step(self, action, physics):
-        if self._constraint_fn is not None:
-            self._last_action = physics.control().copy()
         if self._acts:
             if self._bounds is None:
                 spec = self.inner.action_spec(physics)
@@ -462,7 +461,6 @@ class _RwrlTask:
     def after_step(self, physics):
         self._update_constraints(physics)
         self.inner.after_step(physics)
-        self._last_action = None
 
     def _update_constraints(self, physics) -> None:
         if self._constraint_fn is not None:

@@ -10,8 +10,13 @@ File layout::
 
     {"format": "rlu.random_scores/1",
      "provenance": {"date", "code_version", "seed", "episodes", "settings", "packages", ...},
-     "scores": {"atari/Pong": {"mean", "std", "returns", "lengths", "challenge", "settings"},
+     "scores": {"atari/Pong": {"mean", "std", "returns", "lengths", "challenge", "settings",
+                               "date", "code_version"},
                 "rwrl/walker_walk@easy": {...}, ...}}
+
+The file-level provenance is the first run's; an entry's own ``date`` / ``code_version``, when
+present, say which run measured it (``--resume`` adds tasks to an existing file). Entries
+without them were measured by the first run.
 
 Keys are task ids, with ``@<challenge>`` for RWRL challenges other than ``none``.
 """
@@ -137,6 +142,9 @@ def measure(
             "lengths": lengths,
             "challenge": challenge,
             "settings": settings,
+            # A resumed file gathers tasks measured by different runs: each entry says its own.
+            "date": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+            "code_version": code_version(),
         }
         doc["scores"][key] = entry
         if progress is not None:

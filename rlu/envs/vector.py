@@ -4,8 +4,9 @@
     obs, info = venv.reset()             # dict of (N, ...) arrays, or (N, 84, 84, 4) for Atari
     obs, reward, terminated, truncated, info = venv.step(actions)
 
-Backends:
-- ``"process"`` (MuJoCo default): ``ProcessVectorEnv``, N envs over ``num_workers`` (default:
+Backends (``"auto"`` picks per domain, see ``_AUTO``: ale for Atari, process for locomotion,
+sync for the control suite and RWRL, from bench/envs.py):
+- ``"process"``: ``ProcessVectorEnv``, N envs over ``num_workers`` (default:
   the available cores) worker processes, each stepping its share of envs in a loop, so one
   message round trip serves N / W env steps. Env i is ``rlu.make_env(task, seed=seed + i)``, so
   every sub-env is exactly the single env of that seed. MuJoCo workers start through
@@ -19,7 +20,7 @@ Backends:
   so a sub-env is not the single env of some seed. Observations are transposed to (N, 84, 84, 4)
   and rewards clipped as the single env does (``info["raw_reward"]`` unclipped). It runs its
   own thread pool and measured faster than processes (bench/envs.py).
-- ``"sync"``: ``gymnasium.vector.SyncVectorEnv`` in this process (debugging).
+- ``"sync"``: ``gymnasium.vector.SyncVectorEnv``, the N envs stepped in this process.
 
 All backends use Gymnasium's default autoreset mode (next step): after a sub-env's episode ends,
 its next ``step`` ignores the action and returns the first observation of a new episode.
@@ -45,6 +46,14 @@ def available_cores() -> int:
         return os.cpu_count() or 1
 
 
+# Chosen from bench/envs.py on the 2-core (shared) machine: ALE's C++ threads beat processes for
+# Atari (1.86x at N=2); worker processes pay off for the slow camera envs of locomotion (1.97x
+# at N=2); control-suite and RWRL steps (40-400 us) are cheaper than a message round trip to a
+# worker (0.1-0.8x measured), so their N envs step in this process, where the batched policy
+# forward (PyTorch's intra-op threads) is what uses the second core.
+_AUTO = {"atari": "ale", "locomotion": "process", "control_suite": "sync", "rwrl": "sync"}
+
+
 def _make_one(task_id: str, seed: int | None, challenge: str, settings: dict[str, Any]):
     from rlu.envs import make_env
 
@@ -66,7 +75,7 @@ def make_vector_env(
     if n < 1:
         raise RluError(f"num_envs must be >= 1, got {num_envs}")
     if backend == "auto":
-        backend = "ale" if task.domain == "atari" else "process"
+        backend = _AUTO[task.domain]
     if backend == "ale":
         if task.domain != "atari":
             raise RluError(f"{task.id}: backend 'ale' is for Atari tasks; use 'async'")

@@ -57,6 +57,19 @@ def test_ale_vector_env_frames_equal_the_single_env():
     venv.close()
 
 
+def test_auto_backend_per_domain():
+    pytest.importorskip("dm_control")
+    import gymnasium as gym
+
+    from rlu.envs import make_vector_env
+
+    venv = make_vector_env("rwrl/cartpole_swingup", num_envs=2, seed=0, challenge="easy")
+    assert isinstance(venv, gym.vector.SyncVectorEnv)
+    obs, _ = venv.reset()
+    assert obs["dummy-0"].shape == (2, 1)
+    venv.close()
+
+
 def test_default_backends_and_batch_shapes():
     pytest.importorskip("ale_py")
     from rlu.envs import make_vector_env
