@@ -53,7 +53,8 @@ class BCQConfig:
     num_steps: int = 2_000_000
     """Learner steps of a full run (read by the training loop)."""
     n_step: int = 1
-    """Bootstrapping horizon of the batches the training loop samples."""
+    """Bootstrapping horizon of the batches the training loop samples; the target discounts
+    by discount**n_step (the views give the n-step reward sum and discount product)."""
     channels: tuple[int, ...] = (32, 64, 64)
     """Nature CNN output channels per convolution."""
     kernel_sizes: tuple[int, ...] = (8, 4, 3)
@@ -85,7 +86,9 @@ GRID: dict[str, list[Any]] = {
 
 
 def make_loss(config: BCQConfig) -> dc.BCQLoss:
-    return dc.BCQLoss(config.discount, config.threshold, config.huber_delta, config.logit_penalty)
+    return dc.BCQLoss(
+        config.discount**config.n_step, config.threshold, config.huber_delta, config.logit_penalty
+    )
 
 
 class BCQAgent:

@@ -47,7 +47,8 @@ class DQNConfig:
     num_steps: int = 2_000_000
     """Learner steps of a full run (read by the training loop)."""
     n_step: int = 1
-    """Bootstrapping horizon of the batches the training loop samples."""
+    """Bootstrapping horizon of the batches the training loop samples; the target discounts
+    by discount**n_step (the views give the n-step reward sum and discount product)."""
     channels: tuple[int, ...] = (32, 64, 64)
     """Nature CNN output channels per convolution."""
     kernel_sizes: tuple[int, ...] = (8, 4, 3)
@@ -76,7 +77,7 @@ GRID: dict[str, list[Any]] = {"learning_rate": list(dc.LEARNING_RATE_GRID)}
 
 
 def make_loss(config: DQNConfig) -> dc.DoubleQLoss:
-    return dc.DoubleQLoss(config.discount, config.huber_delta, config.double_q)
+    return dc.DoubleQLoss(config.discount**config.n_step, config.huber_delta, config.double_q)
 
 
 class DQNAgent:

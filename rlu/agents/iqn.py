@@ -56,7 +56,8 @@ class IQNConfig:
     num_steps: int = 2_000_000
     """Learner steps of a full run (read by the training loop)."""
     n_step: int = 1
-    """Bootstrapping horizon of the batches the training loop samples."""
+    """Bootstrapping horizon of the batches the training loop samples; the target discounts
+    by discount**n_step (the views give the n-step reward sum and discount product)."""
     channels: tuple[int, ...] = (32, 64, 64)
     """Nature CNN output channels per convolution."""
     kernel_sizes: tuple[int, ...] = (8, 4, 3)
@@ -92,7 +93,7 @@ GRID: dict[str, list[Any]] = {
 
 def make_loss(config: IQNConfig) -> dc.QuantileLoss:
     return dc.QuantileLoss(
-        config.discount,
+        config.discount**config.n_step,
         config.num_tau_samples,
         config.num_tau_samples,
         config.kappa,

@@ -49,7 +49,8 @@ class REMConfig:
     num_steps: int = 2_000_000
     """Learner steps of a full run (read by the training loop)."""
     n_step: int = 1
-    """Bootstrapping horizon of the batches the training loop samples."""
+    """Bootstrapping horizon of the batches the training loop samples; the target discounts
+    by discount**n_step (the views give the n-step reward sum and discount product)."""
     channels: tuple[int, ...] = (32, 64, 64)
     """Nature CNN output channels per convolution."""
     kernel_sizes: tuple[int, ...] = (8, 4, 3)
@@ -78,7 +79,7 @@ GRID: dict[str, list[Any]] = {"learning_rate": list(dc.LEARNING_RATE_GRID)}
 
 
 def make_loss(config: REMConfig) -> dc.REMLoss:
-    return dc.REMLoss(config.discount, config.num_heads, config.huber_delta)
+    return dc.REMLoss(config.discount**config.n_step, config.num_heads, config.huber_delta)
 
 
 class REMAgent:

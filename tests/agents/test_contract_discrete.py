@@ -178,3 +178,32 @@ def test_read_only_batches_are_accepted():
 def test_bc_and_bcq_names_pick_the_discrete_variant_from_the_action_spec():
     assert type(build("bc")).__module__ == "rlu.agents.bc_discrete"
     assert type(build("bcq")).__module__ == "rlu.agents.bcq_discrete"
+
+
+@pytest.mark.parametrize("name", ["dqn", "iqn", "bcq", "rem"])
+def test_n_step_agents_discount_by_gamma_to_the_n(name):
+    # the views give the n-step reward sum and the product of discounts without gamma^n
+    agent = build(name, n_step=3)
+    assert agent.n_step == 3
+    assert agent.learner.loss.discount == pytest.approx(0.99**3)
+
+
+def test_greedy_means_what_the_docstrings_say():
+    obs = fake_transition(ATARI_OBS, ATARI_ACTION, batch=64, seed=3).observation
+    frames = torch.from_numpy(obs)
+    with torch.no_grad():
+        # BC: the max action of the policy head
+        bc = build("bc", eval_epsilon=0.0)
+        np.testing.assert_array_equal(bc.act(obs), bc.learner.network(frames).argmax(-1).numpy())
+        # BCQ at threshold 1: only the imitation head's argmax is allowed
+        bcq = build("bcq", eval_epsilon=0.0, threshold=1.0)
+        _, logits = bcq.learner.network(frames)
+        np.testing.assert_array_equal(bcq.act(obs), logits.argmax(-1).numpy())
+        # REM: argmax of the mean of the heads
+        rem = build("rem", eval_epsilon=0.0)
+        expected = rem.learner.network(frames).mean(1).argmax(-1).numpy()
+        np.testing.assert_array_equal(rem.act(obs), expected)
+    # epsilon 1 acts uniformly at random
+    dqn = build("dqn", eval_epsilon=1.0)
+    counts = np.bincount(dqn.act(np.repeat(obs, 10, axis=0)), minlength=6)
+    assert counts.min() > 50
