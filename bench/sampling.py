@@ -119,7 +119,10 @@ def main() -> None:
         import d3rlpy
 
         d3 = d3rlpy.dataset.MDPDataset(
-            observations=o_t, actions=act, rewards=rew[:, None], terminals=terminals,
+            observations=o_t,
+            actions=act,
+            rewards=rew[:, None],
+            terminals=terminals,
             timeouts=timeouts,
         )
         results["(b) d3rlpy sample_transition_batch"] = rate(
@@ -217,21 +220,27 @@ def out_of_core(work: Path, gb: float, seconds: float) -> None:
                 )
             )
     size = sum(f.stat().st_size for f in (work / "atari").rglob("*") if f.is_file())
-    print(f"\nout-of-core: wrote {size / 2**30:.2f} GiB ({n_ep} episodes) in "
-          f"{time.perf_counter() - t0:.0f}s")
+    print(
+        f"\nout-of-core: wrote {size / 2**30:.2f} GiB ({n_ep} episodes) in "
+        f"{time.perf_counter() - t0:.0f}s"
+    )
     ds = open_dataset(work / "atari")
     for batch in (32, 256):
         s = Sampler(TransitionView(ds), batch, seed=0)
         r = rate(s.sample, batch, seconds)
-        print(f"  stacked-frame SARSA batch {batch:4d}: {r:10,.0f} transitions/s, "
-              f"RSS now {rss_mb():.0f} MB")
+        print(
+            f"  stacked-frame SARSA batch {batch:4d}: {r:10,.0f} transitions/s, "
+            f"RSS now {rss_mb():.0f} MB"
+        )
     # cover the whole file once more, then report the peak
     s = Sampler(TransitionView(ds), 256, seed=1)
     for _ in range(3 * len(s.view) // 256 // 20):
         s.sample()
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    print(f"  peak resident memory over the run: {peak:.0f} MB (target < 1536 MB; "
-          f"dataset {size / 2**20:.0f} MB)")
+    print(
+        f"  peak resident memory over the run: {peak:.0f} MB (target < 1536 MB; "
+        f"dataset {size / 2**20:.0f} MB)"
+    )
 
 
 if __name__ == "__main__":

@@ -375,11 +375,10 @@ def _build() -> dict[str, TaskSpec]:
             selection=sel,
             episodes=MappingProxyType({"": n_ep}),
             release=(
+                ReleaseDataset("dm_control_suite", f"dm_control_suite/{name}/train", {"": 100}, 2),
                 ReleaseDataset(
-                    "dm_control_suite", f"dm_control_suite/{name}/train", {"": 100}, 2
-                ),
-                ReleaseDataset(
-                    "dm_control_suite_episodes", f"dm_control_suite_episodes/{name}/train",
+                    "dm_control_suite_episodes",
+                    f"dm_control_suite_episodes/{name}/train",
                     {"": 100},
                 ),
             ),
@@ -511,5 +510,6 @@ def list_tasks(domain: str | None = None, selection: str | None = None) -> list[
     return [
         t
         for t in TASKS.values()
-        if (domain is None or t.domain == domain) and (selection is None or t.selection == selection)
+        if (domain is None or t.domain == domain)
+        and (selection is None or t.selection == selection)
     ]

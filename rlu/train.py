@@ -280,7 +280,8 @@ def train(
         lines = _read_jsonl(path, start)
         _write_atomic(path, "".join(line + "\n" for line in lines))
 
-    # resolved on the first evaluation: a run that never evaluates needs no env
+    # resolved before the first step (a missing rlu.envs fails fast); a run that never evaluates
+    # needs no env
     env_fn = task_env_factory(config.task, config.env) if config.eval_every >= 0 else None
     writer = None
     if tensorboard:

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, NamedTuple, Protocol, Union
+from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 
@@ -76,12 +76,14 @@ class DiscreteSpec(ArraySpec):
 
     @staticmethod
     def from_json(d: Mapping[str, Any]) -> DiscreteSpec:
-        return DiscreteSpec(tuple(int(x) for x in d["shape"]), str(d["dtype"]), int(d["num_values"]))
+        return DiscreteSpec(
+            tuple(int(x) for x in d["shape"]), str(d["dtype"]), int(d["num_values"])
+        )
 
 
-ObservationSpec = Union[ArraySpec, Mapping[str, ArraySpec]]
-ActionSpec = Union[BoundedSpec, DiscreteSpec]
-Observation = Union[np.ndarray, Mapping[str, np.ndarray]]
+ObservationSpec = ArraySpec | Mapping[str, ArraySpec]
+ActionSpec = BoundedSpec | DiscreteSpec
+Observation = np.ndarray | Mapping[str, np.ndarray]
 
 
 def observation_spec_to_json(spec: ObservationSpec) -> Any:

@@ -39,7 +39,9 @@ def test_data_flows_one_way():
             if not f.exists():
                 continue
             for name in _imports(f):
-                if any(name == b.rstrip(".") or name.startswith(b.rstrip(".") + ".") for b in banned):
+                if any(
+                    name == b.rstrip(".") or name.startswith(b.rstrip(".") + ".") for b in banned
+                ):
                     problems.append(f"{f.relative_to(ROOT)} imports {name}")
     assert not problems, "\n".join(problems)
 

@@ -54,10 +54,18 @@ def test_atari_shards_and_actions():
     assert t.observation_spec.shape == (84, 84, 4) and isinstance(t.action_spec, DiscreteSpec)
     names = t.release_dataset("atari").shard_names("run_3")
     assert names[0] == "atari/Pong/run_3-00000-of-00100" and len(names) == 100
-    assert len(get_task("atari/Carnival").release_dataset("atari_episodes_ordered")
-               .shard_names("run_1")) == 49
-    assert len(get_task("atari/Alien").release_dataset("atari_episodes_ordered")
-               .shard_names("run_1")) == 50
+    assert (
+        len(
+            get_task("atari/Carnival")
+            .release_dataset("atari_episodes_ordered")
+            .shard_names("run_1")
+        )
+        == 49
+    )
+    assert (
+        len(get_task("atari/Alien").release_dataset("atari_episodes_ordered").shard_names("run_1"))
+        == 50
+    )
 
 
 def test_atari_action_counts_match_ale():
@@ -72,15 +80,21 @@ def test_atari_action_counts_match_ale():
 
 def test_rwrl_sizes_and_shards():
     t = get_task("rwrl/walker_walk")
-    assert dict(t.episodes) == {"none/small": 1000, "none/medium": 2000, "none/large": 5000,
-                                "easy/large": 5000}
+    assert dict(t.episodes) == {
+        "none/small": 1000,
+        "none/medium": 2000,
+        "none/large": 5000,
+        "easy/large": 5000,
+    }
     names = t.release_dataset().shard_names("easy/large")
     assert len(names) == 371
     small = t.release_dataset().shard_names("none/small")
-    assert small[-1] == ("rwrl/combined_challenge_none/walker/walk/20_percent/"
-                         "episodes.tfrecord-00013-of-00014")
-    assert names[0] == ("rwrl/combined_challenge_easy/walker/walk/100_percent/"
-                        "episodes.tfrecord-00000-of-00371")
+    assert small[-1] == (
+        "rwrl/combined_challenge_none/walker/walk/20_percent/episodes.tfrecord-00013-of-00014"
+    )
+    assert names[0] == (
+        "rwrl/combined_challenge_easy/walker/walk/100_percent/episodes.tfrecord-00000-of-00371"
+    )
 
 
 def test_unknown_id_lists_closest():

@@ -42,7 +42,7 @@ class BCConfig:
     learning_rate: float = 1e-4
     """Adam learning rate."""
     batch_size: int = 1024
-    """Transitions per update (the paper's 1024; 128 windows when recurrent)."""
+    """Transitions per update; windows per update when recurrent (the paper: 1024 and 128)."""
     recurrent: bool = False
     """Two LSTM layers after the MLP; trains on sequence windows."""
     lstm_hidden: int = 1024
@@ -54,17 +54,21 @@ class BCConfig:
 Config = BCConfig
 PRESETS = {
     "paper": BCConfig(),
+    "paper_recurrent": BCConfig(recurrent=True, batch_size=128),  # the sequence tasks
     "small": BCConfig(hidden_size=256, num_layers=2, learning_rate=1e-3, batch_size=256,
                       lstm_hidden=64, sequence_length=10),
 }  # fmt: skip
 GRID: dict[str, list] = {}  # the paper reports no sweep for BC
 
 
-def bc_loss(logits, mean, std, action, weight):
-    """Weighted negative log-likelihood of the data's actions under the mixture."""
+def bc_loss(logits, mean, std, action, weight=None):
+    """Negative log-likelihood of the data's actions under the mixture (``weight``: step mask)."""
     log_prob = mixture_log_prob(logits, mean, std, action)
-    loss = -(log_prob * weight).sum() / weight.sum().clamp(min=1.0)
-    return loss, {"actor/bc_loss": loss, "actor/log_prob": -loss}
+    if weight is None:
+        loss = -log_prob.mean()
+    else:
+        loss = -(log_prob * weight).sum() / weight.sum().clamp(min=1.0)
+    return loss, {"actor/bc_loss": loss}
 
 
 class BCAgent:
@@ -92,17 +96,14 @@ class BCAgent:
         seq = isinstance(batch, Sequence)
         obs = nets.to_torch(batch.observation)
         action = self.scaler.to_unit(nets.to_torch(batch.action))
-        if seq:
-            weight = nets.to_torch(batch.mask & ~batch.is_last).float()
-        else:
-            weight = torch.ones(action.shape[0])
+        weight = nets.to_torch(batch.mask & ~batch.is_last).float() if seq else None
         h, _ = self.policy["torso"](obs, sequence=seq)
         loss, metrics = bc_loss(*self.policy["head"](h), action, weight)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()
         self.step += 1
-        return nets.finite_metrics(metrics)
+        return nets.metrics_to_floats(metrics)
 
     def reset(self) -> None:
         """Forget the LSTM state between episodes (recurrent configs)."""

@@ -11,8 +11,9 @@ lambda = 0.75, the target maximising over 10 sampled actions, Polyak targets tau
 Choices: dict observations go through ``networks.Encoder`` (each network its own, so camera
 images get one ResNet per network); actions live in [-1, 1]. ``act(greedy=True)`` scores
 ``num_samples`` perturbed VAE actions with Q1 and returns the best (as the original's
-``select_action``) using a generator reseeded on every call, so it is a deterministic function of
-the observation; ``greedy=False`` draws from the agent's own generator.
+``select_action``) with latents from a generator seeded with 0 on every call, so it is a
+deterministic function of the parameters and the observation; ``greedy=False`` draws from
+the agent's own generator.
 """
 
 from __future__ import annotations
@@ -183,7 +184,7 @@ class BCQAgent:
 
         nets.soft_update(self.target, self.nets, c.tau)
         self.step += 1
-        return nets.finite_metrics(metrics)
+        return nets.metrics_to_floats(metrics)
 
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True) -> np.ndarray:

@@ -175,7 +175,7 @@ class BRACAgent:
             loss.backward()
             self.optimizers["behaviour"].step()
             self.step += 1
-            return nets.finite_metrics(metrics)
+            return nets.metrics_to_floats(metrics)
 
         next_obs = nets.to_torch(batch.next_observation)
         reward, discount = nets.to_torch(batch.reward), nets.to_torch(batch.discount)
@@ -200,7 +200,7 @@ class BRACAgent:
 
         nets.soft_update(self.target_critics, self.critics, c.tau)
         self.step += 1
-        return nets.finite_metrics(metrics)
+        return nets.metrics_to_floats(metrics)
 
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True) -> np.ndarray:

@@ -156,7 +156,7 @@ class D4PGAgent:
         if self.step % c.target_update_period == 0:
             nets.hard_update(self.target_policy, self.policy)
             nets.hard_update(self.target_critic, self.critic)
-        return nets.finite_metrics(metrics)
+        return nets.metrics_to_floats(metrics)
 
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True) -> np.ndarray:

@@ -282,7 +282,9 @@ class ActionScaler:
 
     def to_unit(self, a: torch.Tensor) -> torch.Tensor:
         a = a.reshape(*a.shape[: a.dim() - len(self.shape)], self.dim).float()
-        return (2.0 * (a - self.lo) / (self.hi - self.lo) - 1.0).clamp(-1.0, 1.0)
+        if self.lo != -1.0 or self.hi != 1.0:  # the control suite's box needs no affine map
+            a = 2.0 * (a - self.lo) / (self.hi - self.lo) - 1.0
+        return a.clamp(-1.0, 1.0)
 
     def from_unit(self, a: torch.Tensor) -> np.ndarray:
         a = (a.clamp(-1.0, 1.0) + 1.0) * 0.5 * (self.hi - self.lo) + self.lo
@@ -346,9 +348,11 @@ def load_agent_state(state, modules, optimizers, generator: torch.Generator) -> 
     return int(state["step"])
 
 
-def finite_metrics(metrics: dict[str, torch.Tensor]) -> dict[str, float]:
+def metrics_to_floats(metrics: dict[str, torch.Tensor]) -> dict[str, float]:
     """One synchronisation for all metrics (``.item()`` per metric stalls once each)."""
     keys = list(metrics)
+    if len(keys) == 1:
+        return {keys[0]: float(metrics[keys[0]].item())}
     values = torch.stack([metrics[k].detach().float().reshape(()) for k in keys]).tolist()
     return {k: float(v) for k, v in zip(keys, values, strict=True)}
 

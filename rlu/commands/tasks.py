@@ -30,7 +30,9 @@ def _list(args: argparse.Namespace) -> int:
     rows = [("id", "domain", "selection", "actions", "ep.len", "datasets")]
     for t in tasks:
         kind = f"{t.action_dim} discrete" if t.discrete else f"{t.action_dim} cont."
-        rows.append((t.id, t.domain, t.selection, kind, str(t.episode_length), str(len(t.datasets))))
+        rows.append(
+            (t.id, t.domain, t.selection, kind, str(t.episode_length), str(len(t.datasets)))
+        )
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
     for r in rows:
         print("  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip())

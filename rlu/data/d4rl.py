@@ -84,6 +84,19 @@ def _rows(obs: Any, sl: slice | np.ndarray) -> Any:
     return obs[sl]
 
 
+def _step_columns(d: Mapping[str, np.ndarray]) -> tuple[np.ndarray, ...]:
+    """actions, rewards, terminals, timeouts of a D4RL dict, checked to have one row each."""
+    actions = np.asarray(d["actions"])
+    rewards = np.asarray(d["rewards"], np.float32).reshape(-1)
+    terminals = np.asarray(d["terminals"]).astype(bool).reshape(-1)
+    timeouts = np.asarray(d["timeouts"]).astype(bool).reshape(-1)
+    n = len(rewards)
+    for name, arr in (("actions", actions), ("terminals", terminals), ("timeouts", timeouts)):
+        if len(arr) != n:
+            raise FormatError(f"array {name!r} has {len(arr)} rows, 'rewards' has {n}")
+    return actions, rewards, terminals, timeouts
+
+
 def d4rl_segments(d: Mapping[str, np.ndarray], frame_stack: int = 1) -> list[Segment]:
     """Cut a D4RL-style dict into whole episodes (see the module docstring)."""
     missing = [k for k in REQUIRED if k not in d]
@@ -93,14 +106,8 @@ def d4rl_segments(d: Mapping[str, np.ndarray], frame_stack: int = 1) -> list[Seg
     if "next_observations" not in d and not any(k.startswith("next_observations/") for k in d):
         return _segments_without_next(d, obs, frame_stack)
     nxt = _split_obs(d, "next_observations")
-    actions = np.asarray(d["actions"])
-    rewards = np.asarray(d["rewards"], np.float32).reshape(-1)
-    terminals = np.asarray(d["terminals"]).astype(bool).reshape(-1)
-    timeouts = np.asarray(d["timeouts"]).astype(bool).reshape(-1)
+    actions, rewards, terminals, timeouts = _step_columns(d)
     n = len(rewards)
-    for name, arr in (("actions", actions), ("terminals", terminals), ("timeouts", timeouts)):
-        if len(arr) != n:
-            raise FormatError(f"array {name!r} has {len(arr)} rows, 'rewards' has {n}")
     ends = terminals | timeouts
     if n > 1:
         # a row whose successor does not continue from its next observation ends an episode
@@ -131,7 +138,9 @@ def d4rl_segments(d: Mapping[str, np.ndarray], frame_stack: int = 1) -> list[Seg
             prefix = np.moveaxis(ep_obs[0, ..., : frame_stack - 1], -1, 0)
             ep_obs = ep_obs[..., -1]
         segments.append(
-            make_episode(ep_obs, actions[a:b], rewards[a:b], bool(terminals[b - 1]), frame_prefix=prefix)
+            make_episode(
+                ep_obs, actions[a:b], rewards[a:b], bool(terminals[b - 1]), frame_prefix=prefix
+            )
         )
     return segments
 
@@ -143,14 +152,8 @@ def _segments_without_next(
     terminals and timeouts only, and read as d3rlpy does: after a terminal the final observation is
     zeros;
     a timeout row (or a trailing run) holds the final observation, its action and reward unused."""
-    actions = np.asarray(d["actions"])
-    rewards = np.asarray(d["rewards"], np.float32).reshape(-1)
-    terminals = np.asarray(d["terminals"]).astype(bool).reshape(-1)
-    timeouts = np.asarray(d["timeouts"]).astype(bool).reshape(-1)
+    actions, rewards, terminals, timeouts = _step_columns(d)
     n = len(rewards)
-    for name, arr in (("actions", actions), ("terminals", terminals), ("timeouts", timeouts)):
-        if len(arr) != n:
-            raise FormatError(f"array {name!r} has {len(arr)} rows, 'rewards' has {n}")
     if frame_stack > 1:
         raise FormatError("frame-stacked import needs 'next_observations'")
     ends = terminals | timeouts
@@ -263,13 +266,16 @@ def _read_hdf5(path: Path) -> dict[str, np.ndarray]:
     try:
         import h5py
     except ImportError:
-        raise RluError("reading D4RL .hdf5 files needs h5py: pip install 'rlu[dev]' or h5py") from None
+        raise RluError(
+            "reading D4RL .hdf5 files needs h5py: pip install 'rlu[dev]' or h5py"
+        ) from None
     out: dict[str, np.ndarray] = {}
     try:
         f = h5py.File(path, "r")
     except OSError as e:
         raise FormatError(f"{path}: not an HDF5 file ({e}); give D4RL's .hdf5 or an .npz") from None
     with f:
+
         def visit(name: str, obj: Any) -> None:
             if isinstance(obj, h5py.Dataset):
                 out[name] = obj[()]

@@ -19,34 +19,14 @@ from typing import Any
 import jax
 import numpy as np
 
-from rlu.data.store import Dataset, open_dataset
-from rlu.data.views import Sampler, SequenceView, TransitionView
+from rlu.data.store import Dataset
+from rlu.data.views import make_sampler
 
 
 def to_jax(batch: Any, device: Any = None) -> Any:
     """A named batch of numpy arrays as the same named batch of jax arrays on ``device``."""
     host = jax.tree_util.tree_map(np.ascontiguousarray, batch)
     return jax.device_put(host, device)
-
-
-def make_sampler(
-    dataset: str | Dataset,
-    batch_size: int,
-    seed: int = 0,
-    kind: str = "transition",
-    n_step: int = 1,
-    gamma: float = 1.0,
-    sequence_length: int = 1,
-    stride: int = 1,
-) -> Sampler:
-    ds = open_dataset(dataset) if isinstance(dataset, str) else dataset
-    if kind == "sequence":
-        view: Any = SequenceView(ds, sequence_length, stride)
-    elif kind == "transition":
-        view = TransitionView(ds, n_step, gamma)
-    else:
-        raise ValueError(f"kind={kind!r}; use 'transition' or 'sequence'")
-    return Sampler(view, batch_size, seed)
 
 
 class _Failed:

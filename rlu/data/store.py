@@ -332,7 +332,9 @@ class DatasetWriter:
                     f"{(want_n, *spec.shape)} (steps first, then {spec.shape})"
                 )
             if not np.can_cast(v.dtype, spec.dtype, casting="same_kind"):
-                raise SpecError(f"column {name!r} has dtype {v.dtype}; the schema wants {spec.dtype}")
+                raise SpecError(
+                    f"column {name!r} has dtype {v.dtype}; the schema wants {spec.dtype}"
+                )
         return cols
 
     def close(self) -> Path:
@@ -363,9 +365,7 @@ class DatasetWriter:
                 "frames": self.num_frames,
                 "episodes": self.num_episodes,
             },
-            "files": {
-                str(p.relative_to(self.tmp)): files[p] for p in sorted(files, key=str)
-            },
+            "files": {str(p.relative_to(self.tmp)): files[p] for p in sorted(files, key=str)},
             "provenance": self.provenance,
         }
         with open(self.tmp / MANIFEST, "w") as fh:

@@ -13,8 +13,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from rlu.data.store import open_dataset
-from rlu.data.views import Sampler, SequenceView, TransitionView
+from rlu.data.views import Sampler, make_sampler
 
 
 def to_torch(batch: Any, device: str | torch.device = "cpu") -> Any:
@@ -50,12 +49,16 @@ class TorchSampler(torch.utils.data.IterableDataset):
     def _sampler(self) -> Sampler:
         info = torch.utils.data.get_worker_info()
         seed = self.seed + (info.id if info is not None else 0)
-        ds = open_dataset(self.path)
-        if self.kind == "sequence":
-            view: Any = SequenceView(ds, self.sequence_length, self.stride)
-        else:
-            view = TransitionView(ds, self.n_step, self.gamma)
-        return Sampler(view, self.batch_size, seed)
+        return make_sampler(
+            self.path,
+            self.batch_size,
+            seed,
+            self.kind,
+            self.n_step,
+            self.gamma,
+            self.sequence_length,
+            self.stride,
+        )
 
     def __iter__(self):
         sampler = self._sampler()

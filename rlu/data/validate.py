@@ -56,8 +56,8 @@ def _check_task(ds: Dataset, report: Report) -> None:
     task_id = ds.schema.task_id
     if not task_id:
         return
-    from rlu.tasks import TASKS, rwrl_observation_spec
     from rlu.data.store import Schema
+    from rlu.tasks import TASKS, rwrl_observation_spec
 
     task = TASKS.get(task_id)
     if task is None:
@@ -65,7 +65,9 @@ def _check_task(ds: Dataset, report: Report) -> None:
         return
     allowed = [Schema.for_task(task).to_json()]
     if task.domain == "rwrl":
-        allowed.append(Schema.for_task(task, observation=rwrl_observation_spec(task, "easy")).to_json())
+        allowed.append(
+            Schema.for_task(task, observation=rwrl_observation_spec(task, "easy")).to_json()
+        )
     if task.domain == "atari":  # the release's transition files store whole stacks
         allowed.append(Schema(task.observation_spec, task.action_spec, 1, "raw", task.id).to_json())
     mine = ds.schema.to_json()
@@ -102,7 +104,9 @@ def _check_flags(ds: Dataset, report: Report) -> None:
     inner_first[start] = False
     if inner_first.any():
         i = int(np.flatnonzero(inner_first)[0])
-        report.add(f"{f / 'is_first.bin'}: step {i} has is_first inside a segment (only step 0 may)")
+        report.add(
+            f"{f / 'is_first.bin'}: step {i} has is_first inside a segment (only step 0 may)"
+        )
     inner_last = last.copy()
     inner_last[end] = False
     if inner_last.any():
@@ -110,14 +114,18 @@ def _check_flags(ds: Dataset, report: Report) -> None:
         report.add(f"{f / 'is_last.bin'}: step {i} has is_last before its segment's end")
     bad = term & ~last
     if bad.any():
-        report.add(f"{f / 'is_terminal.bin'}: step {int(np.flatnonzero(bad)[0])} is terminal, not last")
+        report.add(
+            f"{f / 'is_terminal.bin'}: step {int(np.flatnonzero(bad)[0])} is terminal, not last"
+        )
     # the transition into a terminal final step has discount 0
     ends_terminal = term[end]
     has_prev = np.asarray(ds.length) >= 2
     sel = end[ends_terminal & has_prev] - 1
     if sel.size and (disc[sel] != 0).any():
         i = int(sel[np.flatnonzero(disc[sel] != 0)[0]])
-        report.add(f"{f / 'discount.bin'}: step {i} leads into a terminal state but has discount != 0")
+        report.add(
+            f"{f / 'discount.bin'}: step {i} leads into a terminal state but has discount != 0"
+        )
     # inside a segment, a discount of 0 must be followed by the episode's end
     zero = np.flatnonzero(disc == 0)
     if zero.size:

@@ -20,12 +20,14 @@ so a stack never mixes two episodes.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 
 import numpy as np
 
-from rlu.data.store import Dataset, ZlibColumn
+from rlu.data.store import Dataset, ZlibColumn, open_dataset
 from rlu.types import ArraySpec, RluError, Sequence, Transition
+
 
 def _take(col, rows: np.ndarray) -> np.ndarray:
     if isinstance(col, ZlibColumn):
@@ -112,7 +114,9 @@ class TransitionView(DatasetView):
             counts = self.length - 1
         else:
             terminal_end = np.asarray(ds.column("is_terminal"))[self.last]
-            counts = np.where(terminal_end, self.length - 1, np.maximum(self.length - self.n_step, 0))
+            counts = np.where(
+                terminal_end, self.length - 1, np.maximum(self.length - self.n_step, 0)
+            )
         self.index = _Index(ds, np.maximum(counts, 0))
 
     def __len__(self) -> int:
@@ -231,3 +235,24 @@ def sequence_sampler(
     ds: Dataset, batch_size: int, length: int, seed: int = 0, stride: int = 1
 ) -> Sampler:
     return Sampler(SequenceView(ds, length, stride), batch_size, seed)
+
+
+def make_sampler(
+    dataset: str | Dataset,
+    batch_size: int,
+    seed: int = 0,
+    kind: str = "transition",
+    n_step: int = 1,
+    gamma: float = 1.0,
+    sequence_length: int = 1,
+    stride: int = 1,
+) -> Sampler:
+    """A sampler of ``kind`` "transition" (optionally n-step) or "sequence" over a dataset or path."""
+    ds = open_dataset(dataset) if isinstance(dataset, (str, os.PathLike)) else dataset
+    if kind == "sequence":
+        view: TransitionView | SequenceView = SequenceView(ds, sequence_length, stride)
+    elif kind == "transition":
+        view = TransitionView(ds, n_step, gamma)
+    else:
+        raise RluError(f"sampler kind={kind!r}; use 'transition' or 'sequence'")
+    return Sampler(view, batch_size, seed)

@@ -6,6 +6,7 @@ Imports numpy only; PyTorch (FQE) and matplotlib (reports) load when used.
 
 from __future__ import annotations
 
+from rlu.evaluation.fqe import FQEConfig, fqe_estimate
 from rlu.evaluation.protocols import (
     EstimateSelection,
     Selection,
@@ -28,12 +29,14 @@ from rlu.evaluation.scores import (
 __all__ = [
     "EstimateSelection",
     "EvalResult",
+    "FQEConfig",
     "Selection",
     "aggregate_iqm",
     "aggregate_mean",
     "aggregate_median",
     "best_behaviour_from_dataset",
     "evaluate",
+    "fqe_estimate",
     "normalized_score",
     "offline_selection_naive",
     "online_selection",

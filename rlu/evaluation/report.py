@@ -2,8 +2,9 @@
 HTML, PNG and JSON (the numbers the tables print).
 
 - Tables (per domain): task x agent, mean ± std over seeds of the final evaluation score of the
-  configuration chosen by online policy selection (best per task), the best mean of a row in
-  bold, with the paper's number beside ours where the task and agent match
+  configuration chosen by online policy selection (best per task), in bold the best mean of a
+  row and every mean ± std that overlaps it (the paper's convention), with the paper's number
+  beside ours where the task and agent match
   (``rlu/resources/paper_results.json``, a copy of the paper's appendix tables). When a domain's
   sweep holds both online- and offline-selection tasks, a second table gives the naive offline
   policy selection (the configuration with the best mean, median for Atari, over the online
@@ -215,9 +216,10 @@ def _table(
             if paper is not None:
                 cell["paper"] = paper_entry(task, agent, paper)
             cells[agent] = cell
-        best = max((c["mean"] for c in cells.values()), default=None)
+        # the paper's bold: the best mean, and every cell whose mean ± std overlaps the best's
+        best = max(cells.values(), key=lambda c: c["mean"], default=None)
         for c in cells.values():
-            c["bold"] = c["mean"] == best
+            c["bold"] = c["mean"] + c["std"] >= best["mean"] - best["std"]
         rows.append({"task": task, "cells": cells})
     return {"rows": rows}
 
@@ -276,7 +278,7 @@ def _markdown(rep: Mapping[str, Any], figures: Mapping[str, list[str]]) -> str:
             f"## {domain}",
             "",
             f"Online policy selection: {unit}, mean ± std over seeds of the best "
-            "configuration per task; best in bold."
+            "configuration per task; in bold the best and those whose mean ± std overlaps it."
             + (" The paper's numbers (raw returns) are beside ours." if with_paper else ""),
             "",
         ]

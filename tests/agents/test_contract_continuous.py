@@ -87,7 +87,7 @@ def test_every_continuous_agent_is_registered_with_presets_and_grid():
 
 
 @pytest.mark.parametrize("name,kind", CASES)
-def test_update_gives_finite_metrics_and_moves_every_parameter(name, kind):
+def test_update_gives_metrics_to_floats_and_moves_every_parameter(name, kind):
     agent, spec = build(name, kind)
     assert agent.batch_kind == ("sequence" if kind == "sequence" else "transition")
     before = parameters(agent)
@@ -157,3 +157,16 @@ def test_building_and_training_leave_the_global_torch_rng_alone():
         agent.update(b)
     agent.act(observation(spec), greedy=False)
     assert torch.equal(torch.rand(3), expected)
+
+
+@pytest.mark.parametrize("name", CONTINUOUS_AGENTS)
+def test_paper_presets_build_with_the_paper_sizes_and_act_on_images(name):
+    module = agent_module(name, discrete=False)
+    for preset in [p for p in module.PRESETS if p.startswith("paper")]:
+        agent = make_agent(name, IMAGE_OBS, ACTION, preset=preset)
+        a = agent.act(observation(IMAGE_OBS, 2))
+        assert a.shape == (2, 3) and np.all((a >= ACTION.minimum) & (a <= ACTION.maximum))
+    if name in ("bc", "rabm"):
+        mlp = (agent.policy["torso"] if name == "bc" else agent.policy.torso).mlp
+        assert len(mlp.blocks) * 2 == 8 and mlp.output_dim == 1024
+        assert agent.batch_kind == "sequence"  # the last preset built is paper_recurrent

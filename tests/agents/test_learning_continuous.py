@@ -6,8 +6,8 @@ controller with a PD balancer, plus Gaussian action noise whose scale varies by 
 "swingup")``, written with ``DatasetWriter`` and sampled through ``rlu.data.views``. Each agent
 trains for a fixed number of updates on one thread (the check must fit in ~5 minutes on 2
 shared cores; several threads on a busy machine are many times slower), then acts greedily in
-fresh environments. Bars: every agent clearly beats the uniform random policy, BC reaches 80 % of
-the data's mean return. Run with ``-s`` to see the numbers.
+fresh environments. Bars: every agent clearly beats the uniform random policy (3x its return),
+BC reaches 80 % of the data's mean return. Run with ``-s`` to see the numbers.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ NOISE = (0.3, 0.6, 1.0, 1.5)
 NUM_EPISODES = 16
 EVAL_EPISODES = 5
 # Updates per agent with its small preset (sized to the ~5 minute budget of the whole file).
-UPDATES = {"bc": 3000, "d4pg": 2000, "bcq": 1500, "brac": 3000, "rabm": 1500}
+UPDATES = {"bc": 3000, "d4pg": 2000, "bcq": 1500, "brac": 4000, "rabm": 1500}
 SMALL_OVERRIDES = {"brac": {"behaviour_steps": 1000}}
 
 
@@ -90,8 +90,7 @@ def train(name: str, ds, updates: int, seed: int = 0, **overrides):
                        **{**SMALL_OVERRIDES.get(name, {}), **overrides})  # fmt: skip
     c = agent.config
     if agent.batch_kind == "sequence":
-        sampler = sequence_sampler(ds, c.batch_size // agent.sequence_length,
-                                   agent.sequence_length, seed=seed)  # fmt: skip
+        sampler = sequence_sampler(ds, c.batch_size, agent.sequence_length, seed=seed)
     else:
         sampler = transition_sampler(ds, c.batch_size, seed=seed, n_step=agent.n_step,
                                      gamma=getattr(c, "gamma", 1.0))  # fmt: skip
@@ -125,6 +124,6 @@ def test_small_preset_learns_cartpole_swingup(name, dataset, random_return):
     score = evaluate(agent.act)
     print(f"\n{name}: return {score:.1f} (random {random_return:.1f}, data mean {data_mean:.1f}, "
           f"{UPDATES[name]} updates)")  # fmt: skip
-    assert score > random_return + 0.25 * (data_mean - random_return)
+    assert score > 3.0 * random_return
     if name == "bc":
         assert score >= 0.8 * data_mean

@@ -96,7 +96,9 @@ def _run_child(dest: Path, stop_at: int, kill: bool) -> None:
 
 
 def _tree_bytes(root: Path) -> dict[str, bytes]:
-    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+    return {
+        str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()
+    }
 
 
 def test_sigkill_mid_write_leaves_nothing_loadable_and_rerun_is_byte_identical(tmp_path):

@@ -21,7 +21,9 @@ def test_to_torch_keeps_names_and_dtypes(tmp_path):
 
 
 def test_dataloader_workers_give_distinct_reproducible_streams(tmp_path):
-    path = write_synthetic(tmp_path / "ds", Schema.for_task(get_task("control_suite/cartpole_swingup")), 3, 50)
+    path = write_synthetic(
+        tmp_path / "ds", Schema.for_task(get_task("control_suite/cartpole_swingup")), 3, 50
+    )
 
     def draw(workers):
         loader = torch.utils.data.DataLoader(

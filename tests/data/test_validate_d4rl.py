@@ -61,8 +61,14 @@ def test_d4rl_export_keys_and_flags(tmp_path):
     path = write_synthetic(tmp_path / "ds", CARTPOLE, 4, 3, seed=2)
     ds = open_dataset(path)
     d = to_d4rl(ds)
-    assert {"observations/position", "next_observations/velocity", "actions", "rewards",
-            "terminals", "timeouts"} <= set(d)
+    assert {
+        "observations/position",
+        "next_observations/velocity",
+        "actions",
+        "rewards",
+        "terminals",
+        "timeouts",
+    } <= set(d)
     assert len(d["rewards"]) == 4 * 3
     ends = d["terminals"] | d["timeouts"]
     assert ends.reshape(4, 3)[:, -1].all() and not ends.reshape(4, 3)[:, :-1].any()
@@ -71,12 +77,15 @@ def test_d4rl_export_keys_and_flags(tmp_path):
     np.testing.assert_allclose(d["rewards"].reshape(4, 3).sum(1), ret, rtol=1e-5)
 
 
-@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(
+    max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
 @given(seed=st.integers(0, 10_000), n=st.integers(1, 6), term=st.floats(0, 1))
 def test_d4rl_round_trip_property(tmp_path, seed, n, term):
     tmp_path = tmp_path / uuid.uuid4().hex  # hypothesis reuses the fixture across examples
-    src = write_synthetic(tmp_path / "src", CARTPOLE, n, 4, seed=seed,
-                          terminal_prob=term, vary_length=True)
+    src = write_synthetic(
+        tmp_path / "src", CARTPOLE, n, 4, seed=seed, terminal_prob=term, vary_length=True
+    )
     npz = export_d4rl(open_dataset(src), tmp_path / "x.npz")
     back = open_dataset(import_d4rl(npz, tmp_path / "back", CARTPOLE.task_id))
     a, b = TransitionView(open_dataset(src)).all(), TransitionView(back).all()
@@ -138,6 +147,19 @@ def test_import_from_hdf5_in_d4rl_layout(tmp_path):
 def test_cli_export_import(tmp_path, capsys):
     path = write_synthetic(tmp_path / "ds", CARTPOLE, 2, 3)
     assert main(["export", str(path), "--format", "d4rl", "-o", str(tmp_path / "o.npz")]) == 0
-    assert main(["import", str(tmp_path / "o.npz"), "--format", "d4rl", "--task",
-                 CARTPOLE.task_id, "--out", str(tmp_path / "back")]) == 0
+    assert (
+        main(
+            [
+                "import",
+                str(tmp_path / "o.npz"),
+                "--format",
+                "d4rl",
+                "--task",
+                CARTPOLE.task_id,
+                "--out",
+                str(tmp_path / "back"),
+            ]
+        )
+        == 0
+    )
     assert main(["validate", str(tmp_path / "back")]) == 0

@@ -101,8 +101,16 @@ def ref_transitions(segs, stack, n_step=1, gamma=1.0):
             nxt = min(t + n_step, T - 1) if n_step > 1 else t + 1
             if n_step == 1:
                 ret, disc = float(seg.reward[t]), float(seg.discount[t])
-            rows.append((obs_at(seg, t, stack), seg.action[t], ret, disc, obs_at(seg, nxt, stack),
-                         seg.action[nxt]))
+            rows.append(
+                (
+                    obs_at(seg, t, stack),
+                    seg.action[t],
+                    ret,
+                    disc,
+                    obs_at(seg, nxt, stack),
+                    seg.action[nxt],
+                )
+            )
             del k
     return rows
 
@@ -120,7 +128,9 @@ def pick(obs, i):
     return {k: v[i] for k, v in obs.items()} if isinstance(obs, dict) else obs[i]
 
 
-FAST = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+FAST = settings(
+    max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
 
 
 @FAST

@@ -17,7 +17,12 @@ OBS_SPEC = {"orientation": ArraySpec((2,), "float32"), "velocity": ArraySpec((1,
 ACTION_SPEC = BoundedSpec((1,), "float32", -2.0, 2.0)
 
 
-def make_env(task_id: str, seed: int | None = None, challenge: str = "none"):
+def make_env(
+    task_id: str,
+    seed: int | None = None,
+    challenge: str = "none",
+    episode_steps: int = EPISODE_STEPS,
+):
     import gymnasium as gym
 
     if task_id not in GRAVITY:
@@ -39,7 +44,7 @@ def make_env(task_id: str, seed: int | None = None, challenge: str = "none"):
                 "velocity": np.asarray(obs[2:], np.float32),
             }
 
-    env = gym.make("Pendulum-v1", g=GRAVITY[task_id], max_episode_steps=EPISODE_STEPS)
+    env = gym.make("Pendulum-v1", g=GRAVITY[task_id], max_episode_steps=episode_steps)
     env = DictObs(env)
     if seed is not None:
         env.reset(seed=seed)
