@@ -2,10 +2,22 @@
 
 from __future__ import annotations
 
+import json
+
+import pytest
+
 from rlu.cli import main
 
 
-def test_quickstart_round_trip(tmp_path, capsys):
-    assert main(["quickstart", "--out", str(tmp_path / "qs"), "--episodes", "3"]) == 0
-    out = capsys.readouterr().out
-    assert "validate: valid" in out and "rewards equal: True" in out
+def test_quickstart_end_to_end_at_tiny_cost(tmp_path, capsys):
+    pytest.importorskip("torch")
+    pytest.importorskip("dm_control")
+    out = tmp_path / "qs"
+    argv = ["quickstart", "--out", str(out), "--steps", "5", "--eval-episodes", "1"]
+    assert main([*argv, "--agents", "bc"]) == 0
+    text = capsys.readouterr().out
+    assert "validate: valid" in text and "| bc |" in text and "| random |" in text
+    result = json.loads((out / "results.json").read_text())
+    assert [r["policy"] for r in result["policies"]] == ["random", "bc"]
+    assert result["dataset_returns"]["episodes"] == 40
+    assert (out / "bc" / "result.json").exists() and (out / "report.md").exists()

@@ -1,61 +1,138 @@
-"""``rlu quickstart``: the README's main job.
+"""``rlu quickstart``: the README's main job, a small benchmark end to end on the bundled data.
 
-For now an end-to-end round trip of the data layer on a synthetic dataset in the exact schema of
-control_suite/cartpole_swingup: write it atomically, validate it, sample SARSA / n-step / sequence
-batches, export it to the D4RL layout and import it back.
+On the bundled ``control_suite/cartpole_swingup`` dataset (40 episodes made by ``rlu generate``,
+shipped in the package): validate it, evaluate the uniform random policy, train BC and two
+offline RL agents (D4PG run offline, BCQ) with their ``small`` presets, evaluate each greedy
+policy in the env, and print the results beside the dataset's return statistics. Writes
+``OUT/report.md`` and ``OUT/results.json``; each agent's run folder (config, metrics,
+evaluations, checkpoints) is ``OUT/<agent>``.
 """
 
 from __future__ import annotations
 
 import argparse
 
+DEFAULT_AGENTS = ("bc", "d4pg", "bcq")
+
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("quickstart", help="run the small end-to-end job (see README)")
-    p.add_argument("--out", default="runs/quickstart", help="working directory")
-    p.add_argument("--episodes", type=int, default=40)
+    p = sub.add_parser("quickstart", help="train BC + 2 offline RL agents on the bundled data")
+    p.add_argument("--out", default="runs/quickstart", help="working directory (replaced)")
+    p.add_argument("--agents", nargs="+", default=list(DEFAULT_AGENTS))
+    p.add_argument("--steps", type=int, default=2000, help="gradient steps per agent")
+    p.add_argument("--eval-episodes", type=int, default=5, help="env episodes per policy")
+    p.add_argument("--dataset", default=None, help="another rlu dataset of the same task")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=1, help="torch threads")
     p.set_defaults(func=_run)
 
 
+def _row(name: str, returns) -> dict:
+    import numpy as np
+
+    r = np.asarray(returns, np.float64)
+    return {"policy": name, "mean": float(r.mean()), "std": float(r.std()), "returns": r.tolist()}
+
+
 def _run(args: argparse.Namespace) -> int:
+    import importlib.util
+    import json
     import shutil
     import time
     from pathlib import Path
 
     import numpy as np
 
-    from rlu.data import Schema, TransitionView, open_dataset, sequence_sampler, transition_sampler
-    from rlu.data.d4rl import export_d4rl, import_d4rl
-    from rlu.data.synthetic import write_synthetic
-    from rlu.data.validate import validate
-    from rlu.tasks import get_task
+    from rlu.types import RluError
 
-    task = get_task("control_suite/cartpole_swingup")
+    missing = [m for m in ("torch", "dm_control") if importlib.util.find_spec(m) is None]
+    if missing:
+        raise RluError(
+            f"rlu quickstart trains agents (torch) in the control suite (dm_control); "
+            f"{', '.join(missing)} missing: bash scripts/install.sh control agents"
+        )
+    from rlu.data import open_dataset
+    from rlu.data.validate import validate
+    from rlu.evaluation.rollout import evaluate, task_env_factory
+    from rlu.generate.recipe import bundled_dataset
+    from rlu.train import TrainConfig, train
+
+    t0 = time.perf_counter()
+    path = Path(args.dataset) if args.dataset else bundled_dataset()
+    ds = open_dataset(path)
+    task_id = ds.schema.task_id
     out = Path(args.out)
     if out.exists():
         shutil.rmtree(out)
     out.mkdir(parents=True)
-    t0 = time.perf_counter()
-    path = write_synthetic(
-        out / "synthetic", Schema.for_task(task), args.episodes, task.episode_length, args.seed
-    )
-    ds = open_dataset(path)
-    print(f"1. wrote {ds.num_steps} steps in {len(ds)} synthetic episodes of {task.id} -> {path}")
     report = validate(path)
+    stats = ds.info()["returns"]
+    command = ds.manifest["provenance"].get("command", "?")
+    print(f"dataset {task_id}: {path}")
+    print(f"  made by: {command}")
     print(
-        f"2. validate: {'valid' if report.ok else report.problems} ({len(report.checked)} checks)"
+        f"  {stats['episodes']} episodes, {ds.num_steps} steps, return mean {stats['mean']:.1f} "
+        f"p90 {stats['p90']:.1f} max {stats['max']:.1f}; validate: "
+        f"{'valid' if report.ok else report.problems}"
     )
-    b = transition_sampler(ds, 256, seed=args.seed).sample()
-    nb = transition_sampler(ds, 256, seed=args.seed, n_step=5, gamma=0.99).sample()
-    sb = sequence_sampler(ds, 16, length=40, seed=args.seed).sample()
-    print(
-        f"3. sampled SARSA {b.action.shape[0]}x(obs {sorted(b.observation)}), 5-step batch "
-        f"(mean reward {nb.reward.mean():.3f}), sequences {sb.mask.shape}"
-    )
-    npz = export_d4rl(ds, out / "synthetic_d4rl.npz")
-    back = open_dataset(import_d4rl(npz, out / "reimported", task.id))
-    same = np.array_equal(TransitionView(back).all().reward, TransitionView(ds).all().reward)
-    print(f"4. D4RL export -> {npz.name} -> import: {len(back)} episodes, rewards equal: {same}")
-    print(f"done in {time.perf_counter() - t0:.1f}s; files under {out}")
-    return 0 if report.ok and same else 1
+
+    env_fn = task_env_factory(task_id)
+    action_shape = ds.schema.action.shape
+    rng = np.random.default_rng(args.seed)
+
+    def random_policy(obs):
+        n = len(next(iter(obs.values()))) if isinstance(obs, dict) else len(obs)
+        return rng.uniform(-1.0, 1.0, (n, *action_shape)).astype(np.float32)
+
+    rows = [_row("random", evaluate(random_policy, env_fn, args.eval_episodes, args.seed).returns)]
+    print(f"  random policy: {rows[0]['mean']:.1f}  ({time.perf_counter() - t0:.0f}s)")
+    for agent in args.agents:
+        cfg = TrainConfig(
+            task=task_id,
+            agent=agent,
+            dataset=str(path),
+            preset="small",
+            steps=args.steps,
+            seed=args.seed,
+            eval_every=0,
+            eval_episodes=args.eval_episodes,
+            checkpoint_every=args.steps,
+            keep_checkpoints=1,
+            torch_threads=args.threads,
+        )
+        result = train(cfg, out / agent, progress=True)
+        rows.append(_row(agent, result["final_eval"]["returns"]))
+        print(f"  {agent} ({args.steps} steps, small preset): {rows[-1]['mean']:.1f}  "
+              f"({time.perf_counter() - t0:.0f}s)")  # fmt: skip
+
+    lines = [
+        f"# rlu quickstart: {task_id}",
+        "",
+        f"Dataset: `{path}` ({stats['episodes']} episodes, made by `{command}`).",
+        f"Each agent: {args.steps} gradient steps, small preset, seed {args.seed}; every policy "
+        f"evaluated on {args.eval_episodes} env episodes.",
+        "",
+        "| policy | mean return | std | / dataset mean |",
+        "|---|---:|---:|---:|",
+    ]
+    for r in rows:
+        lines.append(f"| {r['policy']} | {r['mean']:.1f} | {r['std']:.1f} | "
+                     f"{r['mean'] / stats['mean']:.2f} |")  # fmt: skip
+    lines += [
+        f"| *dataset* | {stats['mean']:.1f} | {stats['std']:.1f} | 1.00 |",
+        "",
+        f"Dataset returns: mean {stats['mean']:.1f}, p90 {stats['p90']:.1f}, "
+        f"min {stats['min']:.1f}, max {stats['max']:.1f}.",
+        "",
+    ]
+    text = "\n".join(lines)
+    (out / "report.md").write_text(text)
+    result = {"task": task_id, "dataset": str(path), "dataset_returns": stats, "policies": rows,
+              "steps": args.steps, "seconds": time.perf_counter() - t0}  # fmt: skip
+    (out / "results.json").write_text(json.dumps(result, indent=1))
+    print()
+    print(text)
+    beat = [r["policy"] for r in rows[1:] if r["mean"] > rows[0]["mean"]]
+    print(f"beat the random policy: {', '.join(beat) or 'none'}; "
+          f"report: {out / 'report.md'}; {time.perf_counter() - t0:.0f}s")  # fmt: skip
+    return 0 if report.ok else 1

@@ -1,0 +1,312 @@
+"""rlu generate: the recorder's step semantics, selection, determinism and crash resumption."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rlu.generate.recipe import select_episodes
+
+TASK = "control_suite/cartpole_swingup"
+
+
+def _files(path: Path) -> dict[str, bytes]:
+    files = sorted(p for p in path.rglob("*") if p.is_file())
+    return {str(p.relative_to(path)): p.read_bytes() for p in files}
+
+
+def test_select_keeps_a_third_of_successes_then_subsamples():
+    success = np.zeros(30, bool)
+    success[[2, 5, 7, 11, 13, 17]] = True
+    keep, counts = select_episodes(success, None, np.random.default_rng(0))
+    assert counts["successful"] == 6 and counts["successful_kept_after_third"] == 2
+    assert success[keep].sum() == 2 and keep.size == 26
+    assert np.all(np.diff(keep) > 0)
+    keep, counts = select_episodes(success, 10, np.random.default_rng(0))
+    assert keep.size == 10 and counts["kept"] == 10
+    assert set(keep) <= set(np.flatnonzero(~success)) | set(np.flatnonzero(success))
+
+
+def test_replay_n_step_targets_by_hand():
+    pytest.importorskip("torch")
+    from rlu.data import make_episode
+    from rlu.generate.online import Replay
+    from rlu.tasks import get_task
+
+    task = get_task(TASK)
+    replay = Replay(task, capacity=10, n_step=2, gamma=0.5)
+    obs = {k: np.arange(5, dtype=np.float32)[:, None].repeat(s.shape[0], 1) for k, s in
+           task.observation_spec.items()}  # fmt: skip
+    # 4 transitions ending in a terminal state: rewards 1, 2, 3, 4
+    ep = make_episode(obs, np.zeros((4, 1), np.float32), [1, 2, 3, 4], terminal=True)
+    replay.add(ep)
+    assert replay.size == 4  # terminal: the last windows are cut at the terminal
+    np.testing.assert_allclose(replay.reward[:4], [1 + 0.5 * 2, 2 + 0.5 * 3, 3 + 0.5 * 4, 4])
+    np.testing.assert_array_equal(replay.discount[:4], [1, 1, 0, 0])
+    np.testing.assert_array_equal(replay.next[:4], [2, 3, 4, 4])
+    # a truncated episode leaves out windows that would cross its end
+    ep2 = make_episode(obs, np.zeros((4, 1), np.float32), [1, 1, 1, 1], terminal=False)
+    replay.add(ep2)  # does not fit after the first (5 + 5 = 10): fits exactly
+    assert replay.size == 4 + 3
+    replay.add(ep)  # wraps to 0 and overwrites the first episode whole
+    assert replay.size == 3 + 4
+    batch = replay.sample(np.random.default_rng(0), 8)
+    assert batch.observation["position"].shape == (8, 3)
+
+
+def test_recorder_terminal_and_truncation():
+    pytest.importorskip("dm_control")
+    from rlu.envs import make_env
+    from rlu.generate.recorder import EpisodeRecorder, record_policy
+    from rlu.tasks import get_task
+
+    task = get_task(TASK)
+    env = make_env(TASK, seed=0)
+    rec = EpisodeRecorder(task)
+    seg = record_policy(env, lambda o: np.zeros(1, np.float32), rec, seed=3, metadata={"run": 1})
+    assert len(seg) == task.episode_length + 1
+    assert seg.is_first[0] and seg.is_last[-1] and not seg.is_terminal[-1]
+    assert seg.discount[-2] == 1.0  # truncation keeps the discount
+    assert seg.metadata["run"] == 1
+    np.testing.assert_allclose(seg.metadata["episode_return"], seg.reward.sum(), rtol=1e-6)
+    again = record_policy(env, lambda o: np.zeros(1, np.float32), rec, seed=3)
+    np.testing.assert_array_equal(again.observation["position"], seg.observation["position"])
+
+
+_CHILD = textwrap.dedent(
+    """
+    import sys
+    from rlu.generate import generate
+    TASK, OUT = sys.argv[1:3]
+
+    def on_chunk(run, chunk):
+        print("chunk", run, chunk, flush=True)
+        sys.stdin.read()  # block until the parent kills us
+
+    generate(TASK, OUT, scale="tiny", runs=1, seed=7, progress=False, on_chunk=on_chunk)
+    """
+)
+
+
+def test_tiny_generation_is_deterministic_and_resumes_after_sigkill(tmp_path):
+    pytest.importorskip("torch")
+    pytest.importorskip("dm_control")
+    from rlu.data import open_dataset
+    from rlu.data.validate import validate
+    from rlu.generate import generate
+
+    ref = generate(TASK, tmp_path / "ref", scale="tiny", runs=1, seed=7, progress=False)
+    assert validate(ref).ok
+    ds = open_dataset(ref)
+    assert len(ds) == 2
+    assert [ds.segment(i).metadata["episode_index"] for i in range(2)] == [0, 1]
+    assert ds.manifest["provenance"]["command"].startswith(f"rlu generate {TASK} --scale tiny")
+
+    out = tmp_path / "crashed"
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    child = subprocess.Popen(
+        [sys.executable, "-c", _CHILD, TASK, str(out)],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env,
+    )  # fmt: skip
+    line = child.stdout.readline()  # the child has written run 0's first chunk and its state
+    assert line.strip() == "chunk 0 0", line
+    child.send_signal(signal.SIGKILL)
+    child.wait()
+    child.stdin.close()
+    child.stdout.close()
+    work = tmp_path / ".crashed.generate"
+    assert (work / "run_000" / "state.pt").exists() and not out.exists()
+
+    resumed_chunks = []
+    got = generate(
+        TASK, out, scale="tiny", runs=1, seed=7, progress=False,
+        on_chunk=lambda r, c: resumed_chunks.append((r, c)),
+    )  # fmt: skip
+    assert resumed_chunks == [(0, 1)]  # chunk 0 was not played again
+    assert _files(got) == _files(ref)
+    assert not work.exists()
+
+
+def test_resume_with_other_settings_is_refused(tmp_path):
+    from rlu.generate import generate
+    from rlu.types import RluError
+
+    work = tmp_path / ".d.generate"
+    work.mkdir()
+    (work / "settings.json").write_text(
+        '{"task": "control_suite/cartpole_swingup", "scale": "small", "runs": 3, "seed": 1}'
+    )
+    with pytest.raises(RluError, match="other settings"):
+        generate(TASK, tmp_path / "d", scale="tiny", runs=1, seed=7, progress=False)
+
+
+def _record(task_id: str, episodes: int, settings: dict, tmp_path: Path):
+    """Random-policy episodes through the recorder, stored, plus the env's own observations."""
+    from rlu.data import DatasetWriter, open_dataset
+    from rlu.envs import make_env
+    from rlu.generate.recorder import EpisodeRecorder, schema_for
+    from rlu.tasks import get_task
+
+    task = get_task(task_id)
+    env = make_env(task_id, seed=0, **settings)
+    rec = EpisodeRecorder(task, settings.get("max_episode_steps"))
+    rng = np.random.default_rng(0)
+    segs, seen = [], []
+    for e in range(episodes):
+        obs, _ = env.reset(seed=e)
+        rec.begin(obs)
+        seen.append(obs)
+        while True:
+            if task.discrete:
+                a = np.int64(rng.integers(task.action_dim))
+            else:
+                a = rng.uniform(-1, 1, task.action_spec.shape).astype(np.float32)
+            obs, r, term, trunc, info = env.step(a)
+            seg = rec.step(a, r, obs, term, trunc, info, {"episode_index": e})
+            if seg is None:
+                seen.append(obs)
+            else:
+                segs.append(seg)
+                break
+    with DatasetWriter(tmp_path / "ds", schema_for(task)) as w:
+        for s in segs:
+            w.append(s)
+    return task, segs, seen, open_dataset(tmp_path / "ds")
+
+
+def test_atari_frames_stack_back_to_the_envs_observations_in_store_and_replay(tmp_path):
+    pytest.importorskip("ale_py")
+    pytest.importorskip("torch")
+    from rlu.data import TransitionView
+    from rlu.generate.online import Replay
+
+    task, segs, seen, ds = _record("atari/Pong", 2, {"max_episode_steps": 12}, tmp_path)
+    view = TransitionView(ds).all()
+    # every transition's observation is exactly the env's (84, 84, 4) stack at that step
+    np.testing.assert_array_equal(view.observation, np.stack(seen))
+    replay = Replay(task, capacity=100, n_step=1, gamma=0.99)
+    for s in segs:
+        replay.add(s)
+    got = replay._observation(replay._eligible)
+    np.testing.assert_array_equal(got, view.observation)
+    np.testing.assert_array_equal(replay._observation(replay.next[replay._eligible]),
+                                  view.next_observation)  # fmt: skip
+    assert (
+        ds.segment(0).metadata["clipped_episode_return"] == ds.segment(0).metadata["episode_return"]
+    )
+
+
+def test_replay_n_step_transitions_equal_the_store_view(tmp_path):
+    pytest.importorskip("dm_control")
+    pytest.importorskip("torch")
+    from rlu.data import TransitionView
+    from rlu.generate.online import Replay
+
+    task, segs, _, ds = _record(TASK, 2, {}, tmp_path)
+    view = TransitionView(ds, n_step=3, gamma=0.9).all()
+    replay = Replay(task, capacity=5_000, n_step=3, gamma=0.9)
+    for s in segs:
+        replay.add(s)
+    idx = replay._eligible
+    assert idx.size == len(view.reward)
+    np.testing.assert_allclose(replay.reward[idx], view.reward, rtol=1e-6)
+    np.testing.assert_array_equal(replay.discount[idx], view.discount)
+    for k in task.observation_spec:
+        np.testing.assert_array_equal(replay.obs[k][replay.next[idx]], view.next_observation[k])
+
+
+def test_rwrl_snapshot_rollouts_at_tiny_scale(tmp_path):
+    pytest.importorskip("torch")
+    pytest.importorskip("dm_control")
+    import json
+
+    from rlu.data import open_dataset
+    from rlu.data.validate import validate
+    from rlu.generate import generate
+    from rlu.tasks import RWRL_EASY_DUMMY_KEYS
+
+    out = generate("rwrl/cartpole_swingup", tmp_path / "rw", scale="tiny", runs=1, seed=1,
+                   progress=False)  # fmt: skip
+    names = json.loads((out / "rwrl.json").read_text())["datasets"]
+    assert names == [f"{c}_{s}" for c in ("easy", "none") for s in ("large", "medium", "small")]
+    for name in names:
+        assert validate(out / name).ok, name
+    easy, none = open_dataset(out / "easy_large"), open_dataset(out / "none_large")
+    assert set(RWRL_EASY_DUMMY_KEYS) <= set(easy.schema.observation)
+    assert not set(RWRL_EASY_DUMMY_KEYS) & set(none.schema.observation)
+    assert len(none) == 2 and len(open_dataset(out / "none_small")) == 1
+    snap = none.manifest["provenance"]["snapshots"][0]
+    assert snap["return"] >= 0.75 * snap["converged"]
+    assert not (out / ".work").exists()
+
+
+@pytest.mark.slow  # a local Ray instance: ~30 s idle, minutes on a loaded machine
+def test_ray_backend_gives_the_local_bytes(tmp_path):
+    pytest.importorskip("ray")
+    pytest.importorskip("torch")
+    pytest.importorskip("dm_control")
+    from rlu.generate import generate
+
+    kw = dict(scale="tiny", runs=2, seed=3, progress=False)
+    local = generate(TASK, tmp_path / "local", backend="local", **kw)
+    ray = generate(TASK, tmp_path / "ray", backend="ray", **kw)
+    assert _files(ray) == _files(local)
+
+
+def test_user_policy_recipe_is_deterministic_and_skips_finished_chunks(tmp_path):
+    pytest.importorskip("dm_control")
+    from rlu.data import open_dataset
+    from rlu.generate import generate
+    from tests.generate import policies
+
+    spec = "tests.generate.policies:uniform"
+    kw = dict(scale="tiny", runs=1, seed=5, progress=False, policy=spec)
+    ref = generate(TASK, tmp_path / "ref", **kw)
+    ds = open_dataset(ref)
+    assert len(ds) == 2
+    assert ds.manifest["provenance"]["command"].endswith(f"--policy {spec} --out DIR")
+    # an interrupted run: chunk 0 finished, chunk 1 lost
+    again = generate(TASK, tmp_path / "again", keep_work=True, **kw)
+    work = tmp_path / ".again.generate"
+    import shutil
+
+    shutil.rmtree(again)
+    shutil.rmtree(work / "run_000" / "part_00001")
+    policies.BUILT.clear()
+    again = generate(TASK, tmp_path / "again", **kw)
+    assert len(policies.BUILT) == 1  # only the lost chunk was played again
+    assert _files(again) == _files(ref)
+
+
+def test_locomotion_needs_a_policy(tmp_path):
+    from rlu.generate import generate
+    from rlu.types import RluError
+
+    with pytest.raises(RluError, match="--policy"):
+        generate("locomotion/rodent_gaps", tmp_path / "x", scale="tiny", progress=False)
+
+
+@pytest.mark.slow  # ~75 s CPU: rodent episodes of 1500 steps with the camera rendered
+def test_locomotion_records_a_user_policy_with_its_camera(tmp_path):
+    pytest.importorskip("dm_control")
+    from rlu.data import open_dataset
+    from rlu.data.validate import validate
+    from rlu.generate import generate
+
+    out = generate("locomotion/rodent_gaps", tmp_path / "loco", scale="tiny", progress=False,
+                   policy="tests.generate.policies:uniform")  # fmt: skip
+    assert validate(out).ok
+    ds = open_dataset(out)
+    sel = ds.manifest["provenance"]["selection"]
+    assert (
+        sel["recorded"] == 2
+        and sel["kept"] == sel["recorded"] - sel["successful"] + (sel["successful"] + 2) // 3
+    )
+    assert ds.segment(0).observation["walker/egocentric_camera"].shape[1:] == (64, 64, 3)
