@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import ast
 import dataclasses
-import importlib
 import json
 import os
 import sys
@@ -78,38 +77,15 @@ class TrainConfig:
 
 # --- agents ---------------------------------------------------------------------------------
 def agent_module(name: str, discrete: bool) -> Any:
-    if "." in name:
-        try:
-            return importlib.import_module(name)
-        except ImportError as e:
-            raise RluError(f"agent module {name!r} cannot be imported: {e}") from None
     from rlu.agents import agent_module as registry_module
 
     return registry_module(name, discrete)
 
 
 def agent_config(name: str, discrete: bool, preset: str, overrides: Mapping[str, Any]) -> Any:
-    module = agent_module(name, discrete)
-    try:
-        config = module.PRESETS[preset]
-    except KeyError:
-        raise RluError(
-            f"agent {name!r} has no preset {preset!r}; presets: {', '.join(module.PRESETS)}"
-        ) from None
-    fields = {f.name: f for f in dataclasses.fields(config)}
-    unknown = sorted(set(overrides) - set(fields))
-    if unknown:
-        raise RluError(
-            f"agent {name!r} config has no field(s) {', '.join(unknown)}; fields: "
-            f"{', '.join(sorted(fields))}"
-        )
-    values = {}
-    for k, v in overrides.items():
-        cur = getattr(config, k)
-        if isinstance(cur, tuple) and isinstance(v, list):
-            v = tuple(v)
-        values[k] = v
-    return dataclasses.replace(config, **values)
+    from rlu.agents import make_config
+
+    return make_config(name, discrete, preset, **overrides)
 
 
 def parse_overrides(items: list[str] | None) -> dict[str, Any]:

@@ -40,6 +40,12 @@ DISCRETE_AGENTS: tuple[str, ...] = tuple(n for n, d in AGENTS if d)
 
 
 def agent_module(name: str, discrete: bool) -> Any:
+    """The module of agent ``name``; a dotted module path (``mypkg.my_agent``) is imported as is."""
+    if "." in name:
+        try:
+            return importlib.import_module(name)
+        except ImportError as e:
+            raise RluError(f"agent module {name!r} cannot be imported: {e}") from None
     try:
         path = AGENTS[(name, discrete)]
     except KeyError:
@@ -67,7 +73,12 @@ def make_config(name: str, discrete: bool, preset: str = "small", **overrides: A
             f"agent {name!r} config has no field(s) {', '.join(unknown)}; fields: "
             f"{', '.join(sorted(fields))}"
         )
-    return dataclasses.replace(config, **overrides)
+    # JSON and the CLI give lists where configs hold tuples (layer sizes)
+    values = {
+        k: tuple(v) if isinstance(getattr(config, k), tuple) and isinstance(v, list) else v
+        for k, v in overrides.items()
+    }
+    return dataclasses.replace(config, **values)
 
 
 def make_agent(
