@@ -178,10 +178,31 @@ class Replay:
         )
 
     def state(self) -> dict[str, Any]:
-        return {k: v for k, v in vars(self).items()}
+        """Plain tensors, dicts and numbers: loadable with ``torch.load(weights_only=True)``."""
+        return {k: _to_tensors(v) for k, v in vars(self).items()}
 
     def load(self, state: Mapping[str, Any]) -> None:
-        vars(self).update(state)
+        vars(self).update({k: _from_tensors(v) for k, v in state.items()})
+
+
+def _to_tensors(v: Any) -> Any:
+    import torch
+
+    if isinstance(v, np.ndarray):
+        return ("ndarray", torch.from_numpy(np.ascontiguousarray(v)))
+    if isinstance(v, Mapping):
+        return {k: _to_tensors(x) for k, x in v.items()}
+    if isinstance(v, np.generic):
+        return v.item()
+    return v
+
+
+def _from_tensors(v: Any) -> Any:
+    if isinstance(v, tuple) and len(v) == 2 and v[0] == "ndarray":
+        return v[1].numpy()
+    if isinstance(v, Mapping):
+        return {k: _from_tensors(x) for k, x in v.items()}
+    return v
 
 
 # --------------------------------------------------------------------------------- a run
@@ -241,7 +262,7 @@ def run_online(
         rng = np.random.default_rng([seed, run, 1])
         episode, env_steps = 0, 0
         if state_path.exists():
-            st = torch.load(state_path, weights_only=False)
+            st = torch.load(state_path, weights_only=True)
             if st["done"]:
                 return
             agent.load_state_dict(st["agent"])

@@ -93,7 +93,7 @@ def generate_rwrl(task: TaskSpec, out: Path, scale: str, runs: int | None, seed:
             hist_path = run_dir / "snapshots.pt"
             history: dict[int, Any] = {}
             if hist_path.exists():
-                history = torch.load(hist_path, weights_only=False)
+                history = torch.load(hist_path, weights_only=True)
 
             def keep(chunk: int, agent: Any, segs: list, history=history, path=hist_path) -> None:
                 ret = float(np.mean([s.metadata["episode_return"] for s in segs]))
@@ -112,7 +112,7 @@ def generate_rwrl(task: TaskSpec, out: Path, scale: str, runs: int | None, seed:
             tmp = snap_path.with_name(".snapshot.pt.tmp")
             torch.save(snap, tmp)
             os.replace(tmp, snap_path)
-        snapshots.append(torch.load(snap_path, weights_only=False))
+        snapshots.append(torch.load(snap_path, weights_only=True))
     bar.close()
     agents = []
     for r, snap in enumerate(snapshots):
