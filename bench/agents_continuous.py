@@ -48,8 +48,8 @@ OBS = {
 }
 ACTION = BoundedSpec((6,), "float32", -1.0, 1.0)
 OBS_DIM, ACT_DIM = 24, 6
-BC_CONFIG = dict(  # on the paper preset: 5 mixture components, sizes as below
-    hidden_size=256, num_layers=2, learning_rate=1e-3
+BC_CONFIG = dict(  # on the paper preset; sizes and components from the command line
+    hidden_size=256, num_layers=2, learning_rate=1e-3, mixture_components=5
 )
 BCQ_CONFIG: dict = {}  # the paper preset networks (400-300, 750-750)
 
@@ -84,7 +84,7 @@ def timed(update, batches, warmup: int) -> float:
 # --- minimal PyTorch loops: the same maths, no agent around it ---------------------------------
 def minimal_bc(batches, seed: int = 0):
     torch.manual_seed(seed)
-    k, h = 5, BC_CONFIG["hidden_size"]
+    k, h = BC_CONFIG["mixture_components"], BC_CONFIG["hidden_size"]
     inp = nn.Linear(OBS_DIM, h)
     blocks = nn.ModuleList(
         nn.Sequential(nn.ELU(), nn.Linear(h, h), nn.ELU(), nn.Linear(h, h)) for _ in range(1)
@@ -232,8 +232,12 @@ def main() -> None:
     p.add_argument("--no-d3rlpy", action="store_true", help="skip d3rlpy (not installed)")
     p.add_argument("--algos", nargs="+", default=["bc", "bcq"])
     p.add_argument("--bc-hidden", type=int, default=256, help="BC width (all three contenders)")
+    p.add_argument("--bc-components", type=int, default=5,
+                   help="mixture components of rlu's BC and its minimal loop (1: one Gaussian, "
+                        "d3rlpy's policy)")  # fmt: skip
     args = p.parse_args()
     BC_CONFIG["hidden_size"] = args.bc_hidden
+    BC_CONFIG["mixture_components"] = args.bc_components
     torch.set_num_threads(args.threads)
     count = args.updates + args.warmup
     print(f"torch {torch.__version__}, {args.threads} thread(s), batch {args.batch}, "

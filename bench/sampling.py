@@ -1,8 +1,8 @@
 """Uniform SARSA batches from rlu's memory-mapped store vs peers, on the same data in one run.
 
-    .venv-bench/bin/python bench/sampling.py            # peers: in-RAM numpy, d3rlpy, Minari, D4RL loop
-    .venv-bench/bin/python bench/sampling.py --ooc      # the out-of-core Atari check (> 4 GB) alone,
-                                                        # in its own process so peak RSS is its own
+    .venv-bench/bin/python bench/sampling.py        # peers: in-RAM numpy, d3rlpy, Minari, D4RL loop
+    .venv-bench/bin/python bench/sampling.py --ooc  # the out-of-core Atari check (> 4 GB) alone,
+                                                    # in its own process so peak RSS is its own
 
 The bench environment needs d3rlpy, minari and psutil besides rlu (see bench/README.md); a peer
 that is not installed is reported as skipped. Data: a synthetic dataset of 1M steps (observation

@@ -221,7 +221,8 @@ _LOCOMOTION = {
     # name: (walker, action dim, episodes, paper seq length, selection, release dir, release seq,
     #        episode files name, episode length)
     # The paper lists rodent_bowl_escape with seq 40, but the original loader reads
-    # rodent_bowl_escape/seq2; the release path follows the loader (the files), seq_length the paper.
+    # rodent_bowl_escape/seq2; the release path follows the loader (the files), seq_length the
+    # paper.
     "humanoid_corridor": ("humanoid", 56, 4000, 2, "online", "humanoid_corridor", 2, 1000),
     "humanoid_walls": ("humanoid", 56, 4000, 40, "online", "humanoid_walls", 40, 1000),
     "rodent_gaps": ("rodent", 38, 2000, 2, "online", "rodent_gaps", 2, 1500),
@@ -466,7 +467,7 @@ TASKS: Mapping[str, TaskSpec] = MappingProxyType(_build())
 
 
 def rwrl_release_binding(challenge: str, size: str) -> str:
-    """The ``{challenge}``/``{size}`` fill of an RWRL release path (``size`` as the bucket names it)."""
+    """The ``{challenge}``/``{size}`` fill of an RWRL release path (``size`` as in the bucket)."""
     return f"{challenge}/{size}"
 
 

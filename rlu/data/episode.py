@@ -6,8 +6,8 @@ episode boundary.
 
 Step semantics (RLDS, SPEC §3), for step t of a segment of T steps:
 - ``observation[t]`` is seen, ``action[t]`` is taken, ``reward[t]`` follows ``action[t]``;
-- ``discount[t]`` is 0 when the transition t -> t+1 ends the episode in a terminal state, 1 otherwise
-  (a time-limit truncation keeps 1);
+- ``discount[t]`` is 0 when the transition t -> t+1 ends the episode in a terminal state, 1
+  otherwise (a time-limit truncation keeps 1);
 - the last step of an episode (``is_last``) holds the final observation; its action, reward and
   discount carry no information (stored as zeros; a terminal final step has ``is_terminal`` and
   discount 0);

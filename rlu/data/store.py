@@ -9,10 +9,11 @@ Layout of a dataset directory::
     steps/observation/<key>.offsets.bin   with int64 offsets (n + 1) into the stream file
     segments/<field>.bin          per-segment index (start, length, frame_start) and metadata
 
-Step columns: ``action``, ``reward``, ``discount``, ``is_first``, ``is_last``, ``is_terminal`` and one
-per observation key. With ``frame_stack > 1`` (Atari) the single observation column holds frames, not
-steps: segment s owns frames ``frame_start[s] .. frame_start[s] + (frame_stack - 1) + length[s]``,
-the first ``frame_stack - 1`` being the frames before its step 0 (zeros at an episode start).
+Step columns: ``action``, ``reward``, ``discount``, ``is_first``, ``is_last``, ``is_terminal``
+and one per observation key. With ``frame_stack > 1`` (Atari) the single observation column holds
+frames, not steps: segment s owns frames
+``frame_start[s] .. frame_start[s] + (frame_stack - 1) + length[s]``, the first
+``frame_stack - 1`` being the frames before its step 0 (zeros at an episode start).
 
 Writes are atomic: everything goes to a hidden sibling directory, every file is fsynced, the
 manifest is written last, and the directory is renamed into place. A crash leaves only the hidden
@@ -66,7 +67,8 @@ class Schema:
     action: ActionSpec
     frame_stack: int = 1
     image_encoding: str = "raw"
-    """'raw' or 'zlib' (per-frame zlib streams, decoded at sample time) for uint8 columns of rank >= 2."""
+    """'raw' or 'zlib' (per-frame zlib streams, decoded at sample time) for uint8 columns of
+    rank >= 2."""
     task_id: str | None = None
 
     def __post_init__(self) -> None:
@@ -135,6 +137,34 @@ def _col_path(root: Path, group: str, name: str, suffix: str) -> Path:
     return root / group / f"{name}{suffix}"
 
 
+_ZLIB_POOL: tuple[int, Any] | None = None  # (pid, executor): never reused across a fork
+_ZLIB_THREADED_FRAMES = 64
+
+
+def _deflate(frames: np.ndarray) -> list[bytes]:
+    return [zlib.compress(f.tobytes(), 1) for f in frames]
+
+
+def _compress_frames(values: np.ndarray) -> list[bytes]:
+    """Per-frame zlib (level 1), in one contiguous chunk per core for large appends.
+
+    zlib releases the GIL while it deflates, so chunks compress in parallel threads; the blobs
+    are the same bytes in the same order as one thread would make.
+    """
+    global _ZLIB_POOL
+    workers = min(4, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 1)
+    if len(values) < _ZLIB_THREADED_FRAMES or workers < 2:
+        return _deflate(values)
+    if _ZLIB_POOL is None or _ZLIB_POOL[0] != os.getpid():
+        from concurrent.futures import ThreadPoolExecutor
+
+        _ZLIB_POOL = (os.getpid(), ThreadPoolExecutor(workers, thread_name_prefix="rlu-zlib"))
+    bounds = np.linspace(0, len(values), workers + 1).astype(int)
+    chunks = [values[a:b] for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+    parts = _ZLIB_POOL[1].map(_deflate, chunks)
+    return [blob for part in parts for blob in part]
+
+
 class _ColumnFile:
     """An append-only raw (or per-frame zlib) column, hashed as it is written."""
 
@@ -155,13 +185,12 @@ class _ColumnFile:
     def append(self, values: np.ndarray) -> None:
         values = np.ascontiguousarray(values, dtype=self.spec.dtype)
         if self.encoding == "zlib":
-            pos = self.offsets[-1]
-            for frame in values:
-                blob = zlib.compress(frame.tobytes(), 1)
-                self.fh.write(blob)
-                self.hash.update(blob)
-                pos += len(blob)
-                self.offsets.append(pos)
+            blobs = _compress_frames(values)
+            data = b"".join(blobs)
+            self.fh.write(data)
+            self.hash.update(data)
+            ends = self.offsets[-1] + np.cumsum([len(b) for b in blobs], dtype=np.int64)
+            self.offsets.extend(ends.tolist())
         else:
             data = values.astype(values.dtype.newbyteorder("<"), copy=False).tobytes()
             self.fh.write(data)
@@ -255,7 +284,7 @@ class DatasetWriter:
             self.abort()
 
     def append(self, segment: Segment) -> None:
-        """Check ``segment`` against the schema (nothing is written if it disagrees), then append."""
+        """Check ``segment`` against the schema (nothing is written if it disagrees); append."""
         cols = self._check(segment)
         for name, values in cols.items():
             (self._frames.get(name) or self._steps[name]).append(values)
@@ -452,7 +481,7 @@ class Dataset:
             mm._mmap.madvise(mmap.MADV_DONTNEED)
 
     def column(self, name: str) -> Any:
-        """A step (or frame) column: a read-only memmap, or a ``ZlibColumn`` for compressed images."""
+        """A step (or frame) column: a read-only memmap, or a ``ZlibColumn`` (compressed images)."""
         if name in self._cache:
             return self._cache[name]
         specs = self.schema.step_columns()

@@ -28,7 +28,8 @@ def to_torch(batch: Any, device: str | torch.device = "cpu") -> Any:
 
 
 class TorchSampler(torch.utils.data.IterableDataset):
-    """Endless uniform batches from a stored dataset, as tensors (``batch_size=None`` in the loader)."""
+    """Endless uniform batches from a stored dataset, as tensors (``batch_size=None`` in the
+    loader)."""
 
     def __init__(
         self,

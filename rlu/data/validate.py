@@ -133,7 +133,8 @@ def _check_flags(ds: Dataset, report: Report) -> None:
         bad_zero = zero[(zero < end[seg]) & ~(term[end[seg]] & (zero + 1 == end[seg]))]
         if bad_zero.size:
             report.add(
-                f"{f / 'discount.bin'}: step {int(bad_zero[0])} has discount 0 but its episode goes on"
+                f"{f / 'discount.bin'}: step {int(bad_zero[0])} has discount 0 but its episode "
+                "goes on"
             )
     if ((disc < 0) | (disc > 1)).any():
         report.add(f"{f / 'discount.bin'}: discounts outside [0, 1]")

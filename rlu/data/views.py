@@ -247,7 +247,7 @@ def make_sampler(
     sequence_length: int = 1,
     stride: int = 1,
 ) -> Sampler:
-    """A sampler of ``kind`` "transition" (optionally n-step) or "sequence" over a dataset or path."""
+    """A sampler of ``kind`` "transition" (optionally n-step) or "sequence" over a dataset/path."""
     ds = open_dataset(dataset) if isinstance(dataset, (str, os.PathLike)) else dataset
     if kind == "sequence":
         view: TransitionView | SequenceView = SequenceView(ds, sequence_length, stride)

@@ -48,8 +48,9 @@ def available_cores() -> int:
 
 # Chosen from bench/envs.py on the 2-core machine (quiet, 2026-11-23): ALE's C++ threads beat
 # processes for Atari (1.56x at N=2, 2.00x at N=8, vs 0.86x for worker processes); worker
-# processes pay off for the slow camera envs of locomotion (1.58x at N=2); control-suite and RWRL steps (40-400 us) are cheaper than a message round trip to a
-# worker (0.1-0.8x measured), so their N envs step in this process, where the batched policy
+# processes pay off for the slow camera envs of locomotion (1.58x at N=2); control-suite and
+# RWRL steps (40-400 us) are cheaper than a message round trip to a worker (0.16-0.64x at
+# N=2, 0.4-1.2x at N=8 measured), so their N envs step in this process, where the batched policy
 # forward (PyTorch's intra-op threads) is what uses the second core.
 _AUTO = {"atari": "ale", "locomotion": "process", "control_suite": "sync", "rwrl": "sync"}
 

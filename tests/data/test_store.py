@@ -57,6 +57,25 @@ def test_zlib_images_are_smaller_than_raw(tmp_path):
     assert sizes["zlib"] * 10 < sizes["raw"]
 
 
+def test_threaded_zlib_writes_the_bytes_of_one_frame_at_a_time(tmp_path, monkeypatch):
+    from rlu.data import store
+
+    rng = np.random.default_rng(3)
+    frames = np.zeros((301, 84, 84), np.uint8)
+    frames[:, 30:50] = rng.integers(0, 255, (301, 20, 84), np.uint8)
+    ep = make_episode(frames, np.zeros(300, np.int64), np.zeros(300), terminal=True)
+    schema = Schema.for_task(get_task("atari/Pong"), image_encoding="zlib")
+    manifests = {}
+    for name, threshold in (("threaded", 2), ("serial", 10**9)):
+        monkeypatch.setattr(store, "_ZLIB_THREADED_FRAMES", threshold)
+        with DatasetWriter(tmp_path / name, schema) as w:
+            w.append(ep)
+        manifests[name] = open_dataset(tmp_path / name, verify=True).manifest["files"]
+    assert manifests["threaded"] == manifests["serial"]  # same sha256 for every file
+    stored = open_dataset(tmp_path / "threaded").segment(0).observation
+    np.testing.assert_array_equal(stored, frames)
+
+
 CHILD = r"""
 import sys
 from rlu.data import DatasetWriter, Schema

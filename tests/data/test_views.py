@@ -167,6 +167,7 @@ def test_nstep_equal_reference(tmp_path, segs, n_step, gamma):
     b = view.all()
     for i, (o, a, r, d, o2, a2) in enumerate(ref):
         assert_obs_equal(pick(b.observation, i), o)
+        np.testing.assert_array_equal(b.action[i], a)
         np.testing.assert_allclose(b.reward[i], r, rtol=1e-5, atol=1e-6)
         assert b.discount[i] == np.float32(d)
         assert_obs_equal(pick(b.next_observation, i), o2)
@@ -188,6 +189,7 @@ def test_frame_stacks_equal_reference(tmp_path, segs, encoding):
         np.testing.assert_array_equal(b.observation[i], o)
         np.testing.assert_array_equal(b.next_observation[i], o2)
         assert b.action[i] == a and b.next_action[i] == a2
+        assert b.reward[i] == np.float32(r) and b.discount[i] == np.float32(d)
 
 
 def test_frame_stack_at_episode_start_is_zero_padded(tmp_path):

@@ -282,7 +282,7 @@ def convert(
         r = run if run is not None else _run_from_names(paths)
         if r is not None:
             meta["run"] = int(str(r).removeprefix("run_"))
-    workers = workers if workers is not None else min(os.cpu_count() or 1, len(paths) + 1, 8)
+    workers = workers if workers is not None else min(os.cpu_count() or 1, len(paths), 8)
     report = ConvertReport(Path(out))
     t0 = time.monotonic()
     prov = {
@@ -294,7 +294,9 @@ def convert(
         "code_version": _version(),
         **(provenance or {}),
     }
-    pool = _Pool(paths, family, verify, on_error, max(1, workers - 1)) if workers > 1 else None
+    # ``workers`` reader processes: the parent only appends decoded batches (and deflates image
+    # columns in threads), so it shares a core with a reader rather than taking one.
+    pool = _Pool(paths, family, verify, on_error, workers) if workers > 1 else None
     try:
         with DatasetWriter(out, schema, provenance=prov, overwrite=overwrite) as writer:
             for i, path in enumerate(paths):
