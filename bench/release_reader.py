@@ -1,6 +1,7 @@
 """Our release reader vs TensorFlow on the same gzip shards of control-suite seq2 windows.
 
     .venv/bin/python bench/release_reader.py [--records 800000] [--shards 4] [--decoders] [--png]
+                                             [--atari]
 
 Writes ``--shards`` gzip TFRecord shards in the exact ``dm_control_suite/cartpole_swingup`` schema
 (237-byte Examples, as the TF-written fixture), then times, in one run:
@@ -13,7 +14,9 @@ Writes ``--shards`` gzip TFRecord shards in the exact ``dm_control_suite/cartpol
   (TFRecordDataset, batch, then ``parse_example`` on the batch);
 - ``--decoders``: the protobuf runtime (upb, with our own Example descriptor) vs the hand-written
   decoder, record by record and in batches;
-- ``--png``: Pillow vs zlib inflate alone on 84x84 grey frames.
+- ``--png``: Pillow vs zlib inflate alone on 84x84 grey frames;
+- ``--atari``: converting Atari transition shards (Pong-like frames, 8 PNGs per record, zlib
+  in the store) with 1 and 2 processes.
 
 Prints records/s and MB/s (of the decompressed record stream) and the ratios.
 """
@@ -197,6 +200,61 @@ def rlu_rows(
     return rows
 
 
+def atari_frames(n: int):
+    """Pong-like 84x84 grey frames: flat court, two paddles and a ball that move, a score."""
+    import numpy as np
+
+    frames = np.full((n, 84, 84), 87, np.uint8)
+    frames[:, 10:12, :] = 236  # walls
+    frames[:, 74:76, :] = 236
+    t = np.arange(n)
+    for i in range(n):
+        y1, y2 = 14 + (t[i] * 3) % 54, 14 + (t[i] * 2 + 20) % 54
+        frames[i, y1 : y1 + 6, 8:10] = 147
+        frames[i, y2 : y2 + 6, 74:76] = 92
+        bx, by = 12 + (t[i] * 5) % 60, 14 + (t[i] * 7) % 58
+        frames[i, by : by + 2, bx : bx + 1] = 236
+        frames[i, 2:8, 20 + (i // 500) % 10 : 24 + (i // 500) % 10] = 236  # a score digit
+    return frames
+
+
+def atari_rows(tmp: str, records: int = 8000, shards: int = 4) -> list[tuple[str, float, int]]:
+    """Conversion of Atari transition shards (PNG decode, then zlib for the store), 1 vs 2."""
+    import shutil
+
+    import numpy as np
+
+    from rlu.data.release import families as Fm
+    from rlu.data.release.convert import convert
+
+    frames = atari_frames(records + 4)
+    stack = lambda i: np.stack([frames[i + k] for k in range(4)], -1)  # noqa: E731
+    files, per = [], records // shards
+    for s in range(shards):
+        path = os.path.join(tmp, "atari", "Pong", f"run_1-{s:05d}-of-{shards:05d}")
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        recs = [
+            dict(o_t=stack(i), o_tp1=stack(i + 1), a_t=i % 6, a_tp1=(i + 1) % 6,
+                 r_t=np.float32(0), d_t=np.float32(1), episode_id=i // 1000,
+                 episode_return=np.float32(0))
+            for i in range(s * per, (s + 1) * per)
+        ]  # fmt: skip
+        Fm.write_shard(path, "atari", recs)
+        files.append(path)
+    rows = []
+    for w in (1, 2):
+        out = os.path.join(tmp, f"atari_converted{w}")
+
+        def conv(w=w, out=out):
+            if os.path.exists(out):
+                shutil.rmtree(out)
+            convert(files, "atari", "atari/Pong", out, workers=w)
+
+        label = f"rlu convert Atari transitions, {w} process{'es' if w > 1 else ''}"
+        rows.append((label, time_it(conv, 2), per * shards))
+    return rows
+
+
 def decoder_rows(files: list[str], n: int = 50_000) -> list[tuple[str, float, int]]:
     import numpy as np
     from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
@@ -356,6 +414,7 @@ def main() -> None:
     ap.add_argument("--shuffle", type=int, default=100_000, help="the original loader's buffer")
     ap.add_argument("--decoders", action="store_true")
     ap.add_argument("--png", action="store_true")
+    ap.add_argument("--atari", action="store_true", help="also convert Atari transition shards")
     ap.add_argument("--tf-worker", nargs=2, metavar=("MODE", "FILES_JSON"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.tf_worker:
@@ -417,6 +476,12 @@ def main() -> None:
             print(f"\n{'Example decoder':58s} {'records/s':>12s}")
             for name, s, n in decoder_rows(files):
                 print(f"{name:58s} {n / s:12,.0f}")
+        if args.atari:
+            print(f"\n{'Atari transitions (4+4 PNG frames per record)':58s} {'records/s':>12s}")
+            arows = atari_rows(tmp)
+            for name, s, n in arows:
+                print(f"{name:58s} {n / s:12,.0f}")
+            print(f"{'2 processes / 1 process':58s} {arows[0][1] / arows[1][1]:11.2f}x")
         if args.png:
             print(f"\n{'PNG':58s} {'us/frame':>12s}")
             for name, s, n in png_rows():

@@ -145,7 +145,7 @@ def _deflate(frames: np.ndarray) -> list[bytes]:
     return [zlib.compress(f.tobytes(), 1) for f in frames]
 
 
-def _compress_frames(values: np.ndarray) -> list[bytes]:
+def _compress_frames(values: np.ndarray, threaded: bool = True) -> list[bytes]:
     """Per-frame zlib (level 1), in one contiguous chunk per core for large appends.
 
     zlib releases the GIL while it deflates, so chunks compress in parallel threads; the blobs
@@ -153,7 +153,7 @@ def _compress_frames(values: np.ndarray) -> list[bytes]:
     """
     global _ZLIB_POOL
     workers = min(4, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 1)
-    if len(values) < _ZLIB_THREADED_FRAMES or workers < 2:
+    if not threaded or len(values) < _ZLIB_THREADED_FRAMES or workers < 2:
         return _deflate(values)
     if _ZLIB_POOL is None or _ZLIB_POOL[0] != os.getpid():
         from concurrent.futures import ThreadPoolExecutor
@@ -163,6 +163,33 @@ def _compress_frames(values: np.ndarray) -> list[bytes]:
     chunks = [values[a:b] for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
     parts = _ZLIB_POOL[1].map(_deflate, chunks)
     return [blob for part in parts for blob in part]
+
+
+@dataclass(frozen=True)
+class Deflated:
+    """Rows of an image column already deflated (what a zlib column stores), made elsewhere.
+
+    Lets a worker process compress frames so that the process owning the writer only writes
+    bytes (``rlu.data.release.convert``); ``_ColumnFile.append`` takes it in place of an array.
+    """
+
+    data: bytes
+    """The rows' zlib streams, concatenated."""
+    lengths: np.ndarray
+    """Bytes of each row's stream (int64)."""
+    shape: tuple[int, ...]
+    """Shape of the rows before compression, rows first."""
+    dtype: str
+
+    @staticmethod
+    def of(values: np.ndarray, dtype: str, threaded: bool = True) -> Deflated:
+        values = np.ascontiguousarray(values, dtype=dtype)
+        blobs = _compress_frames(values, threaded)
+        lengths = np.fromiter(map(len, blobs), np.int64, len(blobs))
+        return Deflated(b"".join(blobs), lengths, values.shape, str(values.dtype))
+
+    def __len__(self) -> int:
+        return self.shape[0]
 
 
 class _ColumnFile:
@@ -182,20 +209,36 @@ class _ColumnFile:
             self.offset_path = _col_path(root, group, name, ".offsets.bin")
             self.paths.append(self.offset_path)
 
-    def append(self, values: np.ndarray) -> None:
+    def append(self, values: np.ndarray | Deflated) -> None:
+        if isinstance(values, Deflated):
+            want = (len(values), *self.spec.shape)
+            if (
+                self.encoding != "zlib"
+                or values.shape != want
+                or np.dtype(values.dtype) != np.dtype(self.spec.dtype)
+            ):
+                raise SpecError(
+                    f"column {self.path.name}: deflated rows {values.shape} {values.dtype} do "
+                    f"not fit a {self.encoding} column of {want} {self.spec.dtype}"
+                )
+            self._append_deflated(values.data, values.lengths)
+            self.count += len(values)
+            return
         values = np.ascontiguousarray(values, dtype=self.spec.dtype)
         if self.encoding == "zlib":
             blobs = _compress_frames(values)
-            data = b"".join(blobs)
-            self.fh.write(data)
-            self.hash.update(data)
-            ends = self.offsets[-1] + np.cumsum([len(b) for b in blobs], dtype=np.int64)
-            self.offsets.extend(ends.tolist())
+            self._append_deflated(b"".join(blobs), [len(b) for b in blobs])
         else:
             data = values.astype(values.dtype.newbyteorder("<"), copy=False).tobytes()
             self.fh.write(data)
             self.hash.update(data)
         self.count += len(values)
+
+    def _append_deflated(self, data: bytes, lengths: Any) -> None:
+        self.fh.write(data)
+        self.hash.update(data)
+        ends = self.offsets[-1] + np.cumsum(lengths, dtype=np.int64)
+        self.offsets.extend(ends.tolist())
 
     def close(self) -> dict[str, dict[str, Any]]:
         _fsync_close(self.fh)
@@ -228,6 +271,74 @@ def _fsync_dir(path: Path) -> None:
 
 def _partial_dir(dest: Path) -> Path:
     return dest.parent / f".{dest.name}.partial"
+
+
+def segment_columns(schema: Schema, seg: Segment) -> dict[str, np.ndarray]:
+    """``seg`` as the store's columns, checked against ``schema`` (keys, shapes, dtypes)."""
+    n = len(seg)
+    if n < 1:
+        raise SpecError("a segment needs at least one step")
+    unknown = set(seg.metadata) - set(METADATA_FIELDS)
+    if unknown:
+        raise SpecError(
+            f"segment metadata has unknown key(s) {sorted(unknown)}; known: "
+            f"{', '.join(METADATA_FIELDS)}"
+        )
+    cols: dict[str, np.ndarray] = {}
+    obs = seg.observation
+    if isinstance(schema.observation, ArraySpec):
+        if isinstance(obs, Mapping):
+            raise SpecError("observation is a dict but the schema stores one array")
+        cols["observation"] = np.asarray(obs)
+    else:
+        if not isinstance(obs, Mapping):
+            raise SpecError("observation is an array but the schema stores a dict")
+        missing = set(schema.observation) - set(obs)
+        extra = set(obs) - set(schema.observation)
+        if missing or extra:
+            raise SpecError(
+                f"observation keys disagree with the schema: missing {sorted(missing)}, "
+                f"unexpected {sorted(extra)}"
+            )
+        cols.update({f"observation/{k}": np.asarray(v) for k, v in obs.items()})
+    if schema.frame_stack > 1:
+        frames = cols["observation"]
+        prefix = seg.frame_prefix
+        if prefix is None:
+            if not bool(seg.is_first[0]):
+                raise SpecError(
+                    "a segment that does not start an episode needs frame_prefix "
+                    f"({schema.frame_stack - 1} frames before step 0)"
+                )
+            prefix = np.zeros((schema.frame_stack - 1, *frames.shape[1:]), frames.dtype)
+        prefix = np.asarray(prefix)
+        if prefix.shape[0] != schema.frame_stack - 1:
+            raise SpecError(
+                f"frame_prefix has {prefix.shape[0]} frames; the schema stacks "
+                f"{schema.frame_stack}, so give {schema.frame_stack - 1}"
+            )
+        cols["observation"] = np.concatenate([prefix, frames])
+    cols.update(
+        action=np.asarray(seg.action),
+        reward=np.asarray(seg.reward),
+        discount=np.asarray(seg.discount),
+        is_first=np.asarray(seg.is_first),
+        is_last=np.asarray(seg.is_last),
+        is_terminal=np.asarray(seg.is_terminal),
+    )
+    frame_specs = schema.frame_columns()
+    specs = {**schema.step_columns(), **frame_specs}
+    for name, spec in specs.items():
+        v = cols[name]
+        want_n = n + (schema.frame_stack - 1 if name in frame_specs else 0)
+        if v.shape != (want_n, *spec.shape):
+            raise SpecError(
+                f"column {name!r} has shape {v.shape}; the schema wants "
+                f"{(want_n, *spec.shape)} (steps first, then {spec.shape})"
+            )
+        if not np.can_cast(v.dtype, spec.dtype, casting="same_kind"):
+            raise SpecError(f"column {name!r} has dtype {v.dtype}; the schema wants {spec.dtype}")
+    return cols
 
 
 class DatasetWriter:
@@ -300,71 +411,7 @@ class DatasetWriter:
             self.num_frames += n + self.schema.frame_stack - 1
 
     def _check(self, seg: Segment) -> dict[str, np.ndarray]:
-        n = len(seg)
-        if n < 1:
-            raise SpecError("a segment needs at least one step")
-        unknown = set(seg.metadata) - set(METADATA_FIELDS)
-        if unknown:
-            raise SpecError(
-                f"segment metadata has unknown key(s) {sorted(unknown)}; known: "
-                f"{', '.join(METADATA_FIELDS)}"
-            )
-        cols: dict[str, np.ndarray] = {}
-        obs = seg.observation
-        if isinstance(self.schema.observation, ArraySpec):
-            if isinstance(obs, Mapping):
-                raise SpecError("observation is a dict but the schema stores one array")
-            cols["observation"] = np.asarray(obs)
-        else:
-            if not isinstance(obs, Mapping):
-                raise SpecError("observation is an array but the schema stores a dict")
-            missing = set(self.schema.observation) - set(obs)
-            extra = set(obs) - set(self.schema.observation)
-            if missing or extra:
-                raise SpecError(
-                    f"observation keys disagree with the schema: missing {sorted(missing)}, "
-                    f"unexpected {sorted(extra)}"
-                )
-            cols.update({f"observation/{k}": np.asarray(v) for k, v in obs.items()})
-        if self.schema.frame_stack > 1:
-            frames = cols["observation"]
-            prefix = seg.frame_prefix
-            if prefix is None:
-                if not bool(seg.is_first[0]):
-                    raise SpecError(
-                        "a segment that does not start an episode needs frame_prefix "
-                        f"({self.schema.frame_stack - 1} frames before step 0)"
-                    )
-                prefix = np.zeros((self.schema.frame_stack - 1, *frames.shape[1:]), frames.dtype)
-            prefix = np.asarray(prefix)
-            if prefix.shape[0] != self.schema.frame_stack - 1:
-                raise SpecError(
-                    f"frame_prefix has {prefix.shape[0]} frames; the schema stacks "
-                    f"{self.schema.frame_stack}, so give {self.schema.frame_stack - 1}"
-                )
-            cols["observation"] = np.concatenate([prefix, frames])
-        cols.update(
-            action=np.asarray(seg.action),
-            reward=np.asarray(seg.reward),
-            discount=np.asarray(seg.discount),
-            is_first=np.asarray(seg.is_first),
-            is_last=np.asarray(seg.is_last),
-            is_terminal=np.asarray(seg.is_terminal),
-        )
-        specs = {**self.schema.step_columns(), **self.schema.frame_columns()}
-        for name, spec in specs.items():
-            v = cols[name]
-            want_n = n + (self.schema.frame_stack - 1 if name in self._frames else 0)
-            if v.shape != (want_n, *spec.shape):
-                raise SpecError(
-                    f"column {name!r} has shape {v.shape}; the schema wants "
-                    f"{(want_n, *spec.shape)} (steps first, then {spec.shape})"
-                )
-            if not np.can_cast(v.dtype, spec.dtype, casting="same_kind"):
-                raise SpecError(
-                    f"column {name!r} has dtype {v.dtype}; the schema wants {spec.dtype}"
-                )
-        return cols
+        return segment_columns(self.schema, seg)
 
     def close(self) -> Path:
         if self._closed:
