@@ -49,13 +49,7 @@ Config = BCConfig
 
 PRESETS: dict[str, BCConfig] = {
     "paper": BCConfig(),
-    "small": BCConfig(
-        learning_rate=1e-4,
-        batch_size=32,
-        num_steps=20_000,
-        channels=(16, 32, 32),
-        hidden_size=128,
-    ),
+    "small": BCConfig(**dc.SMALL_SCALE),
 }
 
 GRID: dict[str, list[Any]] = {"learning_rate": list(dc.LEARNING_RATE_GRID)}
@@ -76,9 +70,7 @@ class BCAgent:
             return dc.QNetwork(torso, config.hidden_size, num_actions)
 
         network = dc.build_seeded(init_seed, build)
-        self.learner = dc.SGDLearner(
-            network, dc.BCLoss(), config.learning_rate, config.adam_eps, 0, learner_seed
-        )
+        self.learner = dc.SGDLearner.from_config(network, dc.BCLoss(), config, learner_seed)
         self.act_generator = torch.Generator().manual_seed(act_seed)
 
     def update(self, batch: Transition) -> dict[str, float]:

@@ -69,14 +69,7 @@ Config = BCQConfig
 
 PRESETS: dict[str, BCQConfig] = {
     "paper": BCQConfig(),
-    "small": BCQConfig(
-        learning_rate=1e-4,
-        batch_size=32,
-        target_update_period=200,
-        num_steps=20_000,
-        channels=(16, 32, 32),
-        hidden_size=128,
-    ),
+    "small": BCQConfig(**dc.SMALL_SCALE, target_update_period=dc.SMALL_TARGET_UPDATE_PERIOD),
 }
 
 GRID: dict[str, list[Any]] = {
@@ -106,14 +99,7 @@ class BCQAgent:
             return dc.QAndPolicyNetwork(torso, config.hidden_size, num_actions)
 
         network = dc.build_seeded(init_seed, build)
-        self.learner = dc.SGDLearner(
-            network,
-            make_loss(config),
-            config.learning_rate,
-            config.adam_eps,
-            config.target_update_period,
-            learner_seed,
-        )
+        self.learner = dc.SGDLearner.from_config(network, make_loss(config), config, learner_seed)
         self.act_generator = torch.Generator().manual_seed(act_seed)
 
     def update(self, batch: Transition) -> dict[str, float]:

@@ -73,15 +73,11 @@ Config = IQNConfig
 PRESETS: dict[str, IQNConfig] = {
     "paper": IQNConfig(),
     "small": IQNConfig(
-        learning_rate=1e-4,
-        batch_size=32,
-        target_update_period=200,
-        num_steps=20_000,
+        **dc.SMALL_SCALE,
+        target_update_period=dc.SMALL_TARGET_UPDATE_PERIOD,
         num_tau_samples=8,
         num_quantile_samples=8,
         embedding_size=32,
-        channels=(16, 32, 32),
-        hidden_size=128,
     ),
 }
 
@@ -118,14 +114,7 @@ class IQNAgent:
             )
 
         network = dc.build_seeded(init_seed, build)
-        self.learner = dc.SGDLearner(
-            network,
-            make_loss(config),
-            config.learning_rate,
-            config.adam_eps,
-            config.target_update_period,
-            learner_seed,
-        )
+        self.learner = dc.SGDLearner.from_config(network, make_loss(config), config, learner_seed)
         self.act_generator = torch.Generator().manual_seed(act_seed)
 
     def update(self, batch: Transition) -> dict[str, float]:
