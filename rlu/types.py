@@ -11,6 +11,7 @@ keyed as in the original release without its ``observation/`` prefix, nested lev
 
 from __future__ import annotations
 
+import os
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, NamedTuple, Protocol
@@ -171,3 +172,12 @@ class FormatError(RluError):
 
 class SpecError(RluError):
     """Data disagrees with a spec (shape, dtype, key)."""
+
+
+def available_cores() -> int:
+    """CPU cores this process may run on (its affinity mask, which containers and taskset
+    narrow; ``os.cpu_count()`` counts the whole machine)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1

@@ -43,6 +43,7 @@ from rlu.types import (
     ObservationSpec,
     RluError,
     SpecError,
+    available_cores,
     observation_spec_from_json,
     observation_spec_to_json,
 )
@@ -152,7 +153,7 @@ def _compress_frames(values: np.ndarray, threaded: bool = True) -> list[bytes]:
     are the same bytes in the same order as one thread would make.
     """
     global _ZLIB_POOL
-    workers = min(4, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 1)
+    workers = min(4, available_cores())
     if not threaded or len(values) < _ZLIB_THREADED_FRAMES or workers < 2:
         return _deflate(values)
     if _ZLIB_POOL is None or _ZLIB_POOL[0] != os.getpid():

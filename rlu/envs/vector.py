@@ -29,22 +29,13 @@ its next ``step`` ignores the action and returns the first observation of a new 
 from __future__ import annotations
 
 import functools
-import os
 from typing import Any
 
 import numpy as np
 
 from rlu.envs.core import gym, spaces
 from rlu.tasks import ATARI_MAX_AGENT_STEPS, get_task
-from rlu.types import RluError
-
-
-def available_cores() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not Linux
-        return os.cpu_count() or 1
-
+from rlu.types import RluError, available_cores
 
 # Chosen from bench/envs.py on the 2-core machine (quiet, 2026-11-23): ALE's C++ threads beat
 # processes for Atari (1.56x at N=2, 2.00x at N=8, vs 0.86x for worker processes); worker

@@ -30,7 +30,7 @@ from rlu.data.release.families import SegmentBatch, get_family, iter_raw
 from rlu.data.release.framing import RecordReader
 from rlu.data.store import DatasetWriter, Deflated, Schema, segment_columns
 from rlu.tasks import TaskSpec, get_task, rwrl_observation_spec
-from rlu.types import ArraySpec, FormatError, RluError, SpecError
+from rlu.types import ArraySpec, FormatError, RluError, SpecError, available_cores
 
 _RUN_RE = re.compile(r"run_(\d+)")
 _QUEUE_MIB = 256  # decoded data a reader may hold queued ahead of the parent
@@ -209,7 +209,7 @@ def _shard_batches(job: _Job, path: str, columns: bool = False):
     reader = RecordReader(path, verify=job.verify, on_error=job.on_error)
     for raw in iter_raw(path, job.family, reader=reader, on_error=job.on_error):
         batch = _with_meta(_fit(fam.segments(raw), job.schema, path), job.meta)
-        if columns and len(batch) and fast_path(batch, job.schema):
+        if columns and fast_path(batch, job.schema):
             yield batch_columns(batch, job.schema, deflate=True), None
         else:
             yield batch, None
@@ -368,7 +368,7 @@ def convert(
         r = run if run is not None else _run_from_names(paths)
         if r is not None:
             meta["run"] = int(str(r).removeprefix("run_"))
-    workers = workers if workers is not None else min(os.cpu_count() or 1, len(paths), 8)
+    workers = workers if workers is not None else min(available_cores(), len(paths), 8)
     report = ConvertReport(Path(out))
     t0 = time.monotonic()
     prov = {
