@@ -211,35 +211,26 @@ class _ColumnFile:
             self.paths.append(self.offset_path)
 
     def append(self, values: np.ndarray | Deflated) -> None:
-        if isinstance(values, Deflated):
+        if self.encoding == "zlib":
+            if not isinstance(values, Deflated):
+                values = Deflated.of(values, self.spec.dtype)
             want = (len(values), *self.spec.shape)
-            if (
-                self.encoding != "zlib"
-                or values.shape != want
-                or np.dtype(values.dtype) != np.dtype(self.spec.dtype)
-            ):
+            if values.shape != want or np.dtype(values.dtype) != np.dtype(self.spec.dtype):
                 raise SpecError(
                     f"column {self.path.name}: deflated rows {values.shape} {values.dtype} do "
-                    f"not fit a {self.encoding} column of {want} {self.spec.dtype}"
+                    f"not fit its rows of {want} {self.spec.dtype}"
                 )
-            self._append_deflated(values.data, values.lengths)
-            self.count += len(values)
-            return
-        values = np.ascontiguousarray(values, dtype=self.spec.dtype)
-        if self.encoding == "zlib":
-            blobs = _compress_frames(values)
-            self._append_deflated(b"".join(blobs), [len(b) for b in blobs])
+            self.fh.write(values.data)
+            self.hash.update(values.data)
+            self.offsets.extend((self.offsets[-1] + np.cumsum(values.lengths)).tolist())
+        elif isinstance(values, Deflated):
+            raise SpecError(f"column {self.path.name} is stored raw; it takes arrays, not zlib")
         else:
+            values = np.ascontiguousarray(values, dtype=self.spec.dtype)
             data = values.astype(values.dtype.newbyteorder("<"), copy=False).tobytes()
             self.fh.write(data)
             self.hash.update(data)
         self.count += len(values)
-
-    def _append_deflated(self, data: bytes, lengths: Any) -> None:
-        self.fh.write(data)
-        self.hash.update(data)
-        ends = self.offsets[-1] + np.cumsum(lengths, dtype=np.int64)
-        self.offsets.extend(ends.tolist())
 
     def close(self) -> dict[str, dict[str, Any]]:
         _fsync_close(self.fh)
