@@ -267,50 +267,13 @@ def test_cli_convert_src_root(tmp_path, capsys):
             _windows("control_suite/walker_walk", 10, seed=i),
         )
     out = tmp_path / "ds"
-    code = main(
-        [
-            "convert",
-            "--family",
-            "dm_control_suite",
-            "--task",
-            "control_suite/walker_walk",
-            "--out",
-            str(out),
-            "--src",
-            str(root),
-        ]
-    )
+    args = ["convert", "--family", "dm_control_suite", "--task", "control_suite/walker_walk"]
+    code = main([*args, "--out", str(out), "--src", str(root)])
     assert code == 0 and len(open_dataset(out)) == 20
     assert "20 segments" in capsys.readouterr().out
     shutil.rmtree(out)
-    code = main(
-        [
-            "convert",
-            "--family",
-            "dm_control_suite",
-            "--task",
-            "control_suite/walker_walk",
-            "--out",
-            str(out),
-            "--src",
-            str(root),
-            "--shards",
-            "1",
-        ]
-    )
+    code = main([*args, "--out", str(out), "--src", str(root), "--shards", "1"])
     assert code == 0 and len(open_dataset(out)) == 10
     (d / "train-00001-of-00002").unlink()
-    code = main(
-        [
-            "convert",
-            "--family",
-            "dm_control_suite",
-            "--task",
-            "control_suite/walker_walk",
-            "--out",
-            str(tmp_path / "y"),
-            "--src",
-            str(root),
-        ]
-    )
+    code = main([*args, "--out", str(tmp_path / "y"), "--src", str(root)])
     assert code == 2 and "missing" in capsys.readouterr().err
