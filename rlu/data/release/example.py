@@ -173,9 +173,10 @@ def _parse_feature(buf: bytes, pos: int, end: int) -> Feature:
     return value
 
 
-def _parse_entry(buf: bytes, pos: int, end: int) -> tuple[str, Feature]:
+def _map_entry(buf: bytes, pos: int, end: int, parse_value: Any, value: Any) -> tuple[str, Any]:
+    """One ``map<string, Feature>`` entry: its key and ``parse_value`` of its Feature bytes
+    (``value`` when the entry has none)."""
     key = b""
-    value: Feature = _EMPTY_F32
     while pos < end:
         tag, pos = _varint(buf, pos, end)
         if tag == 0x0A:
@@ -183,13 +184,17 @@ def _parse_entry(buf: bytes, pos: int, end: int) -> tuple[str, Feature]:
             key = buf[a:pos]
         elif tag == 0x12:
             a, pos = _len_delim(buf, pos, end)
-            value = _parse_feature(buf, a, pos)
+            value = parse_value(buf, a, pos)
         else:
             pos = _skip(buf, pos, end, tag & 7)
     try:
         return key.decode("utf-8"), value
     except UnicodeDecodeError:
         raise _err(f"feature key {key!r} is not UTF-8", pos) from None
+
+
+def _parse_entry(buf: bytes, pos: int, end: int) -> tuple[str, Feature]:
+    return _map_entry(buf, pos, end, _parse_feature, _EMPTY_F32)
 
 
 def decode_example(payload: bytes) -> dict[str, Feature]:
@@ -249,22 +254,7 @@ def _layout(payload: bytes) -> dict[str, list[_Span]]:
 
 
 def _layout_entry(buf: bytes, pos: int, end: int) -> tuple[str, list[_Span]]:
-    key = b""
-    fspans: list[_Span] = []
-    while pos < end:
-        tag, pos = _varint(buf, pos, end)
-        if tag == 0x0A:
-            a, pos = _len_delim(buf, pos, end)
-            key = buf[a:pos]
-        elif tag == 0x12:
-            a, pos = _len_delim(buf, pos, end)
-            fspans = _layout_feature(buf, a, pos)
-        else:
-            pos = _skip(buf, pos, end, tag & 7)
-    try:
-        return key.decode("utf-8"), fspans
-    except UnicodeDecodeError:
-        raise _err(f"feature key {key!r} is not UTF-8", pos) from None
+    return _map_entry(buf, pos, end, _layout_feature, [])
 
 
 def _layout_feature(buf: bytes, pos: int, end: int) -> list[_Span]:
