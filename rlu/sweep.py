@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from rlu import runs
 from rlu.types import DiscreteSpec, RluError
 
 
@@ -31,7 +32,8 @@ class SweepConfig:
     """Dataset path per task."""
     seeds: tuple[int, ...] = (0,)
     preset: str = "small"
-    steps: int = 1000
+    steps: int | None = None
+    """Gradient steps per run (None: each agent config's ``num_steps``)."""
     grid: Mapping[str, Sequence[Any]] | None = None
     """Grid for every agent ({field: [values]}); None: each agent module's paper ``GRID``."""
     max_configs: int | None = None
@@ -74,16 +76,16 @@ def config_label(overrides: Mapping[str, Any]) -> str:
 
 
 def agent_grid(agent: str, discrete: bool) -> dict[str, list[Any]]:
-    from rlu.train import agent_module
+    from rlu.agents import agent_module
 
-    return {k: list(v) for k, v in getattr(agent_module(agent, discrete), "GRID", {}).items()}
+    return {k: list(v) for k, v in agent_module(agent, discrete).GRID.items()}
 
 
 def expand(config: SweepConfig, out: str | os.PathLike) -> list[RunSpec]:
     """Every run of the sweep, in (task, agent, config, seed) order."""
     from rlu.data import open_dataset
 
-    runs = []
+    specs = []
     for task in config.tasks:
         if task not in config.datasets:
             raise RluError(f"no dataset for task {task!r}; pass --dataset {task}=PATH")
@@ -101,8 +103,8 @@ def expand(config: SweepConfig, out: str | os.PathLike) -> list[RunSpec]:
                 label = config_label(overrides)
                 for seed in config.seeds:
                     run_dir = Path(out) / _slug(task) / _slug(agent) / _slug(label) / f"seed_{seed}"
-                    runs.append(RunSpec(task, agent, label, overrides, seed, str(run_dir)))
-    return runs
+                    specs.append(RunSpec(task, agent, label, overrides, seed, str(run_dir)))
+    return specs
 
 
 def run_one(spec: RunSpec, config: SweepConfig, sys_path: Sequence[str] = ()) -> dict[str, Any]:
@@ -113,8 +115,8 @@ def run_one(spec: RunSpec, config: SweepConfig, sys_path: Sequence[str] = ()) ->
     from rlu.train import TrainConfig, train
 
     run = Path(spec.run_dir)
-    if (run / "result.json").exists():
-        result = json.loads((run / "result.json").read_text())
+    if (run / runs.RESULT).exists():
+        result = json.loads((run / runs.RESULT).read_text())
     else:
         tc = TrainConfig(
             task=spec.task,
@@ -157,26 +159,24 @@ def sweep(
     """Run every missing run of the sweep; return (and write to OUT/results.jsonl) all records."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    cfg_path = out / "sweep.json"
+    cfg_path = out / runs.SWEEP_CONFIG
     wanted = json.loads(json.dumps(config.to_json()))
     if cfg_path.exists() and json.loads(cfg_path.read_text()) != wanted:
         raise RluError(
             f"{cfg_path} was written by a different sweep configuration; use the same arguments "
             "to continue it or choose a new --out"
         )
-    cfg_path.write_text(json.dumps(config.to_json(), indent=2) + "\n")
-    runs = expand(config, out)
+    runs.write_json(cfg_path, config.to_json())
+    specs = expand(config, out)
     paths = [p for p in sys.path if p and Path(p).is_dir()]
     if backend == "local":
-        records = _run_local(runs, config, workers, paths, progress)
+        records = _run_local(specs, config, workers, paths, progress)
     elif backend == "ray":
-        records = _run_ray(runs, config, ray_address, paths, progress)
+        records = _run_ray(specs, config, ray_address, paths, progress)
     else:
         raise RluError(f"backend={backend!r}; use 'local' or 'ray'")
     records.sort(key=lambda r: (r["task"], r["agent"], r["config"], r["seed"]))
-    tmp = out / "results.jsonl.tmp"
-    tmp.write_text("".join(json.dumps(r) + "\n" for r in records))
-    os.replace(tmp, out / "results.jsonl")
+    runs.write_results(out, records)
     return records
 
 
@@ -189,27 +189,27 @@ def _note(progress: bool, done: int, total: int, rec: dict[str, Any]) -> None:
         )
 
 
-def _run_local(runs, config, workers, paths, progress) -> list[dict[str, Any]]:
+def _run_local(specs, config, workers, paths, progress) -> list[dict[str, Any]]:
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
     if workers <= 1:
         out = []
-        for i, r in enumerate(runs):
+        for i, r in enumerate(specs):
             out.append(run_one(r, config, paths))
-            _note(progress, i + 1, len(runs), out[-1])
+            _note(progress, i + 1, len(specs), out[-1])
         return out
     # spawn: a fresh interpreter per worker (torch and fork do not mix)
     with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
-        futures = [pool.submit(run_one, r, config, paths) for r in runs]
+        futures = [pool.submit(run_one, r, config, paths) for r in specs]
         records = []
         for i, f in enumerate(as_completed(futures)):
             records.append(f.result())
-            _note(progress, i + 1, len(runs), records[-1])
+            _note(progress, i + 1, len(specs), records[-1])
     return records
 
 
-def _run_ray(runs, config, address, paths, progress) -> list[dict[str, Any]]:
+def _run_ray(specs, config, address, paths, progress) -> list[dict[str, Any]]:
     try:
         import ray
     except ImportError:
@@ -228,25 +228,18 @@ def _run_ray(runs, config, address, paths, progress) -> list[dict[str, Any]]:
         started = True
     try:
         remote = ray.remote(num_cpus=1)(run_one)
-        pending = {remote.remote(r, config, paths): r for r in runs}
+        pending = {remote.remote(r, config, paths): r for r in specs}
         records = []
         while pending:
             done, _ = ray.wait(list(pending), num_returns=1)
             for ref in done:
                 pending.pop(ref)
                 records.append(ray.get(ref))
-                _note(progress, len(records), len(runs), records[-1])
+                _note(progress, len(records), len(specs), records[-1])
         return records
     finally:
         if started:
             ray.shutdown()
-
-
-def load_results(out: str | os.PathLike) -> list[dict[str, Any]]:
-    path = Path(out) / "results.jsonl"
-    if not path.exists():
-        raise RluError(f"{path} is missing; run the sweep first (rlu sweep ... --out {out})")
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
 def results_table(records: Sequence[Mapping[str, Any]]) -> str:

@@ -22,9 +22,10 @@ import numpy as np
 import torch
 from torch import nn
 
+from rlu.agents import common
 from rlu.agents import networks as nets
 from rlu.agents.losses import mixture_log_prob
-from rlu.types import Sequence, Transition
+from rlu.types import BatchSpec, Sequence, Transition
 
 
 @dataclass(frozen=True)
@@ -43,6 +44,9 @@ class BCConfig:
     """Adam learning rate."""
     batch_size: int = 1024
     """Transitions per update; windows per update when recurrent (the paper: 1024 and 128)."""
+    num_steps: int = 1_000_000
+    """Learner steps of a full run: what ``rlu train`` runs when no --steps is given. The paper
+    states no budget for the continuous baselines; 1M is rlu's choice."""
     recurrent: bool = False
     """Two LSTM layers after the MLP; trains on sequence windows."""
     lstm_hidden: int = 1024
@@ -56,7 +60,7 @@ PRESETS = {
     "paper": BCConfig(),
     "paper_recurrent": BCConfig(recurrent=True, batch_size=128),  # the sequence tasks
     "small": BCConfig(hidden_size=256, num_layers=2, learning_rate=1e-3, batch_size=256,
-                      lstm_hidden=64, sequence_length=10),
+                      lstm_hidden=64, sequence_length=10, num_steps=20_000),
 }  # fmt: skip
 GRID: dict[str, list] = {}  # the paper reports no sweep for BC
 
@@ -75,11 +79,10 @@ class BCAgent:
     def __init__(self, observation_spec, action_spec, config: BCConfig, seed: int = 0):
         self.config = config
         self.scaler = nets.ActionScaler(action_spec)
-        self.batch_kind = "sequence" if config.recurrent else "transition"
-        self.n_step = 1
-        self.sequence_length = config.sequence_length
+        kind = "sequence" if config.recurrent else "transition"
+        self.batch_spec = BatchSpec(config.batch_size, kind, sequence_length=config.sequence_length)
         self.generator = torch.Generator().manual_seed(seed)
-        with nets.seeded_init(seed):
+        with common.seeded(seed):
             torso = nets.Torso(
                 observation_spec, config.hidden_size, config.num_layers,
                 lstm_hidden=config.lstm_hidden if config.recurrent else 0,
@@ -87,32 +90,28 @@ class BCAgent:
             )  # fmt: skip
             head = nets.MixtureHead(torso.output_dim, self.scaler.dim, config.mixture_components)
             self.policy = nn.ModuleDict({"torso": torso, "head": head})
-        self.optimizer = nets.adam(self.policy.parameters(), config.learning_rate)
         self.modules = {"policy": self.policy}
+        self.optimizers = {"policy": common.adam(self.policy.parameters(), config.learning_rate)}
+        self.generators = {"sample": self.generator}
         self.step = 0
         self._rollout_state = None
 
     def update(self, batch: Transition | Sequence) -> dict[str, float]:
         seq = isinstance(batch, Sequence)
-        obs = nets.to_torch(batch.observation)
-        action = self.scaler.to_unit(nets.to_torch(batch.action))
-        weight = nets.to_torch(batch.mask & ~batch.is_last).float() if seq else None
+        obs = common.to_torch(batch.observation)
+        action = self.scaler.to_unit(common.to_torch(batch.action))
+        weight = common.to_torch(batch.mask & ~batch.is_last).float() if seq else None
         h, _ = self.policy["torso"](obs, sequence=seq)
         loss, metrics = bc_loss(*self.policy["head"](h), action, weight)
-        self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        self.optimizer.step()
+        common.sgd_step(self.optimizers["policy"], loss)
         self.step += 1
-        return nets.metrics_to_floats(metrics)
-
-    def reset(self) -> None:
-        """Forget the LSTM state between episodes (recurrent configs)."""
-        self._rollout_state = None
+        return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True) -> np.ndarray:
-        h, state = self.policy["torso"](nets.to_torch(observation), state=self._rollout_state)
-        self._rollout_state = state
+    def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+        obs = common.to_torch(observation)
+        state = nets.carried_state(self._rollout_state, is_first, obs)
+        h, self._rollout_state = self.policy["torso"](obs, state=state)
         logits, mean, std = self.policy["head"](h)
         if greedy:
             action = nets.mixture_mode(logits, mean)
@@ -122,12 +121,10 @@ class BCAgent:
         return self.scaler.from_unit(action)
 
     def state_dict(self) -> dict:
-        return nets.agent_state(self.modules, {"policy": self.optimizer}, self.generator, self.step)
+        return common.agent_state(self.modules, self.optimizers, self.generators, self.step)
 
     def load_state_dict(self, state: dict) -> None:
-        self.step = nets.load_agent_state(
-            state, self.modules, {"policy": self.optimizer}, self.generator
-        )
+        self.step = common.load_agent_state(state, self.modules, self.optimizers, self.generators)
         self._rollout_state = None
 
 

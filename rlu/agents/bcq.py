@@ -24,9 +24,10 @@ import numpy as np
 import torch
 from torch import nn
 
+from rlu.agents import common
 from rlu.agents import networks as nets
 from rlu.agents.losses import vae_loss
-from rlu.types import Transition
+from rlu.types import BatchSpec, Transition
 
 
 @dataclass(frozen=True)
@@ -57,13 +58,16 @@ class BCQConfig:
     """Adam learning rate of the VAE."""
     batch_size: int = 1024
     """Transitions per update."""
+    num_steps: int = 1_000_000
+    """Learner steps of a full run: what ``rlu train`` runs when no --steps is given. The paper
+    states no budget for the continuous baselines; 1M is rlu's choice."""
 
 
 Config = BCQConfig
 PRESETS = {
     "paper": BCQConfig(),
     "small": BCQConfig(actor_layers=(256, 256), critic_layers=(256, 256),
-                       vae_layers=(256, 256), batch_size=256),
+                       vae_layers=(256, 256), batch_size=256, num_steps=20_000),
 }  # fmt: skip
 GRID: dict[str, list] = {}  # the paper reports no sweep for continuous BCQ
 
@@ -120,42 +124,39 @@ def critic_loss(q1, q2, target):
 
 
 class BCQAgent:
-    batch_kind = "transition"
-    n_step = 1
-    sequence_length = 1
-
     def __init__(self, observation_spec, action_spec, config: BCQConfig, seed: int = 0):
-        self.config, self.seed = config, seed
+        self.config = config
         self.scaler = nets.ActionScaler(action_spec)
+        self.batch_spec = BatchSpec(config.batch_size, gamma=config.gamma)
         self.generator = torch.Generator().manual_seed(seed)
-        with nets.seeded_init(seed):
+        with common.seeded(seed):
             self.nets = BCQNets(observation_spec, self.scaler.dim, config)
-        self.target = nets.frozen_copy(self.nets)
+        self.target = common.frozen_copy(self.nets)
         n = self.nets
         self.actor_params = [*n.actor_enc.parameters(), *n.actor.parameters()]
         self.critic_params = [*n.critic_enc.parameters(), *n.q1.parameters(), *n.q2.parameters()]
         self.vae_params = [*n.vae_enc.parameters(), *n.vae.parameters()]
         self.optimizers = {
-            "actor": nets.adam(self.actor_params, config.actor_lr),
-            "critic": nets.adam(self.critic_params, config.critic_lr),
-            "vae": nets.adam(self.vae_params, config.vae_lr),
+            "actor": common.adam(self.actor_params, config.actor_lr),
+            "critic": common.adam(self.critic_params, config.critic_lr),
+            "vae": common.adam(self.vae_params, config.vae_lr),
         }
         self.modules = {"nets": self.nets, "target": self.target}
+        self.generators = {"sample": self.generator}
         self.step = 0
 
     def update(self, batch: Transition) -> dict[str, float]:
         c, n, t, g = self.config, self.nets, self.target, self.generator
-        obs, next_obs = nets.to_torch(batch.observation), nets.to_torch(batch.next_observation)
-        action = self.scaler.to_unit(nets.to_torch(batch.action))
-        reward, discount = nets.to_torch(batch.reward), nets.to_torch(batch.discount)
+        obs = common.to_torch(batch.observation)
+        next_obs = common.to_torch(batch.next_observation)
+        action = self.scaler.to_unit(common.to_torch(batch.action))
+        reward, discount = common.to_torch(batch.reward), common.to_torch(batch.discount)
         batch_size = action.shape[0]
 
         s_vae = n.vae_enc(obs)
         recon, mean, std = n.vae(s_vae, action, g)
         loss_v, metrics = vae_loss(recon, action, mean, std)
-        self.optimizers["vae"].zero_grad(set_to_none=True)
-        loss_v.backward()
-        self.optimizers["vae"].step()
+        common.sgd_step(self.optimizers["vae"], loss_v)
 
         with torch.no_grad():
             reps = c.num_samples
@@ -169,28 +170,24 @@ class BCQAgent:
         s_c = n.critic_enc(obs)
         loss_c, m = critic_loss(*n.q(s_c, action), target_q)
         metrics.update(m)
-        self.optimizers["critic"].zero_grad(set_to_none=True)
-        loss_c.backward()
-        self.optimizers["critic"].step()
+        common.sgd_step(self.optimizers["critic"], loss_c)
 
         with torch.no_grad():
             sampled = n.vae.decode(s_vae.detach(), g)
         perturbed = n.perturb(n.actor_enc(obs), sampled, c.phi)
         loss_a = -n.q(n.critic_enc(obs), perturbed)[0].mean()
         metrics["actor/loss"] = loss_a
-        self.optimizers["actor"].zero_grad(set_to_none=True)
-        loss_a.backward(inputs=self.actor_params)
-        self.optimizers["actor"].step()
+        common.sgd_step(self.optimizers["actor"], loss_a, inputs=self.actor_params)
 
-        nets.soft_update(self.target, self.nets, c.tau)
+        common.soft_update(self.target, self.nets, c.tau)
         self.step += 1
-        return nets.metrics_to_floats(metrics)
+        return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True) -> np.ndarray:
+    def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
         n, reps = self.nets, self.config.num_samples
         g = torch.Generator().manual_seed(0) if greedy else self.generator
-        obs = nets.to_torch(observation)
+        obs = common.to_torch(observation)
         sv = n.vae_enc(obs).repeat_interleave(reps, 0)
         sa = n.actor_enc(obs).repeat_interleave(reps, 0)
         sc = n.critic_enc(obs).repeat_interleave(reps, 0)
@@ -200,10 +197,10 @@ class BCQAgent:
         return self.scaler.from_unit(a[best])
 
     def state_dict(self) -> dict:
-        return nets.agent_state(self.modules, self.optimizers, self.generator, self.step)
+        return common.agent_state(self.modules, self.optimizers, self.generators, self.step)
 
     def load_state_dict(self, state: dict) -> None:
-        self.step = nets.load_agent_state(state, self.modules, self.optimizers, self.generator)
+        self.step = common.load_agent_state(state, self.modules, self.optimizers, self.generators)
 
 
 Agent = BCQAgent

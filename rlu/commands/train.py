@@ -8,7 +8,12 @@ import json
 
 def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", default="small", choices=["small", "paper"])
-    p.add_argument("--steps", type=int, default=1000, help="gradient steps")
+    p.add_argument(
+        "--steps",
+        type=int,
+        default=None,
+        help="gradient steps (default: the preset's num_steps, e.g. 2M for the Atari paper preset)",
+    )
     p.add_argument(
         "--eval-every",
         type=int,
@@ -44,7 +49,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "overrides",
         nargs="*",
         metavar="FIELD=VALUE",
-        help="agent config overrides, e.g. learning_rate=3e-4",
+        help="agent config overrides, e.g. learning_rate=3e-4 or atari.batch_size=64",
     )
     p.set_defaults(func=_train)
 
@@ -98,7 +103,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _run_kwargs(args: argparse.Namespace, periodic_eval: bool = True) -> dict:
     # train evaluates 10 times by default; a sweep only at the end of each run
-    default_eval = max(1, args.steps // 10) if periodic_eval else 0
+    default_eval = max(1, args.steps // 10) if periodic_eval and args.steps else 0
     return {
         "preset": args.preset,
         "steps": args.steps,
@@ -136,7 +141,7 @@ def _train(args: argparse.Namespace) -> int:
 
 
 def _evaluate(args: argparse.Namespace) -> int:
-    from rlu.train import evaluate_run
+    from rlu.runs import evaluate_run
 
     res = evaluate_run(args.run, args.episodes, args.seed, args.envs, args.env, args.max_steps)
     if args.json:
@@ -187,7 +192,7 @@ def _report(args: argparse.Namespace) -> int:
 
     if args.fqe:
         from rlu.evaluation.fqe import FQEConfig
-        from rlu.train import fqe_selection
+        from rlu.runs import fqe_selection
 
         fqe_selection(args.sweep_dir, FQEConfig(steps=args.fqe_steps))
     paths = write_report(args.sweep_dir, args.out)

@@ -1,7 +1,8 @@
 """Vectorised views of a stored dataset: SARSA and n-step transitions, sequences, frame stacks.
 
-Every view turns an array of indices into a named batch with numpy fancy indexing; there is no
-per-step Python. Indices are *eligible start steps*, numbered per view:
+Every view turns an array of indices into a named batch with numpy fancy indexing, with no
+per-step Python; the one Python loop is the store's, for zlib-compressed image columns, which
+decode one frame per ``zlib.decompress`` call. Indices are *eligible start steps*, numbered per view:
 
 - transitions: every step that is not the last step of its segment (a segment of T steps holds
   T - 1 transitions: ``(o_t, a_t, r_t, d_t, o_t+1, a_t+1)``, the paper's SARSA tuple);
@@ -277,7 +278,9 @@ def sequence_sampler(
     return Sampler(SequenceView(ds, length, stride), batch_size, seed)
 
 
-def make_view(dataset: str | os.PathLike | Dataset, spec: BatchSpec) -> TransitionView | SequenceView:
+def make_view(
+    dataset: str | os.PathLike | Dataset, spec: BatchSpec
+) -> TransitionView | SequenceView:
     """The view a :class:`rlu.types.BatchSpec` asks for, over a dataset or its path."""
     ds = open_dataset(dataset) if isinstance(dataset, str | os.PathLike) else dataset
     if spec.kind == "sequence":

@@ -39,7 +39,8 @@ def test_to_jax_keeps_names_values_and_dtypes(tmp_path):
 
 
 def test_dict_observations_and_sequences(cartpole):
-    with JaxBatches(str(cartpole), BatchSpec(5, "sequence", sequence_length=7), seed=1, prefetch=0) as it:
+    spec = BatchSpec(5, "sequence", sequence_length=7)
+    with JaxBatches(str(cartpole), spec, seed=1, prefetch=0) as it:
         b = next(it)
     assert isinstance(b, Sequence)
     assert set(b.observation) == {"position", "velocity"}

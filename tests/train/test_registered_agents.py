@@ -48,7 +48,8 @@ def test_loop_runs_and_resumes_exactly(name, discrete, synthetic_datasets, tmp_p
     if importlib.util.find_spec(AGENTS[(name, discrete)]) is None:
         pytest.skip(f"{AGENTS[(name, discrete)]} has not landed yet")
     import rlu.data.views as views
-    from rlu.train import TrainConfig, evaluate_run, train
+    from rlu.runs import evaluate_run
+    from rlu.train import TrainConfig, train
 
     cfg = TrainConfig(
         task=TASKS[discrete],
@@ -59,7 +60,7 @@ def test_loop_runs_and_resumes_exactly(name, discrete, synthetic_datasets, tmp_p
         log_every=1,
         checkpoint_every=3,
         torch_threads=1,
-        overrides={"batch_size": 8},
+        overrides={"atari.batch_size": 8} if discrete else {"batch_size": 8},
     )
     train(cfg, tmp_path / "a")
     calls = {"n": 0}

@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rlu.train import TrainConfig, evaluate_run, parse_overrides, train
+from rlu.runs import evaluate_run
+from rlu.train import TrainConfig, parse_overrides, train
 from rlu.types import RluError
 
 ROOT = Path(__file__).resolve().parents[2]
