@@ -172,13 +172,25 @@ def evaluate_run(
     num_envs: int = 4,
     env: str | None = None,
     max_steps: int | None = None,
+    challenge: str | None = None,
 ) -> Any:
-    """Roll out the greedy policy of a run folder's newest checkpoint (or a given checkpoint)."""
+    """Roll out the greedy policy of a run folder's newest checkpoint (or a given checkpoint) in
+    the env the run evaluated in (an RWRL run: its data's challenge, unless ``challenge``)."""
     from rlu.evaluation.rollout import evaluate, task_env_factory
 
     policy, resolved = load_policy(path)
     train_cfg = resolved["train"]
-    env_fn = task_env_factory(train_cfg["task"], env if env is not None else train_cfg["env"])
+    settings = dict(resolved["env_settings"])
+    if challenge is not None:
+        if "challenge" not in settings:
+            raise RluError(f"--challenge applies to rwrl runs only; {path} is {train_cfg['task']}")
+        from rlu.train import check_challenge
+
+        keys = set(resolved["observation_spec"])
+        check_challenge(train_cfg["task"], challenge, keys, settings["challenge"], str(path))
+        settings["challenge"] = challenge
+    factory = env if env is not None else train_cfg["env"]
+    env_fn = task_env_factory(train_cfg["task"], factory, **settings)
     return evaluate(policy, env_fn, episodes, seed, num_envs, max_steps)
 
 

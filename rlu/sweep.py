@@ -46,12 +46,18 @@ class SweepConfig:
     checkpoint_every: int = 1000
     env: str | None = None
     """Env factory 'module:function' (None: rlu.envs.make_env)."""
+    challenge: str | None = None
+    """RWRL: evaluate under this challenge (None: each dataset's own, from its provenance)."""
+    task_presets: Mapping[str, str] = field(default_factory=dict)
+    """Per-task preset replacing ``preset`` for the agents that have it: the paper's recurrent
+    presets on the sequence locomotion tasks, ``{"locomotion/rodent_mazes": "paper_recurrent"}``."""
     torch_threads: int = 1
     """Threads per run: runs are the unit of parallelism."""
 
     def to_json(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
         d["datasets"] = dict(self.datasets)
+        d["task_presets"] = dict(self.task_presets)
         d["grid"] = None if self.grid is None else {k: list(v) for k, v in self.grid.items()}
         return d
 
@@ -65,6 +71,8 @@ class RunSpec:
     overrides: Mapping[str, Any] = field(default_factory=dict)
     seed: int = 0
     run_dir: str = ""
+    preset: str = "small"
+    """The agent preset of this run (the sweep's, or the task's where the agent has it)."""
 
 
 def _slug(text: str) -> str:
@@ -81,6 +89,12 @@ def agent_grid(agent: str, discrete: bool) -> dict[str, list[Any]]:
     return {k: list(v) for k, v in agent_module(agent, discrete).GRID.items()}
 
 
+def agent_presets(agent: str, discrete: bool) -> tuple[str, ...]:
+    from rlu.agents import agent_module
+
+    return tuple(agent_module(agent, discrete).PRESETS)
+
+
 def expand(config: SweepConfig, out: str | os.PathLike) -> list[RunSpec]:
     """Every run of the sweep, in (task, agent, config, seed) order."""
     from rlu.data import open_dataset
@@ -91,6 +105,9 @@ def expand(config: SweepConfig, out: str | os.PathLike) -> list[RunSpec]:
             raise RluError(f"no dataset for task {task!r}; pass --dataset {task}=PATH")
         discrete = isinstance(open_dataset(config.datasets[task]).schema.action, DiscreteSpec)
         for agent in config.agents:
+            preset = config.task_presets.get(task, config.preset)
+            if preset not in agent_presets(agent, discrete):
+                preset = config.preset  # e.g. no recurrent variant of this agent
             grid = dict(config.grid) if config.grid is not None else agent_grid(agent, discrete)
             keys = sorted(grid)
             settings = [
@@ -103,7 +120,7 @@ def expand(config: SweepConfig, out: str | os.PathLike) -> list[RunSpec]:
                 label = config_label(overrides)
                 for seed in config.seeds:
                     run_dir = Path(out) / _slug(task) / _slug(agent) / _slug(label) / f"seed_{seed}"
-                    specs.append(RunSpec(task, agent, label, overrides, seed, str(run_dir)))
+                    specs.append(RunSpec(task, agent, label, overrides, seed, str(run_dir), preset))
     return specs
 
 
@@ -122,7 +139,7 @@ def run_one(spec: RunSpec, config: SweepConfig, sys_path: Sequence[str] = ()) ->
             task=spec.task,
             agent=spec.agent,
             dataset=config.datasets[spec.task],
-            preset=config.preset,
+            preset=spec.preset,
             steps=config.steps,
             seed=spec.seed,
             overrides=dict(spec.overrides),
@@ -133,6 +150,7 @@ def run_one(spec: RunSpec, config: SweepConfig, sys_path: Sequence[str] = ()) ->
             log_every=config.log_every,
             checkpoint_every=config.checkpoint_every,
             env=config.env,
+            challenge=config.challenge,
             torch_threads=config.torch_threads,
         )
         result = train(tc, run, resume=True)
@@ -142,6 +160,8 @@ def run_one(spec: RunSpec, config: SweepConfig, sys_path: Sequence[str] = ()) ->
         "config": spec.config,
         "overrides": dict(spec.overrides),
         "seed": spec.seed,
+        "preset": spec.preset,
+        "env_settings": result["env_settings"],
         "score": result["score"],
         "returns": (result.get("final_eval") or {}).get("returns"),
         "run": str(run),

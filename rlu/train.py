@@ -65,6 +65,9 @@ class TrainConfig:
     """Checkpoints kept on disk (the newest)."""
     env: str | None = None
     """Env factory 'module:function' taking (task_id, seed=...); None: rlu.envs.make_env."""
+    challenge: str | None = None
+    """RWRL tasks: the challenge to evaluate under ('none' / 'easy'); None: the one the dataset
+    was recorded under (its provenance's ``challenge``)."""
     torch_threads: int | None = None
     """torch.set_num_threads for this run (None: leave torch's default)."""
 
@@ -103,6 +106,33 @@ def dataset_specs(ds: Any) -> tuple[Any, Any]:
     if schema.frame_stack > 1:
         obs = ArraySpec((*obs.shape, schema.frame_stack), obs.dtype)
     return obs, schema.action
+
+
+def env_settings(task: str, ds: Any, challenge: str | None = None) -> dict[str, Any]:
+    """Keyword settings of the evaluation env: the data's RWRL challenge (or ``challenge``)."""
+    if not task.startswith("rwrl/"):
+        if challenge not in (None, "none"):
+            raise RluError(f"--challenge applies to rwrl tasks only; {task} has none")
+        return {}
+    recorded = ds.manifest["provenance"].get("challenge") or "none"
+    chosen = challenge or recorded
+    check_challenge(task, chosen, set(dataset_specs(ds)[0]), recorded, str(ds.path))
+    return {"challenge": chosen}
+
+
+def check_challenge(task: str, challenge: str, keys: set[str], recorded: str, what: str) -> None:
+    """An RWRL policy runs only where the env gives the observation keys its data had (the easy
+    challenge adds dummy observations): refuse a challenge whose keys differ."""
+    from rlu.tasks import get_task, rwrl_observation_spec
+
+    wanted = set(rwrl_observation_spec(get_task(task), challenge))
+    if wanted != keys:
+        differ = sorted(wanted ^ keys)
+        raise RluError(
+            f"{what} was recorded under RWRL challenge {recorded!r}; challenge {challenge!r} gives "
+            f"other observations ({', '.join(differ[:4])}{' ...' if len(differ) > 4 else ''}), so "
+            f"its policies cannot run there: evaluate under {recorded!r} (drop --challenge)"
+        )
 
 
 def _jsonable(x: Any) -> Any:
@@ -156,8 +186,10 @@ def train(
     discrete = isinstance(action_spec, DiscreteSpec)
     agent_cfg = agent_config(config.agent, discrete, config.preset, config.overrides)
     steps = int(agent_cfg.num_steps if config.steps is None else config.steps)
+    env_kwargs = env_settings(config.task, ds, config.challenge)
     resolved = {
         "train": config.to_json(),
+        "env_settings": env_kwargs,
         "agent_config": _jsonable(agent_cfg),
         "observation_spec": observation_spec_to_json(obs_spec),
         "action_spec": action_spec.to_json(),
@@ -190,6 +222,7 @@ def train(
     module = agent_module(config.agent, discrete)
     agent = module.Agent(obs_spec, action_spec, agent_cfg, seed=config.seed)
     sampler = make_sampler(ds, agent.batch_spec, seed=config.seed)
+    total = int(agent.pretrain_steps) + steps  # a pre-training phase comes on top of the budget
 
     start = 0
     if resume and ckpts:
@@ -206,7 +239,9 @@ def train(
 
     # resolved before the first step (a missing rlu.envs fails fast); a run that never evaluates
     # needs no env
-    env_fn = task_env_factory(config.task, config.env) if config.eval_every >= 0 else None
+    env_fn = None
+    if config.eval_every >= 0:
+        env_fn = task_env_factory(config.task, config.env, **env_kwargs)
     writer = None
     if tensorboard:
         try:
@@ -218,20 +253,20 @@ def train(
         writer = SummaryWriter(str(run / "tensorboard"))
 
     policy = runs.greedy_policy(agent)
-    eval_every = config.eval_every if config.eval_every > 0 else steps
-    bar = _Progress(steps, start, progress and sys.stderr.isatty())
+    eval_every = config.eval_every if config.eval_every > 0 else total
+    bar = _Progress(total, start, progress and sys.stderr.isatty())
     last_eval: dict[str, Any] | None = None
     with open(metrics_path, "a") as mlog, open(eval_path, "a") as elog:
-        for step in range(start + 1, steps + 1):
+        for step in range(start + 1, total + 1):
             metrics = agent.update(sampler.sample())
-            if step % config.log_every == 0 or step == steps:
+            if step % config.log_every == 0 or step == total:
                 rec = {"step": step, **{k: float(v) for k, v in metrics.items()}}
                 mlog.write(json.dumps(rec) + "\n")
                 mlog.flush()
                 if writer is not None:
                     for k, v in metrics.items():
                         writer.add_scalar(k, float(v), step)
-            if config.eval_every >= 0 and (step % eval_every == 0 or step == steps):
+            if config.eval_every >= 0 and (step % eval_every == 0 or step == total):
                 result = evaluate(
                     policy,
                     env_fn,
@@ -245,7 +280,7 @@ def train(
                 elog.flush()
                 if writer is not None:
                     writer.add_scalar("eval/return", result.mean, step)
-            if step % config.checkpoint_every == 0 or step == steps:
+            if step % config.checkpoint_every == 0 or step == total:
                 alg, keys, pos, has_gauss, cached = np.random.get_state()
                 state = {
                     "step": step,
@@ -258,12 +293,14 @@ def train(
             bar.update(step, f"eval {last_eval['mean']:.1f}" if last_eval else "")
     if writer is not None:
         writer.close()
-    evals = runs.read_jsonl(eval_path, steps)
+    evals = runs.read_jsonl(eval_path, total)
     result = {
         "task": config.task,
         "agent": config.agent,
         "seed": config.seed,
         "steps": steps,
+        "pretrain_steps": total - steps,
+        "env_settings": env_kwargs,
         "final_eval": evals[-1] if evals else None,
         "score": evals[-1]["mean"] if evals else None,
     }

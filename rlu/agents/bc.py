@@ -7,9 +7,9 @@ data's actions with Adam at 1e-4, batch 1024 (128 windows when recurrent).
 
 Deviations and choices:
 - Actions are learnt in [-1, 1] (the spec's box rescaled) and clipped into the box in ``act``.
-- The paper evaluates by sampling the mixture with every component's variance fixed to 1e-4.
-  ``act(greedy=False)`` does exactly that; ``act(greedy=True)`` returns the mean of the most
-  probable component (the zero-variance limit), which is deterministic.
+- Acting: ``act(greedy=True)`` is the paper's evaluation policy, a sample of the mixture with
+  every component's variance fixed to 1e-4 (``eval_variance``); ``act(greedy=False)`` samples the
+  learnt mixture as it is. Both draw from the agent's own acting generator.
 - Recurrent windows start from a zero LSTM state; the loss skips padded steps and each
   episode's final step (its action carries no information, RLDS semantics).
 """
@@ -39,7 +39,7 @@ class BCConfig:
     mixture_components: int = 5
     """Gaussian components of the policy head."""
     eval_variance: float = 1e-4
-    """Variance of every component when sampling for evaluation (``act(greedy=False)``)."""
+    """Variance of every component when acting greedily (the paper's evaluation, 1e-4)."""
     learning_rate: float = 1e-4
     """Adam learning rate."""
     batch_size: int = 1024
@@ -81,7 +81,8 @@ class BCAgent:
         self.scaler = nets.ActionScaler(action_spec)
         kind = "sequence" if config.recurrent else "transition"
         self.batch_spec = BatchSpec(config.batch_size, kind, sequence_length=config.sequence_length)
-        self.generator = torch.Generator().manual_seed(seed)
+        self.pretrain_steps = 0
+        act_seed = common.split_seed(seed, 1)[0]
         with common.seeded(seed):
             torso = nets.Torso(
                 observation_spec, config.hidden_size, config.num_layers,
@@ -92,7 +93,7 @@ class BCAgent:
             self.policy = nn.ModuleDict({"torso": torso, "head": head})
         self.modules = {"policy": self.policy}
         self.optimizers = {"policy": common.adam(self.policy.parameters(), config.learning_rate)}
-        self.generators = {"sample": self.generator}
+        self.generators = {"act": torch.Generator().manual_seed(act_seed)}
         self.step = 0
         self._rollout_state = None
 
@@ -113,11 +114,8 @@ class BCAgent:
         state = nets.carried_state(self._rollout_state, is_first, obs)
         h, self._rollout_state = self.policy["torso"](obs, state=state)
         logits, mean, std = self.policy["head"](h)
-        if greedy:
-            action = nets.mixture_mode(logits, mean)
-        else:
-            sd = self.config.eval_variance**0.5
-            action = nets.mixture_sample(logits, mean, std, self.generator, std_override=sd)
+        sd = self.config.eval_variance**0.5 if greedy else None
+        action = nets.mixture_sample(logits, mean, std, self.generators["act"], std_override=sd)
         return self.scaler.from_unit(action)
 
     def state_dict(self) -> dict:

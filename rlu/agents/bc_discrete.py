@@ -58,6 +58,7 @@ class BCAgent:
         shape, num_actions = dc.check_specs("bc", observation_spec, action_spec)
         self.config = config
         self.batch_spec = config.atari.batch_spec()
+        self.pretrain_steps = 0
         parts = dc.build_parts(
             seed, lambda: dc.QNetwork(shape, num_actions, config.atari), config.learning_rate,
             config.atari, target=False,

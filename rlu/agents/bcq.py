@@ -5,8 +5,10 @@ The paper uses "the exact same network architecture and algorithm" as the origin
 (encoder and decoder 750-750, latent 2 x action dims, decoder latents clipped to [-0.5, 0.5]),
 a perturbation network (400-300) that moves each VAE action by at most phi = 0.05, twin
 critics (400-300) with the soft clipped double-Q target lambda min + (1 - lambda) max,
-lambda = 0.75, the target maximising over 10 sampled actions, Polyak targets tau = 0.005, Adam
-1e-3 everywhere; batch 1024 (the paper's batch, not the original's 100).
+lambda = 0.75, the target maximising over 10 sampled actions, Adam 1e-3 everywhere; batch 1024
+(the paper's batch, not the original's 100). Targets: the paper's table gives every continuous
+agent hard target copies every 100 updates (``paper`` preset); the original's Polyak averaging
+(tau = 0.005) is ``target_update_period=0``.
 
 Choices: dict observations go through ``networks.Encoder`` (each network its own, so camera
 images get one ResNet per network); actions live in [-1, 1]. ``act(greedy=True)`` scores
@@ -48,8 +50,11 @@ class BCQConfig:
     """VAE actions sampled per next state (target) and per state (acting)."""
     gamma: float = 0.99
     """Discount."""
+    target_update_period: int = 100
+    """Updates between hard copies into the target networks (the paper's table, shared by its
+    continuous agents); 0: Polyak averaging with ``tau`` every update (the original BCQ)."""
     tau: float = 0.005
-    """Polyak rate of the target networks, every update."""
+    """Polyak rate of the target networks when ``target_update_period`` is 0."""
     actor_lr: float = 1e-3
     """Adam learning rate of the perturbation network."""
     critic_lr: float = 1e-3
@@ -67,7 +72,8 @@ Config = BCQConfig
 PRESETS = {
     "paper": BCQConfig(),
     "small": BCQConfig(actor_layers=(256, 256), critic_layers=(256, 256),
-                       vae_layers=(256, 256), batch_size=256, num_steps=20_000),
+                       vae_layers=(256, 256), batch_size=256, num_steps=20_000,
+                       target_update_period=0),
 }  # fmt: skip
 GRID: dict[str, list] = {}  # the paper reports no sweep for continuous BCQ
 
@@ -128,6 +134,7 @@ class BCQAgent:
         self.config = config
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, gamma=config.gamma)
+        self.pretrain_steps = 0
         self.generator = torch.Generator().manual_seed(seed)
         with common.seeded(seed):
             self.nets = BCQNets(observation_spec, self.scaler.dim, config)
@@ -179,8 +186,11 @@ class BCQAgent:
         metrics["actor/loss"] = loss_a
         common.sgd_step(self.optimizers["actor"], loss_a, inputs=self.actor_params)
 
-        common.soft_update(self.target, self.nets, c.tau)
         self.step += 1
+        if c.target_update_period > 0:
+            common.periodic_update(self.step, c.target_update_period, {self.target: self.nets})
+        else:
+            common.soft_update(self.target, self.nets, c.tau)
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()

@@ -122,6 +122,7 @@ class BCQAgent:
         shape, num_actions = dc.check_specs("bcq", observation_spec, action_spec)
         self.config = config
         self.batch_spec = config.atari.batch_spec()
+        self.pretrain_steps = 0
         parts = dc.build_parts(
             seed, lambda: QAndPolicyNetwork(shape, num_actions, config.atari),
             config.learning_rate, config.atari,

@@ -2,9 +2,10 @@
 
 As in the original (github.com/google-research/google-research, ``behavior_regularized_offline_rl``,
 ``brac_primal_agent``): a tanh-Gaussian policy (200-200), two critics (300-300) whose target is
-the min of the target critics, Polyak targets tau = 0.005, and the value penalty: the KL from the
-policy to a behaviour model is subtracted from the next-state value in the critic target and
-added to the actor loss,
+the min of the target critics (hard copies every 100 updates, the paper's table for every
+continuous agent; the original's Polyak tau = 0.005 is ``target_update_period=0``), and the
+value penalty: the KL from the policy to a behaviour model is subtracted from the next-state
+value in the critic target and added to the actor loss,
 
     y = r + gamma d (min_i Q'_i(s', a') - alpha KL(s')),  a' ~ pi(s')
     L_pi = E_s [alpha KL(s) - min_i Q_i(s, a)],            a  ~ pi(s)
@@ -12,9 +13,10 @@ added to the actor loss,
 with KL(s) = mean over ``num_kl_samples`` a ~ pi(s) of log pi(a|s) - log b(a|s). The behaviour
 model b is a tanh-Gaussian (200-200) trained by behaviour cloning separately, first: the first
 ``behaviour_steps`` updates (300 000 in the paper, Adam 5e-4) train only b, later updates train
-critics and policy against the frozen b. Critic Adam 1e-3, batch 256; the paper sweeps the
-policy learning rate over {1e-5, 1e-4, 3e-5} and alpha over {0.1, 0.3, 1.0} (``GRID``); the
-``paper`` preset takes 3e-5 and 0.1 from those grids.
+critics and policy against the frozen b. That phase is the agent's ``pretrain_steps``: the
+training loop runs it on top of the ``num_steps`` learner steps. Critic Adam 1e-3, batch 256;
+the paper sweeps the policy learning rate over {1e-5, 1e-4, 3e-5} and alpha over
+{0.1, 0.3, 1.0} (``GRID``); the ``paper`` preset takes 3e-5 and 0.1 from those grids.
 
 Deviations: actions are clipped to +-(1 - 1e-3) before b's log density (as the original's
 ``clip_eps``); no SAC entropy term in the actor (the KL's log pi term already keeps the policy's
@@ -51,8 +53,11 @@ class BRACConfig:
     """Policy samples per state in the KL estimate."""
     gamma: float = 0.99
     """Discount."""
+    target_update_period: int = 100
+    """Updates between hard copies into the target critics (the paper's table, shared by its
+    continuous agents); 0: Polyak averaging with ``tau`` every update (the original BRAC)."""
     tau: float = 0.005
-    """Polyak rate of the target critics."""
+    """Polyak rate of the target critics when ``target_update_period`` is 0."""
     policy_lr: float = 3e-5
     """Adam learning rate of the policy (grid {1e-5, 1e-4, 3e-5})."""
     critic_lr: float = 1e-3
@@ -60,7 +65,8 @@ class BRACConfig:
     behaviour_lr: float = 5e-4
     """Adam learning rate of the behaviour model."""
     behaviour_steps: int = 300_000
-    """Updates spent training only the behaviour model before the agent trains."""
+    """Updates spent training only the behaviour model before the agent trains (pre-training,
+    run by the loop on top of ``num_steps``)."""
     batch_size: int = 256
     """Transitions per update."""
     num_steps: int = 1_000_000
@@ -73,7 +79,7 @@ PRESETS = {
     "paper": BRACConfig(),
     "small": BRACConfig(policy_layers=(256, 256), critic_layers=(256, 256),
                         behaviour_layers=(256, 256), policy_lr=3e-4, alpha=0.3,
-                        behaviour_steps=2_000, num_steps=20_000),
+                        behaviour_steps=2_000, num_steps=20_000, target_update_period=0),
 }  # fmt: skip
 GRID: dict[str, list] = {"policy_lr": [1e-5, 1e-4, 3e-5], "alpha": [0.1, 0.3, 1.0]}
 
@@ -144,6 +150,7 @@ class BRACAgent:
         self.config = config
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, gamma=config.gamma)
+        self.pretrain_steps = config.behaviour_steps
         self.generator = torch.Generator().manual_seed(seed)
         a, th = self.scaler.dim, config.torso_hidden
         with common.seeded(seed):
@@ -194,8 +201,12 @@ class BRACAgent:
         metrics.update(m)
         common.sgd_step(self.optimizers["policy"], loss_a, inputs=list(self.policy.parameters()))
 
-        common.soft_update(self.target_critics, self.critics, c.tau)
         self.step += 1
+        if c.target_update_period > 0:
+            targets = {self.target_critics: self.critics}
+            common.periodic_update(self.step, c.target_update_period, targets)
+        else:
+            common.soft_update(self.target_critics, self.critics, c.tau)
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()

@@ -120,6 +120,7 @@ class D4PGAgent:
         self.config = config
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, n_step=config.n_step, gamma=config.gamma)
+        self.pretrain_steps = 0
         self.generator = torch.Generator().manual_seed(seed)
         with common.seeded(seed):
             self.policy = Policy(observation_spec, self.scaler.dim, config)

@@ -73,6 +73,7 @@ class DQNAgent:
         shape, num_actions = dc.check_specs("dqn", observation_spec, action_spec)
         self.config = config
         self.batch_spec = config.atari.batch_spec()
+        self.pretrain_steps = 0
         parts = dc.build_parts(
             seed, lambda: dc.QNetwork(shape, num_actions, config.atari), config.learning_rate,
             config.atari,

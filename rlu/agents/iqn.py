@@ -148,6 +148,7 @@ class IQNAgent:
         shape, num_actions = dc.check_specs("iqn", observation_spec, action_spec)
         self.config = config
         self.batch_spec = config.atari.batch_spec()
+        self.pretrain_steps = 0
 
         def build() -> ImplicitQuantileNetwork:
             return ImplicitQuantileNetwork(shape, num_actions, config.atari, config.embedding_size)

@@ -21,6 +21,9 @@ Deviations: the critic concatenates the action after the observation torso (one 
 serves all N sampled actions; with recurrence the LSTM then never sees sampled actions) where
 the paper concatenates it before the MLP. Recurrent windows start from a zero state and train
 on every real transition t -> t+1 inside the window (1-step targets).
+
+Acting: ``act(greedy=True)`` is the paper's evaluation policy, the Gaussian's mean plus noise of
+variance 1e-4 (``eval_variance``, as BC's); ``act(greedy=False)`` samples the learnt Gaussian.
 """
 
 from __future__ import annotations
@@ -92,6 +95,8 @@ class RABMConfig:
     """ABM prior weights: 'binary' (1[A >= 0], ABM+) or 'exp' (exp(A / advantage_temperature))."""
     advantage_temperature: float = 1.0
     """Temperature of the 'exp' advantage weights."""
+    eval_variance: float = 1e-4
+    """Variance of the policy when acting greedily (the paper's evaluation, as BC's)."""
     batch_size: int = 1024
     """Transitions per update; windows per update when recurrent (as BC: 1024 and 128)."""
     num_steps: int = 1_000_000
@@ -169,6 +174,7 @@ class RABMAgent:
     def __init__(self, observation_spec, action_spec, config: RABMConfig, seed: int = 0):
         self.config = config
         self.scaler = nets.ActionScaler(action_spec)
+        self.pretrain_steps = 0
         if config.recurrent:  # windows train on 1-step targets inside them
             self.batch_spec = BatchSpec(
                 config.batch_size, "sequence", sequence_length=config.sequence_length,
@@ -195,7 +201,8 @@ class RABMAgent:
             "critic": common.adam(self.critic.parameters(), config.critic_lr),
             "dual": common.adam(self.duals.parameters(), config.dual_lr),
         }
-        self.generators = {"sample": self.generator}
+        act_seed = common.split_seed(seed, 1)[0]
+        self.generators = {"sample": self.generator, "act": torch.Generator().manual_seed(act_seed)}
         self.modules = {
             "prior": self.prior, "policy": self.policy, "critic": self.critic, "duals": self.duals,
             "target_policy": self.target_policy, "target_critic": self.target_critic,
@@ -279,9 +286,10 @@ class RABMAgent:
         state = nets.carried_state(self._rollout_state, is_first, obs)
         h, self._rollout_state = self.policy.torso(obs, state=state)
         mean, std = self.policy.head(h)
-        if not greedy:
-            mean = mean + std * torch.randn(mean.shape, generator=self.generator)
-        return self.scaler.from_unit(mean)
+        if greedy:
+            std = torch.full_like(std, self.config.eval_variance**0.5)
+        noise = torch.randn(mean.shape, generator=self.generators["act"])
+        return self.scaler.from_unit(mean + std * noise)
 
     def state_dict(self) -> dict:
         return common.agent_state(self.modules, self.optimizers, self.generators, self.step)

@@ -77,6 +77,7 @@ class REMAgent:
         shape, num_actions = dc.check_specs("rem", observation_spec, action_spec)
         self.config = config
         self.batch_spec = config.atari.batch_spec()
+        self.pretrain_steps = 0
         parts = dc.build_parts(
             seed, lambda: dc.QNetwork(shape, num_actions, config.atari, config.num_heads),
             config.learning_rate, config.atari,

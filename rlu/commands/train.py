@@ -7,7 +7,11 @@ import json
 
 
 def _add_run_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--preset", default="small", choices=["small", "paper"])
+    p.add_argument(
+        "--preset",
+        default="small",
+        help="agent preset: small (CPU minutes), paper, ...",
+    )
     p.add_argument(
         "--steps",
         type=int,
@@ -30,6 +34,12 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checkpoint-every", type=int, default=1000)
     p.add_argument(
         "--env", default=None, help="env factory 'module:function' (default: rlu.envs.make_env)"
+    )
+    p.add_argument(
+        "--challenge",
+        default=None,
+        choices=["none", "easy"],
+        help="RWRL: evaluate under this challenge (default: the one the data was recorded under)",
     )
 
 
@@ -60,6 +70,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--envs", type=int, default=4, help="envs stepped in lockstep")
     p.add_argument("--max-steps", type=int, default=None)
     p.add_argument("--env", default=None, help="env factory 'module:function'")
+    p.add_argument(
+        "--challenge",
+        default=None,
+        choices=["none", "easy"],
+        help="RWRL: evaluate under this challenge (default: the run's)",
+    )
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.set_defaults(func=_evaluate)
 
@@ -82,6 +98,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="grid for every agent instead of each agent's paper grid",
     )
     p.add_argument("--max-configs", type=int, default=None)
+    p.add_argument(
+        "--task-preset",
+        action="append",
+        default=[],
+        metavar="TASK=PRESET",
+        help="preset of one task for the agents that have it (e.g. paper_recurrent)",
+    )
     p.add_argument("--backend", default="local", choices=["local", "ray"])
     p.add_argument("--workers", type=int, default=2, help="local pool size")
     p.add_argument("--ray-address", default=None, help="Ray cluster address (default: local)")
@@ -114,6 +137,7 @@ def _run_kwargs(args: argparse.Namespace, periodic_eval: bool = True) -> dict:
         "log_every": args.log_every,
         "checkpoint_every": args.checkpoint_every,
         "env": args.env,
+        "challenge": args.challenge,
     }
 
 
@@ -143,7 +167,9 @@ def _train(args: argparse.Namespace) -> int:
 def _evaluate(args: argparse.Namespace) -> int:
     from rlu.runs import evaluate_run
 
-    res = evaluate_run(args.run, args.episodes, args.seed, args.envs, args.env, args.max_steps)
+    res = evaluate_run(
+        args.run, args.episodes, args.seed, args.envs, args.env, args.max_steps, args.challenge
+    )
     if args.json:
         print(json.dumps(res.to_json()))
     else:
@@ -173,8 +199,15 @@ def _sweep(args: argparse.Namespace) -> int:
             if not sep:
                 raise RluError(f"--grid {item!r}; write it as FIELD=V1,V2")
             grid[key] = [parse_overrides([f"v={v}"])["v"] for v in values.split(",")]
+    task_presets = {}
+    for item in args.task_preset:
+        task, sep, preset = item.partition("=")
+        if not sep:
+            raise RluError(f"--task-preset {item!r}; write it as TASK=PRESET")
+        task_presets[task] = preset
     config = SweepConfig(
         tasks=tuple(args.tasks),
+        task_presets=task_presets,
         agents=tuple(args.agents),
         datasets=datasets,
         seeds=tuple(args.seeds),

@@ -136,6 +136,7 @@ def test_module_convention(name, discrete):
 def test_update_gives_metrics_and_moves_every_trainable_parameter(name, discrete, kind):
     agent = build(name, discrete, kind)
     assert isinstance(agent.batch_spec, BatchSpec)
+    assert isinstance(agent.pretrain_steps, int) and agent.pretrain_steps >= 0
     assert agent.batch_spec.kind == ("sequence" if kind == "sequence" else "transition")
     before = trainable(agent)
     assert before, f"{name}: agent.modules holds no trainable parameter"

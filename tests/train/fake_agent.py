@@ -45,6 +45,7 @@ class Agent:
     def __init__(self, observation_spec, action_spec: BoundedSpec, config: Config, seed: int = 0):
         self.config, self.spec = config, action_spec
         self.batch_spec = BatchSpec(config.batch_size)
+        self.pretrain_steps = 0
         obs_dim = sum(s.size for s in observation_spec.values())
         act_dim = action_spec.size
         self.gen = torch.Generator().manual_seed(seed)
