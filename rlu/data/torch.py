@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from rlu.data.views import Sampler, make_sampler
+from rlu.types import BatchSpec
 
 
 def to_torch(batch: Any, device: str | torch.device = "cpu") -> Any:
@@ -31,35 +32,14 @@ class TorchSampler(torch.utils.data.IterableDataset):
     """Endless uniform batches from a stored dataset, as tensors (``batch_size=None`` in the
     loader)."""
 
-    def __init__(
-        self,
-        path: str,
-        batch_size: int,
-        seed: int = 0,
-        kind: str = "transition",
-        n_step: int = 1,
-        gamma: float = 1.0,
-        sequence_length: int = 1,
-        stride: int = 1,
-    ):
+    def __init__(self, path: str, spec: BatchSpec, seed: int = 0):
         super().__init__()
-        self.path, self.batch_size, self.seed, self.kind = str(path), batch_size, seed, kind
-        self.n_step, self.gamma = n_step, gamma
-        self.sequence_length, self.stride = sequence_length, stride
+        self.path, self.spec, self.seed = str(path), spec, seed
 
     def _sampler(self) -> Sampler:
         info = torch.utils.data.get_worker_info()
         seed = self.seed + (info.id if info is not None else 0)
-        return make_sampler(
-            self.path,
-            self.batch_size,
-            seed,
-            self.kind,
-            self.n_step,
-            self.gamma,
-            self.sequence_length,
-            self.stride,
-        )
+        return make_sampler(self.path, self.spec, seed)
 
     def __iter__(self):
         sampler = self._sampler()

@@ -11,6 +11,7 @@ from rlu.data import Schema, open_dataset, transition_sampler  # noqa: E402
 from rlu.data.synthetic import write_synthetic  # noqa: E402
 from rlu.data.torch import TorchSampler, to_torch  # noqa: E402
 from rlu.tasks import get_task  # noqa: E402
+from rlu.types import BatchSpec  # noqa: E402
 
 
 def test_to_torch_keeps_names_and_dtypes(tmp_path):
@@ -27,7 +28,7 @@ def test_dataloader_workers_give_distinct_reproducible_streams(tmp_path):
 
     def draw(workers):
         loader = torch.utils.data.DataLoader(
-            TorchSampler(str(path), 8, seed=5), batch_size=None, num_workers=workers
+            TorchSampler(str(path), BatchSpec(8), seed=5), batch_size=None, num_workers=workers
         )
         it = iter(loader)
         return [next(it).reward.numpy() for _ in range(4)]
