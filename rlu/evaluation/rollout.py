@@ -1,8 +1,10 @@
 """Vectorised evaluation rollouts: ``num_envs`` Gymnasium envs stepped in lockstep, one batched
 policy call per step. The policy sees observations only (a callable, never the agent).
 
-Episode ``i`` is reset with seed ``seed + i`` and runs on whichever env is free, so the returns
-(listed in episode order) do not depend on ``num_envs``. Envs come from a factory: any callable
+Episode ``i`` is reset with seed ``episode_seed(seed, i)`` (stream ``i`` spawned from ``seed``
+by numpy's SeedSequence, not ``seed + i``, under which evaluation seed 4 replayed episodes 1.. of
+seed 3) and runs on whichever env is free, so the returns (listed in episode order) do not
+depend on ``num_envs``. Envs come from a factory: any callable
 returning a Gymnasium env; ``task_env_factory`` builds ``rlu.envs.make_env`` for a task id.
 """
 
@@ -15,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from rlu.types import RluError
+from rlu.types import RluError, derive_seed
 
 EnvFactory = Callable[[], Any]
 
@@ -33,6 +35,11 @@ class EvalResult:
 
     def to_json(self) -> dict[str, Any]:
         return {"returns": list(self.returns), "lengths": list(self.lengths), "mean": self.mean}
+
+
+def episode_seed(seed: int, episode: int) -> int:
+    """The reset seed of episode ``episode`` of an evaluation seeded with ``seed``."""
+    return derive_seed(seed, episode)
 
 
 def resolve_env_fn(spec: str) -> Callable[..., Any]:
@@ -100,7 +107,7 @@ def evaluate(
     next_episode = 0
     try:
         for i in range(num_envs):
-            obs[i], _ = envs[i].reset(seed=seed + next_episode)
+            obs[i], _ = envs[i].reset(seed=episode_seed(seed, next_episode))
             episode[i] = next_episode
             next_episode += 1
         while True:
@@ -117,7 +124,7 @@ def evaluate(
                     truncated = True
                 if terminated or truncated:
                     if next_episode < num_episodes:
-                        o, _ = envs[i].reset(seed=seed + next_episode)
+                        o, _ = envs[i].reset(seed=episode_seed(seed, next_episode))
                         episode[i] = next_episode
                         next_episode += 1
                     else:
