@@ -201,3 +201,14 @@ def derive_seed(seed: int, *key: int) -> int:
     """A 31-bit int seed for stream ``key`` of ``seed`` (see ``seed_stream``), for APIs that take
     an int (``env.reset(seed=...)``, dm_control's ``random``, ALE's signed 32-bit seed)."""
     return int(seed_stream(seed, *key).generate_state(1, np.uint32)[0] >> 1)
+
+
+def install_hint(*extras: str) -> str:
+    """How to install the pip extras ``extras`` of rlu, as the user installed rlu: the pip line
+    always, and ``bash scripts/install.sh`` too when rlu runs from a checkout (the script is not
+    in the wheel)."""
+    hint = f'pip install "rlu[{",".join(extras)}]"'
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    if os.path.exists(os.path.join(root, "scripts", "install.sh")):
+        hint += f" (in this checkout: bash scripts/install.sh {' '.join(extras)})"
+    return hint

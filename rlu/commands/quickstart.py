@@ -43,13 +43,13 @@ def _run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from rlu.types import RluError
+    from rlu.types import RluError, install_hint
 
     missing = [m for m in ("torch", "dm_control") if importlib.util.find_spec(m) is None]
     if missing:
         raise RluError(
             f"rlu quickstart trains agents (torch) in the control suite (dm_control); "
-            f"{', '.join(missing)} missing: bash scripts/install.sh control agents"
+            f"{', '.join(missing)} missing: {install_hint('control', 'agents')}"
         )
     from rlu.data import open_dataset
     from rlu.data.validate import validate

@@ -29,7 +29,7 @@ import numpy as np
 
 from rlu.data.episode import Segment, make_episode
 from rlu.data.store import DatasetWriter, Schema
-from rlu.types import FormatError, RluError
+from rlu.types import FormatError, RluError, install_hint
 
 SUPPORTED_VERSIONS = ("2.1",)
 
@@ -39,7 +39,7 @@ def d3rlpy_segments(path: str | os.PathLike) -> Iterator[Segment]:
     try:
         import h5py
     except ImportError:
-        raise RluError("reading d3rlpy dumps needs h5py: pip install 'rlu[dev]' or h5py") from None
+        raise RluError(f"reading d3rlpy dumps needs h5py: {install_hint('interop')}") from None
     path = Path(path)
     try:
         f = h5py.File(path, "r")

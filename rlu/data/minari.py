@@ -44,7 +44,15 @@ import numpy as np
 
 from rlu.data.episode import METADATA_FIELDS, Segment, make_episode
 from rlu.data.store import Dataset, DatasetWriter, Schema
-from rlu.types import ArraySpec, BoundedSpec, DiscreteSpec, FormatError, RluError, SpecError
+from rlu.types import (
+    ArraySpec,
+    BoundedSpec,
+    DiscreteSpec,
+    FormatError,
+    RluError,
+    SpecError,
+    install_hint,
+)
 
 CHUNK_STEPS = 1 << 16  # episodes are handed to Minari in chunks of about this many steps
 
@@ -54,7 +62,7 @@ def _require_minari() -> Any:
         import minari
     except ImportError as e:
         raise RluError(
-            f"Minari interop needs minari, pillow and h5py ({e}): pip install 'rlu[dev]'"
+            f"Minari interop needs minari, pillow and h5py ({e}): {install_hint('interop')}"
         ) from None
     return minari
 

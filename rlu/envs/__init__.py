@@ -31,7 +31,7 @@ import os
 from typing import Any
 
 from rlu.tasks import get_task
-from rlu.types import RluError
+from rlu.types import RluError, install_hint
 
 _FACTORIES = {
     "control_suite": "rlu.envs.control",
@@ -63,7 +63,7 @@ def _factory(domain: str):
         extra = _EXTRAS[domain]
         raise RluError(
             f"environments of domain {domain!r} need the {extra!r} extra ({e.name} is missing); "
-            f"install it with: bash scripts/install.sh {extra}"
+            f"install it with: {install_hint(extra)}"
         ) from e
 
 

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from rlu.types import RluError, derive_seed
+from rlu.types import RluError, derive_seed, install_hint
 
 EnvFactory = Callable[[], Any]
 
@@ -64,7 +64,7 @@ def task_env_factory(
         except ImportError as e:
             raise RluError(
                 f"rlu.envs cannot be imported ({e}); install the env extras "
-                "(bash scripts/install.sh control locomotion atari) or pass an env factory"
+                f"({install_hint('control', 'locomotion', 'atari')}) or pass an env factory"
             ) from None
         fn = mod.make_env
     elif isinstance(make_env, str):
