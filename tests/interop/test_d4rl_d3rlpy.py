@@ -105,6 +105,29 @@ def test_d3rlpy_dump_imports_with_the_transitions_d3rlpy_reads(tmp_path):
         np.testing.assert_array_equal(ref[k], expected[k].reshape(ref[k].shape), err_msg=k)
 
 
+def test_d3rlpy_single_frame_atari_dump_imports_with_the_stacks_d3rlpy_samples(tmp_path):
+    """d3rlpy's default Atari layout, (N, 1, 84, 84) frames stacked at sampling time: the fixture
+    was written by d3rlpy 2.8.1's MDPDataset.dump, the expected transitions are its own
+    FrameStackTransitionPicker(n_frames=4) over what it loads back (channel first, oldest first;
+    rlu's stacks are channel last, newest last)."""
+    pong = get_task("atari/Pong")
+    ds = open_dataset(import_d3rlpy(FIXTURES / "d3rlpy_pong.h5", tmp_path / "ds", pong.id))
+    with np.load(FIXTURES / "d3rlpy_pong_transitions.npz", allow_pickle=False) as z:
+        exp = {k: z[k] for k in z.files}
+    assert str(exp["d3rlpy_version"]) == "2.8.1" and exp["observation"].shape == (14, 4, 84, 84)
+    assert len(ds) == 3 and ds.num_steps == 4 + 1 + 6 + 5 + 1  # terminal episodes gain a step
+    b = all_transitions(ds)
+    np.testing.assert_array_equal(b.observation, np.moveaxis(exp["observation"], 1, -1))
+    np.testing.assert_array_equal(b.action, exp["action"].reshape(-1))
+    np.testing.assert_array_equal(b.reward, exp["reward"].reshape(-1))
+    np.testing.assert_array_equal(b.discount, 1.0 - exp["terminal"].reshape(-1))
+    nxt = np.moveaxis(exp["next_observation"], 1, -1)
+    live = exp["terminal"].reshape(-1) == 0
+    np.testing.assert_array_equal(b.next_observation[live], nxt[live])
+    # after a terminal: d3rlpy's next observation is all zeros, rlu's newest frame is zero
+    assert not nxt[~live].any() and not b.next_observation[~live][..., -1].any()
+
+
 def test_h5py_writer_matches_d3rlpys_file(tmp_path):
     write_d3rlpy_dump(tmp_path / "mine.h5", read_d3rlpy_fixture())
 
