@@ -21,3 +21,7 @@ def test_quickstart_end_to_end_at_tiny_cost(tmp_path, capsys):
     assert [r["policy"] for r in result["policies"]] == ["random", "bc"]
     assert result["dataset_returns"]["episodes"] == 40
     assert (out / "bc" / "result.json").exists() and (out / "report.md").exists()
+    if __import__("importlib").util.find_spec("matplotlib") is not None:
+        png = (out / "quickstart.png").read_bytes()
+        assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
+        assert "![policies beside the dataset's returns](quickstart.png)" in text

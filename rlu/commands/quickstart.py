@@ -4,8 +4,9 @@ On the bundled ``control_suite/cartpole_swingup`` dataset (40 episodes made by `
 shipped in the package): validate it, evaluate the uniform random policy, train BC and two
 offline RL agents (D4PG run offline, BCQ) with their ``small`` presets, evaluate each greedy
 policy in the env, and print the results beside the dataset's return statistics. Writes
-``OUT/report.md`` and ``OUT/results.json``; each agent's run folder (config, metrics,
-evaluations, checkpoints) is ``OUT/<agent>``.
+``OUT/report.md``, ``OUT/results.json`` and ``OUT/quickstart.png`` (each policy's mean return
+beside the dataset's episode-return distribution; needs matplotlib, the ``report`` extra); each
+agent's run folder (config, metrics, evaluations, checkpoints) is ``OUT/<agent>``.
 """
 
 from __future__ import annotations
@@ -32,6 +33,25 @@ def _row(name: str, returns) -> dict:
 
     r = np.asarray(returns, np.float64)
     return {"policy": name, "mean": float(r.mean()), "std": float(r.std()), "returns": r.tolist()}
+
+
+def _figure(rows, dataset_returns, task_id: str, path):
+    """Draw OUT/quickstart.png; None (and a note) without matplotlib."""
+    import importlib.util
+
+    from rlu.types import install_hint
+
+    if importlib.util.find_spec("matplotlib") is None:
+        print(f"  (no figure: it needs matplotlib, {install_hint('report')})")
+        return None
+    from rlu.evaluation.report.render import pyplot, quickstart_figure
+
+    plt = pyplot()
+    title = f"rlu quickstart: {task_id}, policies beside the dataset's episode returns"
+    fig = quickstart_figure(rows, dataset_returns, title, plt)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -125,6 +145,9 @@ def _run(args: argparse.Namespace) -> int:
         f"min {stats['min']:.1f}, max {stats['max']:.1f}.",
         "",
     ]
+    figure = _figure(rows, ds.episode_returns(), task_id, out / "quickstart.png")
+    if figure is not None:
+        lines += [f"![policies beside the dataset's returns]({figure.name})", ""]
     text = "\n".join(lines)
     (out / "report.md").write_text(text)
     result = {"task": task_id, "dataset": str(path), "dataset_returns": stats, "policies": rows,
