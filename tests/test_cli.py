@@ -25,3 +25,19 @@ def test_quickstart_end_to_end_at_tiny_cost(tmp_path, capsys):
         png = (out / "quickstart.png").read_bytes()
         assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
         assert "![policies beside the dataset's returns](quickstart.png)" in text
+
+
+def test_info_json_lists_every_episode_return(capsys):
+    import numpy as np
+
+    from rlu.data import open_dataset
+    from rlu.generate.recipe import bundled_dataset
+
+    path = bundled_dataset()
+    assert main(["info", str(path), "--json"]) == 0
+    returns = json.loads(capsys.readouterr().out)["returns"]
+    per_episode = returns["per_episode"]
+    assert per_episode == open_dataset(path).episode_returns().tolist() and len(per_episode) == 40
+    assert returns["mean"] == np.mean(per_episode) and returns["max"] == max(per_episode)
+    assert main(["info", str(path)]) == 0
+    assert "per_episode" not in capsys.readouterr().out  # the tree print stays short
