@@ -10,7 +10,9 @@ returning a Gymnasium env; ``task_env_factory`` builds ``rlu.envs.make_env`` for
 
 from __future__ import annotations
 
+import contextlib
 import importlib
+import sys
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -84,6 +86,13 @@ def _stack(obs_list: list[Any]) -> Any:
     return np.stack([np.asarray(o) for o in obs_list])
 
 
+def _inference_mode() -> contextlib.AbstractContextManager:
+    """torch.inference_mode when torch is loaded (a torch policy: no autograd records for its
+    forward passes), else nothing; evaluation itself never imports torch."""
+    torch = sys.modules.get("torch")
+    return torch.inference_mode() if torch is not None else contextlib.nullcontext()
+
+
 def evaluate(
     policy: Callable[[Any], np.ndarray],
     env_fn: EnvFactory,
@@ -106,30 +115,31 @@ def evaluate(
     obs: list[Any] = [None] * num_envs
     next_episode = 0
     try:
-        for i in range(num_envs):
-            obs[i], _ = envs[i].reset(seed=episode_seed(seed, next_episode))
-            episode[i] = next_episode
-            next_episode += 1
-        while True:
-            active = [i for i in range(num_envs) if episode[i] >= 0]
-            if not active:
-                break
-            actions = np.asarray(policy(_stack([obs[i] for i in active])))
-            for j, i in enumerate(active):
-                o, r, terminated, truncated, _ = envs[i].step(actions[j])
-                e = episode[i]
-                returns[e] += float(r)
-                lengths[e] += 1
-                if max_steps is not None and lengths[e] >= max_steps:
-                    truncated = True
-                if terminated or truncated:
-                    if next_episode < num_episodes:
-                        o, _ = envs[i].reset(seed=episode_seed(seed, next_episode))
-                        episode[i] = next_episode
-                        next_episode += 1
-                    else:
-                        episode[i] = -1
-                obs[i] = o
+        with _inference_mode():  # the policy runs once per step; no autograd
+            for i in range(num_envs):
+                obs[i], _ = envs[i].reset(seed=episode_seed(seed, next_episode))
+                episode[i] = next_episode
+                next_episode += 1
+            while True:
+                active = [i for i in range(num_envs) if episode[i] >= 0]
+                if not active:
+                    break
+                actions = np.asarray(policy(_stack([obs[i] for i in active])))
+                for j, i in enumerate(active):
+                    o, r, terminated, truncated, _ = envs[i].step(actions[j])
+                    e = episode[i]
+                    returns[e] += float(r)
+                    lengths[e] += 1
+                    if max_steps is not None and lengths[e] >= max_steps:
+                        truncated = True
+                    if terminated or truncated:
+                        if next_episode < num_episodes:
+                            o, _ = envs[i].reset(seed=episode_seed(seed, next_episode))
+                            episode[i] = next_episode
+                            next_episode += 1
+                        else:
+                            episode[i] = -1
+                    obs[i] = o
     finally:
         for env in envs:
             env.close()

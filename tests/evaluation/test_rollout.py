@@ -57,3 +57,15 @@ def test_max_steps_and_errors(monkeypatch):
     monkeypatch.setitem(sys.modules, "rlu.envs", None)  # as if rlu.envs were not installed
     with pytest.raises(RluError, match="rlu.envs cannot be imported"):
         task_env_factory("control_suite/cartpole_swingup")
+
+
+def test_a_torch_policy_runs_in_inference_mode():
+    torch = pytest.importorskip("torch")
+    modes = []
+
+    def policy(obs):
+        modes.append(torch.is_inference_mode_enabled())
+        return np.zeros((len(obs["velocity"]), 1), np.float32)
+
+    evaluate(policy, _factory(), num_episodes=2, seed=0, num_envs=2, max_steps=3)
+    assert modes == [True] * 3 and not torch.is_inference_mode_enabled()

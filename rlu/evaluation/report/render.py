@@ -188,6 +188,7 @@ def quickstart_figure(
     ax.set_title("policies (mean ± std over evaluation episodes)", fontsize=9)
     hx.set_title(f"dataset ({len(returns)} episodes)", fontsize=9)
     hx.set_xlabel("episodes")
+    hx.xaxis.get_major_locator().set_params(integer=True)  # counts, not 2.5 episodes
     ax.legend(fontsize=7, loc="best")
     fig.suptitle(_wrap(title, 8.0, 10), fontsize=10)
     return fig
