@@ -195,3 +195,34 @@ def test_report_html_in_headless_chromium(tmp_path):
     img2 = screenshot(tmp_path / "r" / "report.html", tmp_path / "shot2.png", tmp_path / "p2")
     assert np.all(np.abs(img2.astype(int) - (31, 119, 180)) <= 8, axis=2).sum() < 50
     assert len(paths) == 4
+
+
+def test_a_new_panel_is_one_function_and_one_renderer(tmp_path, monkeypatch):
+    """What the paper's Atari/control panels will do: data in numbers.PANELS, blocks in
+    render.RENDERERS; report.json, report.md and report.html pick it up."""
+    pytest.importorskip("jinja2")
+    from rlu.evaluation.report import numbers, render
+
+    def best_agent(ctx):
+        return {"tasks": len(ctx.tasks), "agents": list(ctx.agents)}
+
+    def render_best(dom, domain, figures):
+        d = dom["best_agent"]
+        rows = tuple(
+            (render.Cell(a, numeric=False), render.Cell(str(d["tasks"]))) for a in d["agents"]
+        )
+        return [render.Text("Agents over tasks."), render.Table(("agent", "tasks"), rows)]
+
+    monkeypatch.setitem(numbers.PANELS, "best_agent", best_agent)
+    monkeypatch.setitem(render.RENDERERS, "best_agent", render_best)
+    write_report(write_sweep(tmp_path / "s", records(CONTROL, ["bc", "crr"])), tmp_path / "r",
+                 figures=False)  # fmt: skip
+    rep = json.loads((tmp_path / "r" / "report.json").read_text())
+    assert rep["domains"]["control_suite"]["best_agent"] == {"tasks": 3, "agents": ["bc", "crr"]}
+    assert rep["domains"]["control_suite"]["panels"][-1] == "best_agent"
+    md = (tmp_path / "r" / "report.md").read_text()
+    assert "Agents over tasks.\n\n| agent | tasks |\n|---|---|\n| bc | 3 |\n| crr | 3 |" in md
+    assert (
+        '<td class="label">crr</td><td class="num">3</td>'
+        in (tmp_path / "r" / "report.html").read_text()
+    )
