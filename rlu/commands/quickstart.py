@@ -63,7 +63,7 @@ def _run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from rlu.types import RluError, install_hint
+    from rlu.types import RluError, derive_seed, install_hint
 
     missing = [m for m in ("torch", "dm_control") if importlib.util.find_spec(m) is None]
     if missing:
@@ -104,7 +104,9 @@ def _run(args: argparse.Namespace) -> int:
         n = len(next(iter(obs.values()))) if isinstance(obs, dict) else len(obs)
         return rng.uniform(-1.0, 1.0, (n, *action_shape)).astype(np.float32)
 
-    rows = [_row("random", evaluate(random_policy, env_fn, args.eval_episodes, args.seed).returns)]
+    # the episodes each agent's final evaluation plays (rlu.train seeds it with stream `steps`)
+    eval_seed = derive_seed(args.seed, args.steps)
+    rows = [_row("random", evaluate(random_policy, env_fn, args.eval_episodes, eval_seed).returns)]
     print(f"  random policy: {rows[0]['mean']:.1f}  ({time.perf_counter() - t0:.0f}s)")
     for agent in args.agents:
         cfg = TrainConfig(
