@@ -2,10 +2,11 @@
 
 Sources for every number here:
 - observation keys, dims and action dims: the ``shapes`` tables of the original
-  ``rl_unplugged/dm_control_suite.py`` (../shared/reference/rlu_release_format.md §3.3);
-- selection split, episode counts, sequence lengths: the paper's tables 1-4
-  (../shared/seed/rl_unplugged_paper.tex);
-- release paths and shard counts: rlu_release_format.md §2 and §5;
+  ``rl_unplugged/dm_control_suite.py`` (github.com/deepmind/deepmind-research);
+- selection split, episode counts, sequence lengths: the paper's tables 1-4 (Gulcehre et al.
+  2020, arXiv:2006.13888);
+- release paths and shard counts: the release bucket's layout, as the original loaders
+  (``rl_unplugged/*.py``) name them;
 - Atari minimal action-set sizes: read from ale-py 0.12.1 (``tests/test_tasks.py`` re-checks them
   against ALE when the ``atari`` extra is installed).
 """

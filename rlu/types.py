@@ -19,6 +19,18 @@ from typing import Any, NamedTuple, Protocol
 import numpy as np
 
 
+class RluError(Exception):
+    """Base of every error rlu raises on bad input; the message names the thing and the fix."""
+
+
+class FormatError(RluError):
+    """A file is not in the format it claims to be (corrupt, truncated, wrong schema)."""
+
+
+class SpecError(RluError):
+    """Data disagrees with a spec (shape, dtype, key)."""
+
+
 @dataclass(frozen=True)
 class ArraySpec:
     """Shape and dtype of one array (per step, without the batch or time axis)."""
@@ -146,32 +158,83 @@ class Policy(Protocol):
     def __call__(self, observation: Observation) -> np.ndarray: ...
 
 
-class Agent(Protocol):
-    """The contract every baseline in ``rlu.agents`` meets.
+BATCH_KINDS = ("transition", "sequence")
 
-    Constructed as ``Agent(observation_spec, action_spec, config, seed=...)``; ``act`` takes a
-    batched observation (leading batch axis) and returns a batch of actions.
+
+@dataclass(frozen=True)
+class BatchSpec:
+    """What an agent needs from the data, declared once by the agent (``agent.batch_spec``) and
+    consumed as is by ``rlu.data.make_sampler(dataset, spec, seed)``: the training loop, the
+    online behaviour loop and user code build their samplers from it, never from probes.
+
+    n-step convention (one place, shared by the data layer and every agent): a ``Transition``
+    sampled with ``n_step = n`` has ``reward = sum_{i<n} gamma^i (prod_{j<i} d_j) r_i`` (per-step
+    rewards clipped to ``reward_clip`` first) and ``discount = prod_{i<n} d_i``; the agent
+    bootstraps with ``bootstrap_gamma * discount`` (``gamma ** n``).
     """
+
+    batch_size: int
+    """Transitions (or windows, for sequences) per batch."""
+    kind: str = "transition"
+    """'transition' (SARSA tuples, optionally n-step) or 'sequence' (windows with a mask)."""
+    n_step: int = 1
+    """Steps summed into a transition's reward (transition batches only)."""
+    gamma: float = 1.0
+    """Per-step discount of the n-step reward sum; the agent's own gamma."""
+    sequence_length: int = 1
+    """Window length of sequence batches."""
+    reward_clip: float | None = None
+    """Per-step rewards are clipped to [-reward_clip, reward_clip] before anything else (the
+    paper's Atari agents learn from rewards clipped to [-1, 1]); None keeps them as stored."""
+
+    def __post_init__(self) -> None:
+        if self.kind not in BATCH_KINDS:
+            raise SpecError(f"BatchSpec.kind={self.kind!r}; use one of {', '.join(BATCH_KINDS)}")
+        for name in ("batch_size", "n_step", "sequence_length"):
+            value = getattr(self, name)
+            if not isinstance(value, int | np.integer) or value < 1:
+                raise SpecError(f"BatchSpec.{name}={value!r}; it must be an integer >= 1")
+        if not 0.0 <= float(self.gamma) <= 1.0:
+            raise SpecError(f"BatchSpec.gamma={self.gamma!r}; a discount lies in [0, 1]")
+        if self.reward_clip is not None and not float(self.reward_clip) > 0.0:
+            raise SpecError(
+                f"BatchSpec.reward_clip={self.reward_clip!r}; use a positive bound or None"
+            )
+
+    @property
+    def bootstrap_gamma(self) -> float:
+        """The factor of ``discount * V(next_observation)`` in an n-step target: gamma^n."""
+        return float(self.gamma) ** self.n_step
+
+
+class Agent(Protocol):
+    """The contract every agent in ``rlu.agents`` meets (one file each; see docs/agents.md).
+
+    Built as ``Agent(observation_spec, action_spec, config, seed=...)``. ``batch_spec`` says what
+    batches ``update`` takes; ``act`` maps a batched observation (leading batch axis) to a batch
+    of actions, and ``is_first`` (bool, one per row) marks rows whose episode starts at this
+    observation, so recurrent agents restart their state there (others ignore it).
+    ``pretrain_steps`` counts updates of a pre-training phase (BRAC's behaviour model; 0 for most
+    agents) that the training loop runs before, and on top of, the learner steps of the config's
+    ``num_steps``. ``modules`` names every torch module the agent owns (targets included) and
+    ``state_dict()`` holds everything needed to resume bit for bit (plain tensors, numbers and
+    dicts: checkpoints load with ``weights_only=True``).
+    """
+
+    config: Any
+    batch_spec: BatchSpec
+    pretrain_steps: int
+    modules: Mapping[str, Any]
 
     def update(self, batch: Any) -> dict[str, float]: ...
 
-    def act(self, observation: Observation, greedy: bool = True) -> np.ndarray: ...
+    def act(
+        self, observation: Observation, greedy: bool = True, is_first: np.ndarray | None = None
+    ) -> np.ndarray: ...
 
     def state_dict(self) -> dict[str, Any]: ...
 
     def load_state_dict(self, state: dict[str, Any]) -> None: ...
-
-
-class RluError(Exception):
-    """Base of every error rlu raises on bad input; the message names the thing and the fix."""
-
-
-class FormatError(RluError):
-    """A file is not in the format it claims to be (corrupt, truncated, wrong schema)."""
-
-
-class SpecError(RluError):
-    """Data disagrees with a spec (shape, dtype, key)."""
 
 
 def available_cores() -> int:

@@ -20,8 +20,17 @@ EVAL_EVERY_MIN = 10_000
 
 
 def _add_run_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--preset", default="small", choices=["small", "paper"])
-    p.add_argument("--steps", type=int, default=1000, help="gradient steps")
+    p.add_argument(
+        "--preset",
+        default="small",
+        help="agent preset: small (CPU minutes), paper, ...",
+    )
+    p.add_argument(
+        "--steps",
+        type=int,
+        default=None,
+        help="gradient steps (default: the preset's num_steps, e.g. 2M for the Atari paper preset)",
+    )
     p.add_argument(
         "--eval-every",
         type=int,
@@ -38,6 +47,12 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checkpoint-every", type=int, default=1000)
     p.add_argument(
         "--env", default=None, help="env factory 'module:function' (default: rlu.envs.make_env)"
+    )
+    p.add_argument(
+        "--challenge",
+        default=None,
+        choices=["none", "easy"],
+        help="RWRL: evaluate under this challenge (default: the one the data was recorded under)",
     )
 
 
@@ -62,7 +77,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "overrides",
         nargs="*",
         metavar="FIELD=VALUE",
-        help="agent config overrides, e.g. learning_rate=3e-4",
+        help="agent config overrides, e.g. learning_rate=3e-4 or atari.batch_size=64",
     )
     p.set_defaults(func=_train)
 
@@ -73,6 +88,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--envs", type=int, default=4, help="envs stepped in lockstep")
     p.add_argument("--max-steps", type=int, default=None)
     p.add_argument("--env", default=None, help="env factory 'module:function'")
+    p.add_argument(
+        "--challenge",
+        default=None,
+        choices=["none", "easy"],
+        help="RWRL: evaluate under this challenge (default: the run's)",
+    )
     p.add_argument(
         "--threads", type=int, default=1, help="torch threads (default 1: small batches per step)"
     )
@@ -98,6 +119,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="grid for every agent instead of each agent's paper grid",
     )
     p.add_argument("--max-configs", type=int, default=None)
+    p.add_argument(
+        "--task-preset",
+        action="append",
+        default=[],
+        metavar="TASK=PRESET",
+        help="preset of one task for the agents that have it (e.g. paper_recurrent)",
+    )
     p.add_argument("--backend", default="local", choices=["local", "ray"])
     p.add_argument("--workers", type=int, default=2, help="local pool size")
     p.add_argument("--ray-address", default=None, help="Ray cluster address (default: local)")
@@ -119,8 +147,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _run_kwargs(args: argparse.Namespace, periodic_eval: bool = True) -> dict:
     # train evaluates up to 10 times, never more often than every EVAL_EVERY_MIN steps (a short
-    # run evaluates once, at the end); a sweep only at the end of each run
-    default_eval = max(EVAL_EVERY_MIN, args.steps // 10) if periodic_eval else 0
+    # run evaluates once, at the end; without --steps, the preset's budget, at the end too); a
+    # sweep only at the end of each run
+    default_eval = max(EVAL_EVERY_MIN, args.steps // 10) if periodic_eval and args.steps else 0
     return {
         "preset": args.preset,
         "steps": args.steps,
@@ -131,6 +160,7 @@ def _run_kwargs(args: argparse.Namespace, periodic_eval: bool = True) -> dict:
         "log_every": args.log_every,
         "checkpoint_every": args.checkpoint_every,
         "env": args.env,
+        "challenge": args.challenge,
     }
 
 
@@ -158,7 +188,7 @@ def _train(args: argparse.Namespace) -> int:
 
 
 def _evaluate(args: argparse.Namespace) -> int:
-    from rlu.train import evaluate_run
+    from rlu.runs import evaluate_run
     from rlu.types import RluError
 
     if args.threads < 1:
@@ -167,7 +197,9 @@ def _evaluate(args: argparse.Namespace) -> int:
 
     torch.set_num_threads(args.threads)
 
-    res = evaluate_run(args.run, args.episodes, args.seed, args.envs, args.env, args.max_steps)
+    res = evaluate_run(
+        args.run, args.episodes, args.seed, args.envs, args.env, args.max_steps, args.challenge
+    )
     if args.json:
         print(json.dumps(res.to_json()))
     else:
@@ -197,8 +229,15 @@ def _sweep(args: argparse.Namespace) -> int:
             if not sep:
                 raise RluError(f"--grid {item!r}; write it as FIELD=V1,V2")
             grid[key] = [parse_overrides([f"v={v}"])["v"] for v in values.split(",")]
+    task_presets = {}
+    for item in args.task_preset:
+        task, sep, preset = item.partition("=")
+        if not sep:
+            raise RluError(f"--task-preset {item!r}; write it as TASK=PRESET")
+        task_presets[task] = preset
     config = SweepConfig(
         tasks=tuple(args.tasks),
+        task_presets=task_presets,
         agents=tuple(args.agents),
         datasets=datasets,
         seeds=tuple(args.seeds),
@@ -216,7 +255,7 @@ def _report(args: argparse.Namespace) -> int:
 
     if args.fqe:
         from rlu.evaluation.fqe import FQEConfig
-        from rlu.train import fqe_selection
+        from rlu.runs import fqe_selection
 
         fqe_selection(args.sweep_dir, FQEConfig(steps=args.fqe_steps))
     paths = write_report(args.sweep_dir, args.out)

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from rlu.data.views import Sampler, make_sampler
-from rlu.types import seed_stream
+from rlu.types import BatchSpec, seed_stream
 
 
 def to_torch(batch: Any, device: str | torch.device = "cpu") -> Any:
@@ -42,21 +42,9 @@ class TorchSampler(torch.utils.data.IterableDataset):
     """Endless uniform batches from a stored dataset, as tensors (``batch_size=None`` in the
     loader)."""
 
-    def __init__(
-        self,
-        path: str,
-        batch_size: int,
-        seed: int = 0,
-        kind: str = "transition",
-        n_step: int = 1,
-        gamma: float = 1.0,
-        sequence_length: int = 1,
-        stride: int = 1,
-    ):
+    def __init__(self, path: str, spec: BatchSpec, seed: int = 0):
         super().__init__()
-        self.path, self.batch_size, self.seed, self.kind = str(path), batch_size, seed, kind
-        self.n_step, self.gamma = n_step, gamma
-        self.sequence_length, self.stride = sequence_length, stride
+        self.path, self.spec, self.seed = str(path), spec, seed
         self._passes = 0  # iter() calls in this process (the stream key without workers)
         seed_stream(seed)  # a bad seed fails here, not in a worker process
 
@@ -70,16 +58,7 @@ class TorchSampler(torch.utils.data.IterableDataset):
     def _sampler(self) -> Sampler:
         lane, epoch = self.stream_key()
         self._passes += 1
-        sampler = make_sampler(
-            self.path,
-            self.batch_size,
-            0,
-            self.kind,
-            self.n_step,
-            self.gamma,
-            self.sequence_length,
-            self.stride,
-        )
+        sampler = make_sampler(self.path, self.spec, 0)
         stream = np.random.default_rng(seed_stream(self.seed, lane, epoch))
         sampler.set_state({"bit_generator": stream.bit_generator.state})
         return sampler

@@ -22,7 +22,8 @@ Settings per domain (keyword arguments of ``make_env``):
   in the data; False drops it from observations and spec, ~10-40x faster).
 - atari: ``max_episode_steps`` (27,000 agent steps = the paper's 108K frames; the original
   evaluation wrapper counted 108,000 agent steps, pass ``ATARI_ORIGINAL_EVAL_STEPS``),
-  ``clip_rewards`` (default True; ``info["raw_reward"]`` always holds the unclipped reward),
+  ``clip_rewards`` (default False: ``r`` is the raw game score, what evaluation sums; the
+  agents clip to [-1, 1] when they learn; ``info["raw_reward"]`` always holds the raw score),
   ``sticky_action_prob`` (0.25), ``frame_skip`` (4).
 - rwrl: ``challenge`` ("none" or "easy" as released; "medium"/"hard" also exist),
   ``safety`` / ``safety_coeff``, ``multiobj_coeff`` / ``multiobj_reward`` /

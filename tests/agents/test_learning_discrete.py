@@ -25,7 +25,7 @@ torch = pytest.importorskip("torch")
 from rlu.agents import make_agent  # noqa: E402
 from rlu.data.episode import make_episode  # noqa: E402
 from rlu.data.store import DatasetWriter, Schema, open_dataset  # noqa: E402
-from rlu.data.views import transition_sampler  # noqa: E402
+from rlu.data.views import make_sampler, transition_sampler  # noqa: E402
 from rlu.types import ArraySpec, DiscreteSpec  # noqa: E402
 
 CELLS, START, CAP = 7, 3, 30
@@ -35,7 +35,12 @@ FRAME = ArraySpec((84, 84), "uint8")
 OBS = ArraySpec((84, 84, 4), "uint8")
 ACTION = DiscreteSpec((), "int64", 3)
 STEPS = 1000
-COMMON = {"batch_size": 32, "channels": (8, 16, 16), "hidden_size": 64, "learning_rate": 3e-4}
+COMMON = {
+    "atari.batch_size": 32,
+    "atari.channels": (8, 16, 16),
+    "atari.hidden_size": 64,
+    "learning_rate": 3e-4,
+}
 
 
 def frame(cell: int) -> np.ndarray:
@@ -130,9 +135,9 @@ def test_offline_rl_beats_bc_where_the_data_rewards_it(dataset, one_thread):
     for name in ("bc", "dqn", "bcq", "rem", "iqn"):
         overrides = dict(COMMON)
         if name != "bc":
-            overrides.update(target_update_period=100, discount=0.9)
+            overrides.update({"target_update_period": 100, "atari.gamma": 0.9})
         agent = make_agent(name, OBS, ACTION, "small", seed=0, **overrides)
-        sampler = transition_sampler(ds, overrides["batch_size"], seed=1, n_step=agent.n_step)
+        sampler = make_sampler(ds, agent.batch_spec, seed=1)
         for _ in range(STEPS):
             metrics = agent.update(sampler.sample())
         assert all(np.isfinite(v) for v in metrics.values())

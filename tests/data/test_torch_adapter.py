@@ -11,6 +11,7 @@ from rlu.data import Schema, open_dataset, transition_sampler  # noqa: E402
 from rlu.data.synthetic import write_synthetic  # noqa: E402
 from rlu.data.torch import TorchSampler, to_torch  # noqa: E402
 from rlu.tasks import get_task  # noqa: E402
+from rlu.types import BatchSpec  # noqa: E402
 
 
 def test_to_torch_keeps_names_and_dtypes(tmp_path):
@@ -24,7 +25,7 @@ def _first_batches(path, seed, workers, passes, generator_seed=0):
     """The first two batches' rewards of every worker on each of ``passes`` iterations of one
     DataLoader (workers' batches interleave: batch j comes from worker j % workers)."""
     loader = torch.utils.data.DataLoader(
-        TorchSampler(str(path), 8, seed=seed),
+        TorchSampler(str(path), BatchSpec(8), seed=seed),
         batch_size=None,
         num_workers=workers,
         generator=torch.Generator().manual_seed(generator_seed),

@@ -39,7 +39,6 @@ import numpy as np
 
 from rlu.evaluation.protocols import Selection, offline_selection_naive, online_selection
 from rlu.evaluation.scores import (
-    best_behaviour_from_dataset,
     domain_statistic,
     load_reference_scores,
     normalized_score,
@@ -193,7 +192,7 @@ def build_report(
         tasks = sorted({r["task"] for r in recs}, key=lambda t: (task_info(t)[1] != "online", t))
         norm = None
         if domain == "atari":
-            norm, refs = _atari_normaliser(tasks, random_scores, best_behaviour, datasets)
+            norm, refs = _atari_normaliser(tasks, random_scores, best_behaviour)
         # tables show raw returns (as the paper's appendix does); selection across tasks and
         # the aggregates use normalised scores for Atari
         scored = [
@@ -227,11 +226,12 @@ def build_report(
     return out
 
 
-def _atari_normaliser(tasks, random_scores, best_behaviour, datasets):
+def _atari_normaliser(tasks, random_scores, best_behaviour):
     """(score normaliser, the reference scores used) or (None, None) where a game lacks one.
 
-    Best-behaviour scores missing from the given / stored ones are computed from the task's
-    dataset (``best_behaviour_from_dataset``) when the sweep names it."""
+    The references are the given ones or the shipped files (``rlu/resources``); a game without
+    both leaves the domain unnormalised (there is no estimate from the sweep's data: a
+    transition dataset's returns are clipped and span a whole run, not one snapshot)."""
     if random_scores is None:
         try:
             random_scores = load_reference_scores("random_scores")
@@ -250,10 +250,6 @@ def _atari_normaliser(tasks, random_scores, best_behaviour, datasets):
     refs: dict[str, Any] = {}
     for t in tasks:
         rnd, best, source = ref(random_scores, t), ref(best_behaviour, t), "given"
-        if best is None and datasets and t in datasets:
-            from rlu.data import open_dataset
-
-            best, source = best_behaviour_from_dataset(open_dataset(datasets[t])), "dataset"
         if rnd is None or best is None:
             return None, None
         refs[t] = {"random": rnd, "best_behaviour": best, "best_behaviour_source": source}
