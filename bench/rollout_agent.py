@@ -28,7 +28,8 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import torch  # noqa: E402
 
 from rlu.evaluation.rollout import episode_seed  # noqa: E402
-from rlu.train import TrainConfig, evaluate_run, load_run, train  # noqa: E402
+from rlu.runs import evaluate_run, load_agent  # noqa: E402
+from rlu.train import TrainConfig, train  # noqa: E402
 
 TASK = "control_suite/cartpole_swingup"
 
@@ -43,24 +44,12 @@ def make_run(root: Path, preset: str) -> Path:
 
 
 def traced_policy(run: Path):
-    """The run's policy network as TorchScript, with the observation flattened in the encoder's
-    (sorted-key) order, and the action scaling of the agent's act."""
-    import dataclasses
-
-    from rlu.train import agent_config, agent_module
-    from rlu.types import ArraySpec, observation_spec_from_json
-
-    cfg, ckpt = load_run(run)
-    t = cfg["train"]
-    module = agent_module("d4pg", False)
-    fields = {f.name for f in dataclasses.fields(module.Config)}
-    overrides = {k: v for k, v in cfg["agent_config"].items() if k in fields}
-    agent_cfg = agent_config("d4pg", False, t["preset"], overrides)
-    obs_spec = observation_spec_from_json(cfg["observation_spec"])
-    agent = module.Agent(obs_spec, ArraySpec.from_json(cfg["action_spec"]), agent_cfg, seed=0)
-    agent.load_state_dict(torch.load(ckpt, weights_only=True)["agent"])
-    keys = sorted(obs_spec)
-    example = {k: torch.zeros((1, *obs_spec[k].shape)) for k in keys}
+    """The run's policy network as TorchScript (frozen), fed the observation dict as the agent's
+    act feeds it; D4PG's actions are already in [-1, 1], the env's action range."""
+    agent, resolved = load_agent(run)
+    keys = sorted(resolved["observation_spec"])
+    shapes = {k: resolved["observation_spec"][k]["shape"] for k in keys}
+    example = {k: torch.zeros((1, *shapes[k])) for k in keys}
     with torch.inference_mode():
         script = torch.jit.trace(agent.policy.eval(), (example,), strict=False)
     return torch.jit.freeze(script.eval()), keys
