@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from rlu import runs
-from rlu.types import DiscreteSpec, RluError
+from rlu.types import DiscreteSpec, RluError, install_hint
 
 
 @dataclass(frozen=True)
@@ -233,10 +233,7 @@ def _run_ray(specs, config, address, paths, progress) -> list[dict[str, Any]]:
     try:
         import ray
     except ImportError:
-        raise RluError(
-            "the Ray backend needs ray: bash scripts/install.sh distributed (pip install "
-            "'rlu[distributed]')"
-        ) from None
+        raise RluError(f"the Ray backend needs ray: {install_hint('distributed')}") from None
     started = False
     if not ray.is_initialized():
         if address:

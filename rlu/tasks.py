@@ -33,6 +33,11 @@ Domain = Literal["control_suite", "locomotion", "atari", "rwrl"]
 DOMAINS: tuple[str, ...] = ("control_suite", "locomotion", "atari", "rwrl")
 BUCKET = "rl_unplugged"
 BASE_URL = "https://storage.googleapis.com/rl_unplugged"
+# Gymnasium ids (TaskSpec.gym_id) and the entry point of their specs, a string so that a spec
+# stored as JSON (Minari keeps one per dataset) makes the env again (rlu.envs.registration).
+GYM_NAMESPACE = "rlu"
+GYM_VERSION = 0
+GYM_ENTRY_POINT = "rlu.envs.registration:make"
 
 
 @dataclass(frozen=True)
@@ -92,6 +97,12 @@ class TaskSpec:
     @property
     def discrete(self) -> bool:
         return isinstance(self.action_spec, DiscreteSpec)
+
+    @property
+    def gym_id(self) -> str:
+        """The task's Gymnasium id, ``rlu/DOMAIN-NAME-v0`` (registered by ``rlu.envs``; the
+        domain is kept because RWRL and the control suite share task names)."""
+        return f"{GYM_NAMESPACE}/{self.domain}-{self.name}-v{GYM_VERSION}"
 
     @property
     def action_dim(self) -> int:

@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from rlu import runs
-from rlu.types import ArraySpec, DiscreteSpec, RluError, observation_spec_to_json
+from rlu.types import ArraySpec, DiscreteSpec, RluError, derive_seed, observation_spec_to_json
 
 
 @dataclass(frozen=True)
@@ -271,7 +271,7 @@ def train(
                     policy,
                     env_fn,
                     config.eval_episodes,
-                    seed=(config.seed + 1) * 1_000_003 + step * 1_009,
+                    seed=derive_seed(config.seed, step),  # stream `step` of the run seed
                     num_envs=config.eval_envs,
                     max_steps=config.eval_max_steps,
                 )

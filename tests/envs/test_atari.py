@@ -124,7 +124,7 @@ def test_evaluation_scores_the_raw_game_score_of_a_plain_ale_loop():
     """Issue 18 item 1: what ``evaluate`` reports for Atari is the game's score. The same random
     policy (one seeded generator, one draw per step) scores exactly what a hand-written ALE loop
     scores with the same seeds; SpaceInvaders pays 5-30 points a hit, so a clipped sum differs."""
-    from rlu.evaluation.rollout import evaluate, task_env_factory
+    from rlu.evaluation.rollout import episode_seed, evaluate, task_env_factory
 
     n, cap, seed, episodes = rlu.get_task("atari/SpaceInvaders").action_dim, 400, 11, 3
     rng = np.random.default_rng(7)
@@ -135,7 +135,11 @@ def test_evaluation_scores_the_raw_game_score_of_a_plain_ale_loop():
     factory = task_env_factory("atari/SpaceInvaders", max_episode_steps=cap)
     got = evaluate(policy, factory, num_episodes=episodes, seed=seed, num_envs=1)
     want, biggest = _plain_ale_returns(
-        "space_invaders", [seed + i for i in range(episodes)], np.random.default_rng(7), n, cap
+        "space_invaders",
+        [episode_seed(seed, i) for i in range(episodes)],
+        np.random.default_rng(7),
+        n,
+        cap,
     )
     assert biggest > 1  # the oracle's episodes hold rewards that clipping would change
     assert list(got.returns) == want

@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from rlu.evaluation.rollout import evaluate, task_env_factory
+from rlu.evaluation.rollout import episode_seed, evaluate, task_env_factory
 from rlu.types import RluError
 
 pytest.importorskip("gymnasium")
@@ -33,12 +33,15 @@ def test_returns_do_not_depend_on_num_envs():
     three = evaluate(_pd_policy([]), _factory(), num_episodes=5, seed=3, num_envs=3)
     assert one.returns == three.returns
     assert one.lengths == (50,) * 5
-    assert len(set(one.returns)) == 5  # episode i is seeded with seed + i
+    assert len(set(one.returns)) == 5  # episode i is seeded with episode_seed(3, i)
     # batched dict observations, nothing else
     assert all(set(o) == {"orientation", "velocity"} for o in seen)
     assert {o["orientation"].shape for o in seen} == {(1, 2)}
+    # no episode of seed 4 replays one of seed 3 (under seed + i, four of five did)
     other_seed = evaluate(_pd_policy([]), _factory(), num_episodes=5, seed=4, num_envs=2)
-    assert other_seed.returns[:4] == one.returns[1:]  # seeds 4..7 are episodes 1..4 of seed 3
+    assert not set(other_seed.returns) & set(one.returns)
+    seeds = {episode_seed(s, i) for s in range(50) for i in range(50)}
+    assert len(seeds) == 2500
 
 
 def test_max_steps_and_errors(monkeypatch):
@@ -54,3 +57,15 @@ def test_max_steps_and_errors(monkeypatch):
     monkeypatch.setitem(sys.modules, "rlu.envs", None)  # as if rlu.envs were not installed
     with pytest.raises(RluError, match="rlu.envs cannot be imported"):
         task_env_factory("control_suite/cartpole_swingup")
+
+
+def test_a_torch_policy_runs_in_inference_mode():
+    torch = pytest.importorskip("torch")
+    modes = []
+
+    def policy(obs):
+        modes.append(torch.is_inference_mode_enabled())
+        return np.zeros((len(obs["velocity"]), 1), np.float32)
+
+    evaluate(policy, _factory(), num_episodes=2, seed=0, num_envs=2, max_steps=3)
+    assert modes == [True] * 3 and not torch.is_inference_mode_enabled()
