@@ -151,10 +151,10 @@ def load_agent(path: str | os.PathLike) -> tuple[Any, dict[str, Any]]:
 
 
 def greedy_policy(agent: Any) -> Any:
-    """The evaluation policy of an agent: ``act(obs, greedy=True)`` on batched observations."""
+    """The evaluation policy of an agent (a ``rlu.types.Policy``): ``act(obs, greedy=True)``."""
 
-    def policy(observation: Any) -> np.ndarray:
-        return agent.act(observation, greedy=True)
+    def policy(observation: Any, is_first: np.ndarray | None = None) -> np.ndarray:
+        return agent.act(observation, greedy=True, is_first=is_first)
 
     return policy
 

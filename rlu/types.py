@@ -153,9 +153,12 @@ class Sequence(NamedTuple):
 
 
 class Policy(Protocol):
-    """What evaluation sees of an agent: observations in, actions out (no training state)."""
+    """What evaluation sees of an agent: a batch of observations in, a batch of actions out.
 
-    def __call__(self, observation: Observation) -> np.ndarray: ...
+    ``is_first[i]`` is True where row i's episode starts at this observation, so a recurrent
+    policy restarts its state there; the batch always has the same rows (one per env)."""
+
+    def __call__(self, observation: Observation, is_first: np.ndarray) -> np.ndarray: ...
 
 
 BATCH_KINDS = ("transition", "sequence")

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from rlu.types import DiscreteSpec, RluError
+from rlu.types import DiscreteSpec, Policy, RluError
 
 
 @dataclass(frozen=True)
@@ -52,10 +52,15 @@ def _slice(obs: Any, idx: np.ndarray) -> Any:
     return obs[idx]
 
 
+def _all_first(x: Any) -> np.ndarray:
+    first = next(iter(x.values())) if isinstance(x, Mapping) else x
+    return np.ones(len(first), bool)
+
+
 def fqe_estimate(
     transitions: Any,
     initial_observations: Any,
-    policy: Callable[[Any], np.ndarray],
+    policy: Policy,
     action_spec: Any,
     config: FQEConfig = FQEConfig(),
 ) -> float:
@@ -76,8 +81,9 @@ def fqe_estimate(
     next_obs = torch.from_numpy(_flat(transitions.next_observation))
     init = torch.from_numpy(_flat(initial_observations))
     # the policy sees observations only, in the env's format
-    next_act = np.asarray(policy(transitions.next_observation))
-    init_act = np.asarray(policy(initial_observations))
+    # every observation is valued on its own: a recurrent policy starts afresh on each row
+    next_act = np.asarray(policy(transitions.next_observation, _all_first(transitions.action)))
+    init_act = np.asarray(policy(initial_observations, _all_first(initial_observations)))
     reward = torch.as_tensor(np.asarray(transitions.reward, np.float32))
     discount = torch.as_tensor(np.asarray(transitions.discount, np.float32))
     if discrete:
@@ -148,7 +154,7 @@ def dataset_fqe_inputs(ds: Any) -> tuple[Any, Any]:
 def fqe_selection(
     records: Sequence[Mapping[str, Any]],
     datasets: Mapping[str, str],
-    policy_of: Callable[[str], tuple[Callable[[Any], np.ndarray], Any]],
+    policy_of: Callable[[str], tuple[Policy, Any]],
     config: FQEConfig = FQEConfig(),
 ) -> dict[str, Any]:
     """Offline policy selection by FQE: per (task, agent), every configuration's policies (one

@@ -1,5 +1,9 @@
 """Vectorised evaluation rollouts: ``num_envs`` Gymnasium envs stepped in lockstep, one batched
-policy call per step. The policy sees observations only (a callable, never the agent).
+policy call per step. The policy sees observations and episode starts only (a
+``rlu.types.Policy`` callable, never the agent): every call has one row per env, in the same
+order (an env with no episode left keeps its last observation and its action is dropped), and
+``is_first`` marks the rows whose episode starts there, so recurrent policies keep their state
+per row and restart it with each episode.
 
 Episode ``i`` is reset with seed ``episode_seed(seed, i)`` (stream ``i`` spawned from ``seed``
 by numpy's SeedSequence, not ``seed + i``, under which evaluation seed 4 replayed episodes 1.. of
@@ -19,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from rlu.types import RluError, derive_seed, install_hint
+from rlu.types import Policy, RluError, derive_seed, install_hint
 
 EnvFactory = Callable[[], Any]
 
@@ -94,14 +98,15 @@ def _inference_mode() -> contextlib.AbstractContextManager:
 
 
 def evaluate(
-    policy: Callable[[Any], np.ndarray],
+    policy: Policy,
     env_fn: EnvFactory,
     num_episodes: int = 10,
     seed: int = 0,
     num_envs: int = 4,
     max_steps: int | None = None,
 ) -> EvalResult:
-    """Run ``num_episodes`` episodes of ``policy`` (batched observations -> batched actions).
+    """Run ``num_episodes`` episodes of ``policy`` (batched observations and episode starts ->
+    batched actions).
 
     ``max_steps`` caps an episode's length on top of the env's own time limit.
     """
@@ -113,6 +118,7 @@ def evaluate(
     lengths = np.zeros(num_episodes, np.int64)
     episode = [-1] * num_envs  # episode index running on each env (-1: idle)
     obs: list[Any] = [None] * num_envs
+    is_first = np.ones(num_envs, bool)
     next_episode = 0
     try:
         with _inference_mode():  # the policy runs once per step; no autograd
@@ -124,9 +130,10 @@ def evaluate(
                 active = [i for i in range(num_envs) if episode[i] >= 0]
                 if not active:
                     break
-                actions = np.asarray(policy(_stack([obs[i] for i in active])))
-                for j, i in enumerate(active):
-                    o, r, terminated, truncated, _ = envs[i].step(actions[j])
+                actions = np.asarray(policy(_stack(obs), is_first.copy()))
+                is_first[:] = False
+                for i in active:
+                    o, r, terminated, truncated, _ = envs[i].step(actions[i])
                     e = episode[i]
                     returns[e] += float(r)
                     lengths[e] += 1
@@ -136,6 +143,7 @@ def evaluate(
                         if next_episode < num_episodes:
                             o, _ = envs[i].reset(seed=episode_seed(seed, next_episode))
                             episode[i] = next_episode
+                            is_first[i] = True
                             next_episode += 1
                         else:
                             episode[i] = -1

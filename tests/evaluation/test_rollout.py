@@ -19,7 +19,7 @@ def _factory():
 
 
 def _pd_policy(seen):
-    def policy(obs):
+    def policy(obs, is_first):
         seen.append(obs)
         th = np.arctan2(obs["orientation"][:, 1], obs["orientation"][:, 0])
         return np.clip(-(6.0 * th + 1.5 * obs["velocity"][:, 0]), -2, 2)[:, None].astype(np.float32)
@@ -63,9 +63,27 @@ def test_a_torch_policy_runs_in_inference_mode():
     torch = pytest.importorskip("torch")
     modes = []
 
-    def policy(obs):
+    def policy(obs, is_first):
         modes.append(torch.is_inference_mode_enabled())
         return np.zeros((len(obs["velocity"]), 1), np.float32)
 
     evaluate(policy, _factory(), num_episodes=2, seed=0, num_envs=2, max_steps=3)
     assert modes == [True] * 3 and not torch.is_inference_mode_enabled()
+
+
+def test_every_call_has_one_row_per_env_and_marks_episode_starts():
+    """Recurrent policies keep a state per row: rows never move between envs, and ``is_first``
+    marks the step each episode starts on (an env with no episode left keeps its row)."""
+    calls = []
+
+    def policy(obs, is_first):
+        calls.append((obs["velocity"].shape[0], is_first.tolist()))
+        return np.zeros((len(is_first), 1), np.float32)
+
+    res = evaluate(policy, _factory(), num_episodes=3, seed=0, num_envs=2, max_steps=4)
+    assert res.lengths == (4, 4, 4)
+    assert {rows for rows, _ in calls} == {2}
+    firsts = [f for _, f in calls]
+    # episodes 0 and 1 start together; episode 2 starts on env 0 when episode 0 ends
+    assert firsts == [[True, True], [False, False], [False, False], [False, False],
+                      [True, False], [False, False], [False, False], [False, False]]  # fmt: skip
