@@ -1,5 +1,5 @@
 """Conservative Q-learning for Atari, CQL(H) on offline double DQN (Kumar et al. 2020,
-"Conservative Q-Learning for Offline Reinforcement Learning", eq. 4 and its Atari section).
+"Conservative Q-Learning for Offline Reinforcement Learning": its CQL(H) variant, run on Atari).
 
 The loss is the TD loss of the Q-learner plus ``alpha`` times the CQL(H) regulariser,
 
@@ -21,8 +21,10 @@ over the taken Q separately, exactly as here. What this file does differently, a
   the same maths: double DQN + Huber + alpha (logsumexp - Q(s, a_data))). The authors' QR-DQN
   target takes the target network's own argmax; ``double_q=False`` gives that target.
 - alpha = 1.0: ``minq_weight`` in the authors' released Atari configs (``quantile*.gin``) and
-  in their README's command for the 1% data; the paper tunes it per data size, and gives no
-  grid for Atari, so ``GRID`` holds RL Unplugged's learning-rate grid only.
+  in their README's command for the 1% data (the README says to adjust it for the 10% and
+  first-20M-samples data); no grid for Atari is published, so ``GRID`` holds RL Unplugged's
+  learning-rate grid only. alpha acts against the scale of Q: on a task with values below 1
+  it must be smaller (tests/agents/test_learning_discrete.py measures why).
 - The shared settings are RL Unplugged's Atari table (``discrete_common.AtariSettings``:
   batch 256, Adam epsilon 1e-7, hard target copies every 2500 updates, 2M updates, rewards
   clipped to [-1, 1]) rather than the authors' Dopamine settings (batch 32, Adam epsilon
