@@ -22,7 +22,7 @@ over the taken Q separately, exactly as here. What this file does differently, a
   target takes the target network's own argmax; ``double_q=False`` gives that target.
 - alpha = 1.0: ``minq_weight`` in the authors' released Atari configs (``quantile*.gin``) and
   in their README's command for the 1% data (the README says to adjust it for the 10% and
-  first-20M-samples data); no grid for Atari is published, so ``GRID`` holds RL Unplugged's
+  first-20M-samples data) but ships no grid, so ``GRID`` holds RL Unplugged's
   learning-rate grid only. alpha acts against the scale of Q: on a task with values below 1
   it must be smaller (tests/agents/test_learning_discrete.py measures why).
 - The shared settings are RL Unplugged's Atari table (``discrete_common.AtariSettings``:
