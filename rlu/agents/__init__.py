@@ -39,6 +39,7 @@ AGENTS: dict[tuple[str, bool], str] = {
     ("iqn", True): "rlu.agents.iqn",
     ("bcq", True): "rlu.agents.bcq_discrete",
     ("rem", True): "rlu.agents.rem",
+    ("cql", True): "rlu.agents.cql_discrete",
 }
 
 CONTINUOUS_AGENTS: tuple[str, ...] = tuple(n for n, d in AGENTS if not d)

@@ -13,7 +13,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from rlu.agents import bc_discrete, bcq_discrete, dqn, iqn, rem  # noqa: E402
+from rlu.agents import bc_discrete, bcq_discrete, cql_discrete, dqn, iqn, rem  # noqa: E402
 from rlu.agents import discrete_common as dc  # noqa: E402
 
 
@@ -66,6 +66,52 @@ def test_double_q_loss_end_to_end():
     # without double-Q, row 0 bootstraps from max target 8 -> y = 5, td 3 -> 2.5
     loss, _ = dqn.dqn_loss(lambda s: online[s], lambda s: target[s], batch, 0.5, 1.0, False)
     assert loss.item() == pytest.approx((2.5 + 1.5) / 2)
+
+
+def test_cql_penalty_is_logsumexp_minus_the_logged_q_and_pushes_on_every_action():
+    q = t([[1.0, 2.0], [1.0, 2.0], [0.0, math.log(3.0)]]).requires_grad_(True)
+    action = t([1, 0, 0], torch.int64)
+    penalty = cql_discrete.conservative_penalty(q, action)
+    # log(e + e^2) = 2 + log(1 + 1/e); rows: log(1 + 1/e), 1 + log(1 + 1/e); log(1 + 3) - 0
+    soft = math.log(1.0 + math.exp(-1.0))
+    assert penalty.item() == pytest.approx((soft + (1.0 + soft) + math.log(4.0)) / 3, rel=1e-6)
+    # d/dQ: (softmax(Q) - onehot(a_data)) / B -- down on every action by its soft-max weight,
+    # up on the logged one: no stop-gradient, no target network
+    penalty.backward()
+    p1 = 1.0 / (1.0 + math.exp(-1.0))  # softmax of [1, 2] at action 1
+    expected = [[1 - p1, p1 - 1], [(1 - p1) - 1, p1], [0.25 - 1, 0.75]]
+    np.testing.assert_allclose(q.grad.numpy(), np.array(expected) / 3, rtol=1e-6)
+
+
+def test_cql_loss_is_the_dqn_loss_plus_alpha_times_the_penalty():
+    online = t([[1.0, 2.0], [0.0, 4.0], [3.0, 1.0]])  # Q(s, a) for s = 0, 1, 2
+    target = t([[0.0, 0.0], [8.0, 6.0], [2.0, 10.0]])
+    batch = transition([0, 0], [1, 0], [1.0, -1.0], [1.0, 0.0], [1, 2])
+    loss, metrics = cql_discrete.cql_loss(
+        lambda s: online[s], lambda s: target[s], batch, 0.5, alpha=2.0
+    )
+    # TD part as in test_double_q_loss_end_to_end: 1.5. Penalty at s=0 (Q = [1, 2]): row 0 took
+    # action 1 -> log(1 + 1/e); row 1 took action 0 -> 1 + log(1 + 1/e).
+    penalty = math.log(1.0 + math.exp(-1.0)) + 0.5
+    assert metrics["critic/td_loss"].item() == pytest.approx(1.5)
+    assert metrics["critic/conservative_penalty"].item() == pytest.approx(penalty, rel=1e-6)
+    assert loss.item() == pytest.approx(1.5 + 2.0 * penalty, rel=1e-6)
+    assert metrics["critic/loss"].item() == pytest.approx(loss.item())
+    assert metrics["critic/target"].item() == pytest.approx(1.5)  # targets 4 and -1
+    # the authors' target (the target network's own argmax): row 0 bootstraps from 8 -> y = 5
+    _, m = cql_discrete.cql_loss(
+        lambda s: online[s], lambda s: target[s], batch, 0.5, alpha=2.0, double_q=False
+    )
+    assert m["critic/td_loss"].item() == pytest.approx((2.5 + 1.5) / 2)
+    # alpha 0 is DQN's loss, with either target
+    for double_q in (True, False):
+        zero, _ = cql_discrete.cql_loss(
+            lambda s: online[s], lambda s: target[s], batch, 0.5, 0.0, double_q=double_q
+        )
+        plain, _ = dqn.dqn_loss(
+            lambda s: online[s], lambda s: target[s], batch, 0.5, double_q=double_q
+        )
+        assert zero.item() == plain.item()
 
 
 def test_quantile_huber_loss():
