@@ -184,7 +184,7 @@ def d3rlpy_discrete_cql(c, seed: int):
         learning_rate=c.learning_rate,
         gamma=a.gamma,
         alpha=c.alpha,
-        target_update_interval=c.target_update_period,
+        target_update_interval=a.target_update_period,
         optim_factory=d3rlpy.optimizers.AdamFactory(eps=a.adam_eps),
         encoder_factory=PixelEncoderFactory(filters=filters, feature_size=a.hidden_size),
         observation_scaler=d3rlpy.preprocessing.PixelObservationScaler(),
@@ -306,7 +306,7 @@ def bench_discrete(args) -> None:
             f"  data: {ds.num_steps} steps, behaviour return {returns.mean():.3f} (majority action "
             f"'left' pays {check.LEFT_REWARD}, 'right' {check.RIGHT_REWARD})"
         )
-        overrides = {**check.COMMON, "target_update_period": 100, "atari.gamma": 0.9}
+        overrides = {**check.COMMON, "atari.target_update_period": 100, "atari.gamma": 0.9}
         for alpha in [] if args.speed_only else args.alphas:
             scores: dict[str, list[float]] = {"rlu": [], "d3rlpy": []}
             for seed in range(args.seeds):

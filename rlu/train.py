@@ -185,7 +185,6 @@ def train(
     obs_spec, action_spec = dataset_specs(ds)
     discrete = isinstance(action_spec, DiscreteSpec)
     agent_cfg = agent_config(config.agent, discrete, config.preset, config.overrides)
-    steps = int(agent_cfg.num_steps if config.steps is None else config.steps)
     env_kwargs = env_settings(config.task, ds, config.challenge)
     resolved = {
         "train": config.to_json(),
@@ -222,7 +221,8 @@ def train(
     module = agent_module(config.agent, discrete)
     agent = module.Agent(obs_spec, action_spec, agent_cfg, seed=config.seed)
     sampler = make_sampler(ds, agent.batch_spec, seed=config.seed)
-    total = int(agent.pretrain_steps) + steps  # a pre-training phase comes on top of the budget
+    steps = agent.num_steps if config.steps is None else int(config.steps)
+    total = agent.pretrain_steps + steps  # a pre-training phase comes on top of the budget
 
     start = 0
     if resume and ckpts:

@@ -217,15 +217,17 @@ class Agent(Protocol):
     batches ``update`` takes; ``act`` maps a batched observation (leading batch axis) to a batch
     of actions, and ``is_first`` (bool, one per row) marks rows whose episode starts at this
     observation, so recurrent agents restart their state there (others ignore it).
-    ``pretrain_steps`` counts updates of a pre-training phase (BRAC's behaviour model; 0 for most
-    agents) that the training loop runs before, and on top of, the learner steps of the config's
-    ``num_steps``. ``modules`` names every torch module the agent owns (targets included) and
-    ``state_dict()`` holds everything needed to resume bit for bit (plain tensors, numbers and
+    ``num_steps`` is the learner steps of a full run of its config (what ``rlu train`` runs
+    without --steps); ``pretrain_steps`` counts the updates of a pre-training phase (BRAC's
+    behaviour model; 0 for most agents) that the loop runs before, and on top of, them.
+    ``modules`` names every torch module the agent owns (targets included) and ``state_dict()``
+    holds everything needed to resume bit for bit (plain tensors, numbers and
     dicts: checkpoints load with ``weights_only=True``).
     """
 
     config: Any
     batch_spec: BatchSpec
+    num_steps: int
     pretrain_steps: int
     modules: Mapping[str, Any]
 

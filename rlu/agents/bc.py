@@ -82,6 +82,7 @@ class BCAgent:
         kind = "sequence" if config.recurrent else "transition"
         self.batch_spec = BatchSpec(config.batch_size, kind, sequence_length=config.sequence_length)
         self.pretrain_steps = 0
+        self.num_steps = config.num_steps
         act_seed = common.split_seed(seed, 1)[0]
         with common.seeded(seed):
             torso = nets.Torso(
@@ -118,12 +119,11 @@ class BCAgent:
         action = nets.mixture_sample(logits, mean, std, self.generators["act"], std_override=sd)
         return self.scaler.from_unit(action)
 
-    def state_dict(self) -> dict:
-        return common.agent_state(self.modules, self.optimizers, self.generators, self.step)
+    state_dict = common.state_dict
 
     def load_state_dict(self, state: dict) -> None:
-        self.step = common.load_agent_state(state, self.modules, self.optimizers, self.generators)
-        self._rollout_state = None
+        common.load_state_dict(self, state)
+        self._rollout_state = None  # acting restarts after a restore
 
 
 Agent = BCAgent

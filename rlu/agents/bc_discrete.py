@@ -32,8 +32,6 @@ class BCConfig:
     reward, discount or target network)."""
     learning_rate: float = 3e-5
     """Adam step size; the paper used 3e-5 for BC's offline policy selection."""
-    num_steps: int = dc.NUM_STEPS
-    """Learner steps of a full run: what ``rlu train`` runs when no --steps is given."""
 
 
 Config = BCConfig
@@ -55,24 +53,17 @@ def bc_loss(logits: torch.Tensor, action: torch.Tensor):
 
 class BCAgent:
     def __init__(self, observation_spec, action_spec, config: BCConfig, seed: int = 0) -> None:
-        shape, num_actions = dc.check_specs("bc", observation_spec, action_spec)
-        self.config = config
-        self.batch_spec = config.atari.batch_spec()
-        self.pretrain_steps = 0
-        parts = dc.build_parts(
-            seed, lambda: dc.QNetwork(shape, num_actions, config.atari), config.learning_rate,
-            config.atari, target=False,
+        dc.setup(
+            self, "bc", observation_spec, action_spec, config, seed,
+            lambda shape, n: dc.QNetwork(shape, n, config.atari),
+            target=False,
         )  # fmt: skip
-        self.network = parts.network
-        self.modules, self.optimizers, self.generators = parts[2:]
-        self.step = 0
 
     def update(self, batch: Transition) -> dict[str, float]:
         frames = dc.frames(batch.observation)
         action = common.to_torch(np.asarray(batch.action, np.int64))
         loss, metrics = bc_loss(self.network(frames), action)
-        common.sgd_step(self.optimizers["network"], loss)
-        self.step += 1
+        self.step = common.learn(self.optimizers["network"], loss, self.step)
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
@@ -83,11 +74,8 @@ class BCAgent:
         sample = torch.multinomial(logits.softmax(-1), 1, generator=self.generators["act"])
         return sample.squeeze(-1).numpy().astype(np.int64)
 
-    def state_dict(self) -> dict[str, Any]:
-        return common.agent_state(self.modules, self.optimizers, self.generators, self.step)
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.step = common.load_agent_state(state, self.modules, self.optimizers, self.generators)
+    state_dict = common.state_dict
+    load_state_dict = common.load_state_dict
 
 
 Agent = BCAgent

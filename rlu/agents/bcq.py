@@ -135,6 +135,7 @@ class BCQAgent:
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, gamma=config.gamma)
         self.pretrain_steps = 0
+        self.num_steps = config.num_steps
         self.generator = torch.Generator().manual_seed(seed)
         with common.seeded(seed):
             self.nets = BCQNets(observation_spec, self.scaler.dim, config)
@@ -206,11 +207,8 @@ class BCQAgent:
         best = q1.argmax(1) + torch.arange(q1.shape[0]) * reps
         return self.scaler.from_unit(a[best])
 
-    def state_dict(self) -> dict:
-        return common.agent_state(self.modules, self.optimizers, self.generators, self.step)
-
-    def load_state_dict(self, state: dict) -> None:
-        self.step = common.load_agent_state(state, self.modules, self.optimizers, self.generators)
+    state_dict = common.state_dict
+    load_state_dict = common.load_state_dict
 
 
 Agent = BCQAgent

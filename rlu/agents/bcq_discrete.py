@@ -38,23 +38,17 @@ class BCQConfig:
     """Settings shared by the Atari baselines (batch, discount, network, epsilons, budget)."""
     learning_rate: float = 1e-4
     """Adam step size; the paper's online policy selection picked 1e-4 for BCQ."""
-    num_steps: int = dc.NUM_STEPS
-    """Learner steps of a full run: what ``rlu train`` runs when no --steps is given."""
-    target_update_period: int = 2500
-    """Updates between hard copies of the online network into the target network."""
     threshold: float = 0.5
     """Allowed actions have pi(a|s) / max_a' pi(a'|s) >= threshold (paper: 0.5 of the grid)."""
     logit_penalty: float = 1e-2
     """Weight of the mean squared imitation logit in the loss (the authors' value)."""
-    huber_delta: float = 1.0
-    """Where the Huber loss turns linear."""
 
 
 Config = BCQConfig
 
 PRESETS: dict[str, BCQConfig] = {
     "paper": BCQConfig(),
-    "small": BCQConfig(**dc.SMALL_FIELDS, target_update_period=dc.SMALL_TARGET_UPDATE_PERIOD),
+    "small": BCQConfig(**dc.SMALL_FIELDS),
 }
 
 GRID: dict[str, list[Any]] = {
@@ -119,29 +113,18 @@ def bcq_loss(
 
 class BCQAgent:
     def __init__(self, observation_spec, action_spec, config: BCQConfig, seed: int = 0) -> None:
-        shape, num_actions = dc.check_specs("bcq", observation_spec, action_spec)
-        self.config = config
-        self.batch_spec = config.atari.batch_spec()
-        self.pretrain_steps = 0
-        parts = dc.build_parts(
-            seed, lambda: QAndPolicyNetwork(shape, num_actions, config.atari),
-            config.learning_rate, config.atari,
+        dc.setup(
+            self, "bcq", observation_spec, action_spec, config, seed,
+            lambda shape, n: QAndPolicyNetwork(shape, n, config.atari),
         )  # fmt: skip
-        self.network, self.target_network = parts.network, parts.target_network
-        self.modules, self.optimizers, self.generators = parts[2:]
-        self.step = 0
 
     def update(self, batch: Transition) -> dict[str, float]:
         c = self.config
         loss, metrics = bcq_loss(
             self.network, self.target_network, dc.to_torch(batch),
-            self.batch_spec.bootstrap_gamma, c.threshold, c.huber_delta, c.logit_penalty,
+            self.batch_spec.bootstrap_gamma, c.threshold, c.atari.huber_delta, c.logit_penalty,
         )  # fmt: skip
-        common.sgd_step(self.optimizers["network"], loss)
-        self.step += 1
-        common.periodic_update(
-            self.step, c.target_update_period, {self.target_network: self.network}
-        )
+        self.step = dc.learn(self, loss)
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
@@ -150,11 +133,8 @@ class BCQAgent:
         q = q.masked_fill(~bcq_action_mask(logits, self.config.threshold), float("-inf"))
         return dc.epsilon_greedy(q, dc.epsilon(self.config.atari, greedy), self.generators["act"])
 
-    def state_dict(self) -> dict[str, Any]:
-        return common.agent_state(self.modules, self.optimizers, self.generators, self.step)
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.step = common.load_agent_state(state, self.modules, self.optimizers, self.generators)
+    state_dict = common.state_dict
+    load_state_dict = common.load_state_dict
 
 
 Agent = BCQAgent

@@ -151,6 +151,7 @@ class BRACAgent:
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, gamma=config.gamma)
         self.pretrain_steps = config.behaviour_steps
+        self.num_steps = config.num_steps
         self.generator = torch.Generator().manual_seed(seed)
         a, th = self.scaler.dim, config.torso_hidden
         with common.seeded(seed):
@@ -216,11 +217,8 @@ class BRACAgent:
             return self.scaler.from_unit(torch.tanh(self.policy(obs)[0]))
         return self.scaler.from_unit(self.policy.sample(obs, 1, self.generator)[0][0])
 
-    def state_dict(self) -> dict:
-        return common.agent_state(self.modules, self.optimizers, self.generators, self.step)
-
-    def load_state_dict(self, state: dict) -> None:
-        self.step = common.load_agent_state(state, self.modules, self.optimizers, self.generators)
+    state_dict = common.state_dict
+    load_state_dict = common.load_state_dict
 
 
 Agent = BRACAgent

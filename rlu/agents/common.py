@@ -97,6 +97,21 @@ def periodic_update(step: int, period: int, targets: Mapping[nn.Module, nn.Modul
             hard_update(target, source)
 
 
+def learn(
+    optimizer: torch.optim.Optimizer,
+    loss: torch.Tensor,
+    step: int,
+    period: int = 0,
+    targets: Mapping[nn.Module, nn.Module] | None = None,
+) -> int:
+    """One gradient step, then the hard target copies that fall due at the new step (every
+    ``period`` steps, ``{target: source}``); returns the new step count."""
+    sgd_step(optimizer, loss)
+    step += 1
+    periodic_update(step, period, targets or {})
+    return step
+
+
 def agent_state(
     modules: Mapping[str, nn.Module],
     optimizers: Mapping[str, torch.optim.Optimizer],
@@ -126,6 +141,17 @@ def load_agent_state(
     for k, g in generators.items():
         g.set_state(state["generators"][k])
     return int(state["step"])
+
+
+def state_dict(agent: Any) -> dict[str, Any]:
+    """An agent's ``state_dict``, shared as a function (``state_dict = common.state_dict`` in the
+    class body): the checkpoint of its ``modules``, ``optimizers``, ``generators`` and ``step``."""
+    return agent_state(agent.modules, agent.optimizers, agent.generators, agent.step)
+
+
+def load_state_dict(agent: Any, state: Mapping[str, Any]) -> None:
+    """An agent's ``load_state_dict`` (``load_state_dict = common.load_state_dict``)."""
+    agent.step = load_agent_state(state, agent.modules, agent.optimizers, agent.generators)
 
 
 def metrics_to_floats(metrics: Metrics) -> dict[str, float]:

@@ -121,6 +121,7 @@ class D4PGAgent:
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, n_step=config.n_step, gamma=config.gamma)
         self.pretrain_steps = 0
+        self.num_steps = config.num_steps
         self.generator = torch.Generator().manual_seed(seed)
         with common.seeded(seed):
             self.policy = Policy(observation_spec, self.scaler.dim, config)
@@ -168,11 +169,8 @@ class D4PGAgent:
         # Deterministic policy: greedy or not, the action is pi(s) (offline, no exploration).
         return self.scaler.from_unit(self.policy(common.to_torch(observation)))
 
-    def state_dict(self) -> dict:
-        return common.agent_state(self.modules, self.optimizers, self.generators, self.step)
-
-    def load_state_dict(self, state: dict) -> None:
-        self.step = common.load_agent_state(state, self.modules, self.optimizers, self.generators)
+    state_dict = common.state_dict
+    load_state_dict = common.load_state_dict
 
 
 Agent = D4PGAgent

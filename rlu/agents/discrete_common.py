@@ -56,6 +56,12 @@ class AtariSettings:
     """Probability of a uniform action when acting greedily (the paper's evaluation epsilon)."""
     explore_epsilon: float = 0.01
     """Probability of a uniform action when acting with greedy=False (the online agent's)."""
+    target_update_period: int = 2500
+    """Updates between hard copies of the online network into the target network."""
+    huber_delta: float = 1.0
+    """Where the Huber loss of the TD error turns linear."""
+    num_steps: int = 2_000_000
+    """Learner steps of a full run (the table's 2M): what ``rlu train`` runs without --steps."""
     channels: tuple[int, ...] = (32, 64, 64)
     """Nature CNN output channels per convolution."""
     kernel_sizes: tuple[int, ...] = (8, 4, 3)
@@ -71,17 +77,18 @@ class AtariSettings:
         )
 
 
-NUM_STEPS = 2_000_000
-"""Learner steps of a paper run (the table's "2M learning steps")."""
-
-SMALL = AtariSettings(batch_size=32, channels=(16, 32, 32), hidden_size=128)
-"""The ``small`` presets' shared settings: a narrower Nature CNN and batch 32."""
-
-SMALL_FIELDS: dict[str, Any] = {"atari": SMALL, "learning_rate": 1e-4, "num_steps": 20_000}
-"""Every discrete ``small`` preset: the settings above, Adam 1e-4 and 20k learner steps
+SMALL = AtariSettings(
+    batch_size=32,
+    channels=(16, 32, 32),
+    hidden_size=128,
+    target_update_period=200,  # the paper's 2500 is 1/800 of its run; 200 is 1/100 of 20k
+    num_steps=20_000,
+)
+"""The ``small`` presets' shared settings: a narrower Nature CNN, batch 32, 20k learner steps
 (minutes on a 2-core CPU)."""
-SMALL_TARGET_UPDATE_PERIOD = 200
-"""Hard target copies every 200 updates at small scale (the paper's 2500 is 1/800 of its run)."""
+
+SMALL_FIELDS: dict[str, Any] = {"atari": SMALL, "learning_rate": 1e-4}
+"""Every discrete ``small`` preset: the settings above and Adam 1e-4."""
 
 
 # ----------------------------------------------------------------------------- specs and batches
@@ -201,39 +208,40 @@ class QNetwork(nn.Module):
         return out.view(-1, self.num_heads, self.num_actions)
 
 
-class Parts(NamedTuple):
-    """What a discrete agent owns: its network and target copy (``target=False``: none), one
-    Adam, and its generators ('learner' for the loss's draws, 'act' for acting)."""
-
-    network: nn.Module
-    target_network: nn.Module | None
-    modules: dict[str, nn.Module]
-    optimizers: dict[str, torch.optim.Optimizer]
-    generators: dict[str, torch.Generator]
-
-
-def build_parts(
+def setup(
+    agent: Any,
+    name: str,
+    observation_spec: Any,
+    action_spec: Any,
+    config: Any,
     seed: int,
-    build: Callable[[], nn.Module],
-    learning_rate: float,
-    settings: AtariSettings,
+    build: Callable[[tuple[int, ...], int], nn.Module],
     target: bool = True,
-) -> Parts:
-    """``build()`` under the agent's initialisation seed, plus its target copy, Adam (TF2's
-    epsilon) and generators; seeds are split from ``seed`` as (init, learner, act)."""
+) -> None:
+    """Give a discrete agent what every discrete agent owns, as attributes: ``config``,
+    ``batch_spec`` (from ``config.atari``), ``num_steps``, ``pretrain_steps`` (0), ``step`` (0),
+    ``network`` = ``build(frame shape, number of actions)`` made under the agent's
+    initialisation seed, ``target_network`` (its frozen copy, or None with ``target=False``),
+    ``modules``, ``optimizers`` (one Adam with TF2's epsilon, ``config.learning_rate``) and
+    ``generators`` ('learner' for the loss's draws, 'act' for acting). Seeds are split from
+    ``seed`` as (init, learner, act). The agent's own file holds its loss, update and act."""
+    shape, num_actions = check_specs(name, observation_spec, action_spec)
+    settings: AtariSettings = config.atari
     init_seed, learner_seed, act_seed = common.split_seed(seed, 3)
     with common.seeded(init_seed):
-        network = build()
-    modules = {"network": network}
-    target_network = None
+        network = build(shape, num_actions)
+    agent.config, agent.batch_spec = config, settings.batch_spec()
+    agent.num_steps, agent.pretrain_steps, agent.step = settings.num_steps, 0, 0
+    agent.network, agent.modules = network, {"network": network}
+    agent.target_network = None
     if target:
-        target_network = modules["target_network"] = common.frozen_copy(network)
-    optimizer = common.adam(network.parameters(), learning_rate, settings.adam_eps)
-    generators = {
+        agent.target_network = agent.modules["target_network"] = common.frozen_copy(network)
+    optimizer = common.adam(network.parameters(), config.learning_rate, settings.adam_eps)
+    agent.optimizers = {"network": optimizer}
+    agent.generators = {
         "learner": torch.Generator().manual_seed(learner_seed),
         "act": torch.Generator().manual_seed(act_seed),
     }
-    return Parts(network, target_network, modules, {"network": optimizer}, generators)
 
 
 # ----------------------------------------------------------------------------- pure maths
@@ -276,6 +284,18 @@ def epsilon_greedy(scores: torch.Tensor, epsilon: float, generator: torch.Genera
     explore = torch.rand(batch, generator=generator) < epsilon
     uniform = torch.randint(num_actions, (batch,), generator=generator)
     return torch.where(explore, uniform, scores.argmax(-1)).numpy().astype(np.int64)
+
+
+def learn(agent: Any, loss: torch.Tensor) -> int:
+    """A discrete agent's gradient step: Adam on ``agent.network``, then the hard copy into
+    ``agent.target_network`` that falls due (``atari.target_update_period``); the new step."""
+    return common.learn(
+        agent.optimizers["network"],
+        loss,
+        agent.step,
+        agent.config.atari.target_update_period,
+        {agent.target_network: agent.network},
+    )
 
 
 def epsilon(settings: AtariSettings, greedy: bool) -> float:

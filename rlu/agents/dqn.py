@@ -31,21 +31,15 @@ class DQNConfig:
     """Settings shared by the Atari baselines (batch, discount, network, epsilons, budget)."""
     learning_rate: float = 3e-5
     """Adam step size; the paper's online policy selection picked 3e-5 for offline DQN."""
-    num_steps: int = dc.NUM_STEPS
-    """Learner steps of a full run: what ``rlu train`` runs when no --steps is given."""
-    target_update_period: int = 2500
-    """Updates between hard copies of the online network into the target network."""
     double_q: bool = True
     """Select the next action with the online network (double DQN), as the paper's offline DQN."""
-    huber_delta: float = 1.0
-    """Where the Huber loss turns linear."""
 
 
 Config = DQNConfig
 
 PRESETS: dict[str, DQNConfig] = {
     "paper": DQNConfig(),
-    "small": DQNConfig(**dc.SMALL_FIELDS, target_update_period=dc.SMALL_TARGET_UPDATE_PERIOD),
+    "small": DQNConfig(**dc.SMALL_FIELDS),
 }
 
 GRID: dict[str, list[Any]] = {"learning_rate": list(dc.LEARNING_RATE_GRID)}
@@ -70,29 +64,18 @@ def dqn_loss(network, target_network, batch: dc.TorchTransition, gamma: float,
 
 class DQNAgent:
     def __init__(self, observation_spec, action_spec, config: DQNConfig, seed: int = 0) -> None:
-        shape, num_actions = dc.check_specs("dqn", observation_spec, action_spec)
-        self.config = config
-        self.batch_spec = config.atari.batch_spec()
-        self.pretrain_steps = 0
-        parts = dc.build_parts(
-            seed, lambda: dc.QNetwork(shape, num_actions, config.atari), config.learning_rate,
-            config.atari,
+        dc.setup(
+            self, "dqn", observation_spec, action_spec, config, seed,
+            lambda shape, n: dc.QNetwork(shape, n, config.atari),
         )  # fmt: skip
-        self.network, self.target_network = parts.network, parts.target_network
-        self.modules, self.optimizers, self.generators = parts[2:]
-        self.step = 0
 
     def update(self, batch: Transition) -> dict[str, float]:
         c = self.config
         loss, metrics = dqn_loss(
             self.network, self.target_network, dc.to_torch(batch),
-            self.batch_spec.bootstrap_gamma, c.huber_delta, c.double_q,
+            self.batch_spec.bootstrap_gamma, c.atari.huber_delta, c.double_q,
         )  # fmt: skip
-        common.sgd_step(self.optimizers["network"], loss)
-        self.step += 1
-        common.periodic_update(
-            self.step, c.target_update_period, {self.target_network: self.network}
-        )
+        self.step = dc.learn(self, loss)
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
@@ -100,11 +83,8 @@ class DQNAgent:
         q = self.network(dc.frames(observation))
         return dc.epsilon_greedy(q, dc.epsilon(self.config.atari, greedy), self.generators["act"])
 
-    def state_dict(self) -> dict[str, Any]:
-        return common.agent_state(self.modules, self.optimizers, self.generators, self.step)
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.step = common.load_agent_state(state, self.modules, self.optimizers, self.generators)
+    state_dict = common.state_dict
+    load_state_dict = common.load_state_dict
 
 
 Agent = DQNAgent

@@ -38,10 +38,6 @@ class IQNConfig:
     """Settings shared by the Atari baselines (batch, discount, network, epsilons, budget)."""
     learning_rate: float = 1e-4
     """Adam step size; the paper's online policy selection picked 1e-4 for IQN."""
-    num_steps: int = dc.NUM_STEPS
-    """Learner steps of a full run: what ``rlu train`` runs when no --steps is given."""
-    target_update_period: int = 2500
-    """Updates between hard copies of the online network into the target network."""
     num_tau_samples: int = 16
     """Quantile fractions drawn per transition, for the online (N) and the target (N') side."""
     num_quantile_samples: int = 32
@@ -60,7 +56,6 @@ PRESETS: dict[str, IQNConfig] = {
     "paper": IQNConfig(),
     "small": IQNConfig(
         **dc.SMALL_FIELDS,
-        target_update_period=dc.SMALL_TARGET_UPDATE_PERIOD,
         num_tau_samples=8,
         num_quantile_samples=8,
         embedding_size=32,
@@ -145,18 +140,10 @@ def iqn_loss(network, target_network, batch: dc.TorchTransition, gamma: float,
 
 class IQNAgent:
     def __init__(self, observation_spec, action_spec, config: IQNConfig, seed: int = 0) -> None:
-        shape, num_actions = dc.check_specs("iqn", observation_spec, action_spec)
-        self.config = config
-        self.batch_spec = config.atari.batch_spec()
-        self.pretrain_steps = 0
-
-        def build() -> ImplicitQuantileNetwork:
-            return ImplicitQuantileNetwork(shape, num_actions, config.atari, config.embedding_size)
-
-        parts = dc.build_parts(seed, build, config.learning_rate, config.atari)
-        self.network, self.target_network = parts.network, parts.target_network
-        self.modules, self.optimizers, self.generators = parts[2:]
-        self.step = 0
+        dc.setup(
+            self, "iqn", observation_spec, action_spec, config, seed,
+            lambda shape, n: ImplicitQuantileNetwork(shape, n, config.atari, config.embedding_size),
+        )  # fmt: skip
 
     def update(self, batch: Transition) -> dict[str, float]:
         c = self.config
@@ -165,11 +152,7 @@ class IQNAgent:
             self.batch_spec.bootstrap_gamma, self.generators["learner"],
             c.num_tau_samples, c.num_tau_samples, c.kappa, c.double_q,
         )  # fmt: skip
-        common.sgd_step(self.optimizers["network"], loss)
-        self.step += 1
-        common.periodic_update(
-            self.step, c.target_update_period, {self.target_network: self.network}
-        )
+        self.step = dc.learn(self, loss)
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
@@ -179,11 +162,8 @@ class IQNAgent:
         q = self.network(frames, taus).mean(1)
         return dc.epsilon_greedy(q, dc.epsilon(self.config.atari, greedy), generator)
 
-    def state_dict(self) -> dict[str, Any]:
-        return common.agent_state(self.modules, self.optimizers, self.generators, self.step)
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.step = common.load_agent_state(state, self.modules, self.optimizers, self.generators)
+    state_dict = common.state_dict
+    load_state_dict = common.load_state_dict
 
 
 Agent = IQNAgent

@@ -175,6 +175,7 @@ class RABMAgent:
         self.config = config
         self.scaler = nets.ActionScaler(action_spec)
         self.pretrain_steps = 0
+        self.num_steps = config.num_steps
         if config.recurrent:  # windows train on 1-step targets inside them
             self.batch_spec = BatchSpec(
                 config.batch_size, "sequence", sequence_length=config.sequence_length,
@@ -291,12 +292,11 @@ class RABMAgent:
         noise = torch.randn(mean.shape, generator=self.generators["act"])
         return self.scaler.from_unit(mean + std * noise)
 
-    def state_dict(self) -> dict:
-        return common.agent_state(self.modules, self.optimizers, self.generators, self.step)
+    state_dict = common.state_dict
 
     def load_state_dict(self, state: dict) -> None:
-        self.step = common.load_agent_state(state, self.modules, self.optimizers, self.generators)
-        self._rollout_state = None
+        common.load_state_dict(self, state)
+        self._rollout_state = None  # acting restarts after a restore
 
 
 class _Prepared:

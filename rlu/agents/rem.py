@@ -33,21 +33,15 @@ class REMConfig:
     """Settings shared by the Atari baselines (batch, discount, network, epsilons, budget)."""
     learning_rate: float = 1e-4
     """Adam step size; the paper's online policy selection picked 1e-4 for REM."""
-    num_steps: int = dc.NUM_STEPS
-    """Learner steps of a full run: what ``rlu train`` runs when no --steps is given."""
-    target_update_period: int = 2500
-    """Updates between hard copies of the online network into the target network."""
     num_heads: int = 4
     """Q-value heads mixed by a random convex combination (the paper uses 4)."""
-    huber_delta: float = 1.0
-    """Where the Huber loss turns linear."""
 
 
 Config = REMConfig
 
 PRESETS: dict[str, REMConfig] = {
     "paper": REMConfig(),
-    "small": REMConfig(**dc.SMALL_FIELDS, target_update_period=dc.SMALL_TARGET_UPDATE_PERIOD),
+    "small": REMConfig(**dc.SMALL_FIELDS),
 }
 
 GRID: dict[str, list[Any]] = {"learning_rate": list(dc.LEARNING_RATE_GRID)}
@@ -74,30 +68,19 @@ def rem_loss(network, target_network, batch: dc.TorchTransition, gamma: float,
 
 class REMAgent:
     def __init__(self, observation_spec, action_spec, config: REMConfig, seed: int = 0) -> None:
-        shape, num_actions = dc.check_specs("rem", observation_spec, action_spec)
-        self.config = config
-        self.batch_spec = config.atari.batch_spec()
-        self.pretrain_steps = 0
-        parts = dc.build_parts(
-            seed, lambda: dc.QNetwork(shape, num_actions, config.atari, config.num_heads),
-            config.learning_rate, config.atari,
+        dc.setup(
+            self, "rem", observation_spec, action_spec, config, seed,
+            lambda shape, n: dc.QNetwork(shape, n, config.atari, config.num_heads),
         )  # fmt: skip
-        self.network, self.target_network = parts.network, parts.target_network
-        self.modules, self.optimizers, self.generators = parts[2:]
-        self.step = 0
 
     def update(self, batch: Transition) -> dict[str, float]:
         c = self.config
         alpha = random_convex_weights(c.num_heads, self.generators["learner"])
         loss, metrics = rem_loss(
             self.network, self.target_network, dc.to_torch(batch),
-            self.batch_spec.bootstrap_gamma, alpha, c.huber_delta,
+            self.batch_spec.bootstrap_gamma, alpha, c.atari.huber_delta,
         )  # fmt: skip
-        common.sgd_step(self.optimizers["network"], loss)
-        self.step += 1
-        common.periodic_update(
-            self.step, c.target_update_period, {self.target_network: self.network}
-        )
+        self.step = dc.learn(self, loss)
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
@@ -105,11 +88,8 @@ class REMAgent:
         q = self.network(dc.frames(observation)).mean(1)
         return dc.epsilon_greedy(q, dc.epsilon(self.config.atari, greedy), self.generators["act"])
 
-    def state_dict(self) -> dict[str, Any]:
-        return common.agent_state(self.modules, self.optimizers, self.generators, self.step)
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.step = common.load_agent_state(state, self.modules, self.optimizers, self.generators)
+    state_dict = common.state_dict
+    load_state_dict = common.load_state_dict
 
 
 Agent = REMAgent

@@ -31,11 +31,11 @@ def test_paper_preset_is_the_benchmark_table_with_the_authors_alpha_and_step_siz
     assert config.atari == dc.AtariSettings()
     assert config.alpha == 1.0 and config.learning_rate == 5e-5
     assert config.learning_rate in dc.LEARNING_RATE_GRID
-    assert config.double_q is True and config.target_update_period == 2500
+    assert config.double_q is True and config.atari.target_update_period == 2500
     assert agent_module("cql", True).GRID == {"learning_rate": [3e-5, 5e-5, 1e-4]}
     small = make_config("cql", True, "small")
     assert small.atari == dc.SMALL and small.alpha == 1.0
-    assert small.target_update_period == dc.SMALL_TARGET_UPDATE_PERIOD
+    assert small.atari.target_update_period == dc.SMALL.target_update_period
 
 
 def test_alpha_zero_trains_exactly_like_dqn():

@@ -143,7 +143,7 @@ def test_offline_rl_beats_bc_where_the_data_rewards_it(dataset, one_thread):
     for name in ("bc", "dqn", "bcq", "rem", "iqn", "cql"):
         overrides = dict(COMMON)
         if name != "bc":
-            overrides.update({"target_update_period": 100, "atari.gamma": 0.9})
+            overrides.update({"atari.target_update_period": 100, "atari.gamma": 0.9})
         if name == "cql":
             overrides["alpha"] = 0.1  # see the module docstring
         agent = make_agent(name, OBS, ACTION, "small", seed=0, **overrides)

@@ -37,10 +37,10 @@ def test_atari_table_is_every_discrete_paper_preset():
         assert atari.hidden_size == 512 and atari.batch_size == 256 and atari.adam_eps == 1e-7
         assert atari.gamma == 0.99 and atari.reward_clip == 1.0
         assert atari.eval_epsilon == pytest.approx(0.4**8)
-        assert config.num_steps == 2_000_000
+        assert atari.num_steps == 2_000_000
         assert agent_module(name, True).GRID["learning_rate"] == [3e-5, 5e-5, 1e-4]
         if name != "bc":
-            assert config.target_update_period == 2500
+            assert config.atari.target_update_period == 2500
 
 
 def test_paper_presets_name_the_paper_choices():
@@ -105,7 +105,7 @@ def test_greedy_means_what_the_docstrings_say():
 
 
 def test_hard_target_updates_follow_the_period():
-    dqn = make_agent("dqn", ATARI_OBS, ATARI_ACTION, **TINY, target_update_period=2)
+    dqn = make_agent("dqn", ATARI_OBS, ATARI_ACTION, **TINY, **{"atari.target_update_period": 2})
     batch = fake_transition(ATARI_OBS, ATARI_ACTION, batch=6)
 
     def same() -> bool:

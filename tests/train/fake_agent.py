@@ -46,6 +46,7 @@ class Agent:
         self.config, self.spec = config, action_spec
         self.batch_spec = BatchSpec(config.batch_size)
         self.pretrain_steps = 0
+        self.num_steps = config.num_steps
         obs_dim = sum(s.size for s in observation_spec.values())
         act_dim = action_spec.size
         self.gen = torch.Generator().manual_seed(seed)
