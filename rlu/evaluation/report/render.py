@@ -102,15 +102,16 @@ def _wrap(text: str, width_in: float, fontsize: float) -> str:
     return textwrap.fill(text, max(12, int(width_in * 72 / (fontsize * 0.6))))
 
 
-def _legend_below(fig: Any, axes: Sequence[Any]) -> None:
-    """One legend for every axis, outside the axes, below them."""
+def _legend_below(fig: Any, axes: Sequence[Any], ncol: int = 3) -> None:
+    """One legend for every axis, outside the axes, below them, at most ``ncol`` entries a
+    row."""
     legend: dict[str, Any] = {}
     for ax in axes:
         for h, label in zip(*ax.get_legend_handles_labels(), strict=True):
             legend.setdefault(label, h)
     if legend:
         fig.legend(list(legend.values()), list(legend), loc="outside lower center",
-                   ncol=min(len(legend), 3), fontsize=7, frameon=False)  # fmt: skip
+                   ncol=min(len(legend), ncol), fontsize=7, frameon=False)  # fmt: skip
 
 
 def _agent_colors(agents: Sequence[str], plt: Any) -> dict[str, str]:
@@ -297,7 +298,7 @@ def sensitivity_figure(panel: Mapping[str, Any], title: str, plt: Any) -> Any:
     ax.tick_params(axis="y", labelsize=7)
     sub = f"online policy selection, {len(panel['games'])} of {panel['of']} tuning games"
     fig.suptitle(_wrap(f"{title} ({sub})", width, 10), fontsize=10)
-    _legend_below(fig, [ax])
+    _legend_below(fig, [ax], ncol=1)  # two long entries side by side overrun a narrow figure
     return fig
 
 
