@@ -4,7 +4,13 @@ Markdown and HTML through Jinja2 templates (``templates/``), and PNG figures thr
 Each panel of the numbers has one renderer in ``RENDERERS``: ``renderer(dom, domain, figures)``
 returns the panel's blocks, ``Text``, ``Table`` and ``Image``, which both templates lay out
 (Markdown tables, HTML tables); ``figures`` is None when no PNG is wanted, else it draws and
-saves the panel's figures. A panel without a renderer is in report.json only.
+saves the panel's figures. A panel without a renderer is in report.json only; a panel the
+numbers left out (``dom["absent"]``) is one line naming it (``TITLES``) and why.
+
+The paper's figures: ``tasks_figure`` (control suite / locomotion per-task bars, online tasks
+above offline ones), ``atari_median_figure`` (two panels, online and naive offline selection),
+``atari_per_game_figure`` (one row per agent) and ``sensitivity_figure`` (IQN tau, BCQ
+threshold).
 
 Figures use matplotlib's constrained layout with the legend outside the axes, below them, and
 titles wrapped to the figure's width: the title of a one-task figure used to run past both
