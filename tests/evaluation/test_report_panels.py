@@ -372,6 +372,41 @@ def test_several_sweeps_in_one_report(tmp_path, capsys):
     assert not (tmp_path / "r3").exists() and not (tmp_path / "r2").exists()
 
 
+def test_rwrl_challenges_are_reported_apart(tmp_path):
+    """RWRL results evaluated under the easy challenge are their own row, as the paper's RWRL
+    results are; the same task's ``none`` results stay under the plain task."""
+    none = [
+        {
+            **rec("rwrl/walker_walk", "bc", "default", s, 500.0 + s),
+            "env_settings": {"challenge": "none"},
+        }
+        for s in (0, 1)
+    ]
+    easy = [
+        {
+            **rec("rwrl/walker_walk", "bc", "default", s, 100.0 + s),
+            "env_settings": {"challenge": "easy"},
+        }
+        for s in (0, 1)
+    ]
+    from rlu.data import Schema
+    from rlu.data.synthetic import write_synthetic
+    from rlu.tasks import get_task
+
+    schema = Schema.for_task(get_task("rwrl/walker_walk"))
+    data = {c: str(write_synthetic(tmp_path / f"data_{c}", schema, 2, 5)) for c in ("none", "easy")}
+    a = _sweep(tmp_path / "none", none, {"rwrl/walker_walk": data["none"]})
+    b = _sweep(tmp_path / "easy", easy, {"rwrl/walker_walk": data["easy"]})
+    write_report([a, b], tmp_path / "r", *REFS, figures=False)
+    rep = json.loads((tmp_path / "r" / "report.json").read_text())
+    rwrl = rep["domains"]["rwrl"]
+    assert rwrl["tasks"] == ["rwrl/walker_walk", "rwrl/walker_walk:easy"]
+    means = {row["task"]: row["cells"]["bc"]["mean"] for row in rwrl["online"]["rows"]}
+    assert means == {"rwrl/walker_walk": 500.5, "rwrl/walker_walk:easy": 100.5}
+    assert set(rwrl["dataset_p90"]) == set(means)  # each challenge with its own dataset
+    assert "| rwrl/walker_walk:easy |" in (tmp_path / "r" / "report.md").read_text()
+
+
 # --- rlu report over real sweeps ---------------------------------------------------------------
 @pytest.mark.slow
 def test_rlu_report_renders_every_panel_of_real_sweeps(tmp_path, capsys):

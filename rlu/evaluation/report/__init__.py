@@ -15,7 +15,9 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from rlu import runs
 from rlu.evaluation.report.numbers import (
+    CHALLENGE_MARK,
     PANELS,
     Absent,
     DomainContext,
@@ -23,6 +25,7 @@ from rlu.evaluation.report.numbers import (
     dataset_percentile,
     load_paper_results,
     paper_entry,
+    report_key,
     task_info,
 )
 from rlu.types import RluError
@@ -87,29 +90,33 @@ def _read_sweeps(
     selections: list[dict[str, Any]] = []
     any_datasets = any_fqe = False
     for d in dirs:
-        results = d / "results.jsonl"
-        if not results.exists():
-            raise RluError(f"{results} is missing; run the sweep first (rlu sweep ... --out {d})")
-        for r in (json.loads(x) for x in results.read_text().splitlines() if x.strip()):
+        results = d / runs.RESULTS
+        cfg = d / runs.SWEEP_CONFIG
+        sweep_datasets = runs.load_sweep_config(d)["datasets"] if cfg.exists() else {}
+        any_datasets = any_datasets or cfg.exists()
+        for r in runs.load_results(d):
+            # RWRL results under a challenge are their own task (report_key), as in the paper
+            r = {**r, "task": report_key(r)}
             key = (r["task"], r["agent"], r["config"], int(r["seed"]))
             if key in seen:
                 raise RluError(
-                    f"{results}: run {key} is also in {seen[key] / 'results.jsonl'}; report "
+                    f"{results}: run {key} is also in {seen[key] / runs.RESULTS}; report "
                     "sweeps that do not overlap, or one of them"
                 )
             seen[key] = d
             records.append(r)
-        cfg = d / "sweep.json"
-        if cfg.exists():
-            any_datasets = True
-            for task, path in (json.loads(cfg.read_text()).get("datasets") or {}).items():
-                if task in datasets and datasets[task] != path:
-                    raise RluError(
-                        f"{cfg}: task {task} has dataset {path}, but {where[task] / 'sweep.json'} "
-                        f"has {datasets[task]}; report sweeps of one dataset per task"
-                    )
-                datasets[task], where[task] = path, d
-        fqe_path = d / "fqe.json"
+            path = sweep_datasets.get(key[0].partition(CHALLENGE_MARK)[0])
+            if path is None:
+                continue
+            task = key[0]
+            if task in datasets and datasets[task] != path:
+                raise RluError(
+                    f"{cfg}: task {task} has dataset {path}, but "
+                    f"{where[task] / runs.SWEEP_CONFIG} has {datasets[task]}; report sweeps of "
+                    "one dataset per task"
+                )
+            datasets[task], where[task] = path, d
+        fqe_path = d / runs.FQE
         if fqe_path.exists():
             any_fqe = True
             selections += json.loads(fqe_path.read_text()).get("selections", [])

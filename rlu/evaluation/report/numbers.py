@@ -72,17 +72,31 @@ def _key(name: str) -> str:
     return _PAPER_ALIASES.get(k, k)
 
 
+CHALLENGE_MARK = ":"
+"""An RWRL result under a challenge other than ``none`` is reported under ``<task id>:<challenge>``
+(``rwrl/walker_walk:easy``), apart from the same task's ``none`` results, as the paper's RWRL
+results are."""
+
+
+def report_key(record: Mapping[str, Any]) -> str:
+    """The task a result is reported under: its task id, with the RWRL challenge it was
+    evaluated in when that is not ``none``."""
+    challenge = record.get("env_settings", {}).get("challenge", "none")
+    return record["task"] if challenge == "none" else f"{record['task']}{CHALLENGE_MARK}{challenge}"
+
+
 def task_info(task_id: str) -> tuple[str, str, str]:
-    """(domain, selection, display name) of a task id."""
+    """(domain, selection, display name) of a task id (or of a ``report_key``)."""
     from rlu.tasks import get_task
 
+    base, _, challenge = task_id.partition(CHALLENGE_MARK)
     try:
-        t = get_task(task_id)
+        t = get_task(base)
     except RluError:
         return "other", "online", task_id
-    if t.id != task_id:  # a bare name that get_task resolved; report it under its own id
+    if t.id != base:  # a bare name that get_task resolved; report it under its own id
         return "other", "online", task_id
-    return t.domain, t.selection, t.name
+    return t.domain, t.selection, t.name + (f" ({challenge} challenge)" if challenge else "")
 
 
 def load_paper_results() -> dict[str, Any]:
