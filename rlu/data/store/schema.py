@@ -334,6 +334,36 @@ def segment_columns(schema: Schema, seg: Segment) -> dict[str, np.ndarray]:
     return cols
 
 
+def action_problem(spec: ActionSpec, action: np.ndarray) -> tuple[int, str] | None:
+    """(first row, why) of ``action`` rows outside the action space, or None.
+
+    Discrete actions must be whole numbers in [0, num_values); bounded ones lie in
+    [minimum, maximum] up to float32 rounding (1e-6 relative).
+    """
+    a = np.asarray(action)
+    if not a.size:
+        return None
+    flat = a.reshape(len(a), -1)
+    if isinstance(spec, DiscreteSpec):
+        bad = (flat < 0) | (flat >= spec.num_values)
+        if a.dtype.kind == "f":
+            bad |= ~(np.isfinite(flat) & (flat == np.round(flat)))
+        want = f"whole numbers in [0, {spec.num_values})"
+    elif isinstance(spec, BoundedSpec):
+        lo, hi = spec.minimum, spec.maximum
+        tol_lo, tol_hi = 1e-6 * max(1.0, abs(lo)), 1e-6 * max(1.0, abs(hi))
+        with np.errstate(invalid="ignore"):
+            bad = ~((flat >= lo - tol_lo) & (flat <= hi + tol_hi))  # NaN is outside too
+        want = f"values in [{lo:g}, {hi:g}]"
+    else:
+        return None
+    rows = np.flatnonzero(np.any(bad, axis=1))
+    if not rows.size:
+        return None
+    i = int(rows[0])
+    return i, f"action {a[i].tolist()} is outside the action space ({want})"
+
+
 def check_cast(name: str, have: Any, want: str) -> None:
     """Values of dtype ``have`` may be stored in a ``want`` column (no complex -> float, float ->
     int or bool, ...)."""
