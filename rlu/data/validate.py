@@ -23,7 +23,7 @@ from rlu.data.store import (
     verify_checksums,
 )
 from rlu.data.store.schema import action_problem
-from rlu.types import RluError, observation_spec_to_json
+from rlu.types import BoundedSpec, RluError, observation_spec_to_json
 
 _CHUNK = 1 << 20  # steps per chunk when scanning columns
 
@@ -33,6 +33,8 @@ class Report:
     path: Path
     problems: list[str] = field(default_factory=list)
     checked: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    """Facts worth knowing that are not problems (release data as recorded)."""
 
     @property
     def ok(self) -> bool:
@@ -163,17 +165,33 @@ def _check_flags(ds: Dataset, report: Report) -> None:
 
 
 def _check_actions(ds: Dataset, report: Report) -> None:
-    """Every action that is taken (not a final step's placeholder) lies in the action space."""
+    """Every action that is taken (not a final step's placeholder) lies in the action space.
+
+    One exception: continuous actions of data converted from the original release are kept as
+    recorded, and the environments clip them (MuJoCo clamps controls to their range); those
+    outside the bounds are noted, not failed. Discrete actions out of range always fail (an
+    agent would index past its Q-values).
+    """
     action = ds.column("action")
     last = np.asarray(ds.column("is_last"))
+    as_recorded = (
+        isinstance(ds.schema.action, BoundedSpec)
+        and ds.manifest["provenance"].get("source") == "rl_unplugged release"
+    )
+    noted = False
     for a in range(0, len(action), _CHUNK):
         block = np.asarray(action[a : a + _CHUNK])
         live = np.flatnonzero(~last[a : a + _CHUNK])
         bad = action_problem(ds.schema.action, block[live])
-        if bad is not None:
-            step = a + int(live[bad[0]])
-            report.add(f"{ds.path / 'steps/action.bin'}: step {step}: {bad[1]}")
+        if bad is None:
+            continue
+        msg = f"{ds.path / 'steps/action.bin'}: step {a + int(live[bad[0]])}: {bad[1]}"
+        if not (as_recorded and np.isfinite(block[live]).all()):
+            report.add(msg)
             return
+        if not noted:
+            report.notes.append(f"{msg} (as recorded in the release; the env clips actions)")
+            noted = True
     report.checked.append("actions inside the action space")
 
 

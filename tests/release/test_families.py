@@ -32,8 +32,8 @@ def atari_record(rng, d_t=1.0, episode_id=5):
     return {
         "o_t": np.moveaxis(frames[:4], 0, -1),
         "o_tp1": np.moveaxis(frames[1:], 0, -1),
-        "a_t": np.int32(rng.integers(0, 18)),
-        "a_tp1": np.int32(rng.integers(0, 18)),
+        "a_t": np.int32(rng.integers(0, 6)),
+        "a_tp1": np.int32(rng.integers(0, 6)),
         "r_t": np.float32(rng.choice([-1, 0, 1])),
         "d_t": np.float32(d_t),
         "episode_id": np.uint64(episode_id),
@@ -62,7 +62,7 @@ def rwrl_record(rng, t=1001, last_discount=1.0, easy=False):
     rec = {
         "observation:position": _f32(rng, t, 3),
         "observation:velocity": _f32(rng, t, 2),
-        "action": _f32(rng, t, 1),
+        "action": rng.uniform(-1, 1, (t, 1)).astype(np.float32),
         "reward": _f32(rng, t, 1),
         "discount": np.ones((t, 1), np.float32),
     }
