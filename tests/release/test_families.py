@@ -208,6 +208,11 @@ def test_rule_episode_files_rsa(tmp_path):
     assert s.is_terminal[-1]
     assert s.metadata["episode_id"] == 2**64 - 1
     assert s.metadata["episode_return"] == pytest.approx(float(rec["reward"][1:].sum()))
+    # a time-limit end (last discount 1): TFDS appends discount 1, and the episode is not terminal
+    rec = window_record(rng, 5, {"position": 3}, discount=[1, 1, 1, 1, 1])
+    (tmp_path / "limit").mkdir()
+    (s,) = _one("dm_control_suite_episodes", tmp_path / "limit", [rec])
+    assert s.discount.tolist() == [1, 1, 1, 1, 1] and not s.is_terminal[-1]
 
 
 def test_rule_atari_transitions(tmp_path):

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from rlu.data.episode import METADATA_FIELDS
-from rlu.data.release.families import SegmentBatch, get_family, iter_raw
+from rlu.data.release.families import SegmentBatch, get_family, iter_segments
 from rlu.data.release.framing import RecordReader
 from rlu.data.store import DatasetWriter, Deflated, Schema, SegmentColumns, segment_columns
 from rlu.tasks import TaskSpec, get_task, rwrl_observation_spec
@@ -167,10 +167,9 @@ def _shard_batches(job: _Job, path: str, columns: bool = False):
     ``columns``: fast-path batches come as :class:`SegmentColumns` with image columns deflated
     (what a reader process sends: the parent then only writes bytes).
     """
-    fam = get_family(job.family)
     reader = RecordReader(path, verify=job.verify, on_error=job.on_error)
-    for raw in iter_raw(path, job.family, reader=reader, on_error=job.on_error):
-        batch = _with_meta(_fit(fam.segments(raw), job.schema, path), job.meta)
+    for segments in iter_segments(path, job.family, reader=reader, on_error=job.on_error):
+        batch = _with_meta(_fit(segments, job.schema, path), job.meta)
         if columns and fast_path(batch, job.schema):
             yield batch_columns(batch, job.schema, deflate=True), None
         else:

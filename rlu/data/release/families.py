@@ -21,7 +21,8 @@ Two views of each record (rlu_release_format.md §3, §4):
                                 discount[0]); is_first / is_last from step_type (FIRST 0, LAST 2);
                                 a LAST step with discount 0 is terminal
   *_episodes                    "RSA" files: reward_t = reward[t+1], discount_t = discount[t+1],
-                                actions unshifted; terminal when the last discount is 0 (TFDS)
+                                actions unshifted; terminal when the last discount is 0, and
+                                the final step's discount 0 then, 1 at a time limit (TFDS)
   rwrl                          index 0 of action / reward / discount is a placeholder:
                                 action_t = action[t+1] (last repeated), reward_t = reward[t+1],
                                 discount_t = discount[t+1] (``rwrl.py``)
@@ -143,11 +144,16 @@ def _ragged(cols: Mapping[str, Any]) -> bool:
     return any(not isinstance(c, ex.BytesColumn) and c.dtype == object for c in cols.values())
 
 
-def _png_stack(col: ex.BytesColumn, count: int | None, key: str, where: str, channels: int):
+def _png_stack(
+    col: ex.BytesColumn, count: int | None, key: str, where: str, channels: int, size: tuple
+):
     vals = col.values
     if count is not None and any(len(v) != count for v in vals):
         raise FormatError(f"{where}: {key!r} must hold {count} PNG frames per record")
-    return [[decode_png(f, channels) for f in v] for v in vals]
+    try:
+        return [[decode_png(f, channels, size) for f in v] for v in vals]
+    except FormatError as e:
+        raise FormatError(f"{where}: {key!r}: {e}") from None
 
 
 # --- control suite / locomotion windows and episodes ----------------------------------------
@@ -244,6 +250,7 @@ def episode_segments(raw: Raw) -> SegmentBatch:
     r[:, :-1] = reward[:, 1:]
     d = np.zeros_like(discount)
     d[:, :-1] = discount[:, 1:]
+    d[:, -1] = np.where(terminal, 0.0, 1.0)  # TFDS: 0 appended at a terminal end, else 1
     flags = np.zeros((n, t), bool)
     is_first, is_last, is_terminal = flags.copy(), flags.copy(), flags.copy()
     is_first[:, 0] = True
@@ -286,7 +293,7 @@ def parse_atari_transitions(cols: Mapping[str, Any], where: str = "record") -> l
         col = _need(cols, k, where)
         if not isinstance(col, ex.BytesColumn):
             raise FormatError(f"{where}: {k!r} must be a bytes_list of 4 PNG frames")
-        frames = _png_stack(col, 4, k, where, channels=1)
+        frames = _png_stack(col, 4, k, where, channels=1, size=ATARI_FRAME)
         arr = np.asarray(frames, np.uint8)
         if arr.ndim != 4 or arr.shape[2:] != ATARI_FRAME:
             raise FormatError(f"{where}: {k!r} frames must be 84x84 grey, got {arr.shape[2:]}")
@@ -358,7 +365,7 @@ def parse_atari_episodes(cols: Mapping[str, Any], where: str = "record") -> list
             if v.shape[1] != t:
                 raise FormatError(f"{where}: {k!r} has {v.shape[1]} steps, 'actions' has {t}")
             rec[k] = v[0]
-        frames = _png_stack(col, t, "observations", where, channels=1)[0]
+        frames = _png_stack(col, t, "observations", where, channels=1, size=ATARI_FRAME)[0]
         rec["observations"] = np.asarray(frames, np.uint8).reshape(t, *ATARI_FRAME)
         for k in _ATARI_EP_SCALARS:
             rec[k] = _scalar(row, k, where)[0]
@@ -518,7 +525,7 @@ def parse_dmlab(cols: Mapping[str, Any], where: str = "record") -> list[Raw]:
             _need(row, "observations_action", where), "observations_action", where
         )[0].reshape(t, -1)
         col = _need(row, "observations_pixels", where)
-        frames = _png_stack(col, t, "observations_pixels", where, channels=3)[0]
+        frames = _png_stack(col, t, "observations_pixels", where, 3, DMLAB_FRAME[:2])[0]
         rec["observations_pixels"] = np.asarray(frames, np.uint8).reshape(t, *DMLAB_FRAME)
         for k in ("episode_id", "start_idx", "episode_return"):
             if k in row:
@@ -620,6 +627,77 @@ def _batch_size(fam: Family) -> int:
     return 64 if fam.name in ("atari", "atari_episodes_ordered", "dmlab") else 4096
 
 
+# What a record that passed its CRC but is not what its family holds makes numpy and the parsers
+# raise (an empty list where one value is due, lists of the wrong length...); each becomes a
+# FormatError naming the record.
+_MALFORMED = (
+    FormatError,
+    ValueError,
+    IndexError,
+    TypeError,
+    KeyError,
+    AssertionError,
+    OverflowError,
+    RecursionError,
+    ZeroDivisionError,
+)
+
+
+def _decode(fam: Family, recs: list[bytes], where: str, segments: bool) -> list[Any]:
+    out = fam.parse(ex.decode_batch(recs), where)
+    return [fam.segments(raw) for raw in out] if segments else out
+
+
+def _read(
+    fam: Family, rd: RecordReader, segments: bool, skip: bool
+) -> Iterator[Raw | SegmentBatch]:
+    """Decode, parse (and cut into segments) one shard's records in batches, in order.
+
+    A batch that fails is read again record by record, so the error names the first bad record
+    and its byte offset (``skip``: every bad record is dropped and counted instead).
+    """
+    size = _batch_size(fam)
+    index = 0
+
+    def flush(recs: list[bytes], offsets: list[int]) -> list[Any]:
+        nonlocal index
+        first = index
+        index += len(recs)
+        where = f"{rd.path} (records {first}..{index - 1}, from byte offset {offsets[0]})"
+        try:
+            return _decode(fam, recs, where, segments)
+        except _MALFORMED:
+            pass
+        out: list[Any] = []
+        for i, (rec, off) in enumerate(zip(recs, offsets, strict=True)):
+            one = f"{rd.path}: record {first + i} at byte offset {off}"
+            try:
+                out.extend(_decode(fam, [rec], one, segments))
+            except _MALFORMED as e:
+                text = str(e) if isinstance(e, FormatError) else f"{type(e).__name__}: {e}"
+                msg = (
+                    f"{one}: not a valid {fam.name} record ({text.removeprefix(one + ': ')}); "
+                    "the file is damaged: download it again, or pass --skip-corrupt to drop "
+                    "bad records"
+                )
+                if not skip:
+                    raise FormatError(msg) from None
+                rd.stats.skipped += 1
+                rd.stats.errors.append(msg)
+        return out
+
+    pending: list[bytes] = []
+    pending_at: list[int] = []
+    for batch, offsets in rd.batches_with_offsets():
+        pending.extend(batch)
+        pending_at.extend(offsets)
+        while len(pending) >= size:
+            yield from flush(pending[:size], pending_at[:size])
+            pending, pending_at = pending[size:], pending_at[size:]
+    if pending:
+        yield from flush(pending, pending_at)
+
+
 def iter_raw(
     path: str | os.PathLike,
     family: str,
@@ -631,49 +709,21 @@ def iter_raw(
     """Loader-shaped batches (dicts of arrays stacked on a record axis) of one shard, in order."""
     fam = get_family(family)
     rd = reader or RecordReader(path, verify=verify, on_error=on_error)
-    size = _batch_size(fam)
-    pending: list[bytes] = []
-    index = 0
-
-    def flush(recs: list[bytes]) -> Iterator[Raw]:
-        nonlocal index
-        where = f"{rd.path} (records {index}..{index + len(recs) - 1})"
-        try:
-            cols = ex.decode_batch(recs)
-        except FormatError as e:
-            if on_error != "skip":
-                raise FormatError(f"{where}: {e}") from None
-            cols = _decode_skipping(recs, rd)
-        index += len(recs)
-        if cols:
-            yield from fam.parse(cols, where)
-
-    for batch in rd.batches():
-        pending.extend(batch)
-        while len(pending) >= size:
-            chunk, pending = pending[:size], pending[size:]
-            yield from flush(chunk)
-    if pending:
-        yield from flush(pending)
-
-
-def _decode_skipping(recs: list[bytes], rd: RecordReader) -> dict:
-    good = []
-    for r in recs:
-        try:
-            good.append(ex.decode_example(r))
-        except FormatError as e:
-            rd.stats.skipped += 1
-            rd.stats.errors.append(str(e))
-    return ex.stack_examples(good) if good else {}
+    yield from _read(fam, rd, segments=False, skip=on_error == "skip")  # type: ignore[misc]
 
 
 def iter_segments(
-    path: str | os.PathLike, family: str, *, verify: bool = True, on_error: str = "raise"
+    path: str | os.PathLike,
+    family: str,
+    *,
+    verify: bool = True,
+    on_error: str = "raise",
+    reader: RecordReader | None = None,
 ) -> Iterator[SegmentBatch]:
+    """The shard's records as segment batches (each family's alignment rule), in order."""
     fam = get_family(family)
-    for raw in iter_raw(path, family, verify=verify, on_error=on_error):
-        yield fam.segments(raw)
+    rd = reader or RecordReader(path, verify=verify, on_error=on_error)
+    yield from _read(fam, rd, segments=True, skip=on_error == "skip")  # type: ignore[misc]
 
 
 def read_raw(path: str | os.PathLike, family: str, **kw: Any) -> Raw:
