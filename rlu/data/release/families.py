@@ -103,6 +103,30 @@ def _need(cols: Mapping[str, Any], key: str, where: str) -> Any:
     return cols[key]
 
 
+def _field(raw: Raw, key: str, lead: tuple[int, ...], ndim: int | None = None) -> np.ndarray:
+    """``raw[key]``, which must be numeric, start with the ``lead`` dimensions (records, steps:
+    each at least 1) and have ``ndim`` dimensions (None: any beyond ``lead``)."""
+    if key not in raw:
+        raise FormatError(f"feature {key!r} is missing; found {sorted(raw)}")
+    v = np.asarray(raw[key])
+    if v.dtype.kind not in "biuf":
+        raise FormatError(f"feature {key!r} holds {v.dtype} values; a numeric list was expected")
+    want = f"{len(lead) if ndim is None else ndim} dimensions starting {lead}"
+    if v.shape[: len(lead)] != lead or (ndim is not None and v.ndim != ndim) or v.ndim < len(lead):
+        raise FormatError(f"feature {key!r} has shape {v.shape}; the family holds {want}")
+    if 0 in lead or (v.ndim > len(lead) and 0 in v.shape[len(lead) :]):
+        raise FormatError(f"feature {key!r} has shape {v.shape}: an empty list")
+    return v
+
+
+def _steps(raw: Raw, key: str) -> tuple[int, int]:
+    """(records, steps) of the time-major scalar feature ``key``, at least one of each."""
+    v = _field(raw, key, (), 2)
+    if v.shape[0] < 1 or v.shape[1] < 1:
+        raise FormatError(f"feature {key!r} has shape {v.shape}: no steps")
+    return v.shape
+
+
 def _numeric(col: Any, key: str, where: str) -> np.ndarray:
     if isinstance(col, ex.BytesColumn):
         raise FormatError(f"{where}: feature {key!r} is a bytes_list; a numeric list was expected")
@@ -206,9 +230,12 @@ def window_segments(raw: Raw) -> SegmentBatch:
     is terminal when the transition into it has discount 0 (the loader's ``p_t``); the LAST
     step's own stored discount reaches no transition.
     """
-    step_type = _need(raw, "step_type", "window")
+    n, t = _steps(raw, "discount")
+    step_type = _field(raw, "step_type", (n, t), 2)
     discount = raw["discount"].astype(np.float32)
-    n, t = discount.shape
+    _field(raw, "reward", (n, t), 2)
+    _field(raw, "action", (n, t), 3)
+    obs = {k: _field(raw, f"observation/{k}", (n, t)) for k in _observation(raw)}
     is_last = step_type == LAST
     is_first = step_type == FIRST
     # cut after the first LAST, and before a FIRST that is not step 0 (a new episode)
@@ -229,7 +256,7 @@ def window_segments(raw: Raw) -> SegmentBatch:
     prev_discount[:, 1:] = discount[:, :-1]
     is_terminal = is_last & (prev_discount == 0) & (steps[None, :] > 0)
     return SegmentBatch(
-        observation=_observation(raw),
+        observation=obs,
         action=raw["action"],
         reward=raw["reward"].astype(np.float32),
         discount=discount,
@@ -242,9 +269,11 @@ def window_segments(raw: Raw) -> SegmentBatch:
 
 def episode_segments(raw: Raw) -> SegmentBatch:
     """``*_episodes`` files ("RSA"): reward and discount move one step earlier (TFDS)."""
+    n, t = _steps(raw, "reward")
     reward = raw["reward"].astype(np.float32)
-    discount = raw["discount"].astype(np.float32)
-    n, t = reward.shape
+    discount = _field(raw, "discount", (n, t), 2).astype(np.float32)
+    _field(raw, "action", (n, t), 3)
+    obs = {k: _field(raw, f"observation/{k}", (n, t)) for k in _observation(raw)}
     terminal = discount[:, -1] == 0
     r = np.zeros_like(reward)
     r[:, :-1] = reward[:, 1:]
@@ -258,10 +287,11 @@ def episode_segments(raw: Raw) -> SegmentBatch:
     is_terminal[:, -1] = terminal
     meta = {"episode_return": r.sum(axis=1, dtype=np.float64)}
     if "episode_id" in raw:
-        meta["episode_id"] = np.asarray(raw["episode_id"]).reshape(n).view(np.uint64)
-    return SegmentBatch(
-        _observation(raw), raw["action"], r, d, is_first, is_last, is_terminal, meta
-    )
+        ids = _field(raw, "episode_id", (n,), 1)
+        if ids.dtype != np.int64:
+            raise FormatError(f"feature 'episode_id' holds {ids.dtype}; an int64 list")
+        meta["episode_id"] = ids.view(np.uint64)
+    return SegmentBatch(obs, raw["action"], r, d, is_first, is_last, is_terminal, meta)
 
 
 def encode_sequence(rec: Mapping[str, np.ndarray]) -> bytes:
@@ -444,10 +474,16 @@ def rwrl_segments(raw: Raw) -> SegmentBatch:
     }
     if not obs:
         raise FormatError(f"RWRL record has no observation:* features; found {sorted(raw)}")
-    action = raw["action"]
+    n, t = _field(raw, "reward", (), 3).shape[:2]
+    if n < 1 or t < 1:
+        raise FormatError(f"feature 'reward' has shape {raw['reward'].shape}: no steps")
+    for k in ("reward", "discount"):
+        if _field(raw, k, (n, t), 3).shape[2] != 1:
+            raise FormatError(f"feature {k!r} holds {raw[k].shape[2]} values per step; want 1")
+    obs = {k: _field({k: v}, k, (n, t)) for k, v in obs.items()}
+    action = _field(raw, "action", (n, t), 3)
     reward = raw["reward"][..., 0].astype(np.float32)
     disc = raw["discount"][..., 0].astype(np.float32)
-    n, t = reward.shape
     act = np.concatenate([action[:, 1:], action[:, -1:]], axis=1)  # index 0 is a placeholder
     r = np.zeros_like(reward)
     r[:, :-1] = reward[:, 1:]
@@ -484,7 +520,11 @@ def parse_bsuite(cols: Mapping[str, Any], where: str = "record") -> list[Raw]:
 
 
 def bsuite_segments(raw: Raw) -> SegmentBatch:
+    n, t = _steps(raw, "step_type")
     st = raw["step_type"]
+    for k in ("discount", "reward", "action"):
+        _field(raw, k, (n, t), 2)
+    _field(raw, "observation", (n, t), 3)
     discount = raw["discount"].astype(np.float32).copy()
     # the notebook's loader: gamma = discount[0] * (step_type[1] != LAST)
     discount[:, :-1] *= (st[:, 1:] != LAST).astype(np.float32)
@@ -517,14 +557,27 @@ def parse_dmlab(cols: Mapping[str, Any], where: str = "record") -> list[Raw]:
     out = []
     for row in _split_rows(cols, n) if n > 1 else [cols]:
         t = _numeric(_need(row, "actions", where), "actions", where).shape[1]
+        if t < 1:
+            raise FormatError(f"{where}: 'actions' is empty; an episode has at least one step")
         rec: Raw = {}
         for k in _DMLAB_LISTS:
             if k in row:
-                rec[k] = _numeric(row[k], k, where)[0].reshape(t)
-        rec["observations_action"] = _numeric(
+                v = _numeric(row[k], k, where)[0]
+                if v.size != t:
+                    raise FormatError(f"{where}: {k!r} holds {v.size} values, 'actions' {t}")
+                rec[k] = v.reshape(t)
+        last_action = _numeric(
             _need(row, "observations_action", where), "observations_action", where
-        )[0].reshape(t, -1)
+        )[0]
+        if last_action.size == 0 or last_action.size % t:
+            raise FormatError(
+                f"{where}: 'observations_action' holds {last_action.size} values, not a "
+                f"multiple of the {t} steps"
+            )
+        rec["observations_action"] = last_action.reshape(t, -1)
         col = _need(row, "observations_pixels", where)
+        if not isinstance(col, ex.BytesColumn):
+            raise FormatError(f"{where}: 'observations_pixels' must be a bytes_list of PNGs")
         frames = _png_stack(col, t, "observations_pixels", where, 3, DMLAB_FRAME[:2])[0]
         rec["observations_pixels"] = np.asarray(frames, np.uint8).reshape(t, *DMLAB_FRAME)
         for k in ("episode_id", "start_idx", "episode_return"):
@@ -535,7 +588,9 @@ def parse_dmlab(cols: Mapping[str, Any], where: str = "record") -> list[Raw]:
 
 
 def dmlab_segment(raw: Raw) -> SegmentBatch:
-    n, t = raw["actions"].shape
+    n, t = _steps(raw, "actions")
+    for k in ("discounts", "rewards", "observations_reward"):
+        _field(raw, k, (n, t), 2)
     disc = raw["discounts"].astype(np.float32)
     flags = np.zeros((n, t), bool)
     is_first, is_last, is_terminal = flags.copy(), flags.copy(), flags.copy()
@@ -640,6 +695,7 @@ _MALFORMED = (
     OverflowError,
     RecursionError,
     ZeroDivisionError,
+    AttributeError,
 )
 
 
