@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from rlu.checkpoints import load_checkpoint
 from rlu.types import ArraySpec, DiscreteSpec, RluError, observation_spec_to_json
 
 
@@ -189,7 +190,20 @@ def train(
     progress: bool = False,
     tensorboard: bool = False,
 ) -> dict[str, Any]:
-    """Train ``config.agent`` on ``config.dataset``; returns the content of ``result.json``."""
+    """Train ``config.agent`` on ``config.dataset``; returns the content of ``result.json``.
+
+    One process per run folder: a second ``train`` into the same ``out`` fails with "in use by
+    PID N" (:class:`rlu.locks.OutputLock`) while the first lives.
+    """
+    from rlu.locks import OutputLock
+
+    with OutputLock(Path(out), "run folder"):
+        return _train(config, out, resume, progress, tensorboard)
+
+
+def _train(
+    config: TrainConfig, out: str | os.PathLike, resume: bool, progress: bool, tensorboard: bool
+) -> dict[str, Any]:
     import torch
 
     from rlu.data import open_dataset
@@ -222,11 +236,10 @@ def train(
             )
         if (run / "result.json").exists():  # finished: nothing left to do
             return json.loads((run / "result.json").read_text())
-    run.mkdir(parents=True, exist_ok=True)
-    (run / "checkpoints").mkdir(exist_ok=True)
-    for tmp in run.rglob("*.tmp"):
-        tmp.unlink()
-    _write_atomic(run / "config.json", json.dumps(resolved, indent=2) + "\n")
+    if config.env is None and config.eval_every >= 0:
+        from rlu.tasks import get_task
+
+        get_task(config.task)  # an unknown task fails here, before the run folder is touched
 
     if config.torch_threads:
         torch.set_num_threads(config.torch_threads)
@@ -244,30 +257,38 @@ def train(
 
     start = 0
     if resume and ckpts:
-        state = torch.load(ckpts[-1], weights_only=True)
+        state = load_checkpoint(ckpts[-1], ("agent", "sampler", "torch_rng", "numpy_rng", "step"))
         agent.load_state_dict(state["agent"])
         sampler.set_state(state["sampler"])
         torch.set_rng_state(state["torch_rng"])
         alg, keys, pos, has_gauss, cached = state["numpy_rng"]
         np.random.set_state((alg, np.asarray(keys, np.uint32), pos, has_gauss, cached))
         start = int(state["step"])
-    metrics_path, eval_path = run / "metrics.jsonl", run / "eval.jsonl"
-    for path in (metrics_path, eval_path):  # drop what was logged after the checkpoint
-        lines = _read_jsonl(path, start)
-        _write_atomic(path, "".join(line + "\n" for line in lines))
-
     # resolved before the first step (a missing rlu.envs fails fast); a run that never evaluates
     # needs no env
     env_fn = task_env_factory(config.task, config.env) if config.eval_every >= 0 else None
-    writer = None
+    summary_writer: Any = None
     if tensorboard:
         try:
             from torch.utils.tensorboard import SummaryWriter
+
+            summary_writer = SummaryWriter
         except ImportError:
             raise RluError(
                 "TensorBoard logging needs the tensorboard package: pip install tensorboard"
             ) from None
-        writer = SummaryWriter(str(run / "tensorboard"))
+
+    # everything that can fail before the first step has run: only now is the run folder written
+    run.mkdir(parents=True, exist_ok=True)
+    (run / "checkpoints").mkdir(exist_ok=True)
+    for tmp in run.rglob("*.tmp"):
+        tmp.unlink()
+    _write_atomic(run / "config.json", json.dumps(resolved, indent=2) + "\n")
+    metrics_path, eval_path = run / "metrics.jsonl", run / "eval.jsonl"
+    for path in (metrics_path, eval_path):  # drop what was logged after the checkpoint
+        lines = _read_jsonl(path, start)
+        _write_atomic(path, "".join(line + "\n" for line in lines))
+    writer = summary_writer(str(run / "tensorboard")) if summary_writer is not None else None
 
     def policy(obs: Any) -> np.ndarray:
         return agent.act(obs, greedy=True)
@@ -352,14 +373,15 @@ def load_run(path: str | os.PathLike) -> tuple[dict[str, Any], Path]:
     cfg_path = run / "config.json"
     if not cfg_path.exists():
         raise RluError(f"{cfg_path} is missing; {path} is not an rlu run folder or checkpoint")
-    return json.loads(cfg_path.read_text()), ckpt
+    try:
+        return json.loads(cfg_path.read_text()), ckpt
+    except (ValueError, UnicodeDecodeError) as e:
+        raise RluError(f"{cfg_path}: not a run's JSON config ({e}); re-train the run") from None
 
 
 def load_policy(path: str | os.PathLike) -> tuple[Any, dict[str, Any]]:
     """(greedy policy callable on batched observations, resolved config) of a run folder's newest
     checkpoint, or of a given checkpoint file."""
-    import torch
-
     from rlu.types import ArraySpec as _AS
     from rlu.types import observation_spec_from_json
 
@@ -377,7 +399,7 @@ def load_policy(path: str | os.PathLike) -> tuple[Any, dict[str, Any]]:
         {k: v for k, v in cfg["agent_config"].items() if k in fields},
     )
     agent = module.Agent(obs_spec, action_spec, agent_cfg, seed=int(train_cfg["seed"]))
-    agent.load_state_dict(torch.load(ckpt, weights_only=True)["agent"])
+    agent.load_state_dict(load_checkpoint(ckpt, ("agent",))["agent"])
 
     def policy(obs: Any) -> np.ndarray:
         return agent.act(obs, greedy=True)

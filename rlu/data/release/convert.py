@@ -16,7 +16,9 @@ import multiprocessing as mp
 import os
 import queue
 import re
+import signal
 import sys
+import threading
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -208,12 +210,39 @@ def _nbytes(x: Any) -> int:
     return _nbytes(vars(x)) if hasattr(x, "__dict__") else 0
 
 
-def _worker(job: _Job, path: str, q: Any, budget: Any) -> None:
+def _die_with_parent(parent: int) -> None:
+    """End this reader when the converting process dies, ``kill -9`` included.
+
+    A reader blocked on its queue (the parent no longer takes from it) would otherwise live on
+    forever. Linux: ``prctl(PR_SET_PDEATHSIG, SIGKILL)``, then a check that the parent did not die
+    before the call; elsewhere a thread that watches the parent's id.
+    """
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.prctl(1, signal.SIGKILL) == 0:  # 1: PR_SET_PDEATHSIG
+            if os.getppid() != parent:
+                os._exit(1)
+            return
+    except (OSError, AttributeError):  # pragma: no cover - not Linux
+        pass
+
+    def watch() -> None:  # pragma: no cover - not Linux
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="rlu-parent-watch", daemon=True).start()
+
+
+def _worker(job: _Job, path: str, q: Any, budget: Any, parent: int) -> None:
     """Read one shard into ``q``, holding at most ``_QUEUE_MIB`` queued (``budget``: MiB units).
 
     The bound is in bytes, not batches, so a reader of a later shard can get far ahead (whole
     shards of windows) while the parent writes the earlier one: readers overlap each other.
     """
+    _die_with_parent(parent)
     try:
         for batch, stats in _shard_batches(job, path, columns=True):
             if stats is not None:
@@ -245,7 +274,7 @@ class _Pool:
             q, budget = self.ctx.Queue(), self.ctx.Semaphore(_QUEUE_MIB)
             p = self.ctx.Process(
                 target=_worker,
-                args=(self.job, self.files[self.next], q, budget),
+                args=(self.job, self.files[self.next], q, budget, os.getpid()),
                 daemon=True,
             )
             p.start()
