@@ -140,7 +140,7 @@ def import_d3rlpy(
     hold stacked frames (channels first, as d3rlpy's Atari wrappers give them, or last) and are
     stored back as single frames.
     """
-    from rlu.data.d4rl import _cast, split_flat
+    from rlu.data.d4rl import append_checked, split_flat
     from rlu.tasks import get_task
 
     task = get_task(task_id)
@@ -155,7 +155,7 @@ def import_d3rlpy(
                 )
             if schema.frame_stack > 1:
                 seg = _unstack_segment(seg, schema.frame_stack, f"{src}: episode {i}")
-            w.append(_cast(seg, schema, i, str(src)))
+            append_checked(w, seg, schema, i, str(src))
     return Path(dest)
 
 

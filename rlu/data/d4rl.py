@@ -99,7 +99,11 @@ def _rows(obs: Any, sl: slice | np.ndarray) -> Any:
 def _step_columns(d: Mapping[str, np.ndarray], where: str) -> tuple[np.ndarray, ...]:
     """actions, rewards, terminals, timeouts of a D4RL dict: real numbers, finite rewards, flags
     of 0 or 1, one row each (at least one)."""
-    rewards = finite_array(d["rewards"], "rewards", where).reshape(-1)
+    rewards = finite_array(d["rewards"], "rewards", where)
+    if rewards.ndim == 2 and rewards.shape[1] == 1:
+        rewards = rewards[:, 0]  # (n, 1), as d3rlpy and some D4RL copies store them
+    if rewards.ndim != 1:
+        raise FormatError(f"{where}: 'rewards' has shape {rewards.shape}; one reward per row")
     n = len(rewards)
     if n == 0:
         raise FormatError(f"{where}: 'rewards' has no rows; there is nothing to import")
@@ -241,13 +245,23 @@ def import_d4rl(
             if isinstance(schema.observation, Mapping) and not isinstance(seg.observation, Mapping):
                 obs = split_flat(seg.observation, schema.observation, f"{src}: 'observations'")
                 seg = dataclasses.replace(seg, observation=obs)
-            w.append(_cast(seg, schema, i, where))
+            append_checked(w, seg, schema, i, where)
     return Path(dest)
 
 
 def _read_npz(path: Path) -> dict[str, np.ndarray]:
     """The arrays of an .npz file; object arrays (pickles) are refused, never unpickled."""
     return read_npz(path)
+
+
+def append_checked(w: DatasetWriter, seg: Segment, schema: Schema, index: int, where: str) -> None:
+    """Append imported episode ``index`` of ``where`` after :func:`_cast`; the writer's own
+    refusals name the source file and the episode too."""
+    seg = _cast(seg, schema, index, where)
+    try:
+        w.append(seg)
+    except SpecError as e:
+        raise SpecError(f"{where}: episode {index}: {e}") from None
 
 
 def _cast(seg: Segment, schema: Schema, index: int, where: str = "") -> Segment:

@@ -365,6 +365,10 @@ def _check_metadata(data: Path) -> None:
                 f"{mpath}: field {key!r} is missing or not a serialised space; rlu reads spaces "
                 f"from the metadata and never builds an env from env_spec: {fix}"
             )
+        try:
+            _check_space(json.loads(meta[key]), key)
+        except (ValueError, RecursionError) as e:
+            raise FormatError(f"{mpath}: field {key!r}: {e}; {fix}") from None
     if meta.get("data_format", "hdf5") not in ("hdf5", "arrow"):
         raise FormatError(f"{mpath}: field 'data_format' is {meta.get('data_format')!r}; {fix}")
     total = meta.get("total_episodes")
@@ -388,6 +392,32 @@ def _check_metadata(data: Path) -> None:
                 f.visititems(visit)
             except (OSError, RuntimeError, ValueError) as e:
                 raise FormatError(f"{h5}: damaged HDF5 structure ({e}); {fix}") from None
+
+
+_SPACE_TYPES = ("Box", "Discrete", "Dict")
+
+
+def _check_space(d: Any, field: str, depth: int = 0) -> None:
+    """A serialised Minari space rlu can store, checked before Minari builds it (a Box of shape
+    1e9 x 1e9 would allocate its bounds); raises ValueError naming the field."""
+    if depth > 16 or not isinstance(d, dict):
+        raise ValueError(f"{field} is not a (shallow) serialised space")
+    kind = d.get("type")
+    if kind not in _SPACE_TYPES:
+        raise ValueError(f"{field} is a {kind!r} space; rlu reads {', '.join(_SPACE_TYPES)}")
+    if kind == "Dict":
+        subs = d.get("subspaces")
+        if not isinstance(subs, dict):
+            raise ValueError(f"{field}.subspaces is not an object")
+        for k, v in subs.items():
+            _check_space(v, f"{field}.{k}", depth + 1)
+    elif kind == "Box":
+        shape = d.get("shape")
+        ok = isinstance(shape, list) and all(
+            isinstance(x, int) and not isinstance(x, bool) and 0 <= x <= 1 << 28 for x in shape
+        )
+        if not ok or len(shape) > 8 or int(np.prod(shape, dtype=np.float64)) > 1 << 28:
+            raise ValueError(f"{field}.shape is {shape!r}; a list of at most 8 sizes, 2^28 values")
 
 
 def load_minari(id_or_path: str | os.PathLike, root: str | os.PathLike | None = None) -> Any:
@@ -486,7 +516,10 @@ def _segment(ep: Any, meta: Mapping[str, Any], schema: Schema, source: str = "Mi
         meta_out["episode_id"] = int(ep.id)
     if "seed" not in meta_out and meta.get("seed") is not None:
         meta_out["seed"] = np.asarray(meta["seed"]).item()
-    seg = make_episode(obs, actions, rewards, terminal, meta_out, prefix)
+    try:
+        seg = make_episode(obs, actions, rewards, terminal, meta_out, prefix)
+    except SpecError as e:
+        raise FormatError(f"{where}: {e}") from None
     is_first = bool(np.asarray(meta.get("rlu_is_first", True)))
     is_last = bool(np.asarray(meta.get("rlu_is_last", True)))
     if not (is_first and is_last):
@@ -539,7 +572,7 @@ def import_minari(
     With ``task_id`` the task's schema is used (observations cast to its dtypes); without, the
     schema comes from the Minari dataset's spaces.
     """
-    from rlu.data.d4rl import _cast
+    from rlu.data.d4rl import append_checked
 
     mds = load_minari(id_or_path, root)
     if task_id is not None:
@@ -556,5 +589,5 @@ def import_minari(
     prov = {"source": "minari", "minari_id": str(mds.id), "from": str(id_or_path)}
     with DatasetWriter(dest, schema, prov) as w:
         for i, seg in enumerate(minari_segments(mds, schema)):
-            w.append(_cast(seg, schema, i, str(id_or_path)))
+            append_checked(w, seg, schema, i, str(id_or_path))
     return Path(dest)

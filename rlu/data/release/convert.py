@@ -176,6 +176,11 @@ def _shard_batches(job: _Job, path: str, columns: bool = False):
             yield batch_columns(batch, job.schema, deflate=True), None
         else:
             yield batch, None
+    if reader.stats.records == 0 and reader.stats.skipped == 0:
+        raise FormatError(
+            f"{path}: holds no records (an empty or foreign file); a release shard holds at "
+            "least one: download it again"
+        )
     yield (
         None,
         {

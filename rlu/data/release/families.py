@@ -135,12 +135,25 @@ def _numeric(col: Any, key: str, where: str) -> np.ndarray:
     return col
 
 
-def _scalar(cols: Mapping[str, Any], key: str, where: str, dtype=None) -> np.ndarray:
+def _scalar(
+    cols: Mapping[str, Any], key: str, where: str, dtype=None, integer: bool = False
+) -> np.ndarray:
     v = _numeric(_need(cols, key, where), key, where)
+    if integer:
+        _integers(v, key, where)
     if v.ndim != 2 or v.shape[1] != 1:
         raise FormatError(f"{where}: feature {key!r} must hold one value, it holds {v.shape[1:]}")
     v = v[:, 0]
     return v.astype(dtype) if dtype is not None else v
+
+
+def _integers(v: np.ndarray, key: str, where: str) -> np.ndarray:
+    """``v``, which the release stores as an int64_list (actions, ids, indices)."""
+    if v.dtype != np.int64:
+        raise FormatError(
+            f"{where}: feature {key!r} is a float_list; the release stores it as an int64_list"
+        )
+    return v
 
 
 def _time_major(v: np.ndarray, t: int, key: str, where: str, scalar: bool) -> np.ndarray:
@@ -328,11 +341,11 @@ def parse_atari_transitions(cols: Mapping[str, Any], where: str = "record") -> l
         if arr.ndim != 4 or arr.shape[2:] != ATARI_FRAME:
             raise FormatError(f"{where}: {k!r} frames must be 84x84 grey, got {arr.shape[2:]}")
         out[k] = np.ascontiguousarray(arr.transpose(0, 2, 3, 1))
-    out["a_t"] = _scalar(cols, "a_t", where, np.int32)
-    out["a_tp1"] = _scalar(cols, "a_tp1", where, np.int32)
+    out["a_t"] = _scalar(cols, "a_t", where, np.int32, integer=True)
+    out["a_tp1"] = _scalar(cols, "a_tp1", where, np.int32, integer=True)
     out["r_t"] = _scalar(cols, "r_t", where, np.float32)
     out["d_t"] = _scalar(cols, "d_t", where, np.float32)
-    out["episode_id"] = _scalar(cols, "episode_id", where).view(np.uint64)
+    out["episode_id"] = _scalar(cols, "episode_id", where, integer=True).view(np.uint64)
     out["episode_return"] = _scalar(cols, "episode_return", where, np.float32)
     return [out]
 
@@ -388,7 +401,8 @@ def parse_atari_episodes(cols: Mapping[str, Any], where: str = "record") -> list
         col = _need(row, "observations", where)
         if not isinstance(col, ex.BytesColumn):
             raise FormatError(f"{where}: 'observations' must be a bytes_list of PNG frames")
-        t = _numeric(_need(row, "actions", where), "actions", where).shape[1]
+        t = _integers(_numeric(_need(row, "actions", where), "actions", where), "actions", where)
+        t = t.shape[1]
         rec: Raw = {}
         for k in _ATARI_EP_LISTS:
             v = _numeric(_need(row, k, where), k, where)
@@ -398,7 +412,7 @@ def parse_atari_episodes(cols: Mapping[str, Any], where: str = "record") -> list
         frames = _png_stack(col, t, "observations", where, channels=1, size=ATARI_FRAME)[0]
         rec["observations"] = np.asarray(frames, np.uint8).reshape(t, *ATARI_FRAME)
         for k in _ATARI_EP_SCALARS:
-            rec[k] = _scalar(row, k, where)[0]
+            rec[k] = _scalar(row, k, where, integer=k.endswith("_idx"))[0]
         out.append({k: np.asarray(v)[None] for k, v in rec.items()})
     return out
 
@@ -515,6 +529,8 @@ def parse_bsuite(cols: Mapping[str, Any], where: str = "record") -> list[Raw]:
     out: Raw = {}
     for k, c in cols.items():
         c = _numeric(c, k, where)
+        if k in ("action", "step_type"):
+            _integers(c, k, where)
         out[k] = _time_major(c, t, k, where, scalar=k != "observation")
     return [out]
 
@@ -556,7 +572,8 @@ def parse_dmlab(cols: Mapping[str, Any], where: str = "record") -> list[Raw]:
     n = len(next(iter(cols.values()))) if cols else 0
     out = []
     for row in _split_rows(cols, n) if n > 1 else [cols]:
-        t = _numeric(_need(row, "actions", where), "actions", where).shape[1]
+        t = _integers(_numeric(_need(row, "actions", where), "actions", where), "actions", where)
+        t = t.shape[1]
         if t < 1:
             raise FormatError(f"{where}: 'actions' is empty; an episode has at least one step")
         rec: Raw = {}
@@ -582,7 +599,7 @@ def parse_dmlab(cols: Mapping[str, Any], where: str = "record") -> list[Raw]:
         rec["observations_pixels"] = np.asarray(frames, np.uint8).reshape(t, *DMLAB_FRAME)
         for k in ("episode_id", "start_idx", "episode_return"):
             if k in row:
-                rec[k] = _scalar(row, k, where)[0]
+                rec[k] = _scalar(row, k, where, integer=k != "episode_return")[0]
         out.append({k: np.asarray(v)[None] for k, v in rec.items()})
     return out
 
