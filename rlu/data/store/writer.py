@@ -27,6 +27,7 @@ from rlu.data.store.schema import (
     FORMAT,
     FORMAT_VERSION,
     MANIFEST,
+    SEGMENT_INDEX,
     Schema,
     check_cast,
     partial_dir,
@@ -125,6 +126,34 @@ class SegmentColumns:
         return len(self.lengths)
 
 
+class _RawFile:
+    """An append-only file of raw little-endian bytes, hashed as it is written.
+
+    Everything a writer produces streams through one of these (step columns, zlib streams and
+    offsets, the segment index and metadata), so a writer's memory does not grow with the
+    dataset: a conversion of millions of segments holds none of them.
+    """
+
+    def __init__(self, path: Path):
+        self.path = path
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self.fh = open(path, "wb")
+        self.hash = hashlib.sha256()
+
+    def write(self, data: bytes) -> None:
+        self.fh.write(data)
+        self.hash.update(data)
+
+    def write_array(self, values: np.ndarray, dtype: str) -> None:
+        values = np.ascontiguousarray(values, dtype=dtype)
+        self.write(values.astype(values.dtype.newbyteorder("<"), copy=False).tobytes())
+
+    def close(self) -> dict[Path, dict[str, Any]]:
+        if not self.fh.closed:
+            _fsync_close(self.fh)
+        return {self.path: {"sha256": self.hash.hexdigest(), "bytes": self.path.stat().st_size}}
+
+
 class _ColumnFile:
     """An append-only raw (or per-frame zlib) column, hashed as it is written."""
 
@@ -132,12 +161,13 @@ class _ColumnFile:
         self.spec, self.encoding, self.count = spec, encoding, 0
         suffix = ".zlib" if encoding == "zlib" else ".bin"
         self.path = root / "steps" / f"{name}{suffix}"
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.fh = open(self.path, "wb")
-        self.hash = hashlib.sha256()
+        self.file = _RawFile(self.path)
+        self.files = [self.file]
         if encoding == "zlib":
-            self.offsets: list[int] = [0]
-            self.offset_path = root / "steps" / f"{name}.offsets.bin"
+            self.offsets = _RawFile(root / "steps" / f"{name}.offsets.bin")
+            self.offsets.write_array(np.zeros(1, np.int64), "int64")
+            self.end = 0  # the stream file's size: the next frame's offset
+            self.files.append(self.offsets)
 
     def check(self, values: np.ndarray | Deflated, rows: int) -> None:
         """Raise before anything is written if ``values`` are not ``rows`` rows of this column."""
@@ -165,24 +195,16 @@ class _ColumnFile:
         if self.encoding == "zlib":
             if not isinstance(values, Deflated):
                 values = Deflated.of(values, self.spec.dtype)
-            self.fh.write(values.data)
-            self.hash.update(values.data)
-            self.offsets.extend((self.offsets[-1] + np.cumsum(values.lengths)).tolist())
+            self.file.write(values.data)
+            ends = self.end + np.cumsum(values.lengths, dtype=np.int64)
+            self.offsets.write_array(ends, "int64")
+            self.end += len(values.data)
         else:
-            values = np.ascontiguousarray(values, dtype=self.spec.dtype)
-            data = values.astype(values.dtype.newbyteorder("<"), copy=False).tobytes()
-            self.fh.write(data)
-            self.hash.update(data)
+            self.file.write_array(values, self.spec.dtype)
         self.count += len(values)
 
     def close(self) -> dict[Path, dict[str, Any]]:
-        _fsync_close(self.fh)
-        files = {self.path: {"sha256": self.hash.hexdigest(), "bytes": self.path.stat().st_size}}
-        if self.encoding == "zlib":
-            files[self.offset_path] = _write_file(
-                self.offset_path, np.asarray(self.offsets, "<i8").tobytes()
-            )
-        return files
+        return {p: e for f in self.files for p, e in f.close().items()}
 
 
 def _fsync_close(fh: Any) -> None:
@@ -197,13 +219,6 @@ def _fsync_dir(path: Path) -> None:
         os.fsync(fd)
     finally:
         os.close(fd)
-
-
-def _write_file(path: Path, data: bytes) -> dict[str, Any]:
-    with open(path, "wb") as fh:
-        fh.write(data)
-        _fsync_close(fh)
-    return {"sha256": hashlib.sha256(data).hexdigest(), "bytes": len(data)}
 
 
 def _metadata_column(key: str, values: Any, n: int) -> np.ndarray:
@@ -254,9 +269,8 @@ class DatasetWriter:
         self.overwrite = overwrite
         self.tmp = partial_dir(self.dest)
         self._cols: dict[str, _ColumnFile] = {}
+        self._index: dict[str, _RawFile] = {}  # segments/*.bin, streamed like the columns
         self._frame_names = set(schema.frame_columns())
-        self._seg: dict[str, list[np.ndarray]] = {"start": [], "length": [], "frame_start": []}
-        self._meta: dict[str, list[np.ndarray]] = {k: [] for k in METADATA_FIELDS}
         self.num_segments = 0
         self.num_steps = 0
         self.num_frames = 0
@@ -271,6 +285,8 @@ class DatasetWriter:
             self.tmp.mkdir(parents=True)
             for name, spec in {**schema.step_columns(), **schema.frame_columns()}.items():
                 self._cols[name] = _ColumnFile(self.tmp, name, spec, schema.encoding(spec))
+            for name in (*SEGMENT_INDEX, *(f"meta_{k}" for k in METADATA_FIELDS)):
+                self._index[name] = _RawFile(self.tmp / "segments" / f"{name}.bin")
         except BaseException:
             self.abort()
             raise
@@ -335,16 +351,17 @@ class DatasetWriter:
         last = np.asarray(batch.columns["is_last"], bool)[ends - 1]
         for name, col in self._cols.items():
             col.append(batch.columns[name])
-        self._seg["start"].append(self.num_steps + ends - lengths)
-        self._seg["length"].append(lengths)
+        index = self._index
+        index["start"].write_array(self.num_steps + ends - lengths, "int64")
+        index["length"].write_array(lengths, "int64")
         if self._frame_names:
             per = lengths + (k - 1)
-            self._seg["frame_start"].append(self.num_frames + np.cumsum(per) - per)
+            index["frame_start"].write_array(self.num_frames + np.cumsum(per) - per, "int64")
         else:
-            self._seg["frame_start"].append(np.zeros(n, np.int64))
+            index["frame_start"].write_array(np.zeros(n, np.int64), "int64")
         for key, dtype in METADATA_FIELDS.items():
-            missing = np.full(n, METADATA_MISSING[dtype], dtype)
-            self._meta[key].append(meta.get(key, missing))
+            values = meta[key] if key in meta else np.full(n, METADATA_MISSING[dtype], dtype)
+            index[f"meta_{key}"].write_array(values, dtype)
         self.num_segments += n
         self.num_steps += steps
         self.num_frames += frames
@@ -364,17 +381,8 @@ class DatasetWriter:
 
     def _finalise(self) -> Path:
         files: dict[Path, dict[str, Any]] = {}
-        for col in self._cols.values():
-            files.update(col.close())
-        seg_cols = {k: (v, "int64") for k, v in self._seg.items()}
-        seg_cols.update({f"meta_{k}": (v, METADATA_FIELDS[k]) for k, v in self._meta.items()})
-        (self.tmp / "segments").mkdir(exist_ok=True)
-        for name, (parts, dtype) in seg_cols.items():
-            path = self.tmp / "segments" / f"{name}.bin"
-            values = np.concatenate(parts) if parts else np.zeros(0, dtype)
-            files[path] = _write_file(
-                path, values.astype(np.dtype(dtype).newbyteorder("<")).tobytes()
-            )
+        for f in (*self._cols.values(), *self._index.values()):
+            files.update(f.close())
         manifest = {
             "format": FORMAT,
             "version": FORMAT_VERSION,
@@ -403,9 +411,9 @@ class DatasetWriter:
     def abort(self) -> None:
         """Drop everything written so far (the partial directory) and release ``dest``."""
         self._closed = True
-        for col in self._cols.values():
-            if not col.fh.closed:
-                col.fh.close()
+        for f in (*(c for col in self._cols.values() for c in col.files), *self._index.values()):
+            if not f.fh.closed:
+                f.fh.close()
         if self._lock.held:  # only the lock holder may touch the partial directory
             shutil.rmtree(self.tmp, ignore_errors=True)
         self._lock.release()
