@@ -35,7 +35,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from rlu.agents import make_agent
+from rlu.agents import common, make_agent
 from rlu.agents import networks as nets
 from rlu.data import DatasetWriter, Schema, make_episode, open_dataset
 from rlu.data.views import TransitionView
@@ -128,7 +128,7 @@ def minimal_bcq(batches, seed: int = 0):
 
     actor, q1, q2 = mlp(s + a, (400, 300), a), mlp(s + a, (400, 300), 1), mlp(s + a, (400, 300), 1)
     enc, dec = mlp(s + a, (750, 750), 2 * lat), mlp(s + lat, (750, 750), a)
-    t_actor, t_q1, t_q2 = nets.frozen_copy(actor), nets.frozen_copy(q1), nets.frozen_copy(q2)
+    t_actor, t_q1, t_q2 = common.frozen_copy(actor), common.frozen_copy(q1), common.frozen_copy(q2)
     opt_a = torch.optim.Adam(actor.parameters(), lr=1e-3, fused=True)
     critic_params = [*q1.parameters(), *q2.parameters()]
     opt_c = torch.optim.Adam(critic_params, lr=1e-3, fused=True)
@@ -250,10 +250,12 @@ def main() -> None:
             contenders = {}
             agent = make_agent(algo, OBS, ACTION, "paper", 0, batch_size=args.batch, **overrides)
             contenders["rlu"] = (agent.update, batches)
-            adam = nets.adam
-            nets.adam = lambda params, lr: torch.optim.Adam(params, lr=lr, foreach=True)
+            adam = common.adam
+            common.adam = lambda params, lr, eps=1e-8: torch.optim.Adam(
+                params, lr=lr, eps=eps, foreach=True
+            )
             slow = make_agent(algo, OBS, ACTION, "paper", 0, batch_size=args.batch, **overrides)
-            nets.adam = adam
+            common.adam = adam
             contenders["rlu, foreach Adam"] = (slow.update, batches)
             contenders["minimal loop"] = (minimal_bc if algo == "bc" else minimal_bcq)(batches)
             if not args.no_d3rlpy:

@@ -74,7 +74,7 @@ def rlu_step(name: str, batch: Transition):
         DiscreteSpec((), "int64", NUM_ACTIONS),
         "paper",
         learning_rate=LR,
-        batch_size=len(batch.action),
+        **{"atari.batch_size": len(batch.action)},
     )
     return lambda: agent.update(batch)
 

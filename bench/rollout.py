@@ -6,7 +6,8 @@ same env, policy and episode count in one run.
 Peers: a one-env-at-a-time loop with a policy call per step (the loop most offline-RL libraries
 use to evaluate, e.g. d3rlpy's ``evaluate_qlearning_with_environment``), and gymnasium's own
 ``SyncVectorEnv`` stepping the same number of envs. Env: Pendulum-v1 with dict observations and
-200-step episodes (tests/train/pendulum.py); policy: a torch MLP on the CPU. Figures are episodes
+200-step episodes (tests/train/pendulum.py); policy: a torch MLP on the CPU. A trained agent's
+policy against a TorchScript loop: ``bench/rollout_agent.py``. Figures are episodes
 per second; one thread for torch so the comparison is the loop, not BLAS threading.
 """
 
@@ -24,7 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import gymnasium as gym  # noqa: E402
 import torch  # noqa: E402
 
-from rlu.evaluation.rollout import evaluate  # noqa: E402
+from rlu.evaluation.rollout import episode_seed, evaluate  # noqa: E402
 from tests.train.pendulum import make_env  # noqa: E402
 
 
@@ -35,7 +36,7 @@ def make_policy(hidden: int):
         torch.nn.ReLU(), torch.nn.Linear(hidden, 1), torch.nn.Tanh(),
     )  # fmt: skip
 
-    def policy(obs):
+    def policy(obs, is_first=None):
         x = np.concatenate([obs["orientation"], obs["velocity"]], axis=1)
         with torch.no_grad():
             return 2.0 * net(torch.from_numpy(x)).numpy()
@@ -50,7 +51,7 @@ def _long_env():
 def one_at_a_time(policy, episodes: int) -> list[float]:
     env, returns = _long_env(), []
     for i in range(episodes):
-        obs, _ = env.reset(seed=i)
+        obs, _ = env.reset(seed=episode_seed(0, i))
         done, total = False, 0.0
         while not done:
             batch = {k: v[None] for k, v in obs.items()}

@@ -20,7 +20,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from rlu.types import DiscreteSpec, RluError
+from rlu import runs
+from rlu.types import DiscreteSpec, RluError, install_hint
 
 
 @dataclass(frozen=True)
@@ -31,7 +32,8 @@ class SweepConfig:
     """Dataset path per task."""
     seeds: tuple[int, ...] = (0,)
     preset: str = "small"
-    steps: int = 1000
+    steps: int | None = None
+    """Gradient steps per run (None: each agent config's ``num_steps``)."""
     grid: Mapping[str, Sequence[Any]] | None = None
     """Grid for every agent ({field: [values]}); None: each agent module's paper ``GRID``."""
     max_configs: int | None = None
@@ -44,12 +46,18 @@ class SweepConfig:
     checkpoint_every: int = 1000
     env: str | None = None
     """Env factory 'module:function' (None: rlu.envs.make_env)."""
+    challenge: str | None = None
+    """RWRL: evaluate under this challenge (None: each dataset's own, from its provenance)."""
+    task_presets: Mapping[str, str] = field(default_factory=dict)
+    """Per-task preset replacing ``preset`` for the agents that have it: the paper's recurrent
+    presets on the sequence locomotion tasks, ``{"locomotion/rodent_mazes": "paper_recurrent"}``."""
     torch_threads: int = 1
     """Threads per run: runs are the unit of parallelism."""
 
     def to_json(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
         d["datasets"] = dict(self.datasets)
+        d["task_presets"] = dict(self.task_presets)
         d["grid"] = None if self.grid is None else {k: list(v) for k, v in self.grid.items()}
         return d
 
@@ -63,6 +71,8 @@ class RunSpec:
     overrides: Mapping[str, Any] = field(default_factory=dict)
     seed: int = 0
     run_dir: str = ""
+    preset: str = "small"
+    """The agent preset of this run (the sweep's, or the task's where the agent has it)."""
 
 
 def _slug(text: str) -> str:
@@ -74,21 +84,30 @@ def config_label(overrides: Mapping[str, Any]) -> str:
 
 
 def agent_grid(agent: str, discrete: bool) -> dict[str, list[Any]]:
-    from rlu.train import agent_module
+    from rlu.agents import agent_module
 
-    return {k: list(v) for k, v in getattr(agent_module(agent, discrete), "GRID", {}).items()}
+    return {k: list(v) for k, v in agent_module(agent, discrete).GRID.items()}
+
+
+def agent_presets(agent: str, discrete: bool) -> tuple[str, ...]:
+    from rlu.agents import agent_module
+
+    return tuple(agent_module(agent, discrete).PRESETS)
 
 
 def expand(config: SweepConfig, out: str | os.PathLike) -> list[RunSpec]:
     """Every run of the sweep, in (task, agent, config, seed) order."""
     from rlu.data import open_dataset
 
-    runs = []
+    specs = []
     for task in config.tasks:
         if task not in config.datasets:
             raise RluError(f"no dataset for task {task!r}; pass --dataset {task}=PATH")
         discrete = isinstance(open_dataset(config.datasets[task]).schema.action, DiscreteSpec)
         for agent in config.agents:
+            preset = config.task_presets.get(task, config.preset)
+            if preset not in agent_presets(agent, discrete):
+                preset = config.preset  # e.g. no recurrent variant of this agent
             grid = dict(config.grid) if config.grid is not None else agent_grid(agent, discrete)
             keys = sorted(grid)
             settings = [
@@ -101,8 +120,8 @@ def expand(config: SweepConfig, out: str | os.PathLike) -> list[RunSpec]:
                 label = config_label(overrides)
                 for seed in config.seeds:
                     run_dir = Path(out) / _slug(task) / _slug(agent) / _slug(label) / f"seed_{seed}"
-                    runs.append(RunSpec(task, agent, label, overrides, seed, str(run_dir)))
-    return runs
+                    specs.append(RunSpec(task, agent, label, overrides, seed, str(run_dir), preset))
+    return specs
 
 
 def run_one(spec: RunSpec, config: SweepConfig, sys_path: Sequence[str] = ()) -> dict[str, Any]:
@@ -113,14 +132,14 @@ def run_one(spec: RunSpec, config: SweepConfig, sys_path: Sequence[str] = ()) ->
     from rlu.train import TrainConfig, train
 
     run = Path(spec.run_dir)
-    if (run / "result.json").exists():
-        result = json.loads((run / "result.json").read_text())
+    if (run / runs.RESULT).exists():
+        result = json.loads((run / runs.RESULT).read_text())
     else:
         tc = TrainConfig(
             task=spec.task,
             agent=spec.agent,
             dataset=config.datasets[spec.task],
-            preset=config.preset,
+            preset=spec.preset,
             steps=config.steps,
             seed=spec.seed,
             overrides=dict(spec.overrides),
@@ -131,6 +150,7 @@ def run_one(spec: RunSpec, config: SweepConfig, sys_path: Sequence[str] = ()) ->
             log_every=config.log_every,
             checkpoint_every=config.checkpoint_every,
             env=config.env,
+            challenge=config.challenge,
             torch_threads=config.torch_threads,
         )
         result = train(tc, run, resume=True)
@@ -140,6 +160,8 @@ def run_one(spec: RunSpec, config: SweepConfig, sys_path: Sequence[str] = ()) ->
         "config": spec.config,
         "overrides": dict(spec.overrides),
         "seed": spec.seed,
+        "preset": spec.preset,
+        "env_settings": result["env_settings"],
         "score": result["score"],
         "returns": (result.get("final_eval") or {}).get("returns"),
         "run": str(run),
@@ -157,26 +179,24 @@ def sweep(
     """Run every missing run of the sweep; return (and write to OUT/results.jsonl) all records."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    cfg_path = out / "sweep.json"
+    cfg_path = out / runs.SWEEP_CONFIG
     wanted = json.loads(json.dumps(config.to_json()))
     if cfg_path.exists() and json.loads(cfg_path.read_text()) != wanted:
         raise RluError(
             f"{cfg_path} was written by a different sweep configuration; use the same arguments "
             "to continue it or choose a new --out"
         )
-    cfg_path.write_text(json.dumps(config.to_json(), indent=2) + "\n")
-    runs = expand(config, out)
+    runs.write_json(cfg_path, config.to_json())
+    specs = expand(config, out)
     paths = [p for p in sys.path if p and Path(p).is_dir()]
     if backend == "local":
-        records = _run_local(runs, config, workers, paths, progress)
+        records = _run_local(specs, config, workers, paths, progress)
     elif backend == "ray":
-        records = _run_ray(runs, config, ray_address, paths, progress)
+        records = _run_ray(specs, config, ray_address, paths, progress)
     else:
         raise RluError(f"backend={backend!r}; use 'local' or 'ray'")
     records.sort(key=lambda r: (r["task"], r["agent"], r["config"], r["seed"]))
-    tmp = out / "results.jsonl.tmp"
-    tmp.write_text("".join(json.dumps(r) + "\n" for r in records))
-    os.replace(tmp, out / "results.jsonl")
+    runs.write_results(out, records)
     return records
 
 
@@ -189,34 +209,31 @@ def _note(progress: bool, done: int, total: int, rec: dict[str, Any]) -> None:
         )
 
 
-def _run_local(runs, config, workers, paths, progress) -> list[dict[str, Any]]:
+def _run_local(specs, config, workers, paths, progress) -> list[dict[str, Any]]:
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
     if workers <= 1:
         out = []
-        for i, r in enumerate(runs):
+        for i, r in enumerate(specs):
             out.append(run_one(r, config, paths))
-            _note(progress, i + 1, len(runs), out[-1])
+            _note(progress, i + 1, len(specs), out[-1])
         return out
     # spawn: a fresh interpreter per worker (torch and fork do not mix)
     with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
-        futures = [pool.submit(run_one, r, config, paths) for r in runs]
+        futures = [pool.submit(run_one, r, config, paths) for r in specs]
         records = []
         for i, f in enumerate(as_completed(futures)):
             records.append(f.result())
-            _note(progress, i + 1, len(runs), records[-1])
+            _note(progress, i + 1, len(specs), records[-1])
     return records
 
 
-def _run_ray(runs, config, address, paths, progress) -> list[dict[str, Any]]:
+def _run_ray(specs, config, address, paths, progress) -> list[dict[str, Any]]:
     try:
         import ray
     except ImportError:
-        raise RluError(
-            "the Ray backend needs ray: bash scripts/install.sh distributed (pip install "
-            "'rlu[distributed]')"
-        ) from None
+        raise RluError(f"the Ray backend needs ray: {install_hint('distributed')}") from None
     started = False
     if not ray.is_initialized():
         if address:
@@ -228,25 +245,18 @@ def _run_ray(runs, config, address, paths, progress) -> list[dict[str, Any]]:
         started = True
     try:
         remote = ray.remote(num_cpus=1)(run_one)
-        pending = {remote.remote(r, config, paths): r for r in runs}
+        pending = {remote.remote(r, config, paths): r for r in specs}
         records = []
         while pending:
             done, _ = ray.wait(list(pending), num_returns=1)
             for ref in done:
                 pending.pop(ref)
                 records.append(ray.get(ref))
-                _note(progress, len(records), len(runs), records[-1])
+                _note(progress, len(records), len(specs), records[-1])
         return records
     finally:
         if started:
             ray.shutdown()
-
-
-def load_results(out: str | os.PathLike) -> list[dict[str, Any]]:
-    path = Path(out) / "results.jsonl"
-    if not path.exists():
-        raise RluError(f"{path} is missing; run the sweep first (rlu sweep ... --out {out})")
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
 def results_table(records: Sequence[Mapping[str, Any]]) -> str:

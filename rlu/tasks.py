@@ -2,10 +2,11 @@
 
 Sources for every number here:
 - observation keys, dims and action dims: the ``shapes`` tables of the original
-  ``rl_unplugged/dm_control_suite.py`` (../shared/reference/rlu_release_format.md §3.3);
-- selection split, episode counts, sequence lengths: the paper's tables 1-4
-  (../shared/seed/rl_unplugged_paper.tex);
-- release paths and shard counts: rlu_release_format.md §2 and §5;
+  ``rl_unplugged/dm_control_suite.py`` (github.com/deepmind/deepmind-research);
+- selection split, episode counts, sequence lengths: the paper's tables 1-4 (Gulcehre et al.
+  2020, arXiv:2006.13888);
+- release paths and shard counts: the release bucket's layout, as the original loaders
+  (``rl_unplugged/*.py``) name them;
 - Atari minimal action-set sizes: read from ale-py 0.12.1 (``tests/test_tasks.py`` re-checks them
   against ALE when the ``atari`` extra is installed).
 """
@@ -32,6 +33,11 @@ Domain = Literal["control_suite", "locomotion", "atari", "rwrl"]
 DOMAINS: tuple[str, ...] = ("control_suite", "locomotion", "atari", "rwrl")
 BUCKET = "rl_unplugged"
 BASE_URL = "https://storage.googleapis.com/rl_unplugged"
+# Gymnasium ids (TaskSpec.gym_id) and the entry point of their specs, a string so that a spec
+# stored as JSON (Minari keeps one per dataset) makes the env again (rlu.envs.registration).
+GYM_NAMESPACE = "rlu"
+GYM_VERSION = 0
+GYM_ENTRY_POINT = "rlu.envs.registration:make"
 
 
 @dataclass(frozen=True)
@@ -91,6 +97,12 @@ class TaskSpec:
     @property
     def discrete(self) -> bool:
         return isinstance(self.action_spec, DiscreteSpec)
+
+    @property
+    def gym_id(self) -> str:
+        """The task's Gymnasium id, ``rlu/DOMAIN-NAME-v0`` (registered by ``rlu.envs``; the
+        domain is kept because RWRL and the control suite share task names)."""
+        return f"{GYM_NAMESPACE}/{self.domain}-{self.name}-v{GYM_VERSION}"
 
     @property
     def action_dim(self) -> int:

@@ -19,6 +19,18 @@ from typing import Any, NamedTuple, Protocol
 import numpy as np
 
 
+class RluError(Exception):
+    """Base of every error rlu raises on bad input; the message names the thing and the fix."""
+
+
+class FormatError(RluError):
+    """A file is not in the format it claims to be (corrupt, truncated, wrong schema)."""
+
+
+class SpecError(RluError):
+    """Data disagrees with a spec (shape, dtype, key)."""
+
+
 @dataclass(frozen=True)
 class ArraySpec:
     """Shape and dtype of one array (per step, without the batch or time axis)."""
@@ -141,37 +153,93 @@ class Sequence(NamedTuple):
 
 
 class Policy(Protocol):
-    """What evaluation sees of an agent: observations in, actions out (no training state)."""
+    """What evaluation sees of an agent: a batch of observations in, a batch of actions out.
 
-    def __call__(self, observation: Observation) -> np.ndarray: ...
+    ``is_first[i]`` is True where row i's episode starts at this observation, so a recurrent
+    policy restarts its state there; the batch always has the same rows (one per env)."""
+
+    def __call__(self, observation: Observation, is_first: np.ndarray) -> np.ndarray: ...
+
+
+BATCH_KINDS = ("transition", "sequence")
+
+
+@dataclass(frozen=True)
+class BatchSpec:
+    """What an agent needs from the data, declared once by the agent (``agent.batch_spec``) and
+    consumed as is by ``rlu.data.make_sampler(dataset, spec, seed)``: the training loop, the
+    online behaviour loop and user code build their samplers from it, never from probes.
+
+    n-step convention (one place, shared by the data layer and every agent): a ``Transition``
+    sampled with ``n_step = n`` has ``reward = sum_{i<n} gamma^i (prod_{j<i} d_j) r_i`` (per-step
+    rewards clipped to ``reward_clip`` first) and ``discount = prod_{i<n} d_i``; the agent
+    bootstraps with ``bootstrap_gamma * discount`` (``gamma ** n``).
+    """
+
+    batch_size: int
+    """Transitions (or windows, for sequences) per batch."""
+    kind: str = "transition"
+    """'transition' (SARSA tuples, optionally n-step) or 'sequence' (windows with a mask)."""
+    n_step: int = 1
+    """Steps summed into a transition's reward (transition batches only)."""
+    gamma: float = 1.0
+    """Per-step discount of the n-step reward sum; the agent's own gamma."""
+    sequence_length: int = 1
+    """Window length of sequence batches."""
+    reward_clip: float | None = None
+    """Per-step rewards are clipped to [-reward_clip, reward_clip] before anything else (the
+    paper's Atari agents learn from rewards clipped to [-1, 1]); None keeps them as stored."""
+
+    def __post_init__(self) -> None:
+        if self.kind not in BATCH_KINDS:
+            raise SpecError(f"BatchSpec.kind={self.kind!r}; use one of {', '.join(BATCH_KINDS)}")
+        for name in ("batch_size", "n_step", "sequence_length"):
+            value = getattr(self, name)
+            if not isinstance(value, int | np.integer) or value < 1:
+                raise SpecError(f"BatchSpec.{name}={value!r}; it must be an integer >= 1")
+        if not 0.0 <= float(self.gamma) <= 1.0:
+            raise SpecError(f"BatchSpec.gamma={self.gamma!r}; a discount lies in [0, 1]")
+        if self.reward_clip is not None and not float(self.reward_clip) > 0.0:
+            raise SpecError(
+                f"BatchSpec.reward_clip={self.reward_clip!r}; use a positive bound or None"
+            )
+
+    @property
+    def bootstrap_gamma(self) -> float:
+        """The factor of ``discount * V(next_observation)`` in an n-step target: gamma^n."""
+        return float(self.gamma) ** self.n_step
 
 
 class Agent(Protocol):
-    """The contract every baseline in ``rlu.agents`` meets.
+    """The contract every agent in ``rlu.agents`` meets (one file each; see docs/agents.md).
 
-    Constructed as ``Agent(observation_spec, action_spec, config, seed=...)``; ``act`` takes a
-    batched observation (leading batch axis) and returns a batch of actions.
+    Built as ``Agent(observation_spec, action_spec, config, seed=...)``. ``batch_spec`` says what
+    batches ``update`` takes; ``act`` maps a batched observation (leading batch axis) to a batch
+    of actions, and ``is_first`` (bool, one per row) marks rows whose episode starts at this
+    observation, so recurrent agents restart their state there (others ignore it).
+    ``num_steps`` is the learner steps of a full run of its config (what ``rlu train`` runs
+    without --steps); ``pretrain_steps`` counts the updates of a pre-training phase (BRAC's
+    behaviour model; 0 for most agents) that the loop runs before, and on top of, them.
+    ``modules`` names every torch module the agent owns (targets included) and ``state_dict()``
+    holds everything needed to resume bit for bit (plain tensors, numbers and
+    dicts: checkpoints load with ``weights_only=True``).
     """
+
+    config: Any
+    batch_spec: BatchSpec
+    num_steps: int
+    pretrain_steps: int
+    modules: Mapping[str, Any]
 
     def update(self, batch: Any) -> dict[str, float]: ...
 
-    def act(self, observation: Observation, greedy: bool = True) -> np.ndarray: ...
+    def act(
+        self, observation: Observation, greedy: bool = True, is_first: np.ndarray | None = None
+    ) -> np.ndarray: ...
 
     def state_dict(self) -> dict[str, Any]: ...
 
     def load_state_dict(self, state: dict[str, Any]) -> None: ...
-
-
-class RluError(Exception):
-    """Base of every error rlu raises on bad input; the message names the thing and the fix."""
-
-
-class FormatError(RluError):
-    """A file is not in the format it claims to be (corrupt, truncated, wrong schema)."""
-
-
-class SpecError(RluError):
-    """Data disagrees with a spec (shape, dtype, key)."""
 
 
 def available_cores() -> int:
@@ -181,3 +249,34 @@ def available_cores() -> int:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # pragma: no cover - not Linux
         return os.cpu_count() or 1
+
+
+def seed_stream(seed: int, *key: int) -> np.random.SeedSequence:
+    """The random stream ``key`` of run ``seed``: ``SeedSequence(seed).spawn(...)`` indexed by
+    ``key`` (``seed_stream(s, w, e)`` is ``SeedSequence(s).spawn(w + 1)[w].spawn(e + 1)[e]``).
+
+    numpy spawns children by extending the spawn key and hashes (entropy, spawn key) together, so
+    two different ``(seed, *key)`` never give the same stream, unlike ``seed + k`` (run 0's
+    worker 1 would be run 1's worker 0). Every seed and key must be a non-negative int.
+    """
+    parts = (seed, *key)
+    if any(isinstance(p, bool) or not isinstance(p, int | np.integer) or p < 0 for p in parts):
+        raise RluError(f"seed {seed!r} with stream key {key!r}: seeds are non-negative integers")
+    return np.random.SeedSequence(int(seed), spawn_key=tuple(int(k) for k in key))
+
+
+def derive_seed(seed: int, *key: int) -> int:
+    """A 31-bit int seed for stream ``key`` of ``seed`` (see ``seed_stream``), for APIs that take
+    an int (``env.reset(seed=...)``, dm_control's ``random``, ALE's signed 32-bit seed)."""
+    return int(seed_stream(seed, *key).generate_state(1, np.uint32)[0] >> 1)
+
+
+def install_hint(*extras: str) -> str:
+    """How to install the pip extras ``extras`` of rlu, as the user installed rlu: the pip line
+    always, and ``bash scripts/install.sh`` too when rlu runs from a checkout (the script is not
+    in the wheel)."""
+    hint = f'pip install "rlu[{",".join(extras)}]"'
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    if os.path.exists(os.path.join(root, "scripts", "install.sh")):
+        hint += f" (in this checkout: bash scripts/install.sh {' '.join(extras)})"
+    return hint

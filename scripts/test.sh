@@ -10,6 +10,16 @@ bash scripts/install.sh control locomotion atari agents jax distributed report d
 # rendering fails looking for an X display.
 export MUJOCO_GL=${MUJOCO_GL:-egl}
 export PYOPENGL_PLATFORM=${PYOPENGL_PLATFORM:-egl}
+# The slow report test screenshots report.html in Debian's headless chromium; install it where
+# it is missing and apt-get can (root), else that one test skips and says why.
+if [ "${RLU_SLOW:-0}" = "1" ] && ! command -v chromium >/dev/null; then
+  if command -v apt-get >/dev/null && [ "$(id -u)" = "0" ]; then
+    { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; } \
+      || echo "scripts/test.sh: installing chromium failed; the browser test will skip"
+  else
+    echo "scripts/test.sh: no chromium and no root apt-get; the browser test will skip"
+  fi
+fi
 marker=(-m "not slow")
 [ "${RLU_SLOW:-0}" = "1" ] && marker=()
 set +e

@@ -21,3 +21,62 @@ def test_quickstart_end_to_end_at_tiny_cost(tmp_path, capsys):
     assert [r["policy"] for r in result["policies"]] == ["random", "bc"]
     assert result["dataset_returns"]["episodes"] == 40
     assert (out / "bc" / "result.json").exists() and (out / "report.md").exists()
+    if __import__("importlib").util.find_spec("matplotlib") is not None:
+        png = (out / "quickstart.png").read_bytes()
+        assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
+        assert "![policies beside the dataset's returns](quickstart.png)" in text
+
+
+def test_info_json_lists_every_episode_return(capsys):
+    import numpy as np
+
+    from rlu.data import open_dataset
+    from rlu.generate.recipe import bundled_dataset
+
+    path = bundled_dataset()
+    assert main(["info", str(path), "--json"]) == 0
+    returns = json.loads(capsys.readouterr().out)["returns"]
+    per_episode = returns["per_episode"]
+    assert per_episode == open_dataset(path).episode_returns().tolist() and len(per_episode) == 40
+    assert returns["mean"] == np.mean(per_episode) and returns["max"] == max(per_episode)
+    assert main(["info", str(path)]) == 0
+    assert "per_episode" not in capsys.readouterr().out  # the tree print stays short
+
+
+def test_train_and_evaluate_defaults_are_quick():
+    """A short train evaluates once, at the end; long ones at most 10 times; one torch thread."""
+    from rlu.cli import build_parser
+    from rlu.commands.train import EVAL_EVERY_MIN, _run_kwargs
+
+    parser = build_parser()
+    base = ["train", "--task", "t", "--agent", "bc", "--dataset", "d", "--out", "o"]
+    short = parser.parse_args([*base, "--steps", "20"])
+    assert _run_kwargs(short)["eval_every"] == EVAL_EVERY_MIN and short.threads == 1
+    long = parser.parse_args([*base, "--steps", "1000000"])
+    assert _run_kwargs(long)["eval_every"] == 100_000
+    assert _run_kwargs(parser.parse_args([*base, "--eval-every", "5"]))["eval_every"] == 5
+    assert parser.parse_args(["evaluate", "run"]).threads == 1
+
+
+def test_evaluate_sets_its_threads(tmp_path, capsys):
+    torch = pytest.importorskip("torch")
+    pytest.importorskip("gymnasium")
+    from rlu.train import TrainConfig, train
+    from tests.train.pendulum import write_dataset
+
+    data = write_dataset(tmp_path / "data", "test/pendulum", episodes=4)
+    env = "tests.train.pendulum:make_env"
+    cfg = TrainConfig(task="test/pendulum", agent="tests.train.fake_agent", dataset=str(data),
+                      steps=3, eval_every=-1, checkpoint_every=3, env=env)  # fmt: skip
+    train(cfg, tmp_path / "run", progress=False)
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        argv = ["evaluate", str(tmp_path / "run"), "--episodes", "2", "--envs", "2", "--json"]
+        assert main(argv) == 0
+        assert torch.get_num_threads() == 1  # the default
+        assert len(json.loads(capsys.readouterr().out)["returns"]) == 2
+        assert main([*argv, "--threads", "0"]) == 2
+        assert "--threads 0; use 1 or more" in capsys.readouterr().err
+    finally:
+        torch.set_num_threads(before)

@@ -1,11 +1,15 @@
-"""The ten baselines of the paper, one file each, built by name.
+"""The baselines, one file each, built by name from one registry (``AGENTS``).
 
-Every agent module defines, top to bottom: a frozen ``<Algo>Config`` dataclass (paper defaults),
-``PRESETS = {"paper": ..., "small": ...}``, ``GRID`` (the paper's hyper-parameter grid as data,
-``{field: [values]}``), pure loss functions returning ``(loss, metrics)`` and ``<Algo>Agent`` with
-``update(batch) -> dict[str, float]``, ``act(obs, greedy=True)``, ``state_dict()`` /
-``load_state_dict()`` and the attributes the training loop reads:
-``batch_kind`` ("transition" or "sequence"), ``n_step`` and ``sequence_length``.
+Every agent module defines, top to bottom: a frozen ``Config`` dataclass (paper defaults, a
+docstring per field), ``PRESETS = {"paper": ..., "small": ...}``, ``GRID`` (the paper's
+hyper-parameter grid as data, ``{field: [values]}``), pure loss functions returning
+``(loss, metrics)`` and ``Agent`` meeting ``rlu.types.Agent``: ``batch_spec`` (what its batches
+are), ``update(batch) -> dict[str, float]``, ``act(obs, greedy=True, is_first=None)``,
+``modules``, ``state_dict()`` / ``load_state_dict()``. Adding an agent = one file + one line in
+``AGENTS``; the contract test (tests/agents/test_contract.py) then runs it. See docs/agents.md.
+
+Config fields of a composed settings dataclass (the Atari agents' ``atari``) are overridden by
+dotted path: ``make_config("dqn", True, "small", **{"atari.batch_size": 64})``.
 
 ``make_agent`` chooses between the discrete and the continuous variant of ``bc`` / ``bcq`` from
 the action spec. Nothing here imports torch until an agent is built.
@@ -15,6 +19,8 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import typing
+from collections.abc import Mapping
 from typing import Any
 
 from rlu.types import ActionSpec, DiscreteSpec, ObservationSpec, RluError
@@ -33,6 +39,7 @@ AGENTS: dict[tuple[str, bool], str] = {
     ("iqn", True): "rlu.agents.iqn",
     ("bcq", True): "rlu.agents.bcq_discrete",
     ("rem", True): "rlu.agents.rem",
+    ("cql", True): "rlu.agents.cql_discrete",
 }
 
 CONTINUOUS_AGENTS: tuple[str, ...] = tuple(n for n, d in AGENTS if not d)
@@ -57,8 +64,37 @@ def agent_module(name: str, discrete: bool) -> Any:
     return importlib.import_module(path)
 
 
+def _replace(config: Any, path: str, value: Any, agent: str) -> Any:
+    """``dataclasses.replace`` along a dotted field path (``atari.batch_size``)."""
+    head, _, rest = path.partition(".")
+    fields = {f.name for f in dataclasses.fields(config)}
+    if head not in fields:
+        nested = [
+            f"{f}.{head}"
+            for f in sorted(fields)
+            if dataclasses.is_dataclass(getattr(config, f))
+            and head in {g.name for g in dataclasses.fields(getattr(config, f))}
+        ]
+        hint = f"; did you mean {' or '.join(nested)}?" if nested else ""
+        raise RluError(
+            f"agent {agent!r} config has no field {path!r}{hint} fields: "
+            f"{', '.join(sorted(fields))}"
+        )
+    current = getattr(config, head)
+    if rest:
+        if not dataclasses.is_dataclass(current):
+            raise RluError(f"agent {agent!r} config field {head!r} has no sub-fields ({path!r})")
+        value = _replace(current, rest, value, agent)
+    elif dataclasses.is_dataclass(current) and isinstance(value, Mapping):
+        value = config_from_json(type(current), {**dataclasses.asdict(current), **value})
+    elif isinstance(current, tuple) and isinstance(value, list):
+        value = tuple(value)  # JSON and the CLI give lists where configs hold tuples
+    return dataclasses.replace(config, **{head: value})
+
+
 def make_config(name: str, discrete: bool, preset: str = "small", **overrides: Any) -> Any:
-    """The preset's config with ``overrides`` applied (unknown fields are an error)."""
+    """The preset's config with ``overrides`` applied (dotted paths reach composed settings;
+    unknown fields are an error)."""
     module = agent_module(name, discrete)
     try:
         config = module.PRESETS[preset]
@@ -66,19 +102,31 @@ def make_config(name: str, discrete: bool, preset: str = "small", **overrides: A
         raise RluError(
             f"agent {name!r} has no preset {preset!r}; presets: {', '.join(module.PRESETS)}"
         ) from None
-    fields = {f.name for f in dataclasses.fields(config)}
-    unknown = sorted(set(overrides) - fields)
+    for path, value in overrides.items():
+        config = _replace(config, path, value, name)
+    return config
+
+
+def config_from_json(cls: type, data: Mapping[str, Any]) -> Any:
+    """Rebuild a (possibly nested) frozen config dataclass from its JSON form (lists back to
+    tuples, dicts back to the composed dataclasses); unknown keys are an error."""
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - set(fields))
     if unknown:
         raise RluError(
-            f"agent {name!r} config has no field(s) {', '.join(unknown)}; fields: "
-            f"{', '.join(sorted(fields))}"
+            f"{cls.__name__} has no field(s) {', '.join(unknown)}; the run was written by "
+            "another version of this agent"
         )
-    # JSON and the CLI give lists where configs hold tuples (layer sizes)
-    values = {
-        k: tuple(v) if isinstance(getattr(config, k), tuple) and isinstance(v, list) else v
-        for k, v in overrides.items()
-    }
-    return dataclasses.replace(config, **values)
+    values = {}
+    for key, value in data.items():
+        kind = hints[key]
+        if dataclasses.is_dataclass(kind) and isinstance(value, Mapping):
+            value = config_from_json(kind, value)
+        elif isinstance(value, list):
+            value = tuple(value)
+        values[key] = value
+    return cls(**values)
 
 
 def make_agent(

@@ -7,9 +7,9 @@ data's actions with Adam at 1e-4, batch 1024 (128 windows when recurrent).
 
 Deviations and choices:
 - Actions are learnt in [-1, 1] (the spec's box rescaled) and clipped into the box in ``act``.
-- The paper evaluates by sampling the mixture with every component's variance fixed to 1e-4.
-  ``act(greedy=False)`` does exactly that; ``act(greedy=True)`` returns the mean of the most
-  probable component (the zero-variance limit), which is deterministic.
+- Acting: ``act(greedy=True)`` is the paper's evaluation policy, a sample of the mixture with
+  every component's variance fixed to 1e-4 (``eval_variance``); ``act(greedy=False)`` samples the
+  learnt mixture as it is. Both draw from the agent's own acting generator.
 - Recurrent windows start from a zero LSTM state; the loss skips padded steps and each
   episode's final step (its action carries no information, RLDS semantics).
 """
@@ -22,9 +22,10 @@ import numpy as np
 import torch
 from torch import nn
 
+from rlu.agents import common
 from rlu.agents import networks as nets
 from rlu.agents.losses import mixture_log_prob
-from rlu.types import Sequence, Transition
+from rlu.types import BatchSpec, Sequence, Transition
 
 
 @dataclass(frozen=True)
@@ -38,11 +39,14 @@ class BCConfig:
     mixture_components: int = 5
     """Gaussian components of the policy head."""
     eval_variance: float = 1e-4
-    """Variance of every component when sampling for evaluation (``act(greedy=False)``)."""
+    """Variance of every component when acting greedily (the paper's evaluation, 1e-4)."""
     learning_rate: float = 1e-4
     """Adam learning rate."""
     batch_size: int = 1024
     """Transitions per update; windows per update when recurrent (the paper: 1024 and 128)."""
+    num_steps: int = 1_000_000
+    """Learner steps of a full run: what ``rlu train`` runs when no --steps is given. The paper
+    states no budget for the continuous baselines; 1M is rlu's choice."""
     recurrent: bool = False
     """Two LSTM layers after the MLP; trains on sequence windows."""
     lstm_hidden: int = 1024
@@ -56,7 +60,7 @@ PRESETS = {
     "paper": BCConfig(),
     "paper_recurrent": BCConfig(recurrent=True, batch_size=128),  # the sequence tasks
     "small": BCConfig(hidden_size=256, num_layers=2, learning_rate=1e-3, batch_size=256,
-                      lstm_hidden=64, sequence_length=10),
+                      lstm_hidden=64, sequence_length=10, num_steps=20_000),
 }  # fmt: skip
 GRID: dict[str, list] = {}  # the paper reports no sweep for BC
 
@@ -75,11 +79,12 @@ class BCAgent:
     def __init__(self, observation_spec, action_spec, config: BCConfig, seed: int = 0):
         self.config = config
         self.scaler = nets.ActionScaler(action_spec)
-        self.batch_kind = "sequence" if config.recurrent else "transition"
-        self.n_step = 1
-        self.sequence_length = config.sequence_length
-        self.generator = torch.Generator().manual_seed(seed)
-        with nets.seeded_init(seed):
+        kind = "sequence" if config.recurrent else "transition"
+        self.batch_spec = BatchSpec(config.batch_size, kind, sequence_length=config.sequence_length)
+        self.pretrain_steps = 0
+        self.num_steps = config.num_steps
+        act_seed = common.split_seed(seed, 1)[0]
+        with common.seeded(seed):
             torso = nets.Torso(
                 observation_spec, config.hidden_size, config.num_layers,
                 lstm_hidden=config.lstm_hidden if config.recurrent else 0,
@@ -87,48 +92,38 @@ class BCAgent:
             )  # fmt: skip
             head = nets.MixtureHead(torso.output_dim, self.scaler.dim, config.mixture_components)
             self.policy = nn.ModuleDict({"torso": torso, "head": head})
-        self.optimizer = nets.adam(self.policy.parameters(), config.learning_rate)
         self.modules = {"policy": self.policy}
+        self.optimizers = {"policy": common.adam(self.policy.parameters(), config.learning_rate)}
+        self.generators = {"act": torch.Generator().manual_seed(act_seed)}
         self.step = 0
         self._rollout_state = None
 
     def update(self, batch: Transition | Sequence) -> dict[str, float]:
         seq = isinstance(batch, Sequence)
-        obs = nets.to_torch(batch.observation)
-        action = self.scaler.to_unit(nets.to_torch(batch.action))
-        weight = nets.to_torch(batch.mask & ~batch.is_last).float() if seq else None
+        obs = common.to_torch(batch.observation)
+        action = self.scaler.to_unit(common.to_torch(batch.action))
+        weight = common.to_torch(batch.mask & ~batch.is_last).float() if seq else None
         h, _ = self.policy["torso"](obs, sequence=seq)
         loss, metrics = bc_loss(*self.policy["head"](h), action, weight)
-        self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        self.optimizer.step()
+        common.sgd_step(self.optimizers["policy"], loss)
         self.step += 1
-        return nets.metrics_to_floats(metrics)
-
-    def reset(self) -> None:
-        """Forget the LSTM state between episodes (recurrent configs)."""
-        self._rollout_state = None
+        return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True) -> np.ndarray:
-        h, state = self.policy["torso"](nets.to_torch(observation), state=self._rollout_state)
-        self._rollout_state = state
+    def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+        obs = common.to_torch(observation)
+        state = nets.carried_state(self._rollout_state, is_first, obs)
+        h, self._rollout_state = self.policy["torso"](obs, state=state)
         logits, mean, std = self.policy["head"](h)
-        if greedy:
-            action = nets.mixture_mode(logits, mean)
-        else:
-            sd = self.config.eval_variance**0.5
-            action = nets.mixture_sample(logits, mean, std, self.generator, std_override=sd)
+        sd = self.config.eval_variance**0.5 if greedy else None
+        action = nets.mixture_sample(logits, mean, std, self.generators["act"], std_override=sd)
         return self.scaler.from_unit(action)
 
-    def state_dict(self) -> dict:
-        return nets.agent_state(self.modules, {"policy": self.optimizer}, self.generator, self.step)
+    state_dict = common.state_dict
 
     def load_state_dict(self, state: dict) -> None:
-        self.step = nets.load_agent_state(
-            state, self.modules, {"policy": self.optimizer}, self.generator
-        )
-        self._rollout_state = None
+        common.load_state_dict(self, state)
+        self._rollout_state = None  # acting restarts after a restore
 
 
 Agent = BCAgent

@@ -6,91 +6,76 @@ Deviations: Adam epsilon 1e-7 (TF2 default, as the paper states); the learning-r
 {3e-5, 5e-5, 1e-4} (see ``discrete_common.LEARNING_RATE_GRID``).
 
 Acting: ``greedy=True`` is argmax_a of the logits (the max action), replaced by a uniform action
-with probability ``eval_epsilon`` (0.4^8, the evaluation epsilon the paper's table gives every
-Atari baseline; set it to 0 for the pure max action); ``greedy=False`` samples from the softmax
-policy.
+with probability ``atari.eval_epsilon`` (0.4^8, the evaluation epsilon the paper's table gives
+every Atari baseline; set it to 0 for the pure max action); ``greedy=False`` samples from the
+softmax policy.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
+from rlu.agents import common
 from rlu.agents import discrete_common as dc
 from rlu.types import Transition
 
 
 @dataclass(frozen=True)
 class BCConfig:
+    atari: dc.AtariSettings = field(default_factory=dc.AtariSettings)
+    """Settings shared by the Atari baselines (batch, network, epsilons, budget; BC uses no
+    reward, discount or target network)."""
     learning_rate: float = 3e-5
     """Adam step size; the paper used 3e-5 for BC's offline policy selection."""
-    adam_eps: float = 1e-7
-    """Adam epsilon: TF2's default, as the paper states."""
-    batch_size: int = 256
-    """Transitions per update (read by the training loop)."""
-    eval_epsilon: float = dc.EVAL_EPSILON
-    """Probability of a uniform action when acting greedily (the paper's evaluation epsilon)."""
-    num_steps: int = 2_000_000
-    """Learner steps of a full run (read by the training loop)."""
-    channels: tuple[int, ...] = (32, 64, 64)
-    """Nature CNN output channels per convolution."""
-    kernel_sizes: tuple[int, ...] = (8, 4, 3)
-    """Nature CNN square filter sizes."""
-    strides: tuple[int, ...] = (4, 2, 1)
-    """Nature CNN strides."""
-    hidden_size: int = 512
-    """Units of the fully connected layer after the convolutions."""
 
 
 Config = BCConfig
 
 PRESETS: dict[str, BCConfig] = {
     "paper": BCConfig(),
-    "small": BCConfig(**dc.SMALL_SCALE),
+    "small": BCConfig(**dc.SMALL_FIELDS),
 }
 
 GRID: dict[str, list[Any]] = {"learning_rate": list(dc.LEARNING_RATE_GRID)}
 
 
+def bc_loss(logits: torch.Tensor, action: torch.Tensor):
+    """Cross-entropy of the policy logits on the logged actions."""
+    loss = F.cross_entropy(logits, action)
+    accuracy = (logits.argmax(-1) == action).float().mean()
+    return loss, {"actor/bc_loss": loss, "actor/accuracy": accuracy}
+
+
 class BCAgent:
-    batch_kind = "transition"
-    n_step = 1
-    sequence_length = 1
-
     def __init__(self, observation_spec, action_spec, config: BCConfig, seed: int = 0) -> None:
-        shape, num_actions = dc.check_specs("bc", observation_spec, action_spec)
-        self.config = config
-        init_seed, learner_seed, act_seed = dc.seeds(seed)
-
-        def build() -> dc.QNetwork:
-            torso = dc.NatureTorso(shape, config.channels, config.kernel_sizes, config.strides)
-            return dc.QNetwork(torso, config.hidden_size, num_actions)
-
-        network = dc.build_seeded(init_seed, build)
-        self.learner = dc.SGDLearner.from_config(network, dc.BCLoss(), config, learner_seed)
-        self.act_generator = torch.Generator().manual_seed(act_seed)
+        dc.setup(
+            self, "bc", observation_spec, action_spec, config, seed,
+            lambda shape, n: dc.QNetwork(shape, n, config.atari),
+            target=False,
+        )  # fmt: skip
 
     def update(self, batch: Transition) -> dict[str, float]:
-        return self.learner.step(dc.to_torch(batch))
+        frames = dc.frames(batch.observation)
+        action = common.to_torch(np.asarray(batch.action, np.int64))
+        loss, metrics = bc_loss(self.network(frames), action)
+        self.step = common.learn(self.optimizers["network"], loss, self.step)
+        return common.metrics_to_floats(metrics)
 
-    @torch.no_grad()
-    def act(self, observation: np.ndarray, greedy: bool = True) -> np.ndarray:
-        logits = self.learner.network(dc.frames_to_tensor(observation))
+    @torch.inference_mode()
+    def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+        logits = self.network(dc.frames(observation))
         if greedy:
-            return dc.epsilon_greedy(logits, self.config.eval_epsilon, self.act_generator)
-        sample = torch.multinomial(logits.softmax(-1), 1, generator=self.act_generator)
+            return dc.epsilon_greedy(logits, self.config.atari.eval_epsilon, self.generators["act"])
+        sample = torch.multinomial(logits.softmax(-1), 1, generator=self.generators["act"])
         return sample.squeeze(-1).numpy().astype(np.int64)
 
-    def state_dict(self) -> dict[str, Any]:
-        return dc.agent_state(self.learner, self.act_generator)
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        dc.load_agent_state(self.learner, self.act_generator, state)
+    state_dict = common.state_dict
+    load_state_dict = common.load_state_dict
 
 
 Agent = BCAgent
-
-__all__ = ["BCConfig", "BCAgent", "Config", "Agent", "PRESETS", "GRID"]

@@ -5,8 +5,10 @@ The paper uses "the exact same network architecture and algorithm" as the origin
 (encoder and decoder 750-750, latent 2 x action dims, decoder latents clipped to [-0.5, 0.5]),
 a perturbation network (400-300) that moves each VAE action by at most phi = 0.05, twin
 critics (400-300) with the soft clipped double-Q target lambda min + (1 - lambda) max,
-lambda = 0.75, the target maximising over 10 sampled actions, Polyak targets tau = 0.005, Adam
-1e-3 everywhere; batch 1024 (the paper's batch, not the original's 100).
+lambda = 0.75, the target maximising over 10 sampled actions, Adam 1e-3 everywhere; batch 1024
+(the paper's batch, not the original's 100). Targets: the paper's table gives every continuous
+agent hard target copies every 100 updates (``paper`` preset); the original's Polyak averaging
+(tau = 0.005) is ``target_update_period=0``.
 
 Choices: dict observations go through ``networks.Encoder`` (each network its own, so camera
 images get one ResNet per network); actions live in [-1, 1]. ``act(greedy=True)`` scores
@@ -24,9 +26,10 @@ import numpy as np
 import torch
 from torch import nn
 
+from rlu.agents import common
 from rlu.agents import networks as nets
 from rlu.agents.losses import vae_loss
-from rlu.types import Transition
+from rlu.types import BatchSpec, Transition
 
 
 @dataclass(frozen=True)
@@ -47,8 +50,11 @@ class BCQConfig:
     """VAE actions sampled per next state (target) and per state (acting)."""
     gamma: float = 0.99
     """Discount."""
+    target_update_period: int = 100
+    """Updates between hard copies into the target networks (the paper's table, shared by its
+    continuous agents); 0: Polyak averaging with ``tau`` every update (the original BCQ)."""
     tau: float = 0.005
-    """Polyak rate of the target networks, every update."""
+    """Polyak rate of the target networks when ``target_update_period`` is 0."""
     actor_lr: float = 1e-3
     """Adam learning rate of the perturbation network."""
     critic_lr: float = 1e-3
@@ -57,13 +63,17 @@ class BCQConfig:
     """Adam learning rate of the VAE."""
     batch_size: int = 1024
     """Transitions per update."""
+    num_steps: int = 1_000_000
+    """Learner steps of a full run: what ``rlu train`` runs when no --steps is given. The paper
+    states no budget for the continuous baselines; 1M is rlu's choice."""
 
 
 Config = BCQConfig
 PRESETS = {
     "paper": BCQConfig(),
     "small": BCQConfig(actor_layers=(256, 256), critic_layers=(256, 256),
-                       vae_layers=(256, 256), batch_size=256),
+                       vae_layers=(256, 256), batch_size=256, num_steps=20_000,
+                       target_update_period=0),
 }  # fmt: skip
 GRID: dict[str, list] = {}  # the paper reports no sweep for continuous BCQ
 
@@ -120,42 +130,41 @@ def critic_loss(q1, q2, target):
 
 
 class BCQAgent:
-    batch_kind = "transition"
-    n_step = 1
-    sequence_length = 1
-
     def __init__(self, observation_spec, action_spec, config: BCQConfig, seed: int = 0):
-        self.config, self.seed = config, seed
+        self.config = config
         self.scaler = nets.ActionScaler(action_spec)
+        self.batch_spec = BatchSpec(config.batch_size, gamma=config.gamma)
+        self.pretrain_steps = 0
+        self.num_steps = config.num_steps
         self.generator = torch.Generator().manual_seed(seed)
-        with nets.seeded_init(seed):
+        with common.seeded(seed):
             self.nets = BCQNets(observation_spec, self.scaler.dim, config)
-        self.target = nets.frozen_copy(self.nets)
+        self.target = common.frozen_copy(self.nets)
         n = self.nets
         self.actor_params = [*n.actor_enc.parameters(), *n.actor.parameters()]
         self.critic_params = [*n.critic_enc.parameters(), *n.q1.parameters(), *n.q2.parameters()]
         self.vae_params = [*n.vae_enc.parameters(), *n.vae.parameters()]
         self.optimizers = {
-            "actor": nets.adam(self.actor_params, config.actor_lr),
-            "critic": nets.adam(self.critic_params, config.critic_lr),
-            "vae": nets.adam(self.vae_params, config.vae_lr),
+            "actor": common.adam(self.actor_params, config.actor_lr),
+            "critic": common.adam(self.critic_params, config.critic_lr),
+            "vae": common.adam(self.vae_params, config.vae_lr),
         }
         self.modules = {"nets": self.nets, "target": self.target}
+        self.generators = {"sample": self.generator}
         self.step = 0
 
     def update(self, batch: Transition) -> dict[str, float]:
         c, n, t, g = self.config, self.nets, self.target, self.generator
-        obs, next_obs = nets.to_torch(batch.observation), nets.to_torch(batch.next_observation)
-        action = self.scaler.to_unit(nets.to_torch(batch.action))
-        reward, discount = nets.to_torch(batch.reward), nets.to_torch(batch.discount)
+        obs = common.to_torch(batch.observation)
+        next_obs = common.to_torch(batch.next_observation)
+        action = self.scaler.to_unit(common.to_torch(batch.action))
+        reward, discount = common.to_torch(batch.reward), common.to_torch(batch.discount)
         batch_size = action.shape[0]
 
         s_vae = n.vae_enc(obs)
         recon, mean, std = n.vae(s_vae, action, g)
         loss_v, metrics = vae_loss(recon, action, mean, std)
-        self.optimizers["vae"].zero_grad(set_to_none=True)
-        loss_v.backward()
-        self.optimizers["vae"].step()
+        common.sgd_step(self.optimizers["vae"], loss_v)
 
         with torch.no_grad():
             reps = c.num_samples
@@ -169,28 +178,27 @@ class BCQAgent:
         s_c = n.critic_enc(obs)
         loss_c, m = critic_loss(*n.q(s_c, action), target_q)
         metrics.update(m)
-        self.optimizers["critic"].zero_grad(set_to_none=True)
-        loss_c.backward()
-        self.optimizers["critic"].step()
+        common.sgd_step(self.optimizers["critic"], loss_c)
 
         with torch.no_grad():
             sampled = n.vae.decode(s_vae.detach(), g)
         perturbed = n.perturb(n.actor_enc(obs), sampled, c.phi)
         loss_a = -n.q(n.critic_enc(obs), perturbed)[0].mean()
         metrics["actor/loss"] = loss_a
-        self.optimizers["actor"].zero_grad(set_to_none=True)
-        loss_a.backward(inputs=self.actor_params)
-        self.optimizers["actor"].step()
+        common.sgd_step(self.optimizers["actor"], loss_a, inputs=self.actor_params)
 
-        nets.soft_update(self.target, self.nets, c.tau)
         self.step += 1
-        return nets.metrics_to_floats(metrics)
+        if c.target_update_period > 0:
+            common.periodic_update(self.step, c.target_update_period, {self.target: self.nets})
+        else:
+            common.soft_update(self.target, self.nets, c.tau)
+        return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True) -> np.ndarray:
+    def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
         n, reps = self.nets, self.config.num_samples
         g = torch.Generator().manual_seed(0) if greedy else self.generator
-        obs = nets.to_torch(observation)
+        obs = common.to_torch(observation)
         sv = n.vae_enc(obs).repeat_interleave(reps, 0)
         sa = n.actor_enc(obs).repeat_interleave(reps, 0)
         sc = n.critic_enc(obs).repeat_interleave(reps, 0)
@@ -199,11 +207,8 @@ class BCQAgent:
         best = q1.argmax(1) + torch.arange(q1.shape[0]) * reps
         return self.scaler.from_unit(a[best])
 
-    def state_dict(self) -> dict:
-        return nets.agent_state(self.modules, self.optimizers, self.generator, self.step)
-
-    def load_state_dict(self, state: dict) -> None:
-        self.step = nets.load_agent_state(state, self.modules, self.optimizers, self.generator)
+    state_dict = common.state_dict
+    load_state_dict = common.load_state_dict
 
 
 Agent = BCQAgent

@@ -11,65 +11,44 @@ paper states); the learning-rate grid is {3e-5, 5e-5, 1e-4} (see ``LEARNING_RATE
 At threshold 0 the target is exactly double DQN's.
 
 Acting: ``greedy=True`` is argmax_a Q(s, a) over the allowed actions (mask from the imitation
-head on the same observation), replaced by a uniform action with probability ``eval_epsilon``
-(0.4^8); ``greedy=False`` uses ``explore_epsilon`` (0.01), the uniform draw then ignoring the
-mask as in the authors' code.
+head on the same observation), replaced by a uniform action with probability
+``atari.eval_epsilon`` (0.4^8); ``greedy=False`` uses ``atari.explore_epsilon`` (0.01), the
+uniform draw then ignoring the mask as in the authors' code.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import torch
+import torch.nn.functional as F
+from torch import nn
 
+from rlu.agents import common
 from rlu.agents import discrete_common as dc
 from rlu.types import Transition
 
 
 @dataclass(frozen=True)
 class BCQConfig:
+    atari: dc.AtariSettings = field(default_factory=dc.AtariSettings)
+    """Settings shared by the Atari baselines (batch, discount, network, epsilons, budget)."""
     learning_rate: float = 1e-4
     """Adam step size; the paper's online policy selection picked 1e-4 for BCQ."""
-    adam_eps: float = 1e-7
-    """Adam epsilon: TF2's default, as the paper states."""
-    batch_size: int = 256
-    """Transitions per update (read by the training loop)."""
-    discount: float = 0.99
-    """gamma of the TD target."""
-    target_update_period: int = 2500
-    """Updates between hard copies of the online network into the target network."""
     threshold: float = 0.5
     """Allowed actions have pi(a|s) / max_a' pi(a'|s) >= threshold (paper: 0.5 of the grid)."""
     logit_penalty: float = 1e-2
     """Weight of the mean squared imitation logit in the loss (the authors' value)."""
-    huber_delta: float = 1.0
-    """Where the Huber loss turns linear."""
-    eval_epsilon: float = dc.EVAL_EPSILON
-    """Probability of a uniform action when acting greedily (the paper's evaluation epsilon)."""
-    explore_epsilon: float = 0.01
-    """Probability of a uniform action when acting with greedy=False."""
-    num_steps: int = 2_000_000
-    """Learner steps of a full run (read by the training loop)."""
-    n_step: int = 1
-    """Bootstrapping horizon of the batches the training loop samples; the target discounts
-    by discount**n_step (the views give the n-step reward sum and discount product)."""
-    channels: tuple[int, ...] = (32, 64, 64)
-    """Nature CNN output channels per convolution."""
-    kernel_sizes: tuple[int, ...] = (8, 4, 3)
-    """Nature CNN square filter sizes."""
-    strides: tuple[int, ...] = (4, 2, 1)
-    """Nature CNN strides."""
-    hidden_size: int = 512
-    """Units of the fully connected layer after the convolutions."""
 
 
 Config = BCQConfig
 
 PRESETS: dict[str, BCQConfig] = {
     "paper": BCQConfig(),
-    "small": BCQConfig(**dc.SMALL_SCALE, target_update_period=dc.SMALL_TARGET_UPDATE_PERIOD),
+    "small": BCQConfig(**dc.SMALL_FIELDS),
 }
 
 GRID: dict[str, list[Any]] = {
@@ -78,48 +57,84 @@ GRID: dict[str, list[Any]] = {
 }
 
 
-def make_loss(config: BCQConfig) -> dc.BCQLoss:
-    return dc.BCQLoss(
-        config.discount**config.n_step, config.threshold, config.huber_delta, config.logit_penalty
-    )
+class QAndPolicyNetwork(nn.Module):
+    """Shared Nature torso, a Q head and an imitation logits head."""
+
+    def __init__(self, shape, num_actions: int, settings: dc.AtariSettings) -> None:
+        super().__init__()
+        self.torso = dc.NatureTorso(shape, settings)
+        self.q_head = dc.mlp_head(self.torso.output_size, settings.hidden_size, num_actions)
+        self.policy_head = dc.mlp_head(self.torso.output_size, settings.hidden_size, num_actions)
+
+    def forward(self, frames: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        features = self.torso(frames)
+        return self.q_head(features), self.policy_head(features)
+
+
+def bcq_action_mask(logits: torch.Tensor, threshold: float) -> torch.Tensor:
+    """Allowed actions: pi(a|s) / max_a' pi(a'|s) >= threshold.
+
+    Threshold 0 allows every action (DQN), threshold 1 only the behaviour model's argmax.
+    Fujimoto's code uses a strict '>', which at the paper's grid value 1.0 would mask every
+    action; '>=' keeps 1.0 meaningful. Computed in log space, so no probability underflows."""
+    if threshold <= 0:
+        return torch.ones_like(logits, dtype=torch.bool)
+    log_ratio = logits - logits.max(-1, keepdim=True).values  # log pi(a) - log max pi
+    return log_ratio >= math.log(threshold)
+
+
+def bcq_loss(
+    network,
+    target_network,
+    batch: dc.TorchTransition,
+    gamma: float,
+    threshold: float = 0.5,
+    huber_delta: float = 1.0,
+    logit_penalty: float = 1e-2,
+):
+    """Double-Q target restricted to the allowed actions, plus the imitation head's
+    cross-entropy and ``logit_penalty`` times its mean squared logit."""
+    q, logits = network(batch.observation)
+    q_taken = dc.taken(q, batch.action)
+    with torch.no_grad():
+        q_next_online, logits_next = network(batch.next_observation)
+        q_next_target, _ = target_network(batch.next_observation)
+        allowed = bcq_action_mask(logits_next, threshold)
+        best = q_next_online.masked_fill(~allowed, float("-inf")).argmax(-1)
+        target = batch.reward + gamma * batch.discount * dc.taken(q_next_target, best)
+    q_loss = dc.huber(target - q_taken, huber_delta).mean()
+    bc_loss = F.cross_entropy(logits, batch.action)
+    loss = q_loss + bc_loss + logit_penalty * logits.pow(2).mean()
+    return loss, {
+        "critic/loss": q_loss, "critic/q": q_taken.mean(), "critic/target": target.mean(),
+        "actor/bc_loss": bc_loss,
+    }  # fmt: skip
 
 
 class BCQAgent:
-    batch_kind = "transition"
-    sequence_length = 1
-
     def __init__(self, observation_spec, action_spec, config: BCQConfig, seed: int = 0) -> None:
-        shape, num_actions = dc.check_specs("bcq", observation_spec, action_spec)
-        self.config = config
-        self.n_step = config.n_step
-        init_seed, learner_seed, act_seed = dc.seeds(seed)
-
-        def build() -> dc.QAndPolicyNetwork:
-            torso = dc.NatureTorso(shape, config.channels, config.kernel_sizes, config.strides)
-            return dc.QAndPolicyNetwork(torso, config.hidden_size, num_actions)
-
-        network = dc.build_seeded(init_seed, build)
-        self.learner = dc.SGDLearner.from_config(network, make_loss(config), config, learner_seed)
-        self.act_generator = torch.Generator().manual_seed(act_seed)
+        dc.setup(
+            self, "bcq", observation_spec, action_spec, config, seed,
+            lambda shape, n: QAndPolicyNetwork(shape, n, config.atari),
+        )  # fmt: skip
 
     def update(self, batch: Transition) -> dict[str, float]:
-        return self.learner.step(dc.to_torch(batch))
+        c = self.config
+        loss, metrics = bcq_loss(
+            self.network, self.target_network, dc.to_torch(batch),
+            self.batch_spec.bootstrap_gamma, c.threshold, c.atari.huber_delta, c.logit_penalty,
+        )  # fmt: skip
+        self.step = dc.learn(self, loss)
+        return common.metrics_to_floats(metrics)
 
-    @torch.no_grad()
-    def act(self, observation: np.ndarray, greedy: bool = True) -> np.ndarray:
-        q, logits = self.learner.network(dc.frames_to_tensor(observation))
-        allowed = dc.bcq_action_mask(logits, self.config.threshold)
-        q = q.masked_fill(~allowed, float("-inf"))
-        epsilon = self.config.eval_epsilon if greedy else self.config.explore_epsilon
-        return dc.epsilon_greedy(q, epsilon, self.act_generator)
+    @torch.inference_mode()
+    def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+        q, logits = self.network(dc.frames(observation))
+        q = q.masked_fill(~bcq_action_mask(logits, self.config.threshold), float("-inf"))
+        return dc.epsilon_greedy(q, dc.epsilon(self.config.atari, greedy), self.generators["act"])
 
-    def state_dict(self) -> dict[str, Any]:
-        return dc.agent_state(self.learner, self.act_generator)
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        dc.load_agent_state(self.learner, self.act_generator, state)
+    state_dict = common.state_dict
+    load_state_dict = common.load_state_dict
 
 
 Agent = BCQAgent
-
-__all__ = ["BCQConfig", "BCQAgent", "Config", "Agent", "PRESETS", "GRID", "make_loss"]

@@ -2,9 +2,10 @@
 
 As in the original (github.com/google-research/google-research, ``behavior_regularized_offline_rl``,
 ``brac_primal_agent``): a tanh-Gaussian policy (200-200), two critics (300-300) whose target is
-the min of the target critics, Polyak targets tau = 0.005, and the value penalty: the KL from the
-policy to a behaviour model is subtracted from the next-state value in the critic target and
-added to the actor loss,
+the min of the target critics (hard copies every 100 updates, the paper's table for every
+continuous agent; the original's Polyak tau = 0.005 is ``target_update_period=0``), and the
+value penalty: the KL from the policy to a behaviour model is subtracted from the next-state
+value in the critic target and added to the actor loss,
 
     y = r + gamma d (min_i Q'_i(s', a') - alpha KL(s')),  a' ~ pi(s')
     L_pi = E_s [alpha KL(s) - min_i Q_i(s, a)],            a  ~ pi(s)
@@ -12,9 +13,10 @@ added to the actor loss,
 with KL(s) = mean over ``num_kl_samples`` a ~ pi(s) of log pi(a|s) - log b(a|s). The behaviour
 model b is a tanh-Gaussian (200-200) trained by behaviour cloning separately, first: the first
 ``behaviour_steps`` updates (300 000 in the paper, Adam 5e-4) train only b, later updates train
-critics and policy against the frozen b. Critic Adam 1e-3, batch 256; the paper sweeps the
-policy learning rate over {1e-5, 1e-4, 3e-5} and alpha over {0.1, 0.3, 1.0} (``GRID``); the
-``paper`` preset takes 3e-5 and 0.1 from those grids.
+critics and policy against the frozen b. That phase is the agent's ``pretrain_steps``: the
+training loop runs it on top of the ``num_steps`` learner steps. Critic Adam 1e-3, batch 256;
+the paper sweeps the policy learning rate over {1e-5, 1e-4, 3e-5} and alpha over
+{0.1, 0.3, 1.0} (``GRID``); the ``paper`` preset takes 3e-5 and 0.1 from those grids.
 
 Deviations: actions are clipped to +-(1 - 1e-3) before b's log density (as the original's
 ``clip_eps``); no SAC entropy term in the actor (the KL's log pi term already keeps the policy's
@@ -29,9 +31,10 @@ import numpy as np
 import torch
 from torch import nn
 
+from rlu.agents import common
 from rlu.agents import networks as nets
 from rlu.agents.losses import sample_kl, tanh_gaussian_log_prob
-from rlu.types import Transition
+from rlu.types import BatchSpec, Transition
 
 
 @dataclass(frozen=True)
@@ -50,8 +53,11 @@ class BRACConfig:
     """Policy samples per state in the KL estimate."""
     gamma: float = 0.99
     """Discount."""
+    target_update_period: int = 100
+    """Updates between hard copies into the target critics (the paper's table, shared by its
+    continuous agents); 0: Polyak averaging with ``tau`` every update (the original BRAC)."""
     tau: float = 0.005
-    """Polyak rate of the target critics."""
+    """Polyak rate of the target critics when ``target_update_period`` is 0."""
     policy_lr: float = 3e-5
     """Adam learning rate of the policy (grid {1e-5, 1e-4, 3e-5})."""
     critic_lr: float = 1e-3
@@ -59,9 +65,13 @@ class BRACConfig:
     behaviour_lr: float = 5e-4
     """Adam learning rate of the behaviour model."""
     behaviour_steps: int = 300_000
-    """Updates spent training only the behaviour model before the agent trains."""
+    """Updates spent training only the behaviour model before the agent trains (pre-training,
+    run by the loop on top of ``num_steps``)."""
     batch_size: int = 256
     """Transitions per update."""
+    num_steps: int = 1_000_000
+    """Learner steps of a full run: what ``rlu train`` runs when no --steps is given. The paper
+    states no budget for the continuous baselines; 1M is rlu's choice."""
 
 
 Config = BRACConfig
@@ -69,7 +79,7 @@ PRESETS = {
     "paper": BRACConfig(),
     "small": BRACConfig(policy_layers=(256, 256), critic_layers=(256, 256),
                         behaviour_layers=(256, 256), policy_lr=3e-4, alpha=0.3,
-                        behaviour_steps=2_000),
+                        behaviour_steps=2_000, num_steps=20_000, target_update_period=0),
 }  # fmt: skip
 GRID: dict[str, list] = {"policy_lr": [1e-5, 1e-4, 3e-5], "alpha": [0.1, 0.3, 1.0]}
 
@@ -136,25 +146,25 @@ def actor_loss(q_min, kl, alpha: float):
 
 
 class BRACAgent:
-    batch_kind = "transition"
-    n_step = 1
-    sequence_length = 1
-
     def __init__(self, observation_spec, action_spec, config: BRACConfig, seed: int = 0):
         self.config = config
         self.scaler = nets.ActionScaler(action_spec)
+        self.batch_spec = BatchSpec(config.batch_size, gamma=config.gamma)
+        self.pretrain_steps = config.behaviour_steps
+        self.num_steps = config.num_steps
         self.generator = torch.Generator().manual_seed(seed)
         a, th = self.scaler.dim, config.torso_hidden
-        with nets.seeded_init(seed):
+        with common.seeded(seed):
             self.policy = TanhGaussian(observation_spec, a, config.policy_layers, th)
             self.behaviour = TanhGaussian(observation_spec, a, config.behaviour_layers, th)
             self.critics = Critics(observation_spec, a, config.critic_layers, th)
-        self.target_critics = nets.frozen_copy(self.critics)
+        self.target_critics = common.frozen_copy(self.critics)
         self.optimizers = {
-            "policy": nets.adam(self.policy.parameters(), config.policy_lr),
-            "behaviour": nets.adam(self.behaviour.parameters(), config.behaviour_lr),
-            "critic": nets.adam(self.critics.parameters(), config.critic_lr),
+            "policy": common.adam(self.policy.parameters(), config.policy_lr),
+            "behaviour": common.adam(self.behaviour.parameters(), config.behaviour_lr),
+            "critic": common.adam(self.critics.parameters(), config.critic_lr),
         }
+        self.generators = {"sample": self.generator}
         self.modules = {
             "policy": self.policy, "behaviour": self.behaviour,
             "critics": self.critics, "target_critics": self.target_critics,
@@ -167,53 +177,48 @@ class BRACAgent:
 
     def update(self, batch: Transition) -> dict[str, float]:
         c, g = self.config, self.generator
-        obs = nets.to_torch(batch.observation)
-        action = self.scaler.to_unit(nets.to_torch(batch.action))
+        obs = common.to_torch(batch.observation)
+        action = self.scaler.to_unit(common.to_torch(batch.action))
         if self.step < c.behaviour_steps:
             loss, metrics = behaviour_loss(self.behaviour.log_prob(obs, action))
-            self.optimizers["behaviour"].zero_grad(set_to_none=True)
-            loss.backward()
-            self.optimizers["behaviour"].step()
+            common.sgd_step(self.optimizers["behaviour"], loss)
             self.step += 1
-            return nets.metrics_to_floats(metrics)
+            return common.metrics_to_floats(metrics)
 
-        next_obs = nets.to_torch(batch.next_observation)
-        reward, discount = nets.to_torch(batch.reward), nets.to_torch(batch.discount)
+        next_obs = common.to_torch(batch.next_observation)
+        reward, discount = common.to_torch(batch.reward), common.to_torch(batch.discount)
         with torch.no_grad():
             next_a, next_logp = self.policy.sample(next_obs, c.num_kl_samples, g)
             kl_next = self._kl(next_obs, next_a, next_logp)
             q_next = self.target_critics(next_obs, next_a[0]).amin(0)
             target = reward + c.gamma * discount * (q_next - c.alpha * kl_next)
         loss_c, metrics = critic_loss(self.critics(obs, action), target)
-        self.optimizers["critic"].zero_grad(set_to_none=True)
-        loss_c.backward()
-        self.optimizers["critic"].step()
+        common.sgd_step(self.optimizers["critic"], loss_c)
 
         samples, logp = self.policy.sample(obs, c.num_kl_samples, g)
         kl = self._kl(obs, samples, logp)
         q = self.critics(obs, samples[0]).amin(0)
         loss_a, m = actor_loss(q, kl, c.alpha)
         metrics.update(m)
-        self.optimizers["policy"].zero_grad(set_to_none=True)
-        loss_a.backward(inputs=list(self.policy.parameters()))
-        self.optimizers["policy"].step()
+        common.sgd_step(self.optimizers["policy"], loss_a, inputs=list(self.policy.parameters()))
 
-        nets.soft_update(self.target_critics, self.critics, c.tau)
         self.step += 1
-        return nets.metrics_to_floats(metrics)
+        if c.target_update_period > 0:
+            targets = {self.target_critics: self.critics}
+            common.periodic_update(self.step, c.target_update_period, targets)
+        else:
+            common.soft_update(self.target_critics, self.critics, c.tau)
+        return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True) -> np.ndarray:
-        obs = nets.to_torch(observation)
+    def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+        obs = common.to_torch(observation)
         if greedy:
             return self.scaler.from_unit(torch.tanh(self.policy(obs)[0]))
         return self.scaler.from_unit(self.policy.sample(obs, 1, self.generator)[0][0])
 
-    def state_dict(self) -> dict:
-        return nets.agent_state(self.modules, self.optimizers, self.generator, self.step)
-
-    def load_state_dict(self, state: dict) -> None:
-        self.step = nets.load_agent_state(state, self.modules, self.optimizers, self.generator)
+    state_dict = common.state_dict
+    load_state_dict = common.load_state_dict
 
 
 Agent = BRACAgent

@@ -22,9 +22,10 @@ import numpy as np
 import torch
 from torch import nn
 
+from rlu.agents import common
 from rlu.agents import networks as nets
 from rlu.agents.losses import bootstrap_values, categorical_cross_entropy, categorical_projection
-from rlu.types import Transition
+from rlu.types import BatchSpec, Transition
 
 
 @dataclass(frozen=True)
@@ -53,6 +54,9 @@ class D4PGConfig:
     """Adam learning rate of the critic."""
     batch_size: int = 256
     """Transitions per update."""
+    num_steps: int = 1_000_000
+    """Learner steps of a full run: what ``rlu train`` runs when no --steps is given. The paper
+    states no budget for the continuous baselines; 1M is rlu's choice."""
 
 
 Config = D4PGConfig
@@ -61,7 +65,8 @@ PRESETS = {
     # 1-step targets: n-step returns of a noisy behaviour policy are uncorrected off-policy
     # targets, and on the small cartpole learning check n = 5 scored 21, n = 1 154.
     "small": D4PGConfig(policy_layers=(256, 256), critic_layers=(256, 256), torso_hidden=64,
-                        vmin=-100.0, vmax=100.0, n_step=1, policy_lr=3e-4, critic_lr=3e-4),
+                        vmin=-100.0, vmax=100.0, n_step=1, policy_lr=3e-4, critic_lr=3e-4,
+                        num_steps=20_000),
 }  # fmt: skip
 GRID: dict[str, list] = {}  # the paper reports no sweep for D4PG
 
@@ -93,9 +98,10 @@ class Critic(nn.Module):
         return self.head(self.mlp(torch.cat([self.encoder(obs), action], -1)))
 
 
-def critic_loss(logits, target_logits, reward, discount, atoms, gamma: float, n_step: int):
-    """Cross-entropy to the projected n-step distributional target."""
-    values = bootstrap_values(reward, discount, gamma, n_step, atoms.expand(reward.shape[0], -1))
+def critic_loss(logits, target_logits, reward, discount, atoms, bootstrap_gamma: float):
+    """Cross-entropy to the projected n-step distributional target (``bootstrap_gamma`` is
+    gamma^n: the batch's reward is already the n-step sum)."""
+    values = bootstrap_values(reward, discount, bootstrap_gamma, atoms.expand(reward.shape[0], -1))
     target = categorical_projection(values, torch.softmax(target_logits, -1), atoms).detach()
     loss = categorical_cross_entropy(logits, target).mean()
     q = (torch.softmax(logits, -1) * atoms).sum(-1).mean()
@@ -110,66 +116,61 @@ def policy_loss(q_logits, atoms):
 
 
 class D4PGAgent:
-    batch_kind = "transition"
-    sequence_length = 1
-
     def __init__(self, observation_spec, action_spec, config: D4PGConfig, seed: int = 0):
         self.config = config
         self.scaler = nets.ActionScaler(action_spec)
-        self.n_step = config.n_step
+        self.batch_spec = BatchSpec(config.batch_size, n_step=config.n_step, gamma=config.gamma)
+        self.pretrain_steps = 0
+        self.num_steps = config.num_steps
         self.generator = torch.Generator().manual_seed(seed)
-        with nets.seeded_init(seed):
+        with common.seeded(seed):
             self.policy = Policy(observation_spec, self.scaler.dim, config)
             self.critic = Critic(observation_spec, self.scaler.dim, config)
-        self.target_policy = nets.frozen_copy(self.policy)
-        self.target_critic = nets.frozen_copy(self.critic)
-        self.optimizers = {
-            "policy": nets.adam(self.policy.parameters(), config.policy_lr),
-            "critic": nets.adam(self.critic.parameters(), config.critic_lr),
-        }
+        self.target_policy = common.frozen_copy(self.policy)
+        self.target_critic = common.frozen_copy(self.critic)
         self.modules = {
             "policy": self.policy, "critic": self.critic,
             "target_policy": self.target_policy, "target_critic": self.target_critic,
         }  # fmt: skip
+        self.optimizers = {
+            "policy": common.adam(self.policy.parameters(), config.policy_lr),
+            "critic": common.adam(self.critic.parameters(), config.critic_lr),
+        }
+        self.generators = {"sample": self.generator}
         self.step = 0
 
     def update(self, batch: Transition) -> dict[str, float]:
-        c = self.config
-        obs, next_obs = nets.to_torch(batch.observation), nets.to_torch(batch.next_observation)
-        action = self.scaler.to_unit(nets.to_torch(batch.action))
-        reward, discount = nets.to_torch(batch.reward), nets.to_torch(batch.discount)
+        obs = common.to_torch(batch.observation)
+        next_obs = common.to_torch(batch.next_observation)
+        action = self.scaler.to_unit(common.to_torch(batch.action))
+        reward, discount = common.to_torch(batch.reward), common.to_torch(batch.discount)
         atoms = self.critic.head.atoms
         with torch.no_grad():
             target_logits = self.target_critic(next_obs, self.target_policy(next_obs))
         loss_c, metrics = critic_loss(
-            self.critic(obs, action), target_logits, reward, discount, atoms, c.gamma, c.n_step
-        )
-        self.optimizers["critic"].zero_grad(set_to_none=True)
-        loss_c.backward()
-        self.optimizers["critic"].step()
+            self.critic(obs, action), target_logits, reward, discount, atoms,
+            self.batch_spec.bootstrap_gamma,
+        )  # fmt: skip
+        common.sgd_step(self.optimizers["critic"], loss_c)
 
         loss_p, m = policy_loss(self.critic(obs, self.policy(obs)), atoms)
-        self.optimizers["policy"].zero_grad(set_to_none=True)
-        loss_p.backward(inputs=list(self.policy.parameters()))
-        self.optimizers["policy"].step()
+        common.sgd_step(self.optimizers["policy"], loss_p, inputs=list(self.policy.parameters()))
         metrics.update(m)
 
         self.step += 1
-        if self.step % c.target_update_period == 0:
-            nets.hard_update(self.target_policy, self.policy)
-            nets.hard_update(self.target_critic, self.critic)
-        return nets.metrics_to_floats(metrics)
+        common.periodic_update(
+            self.step, self.config.target_update_period,
+            {self.target_policy: self.policy, self.target_critic: self.critic},
+        )  # fmt: skip
+        return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True) -> np.ndarray:
+    def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
         # Deterministic policy: greedy or not, the action is pi(s) (offline, no exploration).
-        return self.scaler.from_unit(self.policy(nets.to_torch(observation)))
+        return self.scaler.from_unit(self.policy(common.to_torch(observation)))
 
-    def state_dict(self) -> dict:
-        return nets.agent_state(self.modules, self.optimizers, self.generator, self.step)
-
-    def load_state_dict(self, state: dict) -> None:
-        self.step = nets.load_agent_state(state, self.modules, self.optimizers, self.generator)
+    state_dict = common.state_dict
+    load_state_dict = common.load_state_dict
 
 
 Agent = D4PGAgent

@@ -1,55 +1,94 @@
-"""Shared pure helpers of the discrete (Atari) baselines: Nature CNN, targets, losses, acting.
+"""What the discrete (Atari) agents share: the paper's common settings as one frozen config,
+the Nature CNN, and pure functions (Huber, TD targets, epsilon-greedy). No learning step lives
+here: each agent file holds its own loss and update.
 
 Paper appendix A.2 (table "Atari experiments hyper-parameters"): the Q-network is the Nature CNN
 (channels 32, 64, 64; filters 8, 4, 3; strides 4, 2, 1; 512 hidden units), Adam with TF2's
 default beta and epsilon (eps = 1e-7, not PyTorch's 1e-8), batch 256, discount 0.99, a hard
-target update every 2500 updates, evaluation epsilon 0.4^8 and 2M learner steps.
+target update every 2500 updates, evaluation epsilon 0.4^8 and 2M learner steps. Rewards are
+clipped to [-1, 1] for learning (Mnih et al. 2015; Dopamine's DQN, which generated the data);
+evaluation scores the raw game score.
 
-The agents that differ only in their loss (BC, DQN, REM, IQN, BCQ) share code the Acme way: one
-:class:`SGDLearner` (network, target copy, Adam, step counter, RNG) composed with a frozen loss
-dataclass (``DoubleQLoss``, ``REMLoss``, ``QuantileLoss``, ``BCQLoss``, ``BCLoss``), each a
-callable ``loss(network, target_network, batch, generator) -> (loss, metrics)``. There is no
-parent agent class.
-
-Observations are uint8 (B, H, W, C) frame stacks, newest frame last; the networks scale by 1/255
-themselves. The frames enter the first convolution as a channels-last NCHW tensor, the layout
+Observations are uint8 (B, H, W, C) frame stacks, newest frame last; the torso scales by 1/255
+itself. The frames enter the first convolution as a channels-last NCHW tensor, the layout
 oneDNN's CPU convolutions prefer (a free permute for HWC-contiguous frames, one uint8 copy for
 the frame-major stacks the store's views build).
-
-Determinism: every random draw goes through the agent's own generators (initialisation under a
-forked global RNG, one ``torch.Generator`` for the learner's draws, one for acting), all held in
-``state_dict``. On the CPU the same seed gives bit-identical numbers for the same torch thread
-count; a different thread count may change the last bits of a float reduction.
 """
 
 from __future__ import annotations
 
-import copy
-import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import nn
 
-from rlu.types import ArraySpec, DiscreteSpec, SpecError, Transition
+from rlu.agents import common
+from rlu.types import ArraySpec, BatchSpec, DiscreteSpec, SpecError, Transition
 
 EVAL_EPSILON = 0.4**8
 """The paper's evaluation epsilon (table in appendix A.2), taken literally: 0.4^8 ~ 6.6e-4."""
 
 LEARNING_RATE_GRID = (3e-5, 5e-5, 1e-4)
+"""The paper prints the learning-rate grid as [5e-5, 1e-4, 5e-5] (5e-5 twice) yet picks 3e-5
+for DQN and BC, so the grid read here is {3e-5, 5e-5, 1e-4}: the values the paper names."""
 
-# The ``small`` presets of every discrete agent: a narrower Nature CNN, batch 32 and 20k steps
-# (minutes on a 2-core CPU); agents with a target network add SMALL_TARGET_UPDATE_PERIOD.
-SMALL_SCALE: dict[str, Any] = dict(
-    learning_rate=1e-4, batch_size=32, num_steps=20_000, channels=(16, 32, 32), hidden_size=128
+
+@dataclass(frozen=True)
+class AtariSettings:
+    """The settings every discrete baseline shares (paper appendix A.2), composed into each
+    agent's config as its ``atari`` field (override as ``atari.batch_size=32``)."""
+
+    batch_size: int = 256
+    """Transitions per update."""
+    gamma: float = 0.99
+    """Discount factor of the TD target."""
+    n_step: int = 1
+    """Steps summed into each transition's reward (the paper: 1-step targets)."""
+    reward_clip: float = 1.0
+    """Learning sees per-step rewards clipped to [-reward_clip, reward_clip] (the data keeps raw
+    game scores; evaluation reports them)."""
+    adam_eps: float = 1e-7
+    """Adam epsilon: TF2's default, as the paper states."""
+    eval_epsilon: float = EVAL_EPSILON
+    """Probability of a uniform action when acting greedily (the paper's evaluation epsilon)."""
+    explore_epsilon: float = 0.01
+    """Probability of a uniform action when acting with greedy=False (the online agent's)."""
+    target_update_period: int = 2500
+    """Updates between hard copies of the online network into the target network."""
+    huber_delta: float = 1.0
+    """Where the Huber loss of the TD error turns linear."""
+    num_steps: int = 2_000_000
+    """Learner steps of a full run (the table's 2M): what ``rlu train`` runs without --steps."""
+    channels: tuple[int, ...] = (32, 64, 64)
+    """Nature CNN output channels per convolution."""
+    kernel_sizes: tuple[int, ...] = (8, 4, 3)
+    """Nature CNN square filter sizes."""
+    strides: tuple[int, ...] = (4, 2, 1)
+    """Nature CNN strides."""
+    hidden_size: int = 512
+    """Units of the fully connected layer after the convolutions."""
+
+    def batch_spec(self) -> BatchSpec:
+        return BatchSpec(
+            self.batch_size, n_step=self.n_step, gamma=self.gamma, reward_clip=self.reward_clip
+        )
+
+
+SMALL = AtariSettings(
+    batch_size=32,
+    channels=(16, 32, 32),
+    hidden_size=128,
+    target_update_period=200,  # the paper's 2500 is 1/800 of its run; 200 is 1/100 of 20k
+    num_steps=20_000,
 )
-SMALL_TARGET_UPDATE_PERIOD = 200
-"""The paper prints the grid as [5e-5, 1e-4, 5e-5] (5e-5 twice) yet picks 3e-5 for DQN and BC,
-so the grid read here is {3e-5, 5e-5, 1e-4}: the values the paper names."""
+"""The ``small`` presets' shared settings: a narrower Nature CNN, batch 32, 20k learner steps
+(minutes on a 2-core CPU)."""
+
+SMALL_FIELDS: dict[str, Any] = {"atari": SMALL, "learning_rate": 1e-4}
+"""Every discrete ``small`` preset: the settings above and Adam 1e-4."""
 
 
 # ----------------------------------------------------------------------------- specs and batches
@@ -86,41 +125,25 @@ class TorchTransition(NamedTuple):
     next_action: torch.Tensor
 
 
-def frames_to_tensor(frames: Any, field: str = "observation") -> torch.Tensor:
-    array = np.asarray(frames)
+def frames(x: Any, field: str = "observation") -> torch.Tensor:
+    array = np.asarray(x)
     if array.dtype != np.uint8:
         raise SpecError(
             f"batch.{field} has dtype {array.dtype}; the discrete agents take uint8 frame stacks "
             "(B, H, W, frames), newest frame last, as the Atari views give them"
         )
-    if not array.flags.writeable:  # the store hands out read-only views; torch wants writable
-        array = array.copy()
-    return torch.from_numpy(array)
+    return common.to_torch(array)
 
 
 def to_torch(batch: Transition) -> TorchTransition:
     return TorchTransition(
-        observation=frames_to_tensor(batch.observation),
-        action=torch.as_tensor(np.asarray(batch.action, np.int64)),
-        reward=torch.as_tensor(np.asarray(batch.reward, np.float32)),
-        discount=torch.as_tensor(np.asarray(batch.discount, np.float32)),
-        next_observation=frames_to_tensor(batch.next_observation, "next_observation"),
-        next_action=torch.as_tensor(np.asarray(batch.next_action, np.int64)),
+        observation=frames(batch.observation),
+        action=common.to_torch(np.asarray(batch.action, np.int64)),
+        reward=common.to_torch(np.asarray(batch.reward, np.float32)),
+        discount=common.to_torch(np.asarray(batch.discount, np.float32)),
+        next_observation=frames(batch.next_observation, "next_observation"),
+        next_action=common.to_torch(np.asarray(batch.next_action, np.int64)),
     )
-
-
-def seeds(seed: int) -> tuple[int, int, int]:
-    """Independent seeds for (initialisation, learner sampling, acting) from one agent seed."""
-    a, b, c = np.random.SeedSequence(seed).generate_state(3)
-    return int(a), int(b), int(c)
-
-
-def build_seeded(seed: int, build: Callable[[], nn.Module]) -> nn.Module:
-    """``build()`` under a private copy of torch's global RNG: the same seed gives the same
-    weights and the caller's global RNG is left as it was."""
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(seed)
-        return build()
 
 
 # ----------------------------------------------------------------------------- networks
@@ -129,29 +152,24 @@ def build_seeded(seed: int, build: Callable[[], nn.Module]) -> nn.Module:
 class NatureTorso(nn.Module):
     """Mnih et al. (2015) convolutions; uint8 (B, H, W, C) in, flat float features out."""
 
-    def __init__(
-        self,
-        observation_shape: tuple[int, ...],
-        channels: tuple[int, ...],
-        kernel_sizes: tuple[int, ...],
-        strides: tuple[int, ...],
-    ) -> None:
+    def __init__(self, observation_shape: tuple[int, ...], settings: AtariSettings) -> None:
         super().__init__()
-        if not len(channels) == len(kernel_sizes) == len(strides):
-            raise ValueError(
-                f"config: channels {channels}, kernel_sizes {kernel_sizes} and strides {strides} "
-                "must have the same length (one entry per convolution)"
+        channels, kernels, strides = settings.channels, settings.kernel_sizes, settings.strides
+        if not len(channels) == len(kernels) == len(strides):
+            raise SpecError(
+                f"atari settings: channels {channels}, kernel_sizes {kernels} and strides "
+                f"{strides} must have the same length (one entry per convolution)"
             )
         height, width, in_channels = observation_shape
         layers: list[nn.Module] = []
-        for out_channels, kernel, stride in zip(channels, kernel_sizes, strides, strict=True):
+        for out_channels, kernel, stride in zip(channels, kernels, strides, strict=True):
             layers += [nn.Conv2d(in_channels, out_channels, kernel, stride), nn.ReLU()]
             in_channels = out_channels
             height, width = (height - kernel) // stride + 1, (width - kernel) // stride + 1
             if height <= 0 or width <= 0:
                 raise SpecError(
                     f"observation shape {observation_shape} is too small for kernels "
-                    f"{kernel_sizes} with strides {strides}; use (84, 84, frames)"
+                    f"{kernels} with strides {strides}; use (84, 84, frames)"
                 )
         self.convs = nn.Sequential(*layers)
         self.output_size = in_channels * height * width
@@ -176,11 +194,11 @@ class QNetwork(nn.Module):
     (REM's multi-head network: one shared torso and hidden layer, as in Agarwal et al.)."""
 
     def __init__(
-        self, torso: NatureTorso, hidden_size: int, num_actions: int, num_heads: int = 1
+        self, shape: tuple[int, ...], num_actions: int, settings: AtariSettings, num_heads: int = 1
     ) -> None:
         super().__init__()
-        self.torso = torso
-        self.head = mlp_head(torso.output_size, hidden_size, num_actions * num_heads)
+        self.torso = NatureTorso(shape, settings)
+        self.head = mlp_head(self.torso.output_size, settings.hidden_size, num_actions * num_heads)
         self.num_actions, self.num_heads = num_actions, num_heads
 
     def forward(self, frames: torch.Tensor) -> torch.Tensor:
@@ -190,36 +208,40 @@ class QNetwork(nn.Module):
         return out.view(-1, self.num_heads, self.num_actions)
 
 
-class QAndPolicyNetwork(nn.Module):
-    """Discrete BCQ (Fujimoto et al. 2019): shared torso, a Q head and an imitation logits head."""
-
-    def __init__(self, torso: NatureTorso, hidden_size: int, num_actions: int) -> None:
-        super().__init__()
-        self.torso = torso
-        self.q_head = mlp_head(torso.output_size, hidden_size, num_actions)
-        self.policy_head = mlp_head(torso.output_size, hidden_size, num_actions)
-
-    def forward(self, frames: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        features = self.torso(frames)
-        return self.q_head(features), self.policy_head(features)
-
-
-class ImplicitQuantileNetwork(nn.Module):
-    """IQN (Dabney et al. 2018): Z(s, tau) = f(psi(s) * phi(tau)); output (B, N, A)."""
-
-    def __init__(
-        self, torso: NatureTorso, hidden_size: int, num_actions: int, embedding_size: int
-    ) -> None:
-        super().__init__()
-        self.torso = torso
-        self.embedding_size = embedding_size
-        self.tau_layer = nn.Linear(embedding_size, torso.output_size)
-        self.head = mlp_head(torso.output_size, hidden_size, num_actions)
-
-    def forward(self, frames: torch.Tensor, taus: torch.Tensor) -> torch.Tensor:
-        features = self.torso(frames)  # (B, D)
-        phi = F.relu(self.tau_layer(cosine_tau_embedding(taus, self.embedding_size)))  # (B, N, D)
-        return self.head(features[:, None, :] * phi)
+def setup(
+    agent: Any,
+    name: str,
+    observation_spec: Any,
+    action_spec: Any,
+    config: Any,
+    seed: int,
+    build: Callable[[tuple[int, ...], int], nn.Module],
+    target: bool = True,
+) -> None:
+    """Give a discrete agent what every discrete agent owns, as attributes: ``config``,
+    ``batch_spec`` (from ``config.atari``), ``num_steps``, ``pretrain_steps`` (0), ``step`` (0),
+    ``network`` = ``build(frame shape, number of actions)`` made under the agent's
+    initialisation seed, ``target_network`` (its frozen copy, or None with ``target=False``),
+    ``modules``, ``optimizers`` (one Adam with TF2's epsilon, ``config.learning_rate``) and
+    ``generators`` ('learner' for the loss's draws, 'act' for acting). Seeds are split from
+    ``seed`` as (init, learner, act). The agent's own file holds its loss, update and act."""
+    shape, num_actions = check_specs(name, observation_spec, action_spec)
+    settings: AtariSettings = config.atari
+    init_seed, learner_seed, act_seed = common.split_seed(seed, 3)
+    with common.seeded(init_seed):
+        network = build(shape, num_actions)
+    agent.config, agent.batch_spec = config, settings.batch_spec()
+    agent.num_steps, agent.pretrain_steps, agent.step = settings.num_steps, 0, 0
+    agent.network, agent.modules = network, {"network": network}
+    agent.target_network = None
+    if target:
+        agent.target_network = agent.modules["target_network"] = common.frozen_copy(network)
+    optimizer = common.adam(network.parameters(), config.learning_rate, settings.adam_eps)
+    agent.optimizers = {"network": optimizer}
+    agent.generators = {
+        "learner": torch.Generator().manual_seed(learner_seed),
+        "act": torch.Generator().manual_seed(act_seed),
+    }
 
 
 # ----------------------------------------------------------------------------- pure maths
@@ -229,6 +251,11 @@ def huber(x: torch.Tensor, delta: float = 1.0) -> torch.Tensor:
     """Elementwise Huber: x^2/2 for |x| <= delta, delta (|x| - delta/2) beyond."""
     absolute = x.abs()
     return torch.where(absolute <= delta, 0.5 * x * x, delta * (absolute - 0.5 * delta))
+
+
+def taken(values: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+    """values (B, A) at action (B,) -> (B,)."""
+    return values.gather(-1, action[:, None]).squeeze(-1)
 
 
 def double_q_target(
@@ -250,52 +277,6 @@ def q_learning_target(
     return reward + gamma * discount * q_next_target.max(-1).values
 
 
-def random_convex_weights(num_heads: int, generator: torch.Generator) -> torch.Tensor:
-    """REM's alpha: uniform draws normalised to sum to one (Agarwal et al. 2020, one per batch)."""
-    weights = torch.rand(num_heads, generator=generator)
-    return weights / weights.sum()
-
-
-def cosine_tau_embedding(taus: torch.Tensor, embedding_size: int) -> torch.Tensor:
-    """IQN eq. (4): cos(pi i tau) for i = 0 .. n-1; (..., N) -> (..., N, n).
-
-    Dopamine uses i = 1 .. n; we follow the paper (i = 0 is a constant feature, a bias)."""
-    i = torch.arange(embedding_size, dtype=taus.dtype)
-    return torch.cos(math.pi * taus[..., None] * i)
-
-
-def quantile_huber_loss(
-    quantiles: torch.Tensor, taus: torch.Tensor, targets: torch.Tensor, kappa: float = 1.0
-) -> torch.Tensor:
-    """IQN eq. (3) per batch element: sum_i mean_j rho^kappa_{tau_i}(T_j - Z_i).
-
-    quantiles (B, N) at fractions taus (B, N); targets (B, N') -> (B,). With kappa = 0 the Huber
-    part becomes |u| (plain quantile regression)."""
-    u = targets[:, None, :] - quantiles[:, :, None]  # (B, N, N')
-    weight = (taus[:, :, None] - (u.detach() < 0).float()).abs()
-    if kappa > 0:
-        elementwise = weight * huber(u, kappa) / kappa
-    else:
-        elementwise = weight * u.abs()
-    return elementwise.mean(2).sum(1)
-
-
-def bcq_action_mask(logits: torch.Tensor, threshold: float) -> torch.Tensor:
-    """Discrete BCQ's allowed actions: pi(a|s) / max_a' pi(a'|s) >= threshold.
-
-    Threshold 0 allows every action (DQN), threshold 1 only the behaviour model's argmax.
-    Fujimoto's code uses a strict '>', which at the paper's grid value 1.0 would mask every
-    action; '>=' keeps 1.0 meaningful. Computed in log space, so no probability underflows."""
-    if threshold <= 0:
-        return torch.ones_like(logits, dtype=torch.bool)
-    log_ratio = logits - logits.max(-1, keepdim=True).values  # log pi(a) - log max pi
-    return log_ratio >= math.log(threshold)
-
-
-def masked_argmax(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    return values.masked_fill(~mask, float("-inf")).argmax(-1)
-
-
 def epsilon_greedy(scores: torch.Tensor, epsilon: float, generator: torch.Generator) -> np.ndarray:
     """argmax of scores (B, A), replaced by a uniform action with probability epsilon. Both
     draws are always made, so the generator advances the same way whatever the outcome."""
@@ -305,219 +286,18 @@ def epsilon_greedy(scores: torch.Tensor, epsilon: float, generator: torch.Genera
     return torch.where(explore, uniform, scores.argmax(-1)).numpy().astype(np.int64)
 
 
-# ----------------------------------------------------------------------------- losses (Acme style)
-
-Metrics = dict[str, torch.Tensor]
-
-
-def _gather(values: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-    """values (B, A) at action (B,) -> (B,)."""
-    return values.gather(-1, action[:, None]).squeeze(-1)
-
-
-def _gather_quantiles(quantiles: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-    """quantiles (B, N, A) at action (B,) -> (B, N)."""
-    index = action[:, None, None].expand(-1, quantiles.shape[1], 1)
-    return quantiles.gather(-1, index).squeeze(-1)
+def learn(agent: Any, loss: torch.Tensor) -> int:
+    """A discrete agent's gradient step: Adam on ``agent.network``, then the hard copy into
+    ``agent.target_network`` that falls due (``atari.target_update_period``); the new step."""
+    return common.learn(
+        agent.optimizers["network"],
+        loss,
+        agent.step,
+        agent.config.atari.target_update_period,
+        {agent.target_network: agent.network},
+    )
 
 
-@dataclass(frozen=True)
-class DoubleQLoss:
-    """DQN with Huber loss; double-Q target when ``double_q`` (the paper's offline DQN)."""
-
-    discount: float
-    huber_delta: float = 1.0
-    double_q: bool = True
-
-    def __call__(self, network, target_network, batch: TorchTransition, generator):
-        q = network(batch.observation)
-        q_taken = _gather(q, batch.action)
-        with torch.no_grad():
-            q_next_target = target_network(batch.next_observation)
-            if self.double_q:
-                q_next_online = network(batch.next_observation)
-                target = double_q_target(
-                    batch.reward, batch.discount, self.discount, q_next_online, q_next_target
-                )
-            else:
-                target = q_learning_target(
-                    batch.reward, batch.discount, self.discount, q_next_target
-                )
-        loss = huber(target - q_taken, self.huber_delta).mean()
-        return loss, {
-            "critic/loss": loss,
-            "critic/q": q_taken.mean(),
-            "critic/target": target.mean(),
-        }
-
-
-@dataclass(frozen=True)
-class REMLoss:
-    """Random Ensemble Mixture: Huber loss on one random convex combination of the heads per
-    batch, with the Q-learning (max) target of the same combination of the target heads."""
-
-    discount: float
-    num_heads: int
-    huber_delta: float = 1.0
-
-    def __call__(self, network, target_network, batch: TorchTransition, generator):
-        alpha = random_convex_weights(self.num_heads, generator)
-        q = torch.einsum("bka,k->ba", network(batch.observation), alpha)
-        q_taken = _gather(q, batch.action)
-        with torch.no_grad():
-            q_next = torch.einsum("bka,k->ba", target_network(batch.next_observation), alpha)
-            target = q_learning_target(batch.reward, batch.discount, self.discount, q_next)
-        loss = huber(target - q_taken, self.huber_delta).mean()
-        return loss, {
-            "critic/loss": loss,
-            "critic/q": q_taken.mean(),
-            "critic/target": target.mean(),
-        }
-
-
-@dataclass(frozen=True)
-class QuantileLoss:
-    """IQN: quantile Huber loss between N online quantiles and N' target quantiles. The next
-    action is the argmax of the mean of the target quantiles (Acme's IQN learner); with
-    ``double_q`` it is the online network's on its own draw of N' fractions."""
-
-    discount: float
-    num_tau_samples: int = 16
-    num_tau_prime_samples: int = 16
-    kappa: float = 1.0
-    double_q: bool = False
-
-    def __call__(self, network, target_network, batch: TorchTransition, generator):
-        size = batch.action.shape[0]
-        taus = torch.rand(size, self.num_tau_samples, generator=generator)
-        quantiles = _gather_quantiles(network(batch.observation, taus), batch.action)
-        with torch.no_grad():
-            taus_next = torch.rand(size, self.num_tau_prime_samples, generator=generator)
-            next_quantiles = target_network(batch.next_observation, taus_next)  # (B, N', A)
-            if self.double_q:
-                selector = network(batch.next_observation, taus_next).mean(1)
-            else:
-                selector = next_quantiles.mean(1)
-            next_taken = _gather_quantiles(next_quantiles, selector.argmax(-1))
-            targets = batch.reward[:, None] + self.discount * batch.discount[:, None] * next_taken
-        loss = quantile_huber_loss(quantiles, taus, targets, self.kappa).mean()
-        return loss, {
-            "critic/loss": loss,
-            "critic/q": quantiles.mean(),
-            "critic/target": targets.mean(),
-        }
-
-
-@dataclass(frozen=True)
-class BCQLoss:
-    """Discrete BCQ (Fujimoto et al. 2019): double-Q target restricted to the actions whose
-    behaviour probability ratio passes ``threshold``, plus the imitation head's cross-entropy
-    and a 1e-2 penalty on its logits (as in the authors' code)."""
-
-    discount: float
-    threshold: float = 0.5
-    huber_delta: float = 1.0
-    logit_penalty: float = 1e-2
-
-    def __call__(self, network, target_network, batch: TorchTransition, generator):
-        q, logits = network(batch.observation)
-        q_taken = _gather(q, batch.action)
-        with torch.no_grad():
-            q_next_online, logits_next = network(batch.next_observation)
-            q_next_target, _ = target_network(batch.next_observation)
-            best = masked_argmax(q_next_online, bcq_action_mask(logits_next, self.threshold))
-            target = batch.reward + self.discount * batch.discount * _gather(q_next_target, best)
-        q_loss = huber(target - q_taken, self.huber_delta).mean()
-        bc_loss = F.cross_entropy(logits, batch.action)
-        loss = q_loss + bc_loss + self.logit_penalty * logits.pow(2).mean()
-        return loss, {
-            "critic/loss": q_loss,
-            "critic/q": q_taken.mean(),
-            "critic/target": target.mean(),
-            "actor/bc_loss": bc_loss,
-        }
-
-
-@dataclass(frozen=True)
-class BCLoss:
-    """Behaviour cloning: cross-entropy of the policy logits on the logged actions."""
-
-    def __call__(self, network, target_network, batch: TorchTransition, generator):
-        logits = network(batch.observation)
-        loss = F.cross_entropy(logits, batch.action)
-        accuracy = (logits.argmax(-1) == batch.action).float().mean()
-        return loss, {"actor/bc_loss": loss, "actor/accuracy": accuracy}
-
-
-# ----------------------------------------------------------------------------- the learner
-
-
-class SGDLearner:
-    """Acme's SGD learner: a network, its target copy, Adam and a loss; one gradient step per
-    :meth:`step`, a hard target update every ``target_update_period`` steps (0: no target)."""
-
-    def __init__(
-        self,
-        network: nn.Module,
-        loss: Callable[..., tuple[torch.Tensor, Metrics]],
-        learning_rate: float,
-        adam_eps: float,
-        target_update_period: int,
-        seed: int,
-    ) -> None:
-        self.network = network
-        self.loss = loss
-        self.target_update_period = target_update_period
-        self.target_network = None
-        if target_update_period > 0:
-            self.target_network = copy.deepcopy(network).requires_grad_(False)
-        self.optimizer = torch.optim.Adam(network.parameters(), lr=learning_rate, eps=adam_eps)
-        self.generator = torch.Generator().manual_seed(seed)
-        self.steps = 0
-
-    @classmethod
-    def from_config(cls, network: nn.Module, loss: Callable[..., Any], config: Any, seed: int):
-        """The learner an agent config describes (``target_update_period`` absent: no target)."""
-        period = getattr(config, "target_update_period", 0)
-        return cls(network, loss, config.learning_rate, config.adam_eps, period, seed)
-
-    def step(self, batch: TorchTransition) -> dict[str, float]:
-        loss, metrics = self.loss(self.network, self.target_network, batch, self.generator)
-        self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        self.optimizer.step()
-        self.steps += 1
-        if self.target_network is not None and self.steps % self.target_update_period == 0:
-            self.target_network.load_state_dict(self.network.state_dict())
-        values = torch.stack([v.detach().float() for v in metrics.values()]).tolist()
-        return dict(zip(metrics, values, strict=True))
-
-    def state_dict(self) -> dict[str, Any]:
-        state = {
-            "network": self.network.state_dict(),
-            "optimizer": self.optimizer.state_dict(),
-            "steps": self.steps,
-            "generator": self.generator.get_state(),
-        }
-        if self.target_network is not None:
-            state["target_network"] = self.target_network.state_dict()
-        return state
-
-    def load_state_dict(self, state: Mapping[str, Any]) -> None:
-        self.network.load_state_dict(state["network"])
-        self.optimizer.load_state_dict(state["optimizer"])
-        self.steps = int(state["steps"])
-        self.generator.set_state(state["generator"])
-        if self.target_network is not None:
-            self.target_network.load_state_dict(state["target_network"])
-
-
-def agent_state(learner: SGDLearner, act_generator: torch.Generator) -> dict[str, Any]:
-    return {"learner": learner.state_dict(), "act_generator": act_generator.get_state()}
-
-
-def load_agent_state(
-    learner: SGDLearner, act_generator: torch.Generator, state: Mapping[str, Any]
-) -> None:
-    learner.load_state_dict(state["learner"])
-    act_generator.set_state(state["act_generator"])
+def epsilon(settings: AtariSettings, greedy: bool) -> float:
+    """The acting epsilon: the paper's evaluation epsilon, or the online agent's exploration."""
+    return settings.eval_epsilon if greedy else settings.explore_epsilon

@@ -12,33 +12,32 @@ cos(pi i tau) starts at i = 0 as in the IQN paper (Dopamine: i = 1); the learnin
 
 Acting: ``greedy=True`` draws ``num_quantile_samples`` (K = 32) fractions per observation from
 the agent's acting generator, takes argmax_a of the mean quantile, and replaces it by a uniform
-action with probability ``eval_epsilon`` (0.4^8); ``greedy=False`` uses ``explore_epsilon`` (0.01).
+action with probability ``atari.eval_epsilon`` (0.4^8); ``greedy=False`` uses
+``atari.explore_epsilon`` (0.01).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import torch
+import torch.nn.functional as F
+from torch import nn
 
+from rlu.agents import common
 from rlu.agents import discrete_common as dc
 from rlu.types import Transition
 
 
 @dataclass(frozen=True)
 class IQNConfig:
+    atari: dc.AtariSettings = field(default_factory=dc.AtariSettings)
+    """Settings shared by the Atari baselines (batch, discount, network, epsilons, budget)."""
     learning_rate: float = 1e-4
     """Adam step size; the paper's online policy selection picked 1e-4 for IQN."""
-    adam_eps: float = 1e-7
-    """Adam epsilon: TF2's default, as the paper states."""
-    batch_size: int = 256
-    """Transitions per update (read by the training loop)."""
-    discount: float = 0.99
-    """gamma of the TD target."""
-    target_update_period: int = 2500
-    """Updates between hard copies of the online network into the target network."""
     num_tau_samples: int = 16
     """Quantile fractions drawn per transition, for the online (N) and the target (N') side."""
     num_quantile_samples: int = 32
@@ -49,23 +48,6 @@ class IQNConfig:
     """Where the quantile Huber loss turns linear."""
     double_q: bool = False
     """Select the next action with the online network instead of the target network."""
-    eval_epsilon: float = dc.EVAL_EPSILON
-    """Probability of a uniform action when acting greedily (the paper's evaluation epsilon)."""
-    explore_epsilon: float = 0.01
-    """Probability of a uniform action when acting with greedy=False."""
-    num_steps: int = 2_000_000
-    """Learner steps of a full run (read by the training loop)."""
-    n_step: int = 1
-    """Bootstrapping horizon of the batches the training loop samples; the target discounts
-    by discount**n_step (the views give the n-step reward sum and discount product)."""
-    channels: tuple[int, ...] = (32, 64, 64)
-    """Nature CNN output channels per convolution."""
-    kernel_sizes: tuple[int, ...] = (8, 4, 3)
-    """Nature CNN square filter sizes."""
-    strides: tuple[int, ...] = (4, 2, 1)
-    """Nature CNN strides."""
-    hidden_size: int = 512
-    """Units of the fully connected layer after the convolutions."""
 
 
 Config = IQNConfig
@@ -73,12 +55,11 @@ Config = IQNConfig
 PRESETS: dict[str, IQNConfig] = {
     "paper": IQNConfig(),
     "small": IQNConfig(
-        **dc.SMALL_SCALE,
-        target_update_period=dc.SMALL_TARGET_UPDATE_PERIOD,
+        **dc.SMALL_FIELDS,
         num_tau_samples=8,
         num_quantile_samples=8,
         embedding_size=32,
-    ),
+    ),  # fmt: skip
 }
 
 GRID: dict[str, list[Any]] = {
@@ -87,56 +68,102 @@ GRID: dict[str, list[Any]] = {
 }
 
 
-def make_loss(config: IQNConfig) -> dc.QuantileLoss:
-    return dc.QuantileLoss(
-        config.discount**config.n_step,
-        config.num_tau_samples,
-        config.num_tau_samples,
-        config.kappa,
-        config.double_q,
-    )
+def cosine_tau_embedding(taus: torch.Tensor, embedding_size: int) -> torch.Tensor:
+    """IQN eq. (4): cos(pi i tau) for i = 0 .. n-1; (..., N) -> (..., N, n).
+
+    Dopamine uses i = 1 .. n; we follow the paper (i = 0 is a constant feature, a bias)."""
+    i = torch.arange(embedding_size, dtype=taus.dtype)
+    return torch.cos(math.pi * taus[..., None] * i)
+
+
+class ImplicitQuantileNetwork(nn.Module):
+    """Z(s, tau) = f(psi(s) * phi(tau)); (B, ...) frames and (B, N) fractions -> (B, N, A)."""
+
+    def __init__(self, shape, num_actions: int, settings: dc.AtariSettings, embedding_size: int):
+        super().__init__()
+        self.torso = dc.NatureTorso(shape, settings)
+        self.embedding_size = embedding_size
+        self.tau_layer = nn.Linear(embedding_size, self.torso.output_size)
+        self.head = dc.mlp_head(self.torso.output_size, settings.hidden_size, num_actions)
+
+    def forward(self, frames: torch.Tensor, taus: torch.Tensor) -> torch.Tensor:
+        features = self.torso(frames)  # (B, D)
+        phi = F.relu(self.tau_layer(cosine_tau_embedding(taus, self.embedding_size)))  # (B, N, D)
+        return self.head(features[:, None, :] * phi)
+
+
+def quantile_huber_loss(
+    quantiles: torch.Tensor, taus: torch.Tensor, targets: torch.Tensor, kappa: float = 1.0
+) -> torch.Tensor:
+    """IQN eq. (3) per batch element: sum_i mean_j rho^kappa_{tau_i}(T_j - Z_i).
+
+    quantiles (B, N) at fractions taus (B, N); targets (B, N') -> (B,). With kappa = 0 the Huber
+    part becomes |u| (plain quantile regression)."""
+    u = targets[:, None, :] - quantiles[:, :, None]  # (B, N, N')
+    weight = (taus[:, :, None] - (u.detach() < 0).float()).abs()
+    if kappa > 0:
+        elementwise = weight * dc.huber(u, kappa) / kappa
+    else:
+        elementwise = weight * u.abs()
+    return elementwise.mean(2).sum(1)
+
+
+def _taken_quantiles(quantiles: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+    """quantiles (B, N, A) at action (B,) -> (B, N)."""
+    index = action[:, None, None].expand(-1, quantiles.shape[1], 1)
+    return quantiles.gather(-1, index).squeeze(-1)
+
+
+def iqn_loss(network, target_network, batch: dc.TorchTransition, gamma: float,
+             generator: torch.Generator, num_taus: int, num_taus_next: int,
+             kappa: float = 1.0, double_q: bool = False):  # fmt: skip
+    """Quantile Huber loss between N online quantiles and N' target quantiles. The next action
+    is the argmax of the mean of the target quantiles (Acme's IQN learner); with ``double_q`` it
+    is the online network's on the same N' fractions."""
+    size = batch.action.shape[0]
+    taus = torch.rand(size, num_taus, generator=generator)
+    quantiles = _taken_quantiles(network(batch.observation, taus), batch.action)
+    with torch.no_grad():
+        taus_next = torch.rand(size, num_taus_next, generator=generator)
+        next_quantiles = target_network(batch.next_observation, taus_next)  # (B, N', A)
+        if double_q:
+            selector = network(batch.next_observation, taus_next).mean(1)
+        else:
+            selector = next_quantiles.mean(1)
+        next_taken = _taken_quantiles(next_quantiles, selector.argmax(-1))
+        targets = batch.reward[:, None] + gamma * batch.discount[:, None] * next_taken
+    loss = quantile_huber_loss(quantiles, taus, targets, kappa).mean()
+    return loss, {
+        "critic/loss": loss, "critic/q": quantiles.mean(), "critic/target": targets.mean(),
+    }  # fmt: skip
 
 
 class IQNAgent:
-    batch_kind = "transition"
-    sequence_length = 1
-
     def __init__(self, observation_spec, action_spec, config: IQNConfig, seed: int = 0) -> None:
-        shape, num_actions = dc.check_specs("iqn", observation_spec, action_spec)
-        self.config = config
-        self.n_step = config.n_step
-        init_seed, learner_seed, act_seed = dc.seeds(seed)
-
-        def build() -> dc.ImplicitQuantileNetwork:
-            torso = dc.NatureTorso(shape, config.channels, config.kernel_sizes, config.strides)
-            return dc.ImplicitQuantileNetwork(
-                torso, config.hidden_size, num_actions, config.embedding_size
-            )
-
-        network = dc.build_seeded(init_seed, build)
-        self.learner = dc.SGDLearner.from_config(network, make_loss(config), config, learner_seed)
-        self.act_generator = torch.Generator().manual_seed(act_seed)
+        dc.setup(
+            self, "iqn", observation_spec, action_spec, config, seed,
+            lambda shape, n: ImplicitQuantileNetwork(shape, n, config.atari, config.embedding_size),
+        )  # fmt: skip
 
     def update(self, batch: Transition) -> dict[str, float]:
-        return self.learner.step(dc.to_torch(batch))
+        c = self.config
+        loss, metrics = iqn_loss(
+            self.network, self.target_network, dc.to_torch(batch),
+            self.batch_spec.bootstrap_gamma, self.generators["learner"],
+            c.num_tau_samples, c.num_tau_samples, c.kappa, c.double_q,
+        )  # fmt: skip
+        self.step = dc.learn(self, loss)
+        return common.metrics_to_floats(metrics)
 
-    @torch.no_grad()
-    def act(self, observation: np.ndarray, greedy: bool = True) -> np.ndarray:
-        frames = dc.frames_to_tensor(observation)
-        taus = torch.rand(
-            frames.shape[0], self.config.num_quantile_samples, generator=self.act_generator
-        )
-        q = self.learner.network(frames, taus).mean(1)
-        epsilon = self.config.eval_epsilon if greedy else self.config.explore_epsilon
-        return dc.epsilon_greedy(q, epsilon, self.act_generator)
+    @torch.inference_mode()
+    def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+        frames, generator = dc.frames(observation), self.generators["act"]
+        taus = torch.rand(frames.shape[0], self.config.num_quantile_samples, generator=generator)
+        q = self.network(frames, taus).mean(1)
+        return dc.epsilon_greedy(q, dc.epsilon(self.config.atari, greedy), generator)
 
-    def state_dict(self) -> dict[str, Any]:
-        return dc.agent_state(self.learner, self.act_generator)
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        dc.load_agent_state(self.learner, self.act_generator, state)
+    state_dict = common.state_dict
+    load_state_dict = common.load_state_dict
 
 
 Agent = IQNAgent
-
-__all__ = ["IQNConfig", "IQNAgent", "Config", "Agent", "PRESETS", "GRID", "make_loss"]

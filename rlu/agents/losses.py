@@ -25,9 +25,10 @@ def n_step_return(rewards: torch.Tensor, discounts: torch.Tensor, gamma: float):
     return (rewards * alive * powers).sum(-1), discounts.prod(-1)
 
 
-def bootstrap_values(reward, discount, gamma: float, n_step: int, next_values):
-    """r + gamma^n d v for every value v (atom or sample) of the next state: (B, N) -> (B, N)."""
-    return reward[:, None] + (gamma**n_step) * discount[:, None] * next_values
+def bootstrap_values(reward, discount, bootstrap_gamma: float, next_values):
+    """r + gamma^n d v for every value v (atom or sample) of the next state: (B, N) -> (B, N);
+    ``bootstrap_gamma`` is gamma^n (``BatchSpec.bootstrap_gamma``)."""
+    return reward[:, None] + bootstrap_gamma * discount[:, None] * next_values
 
 
 def categorical_projection(values: torch.Tensor, probs: torch.Tensor, atoms: torch.Tensor):

@@ -1,4 +1,4 @@
-"""Shared network pieces and plumbing of the continuous agents (paper appendix A.1).
+"""Shared network pieces of the continuous agents (paper appendix A.1).
 
 - ``Encoder``: dict observation -> one feature vector. Float entries are flattened and
   concatenated in **sorted-key order** (so the layout does not depend on the order a spec or a
@@ -14,15 +14,13 @@
 - ``MixtureHead``: 5-component diagonal Gaussian mixture policy (evaluation variance 1e-4);
   ``GaussianHead`` the single Gaussian of RABM; ``CategoricalHead`` the distributional critic.
 
-Everything random goes through a ``torch.Generator`` owned by the agent; parameters are
-initialised inside ``torch.random.fork_rng`` seeded from the agent's seed, so building or
-training an agent never touches (or depends on) the global RNG.
+Network pieces only: seeding, tensors, optimisers and the checkpoint format are in
+``rlu.agents.common``, shared with the discrete agents.
 """
 
 from __future__ import annotations
 
-import contextlib
-from collections.abc import Iterator, Mapping
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -41,14 +39,6 @@ def _as_dict(spec: ObservationSpec) -> dict[str, ArraySpec]:
     if isinstance(spec, ArraySpec):
         return {"": spec}
     return dict(spec)
-
-
-@contextlib.contextmanager
-def seeded_init(seed: int) -> Iterator[None]:
-    """Build modules under a private copy of the global RNG seeded with ``seed``."""
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(seed)
-        yield
 
 
 class ResNetTorso(nn.Module):
@@ -265,12 +255,6 @@ def mixture_sample(logits, mean, std, generator: torch.Generator, std_override=N
     return mu + sd * torch.randn(mu.shape, generator=generator)
 
 
-def mixture_mode(logits, mean):
-    """The mean of the most probable component: the paper's evaluation policy as variance -> 0."""
-    idx = logits.argmax(-1)[..., None, None].expand(*mean.shape[:-2], 1, mean.shape[-1])
-    return mean.gather(-2, idx).squeeze(-2)
-
-
 class ActionScaler:
     """Maps the spec's [minimum, maximum] box to [-1, 1] and back; agents learn in [-1, 1]."""
 
@@ -292,73 +276,13 @@ class ActionScaler:
         return a.reshape(*a.shape[:-1], *self.shape).numpy().astype(self.dtype)
 
 
-def to_torch(x: Any) -> Any:
-    """numpy (or dict / tuple of numpy) -> torch without copying where the dtype allows."""
-    if isinstance(x, Mapping):
-        return {k: to_torch(v) for k, v in x.items()}
-    a = np.asarray(x)
-    if a.dtype == np.float64:
-        a = a.astype(np.float32)
-    if a.dtype == np.bool_:
-        return torch.from_numpy(a.copy())
-    return torch.as_tensor(a)
-
-
-def adam(params, lr: float) -> torch.optim.Adam:
-    # fused CPU Adam: one kernel per step instead of one per tensor (measured in the bench).
-    return torch.optim.Adam(params, lr=lr, fused=True)
-
-
-def hard_update(target: nn.Module, source: nn.Module) -> None:
-    with torch.no_grad():
-        for t, s in zip(target.parameters(), source.parameters(), strict=True):
-            t.copy_(s)
-
-
-def soft_update(target: nn.Module, source: nn.Module, tau: float) -> None:
-    with torch.no_grad():
-        torch._foreach_lerp_(list(target.parameters()), list(source.parameters()), tau)
-
-
-def frozen_copy(module: nn.Module) -> nn.Module:
-    import copy
-
-    target = copy.deepcopy(module)
-    target.requires_grad_(False)
-    return target
-
-
-def agent_state(modules, optimizers, generator: torch.Generator, step: int, extra=None):
-    """Everything an agent needs to resume: plain tensors, dicts and numbers only."""
-    return {
-        "modules": {k: m.state_dict() for k, m in modules.items()},
-        "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
-        "generator": generator.get_state(),
-        "step": int(step),
-        "extra": dict(extra or {}),
-    }
-
-
-def load_agent_state(state, modules, optimizers, generator: torch.Generator) -> int:
-    for k, m in modules.items():
-        m.load_state_dict(state["modules"][k])
-    for k, o in optimizers.items():
-        o.load_state_dict(state["optimizers"][k])
-    generator.set_state(state["generator"])
-    return int(state["step"])
-
-
-def metrics_to_floats(metrics: dict[str, torch.Tensor]) -> dict[str, float]:
-    """One synchronisation for all metrics (``.item()`` per metric stalls once each)."""
-    keys = list(metrics)
-    if len(keys) == 1:
-        return {keys[0]: float(metrics[keys[0]].item())}
-    values = torch.stack([metrics[k].detach().float().reshape(()) for k in keys]).tolist()
-    return {k: float(v) for k, v in zip(keys, values, strict=True)}
-
-
-def map_batch(obs, fn):
-    """Apply ``fn`` to the tensor or to every tensor of a dict observation."""
-    if isinstance(obs, Mapping):
-        return {k: fn(v) for k, v in obs.items()}
-    return fn(obs)
+def carried_state(state: Any, is_first: Any, obs: Mapping[str, torch.Tensor] | torch.Tensor):
+    """The LSTM state an acting step on ``obs`` continues from: None (zeros) where there is none
+    or the batch changed size, and zeros in the rows whose episode starts now (``is_first``)."""
+    batch = (next(iter(obs.values())) if isinstance(obs, Mapping) else obs).shape[0]
+    if state is None or state[0].shape[1] != batch:
+        return None
+    if is_first is None:
+        return state
+    keep = torch.from_numpy(~np.asarray(is_first, bool).reshape(-1))[None, :, None]
+    return tuple(s * keep for s in state)

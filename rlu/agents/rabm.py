@@ -21,6 +21,9 @@ Deviations: the critic concatenates the action after the observation torso (one 
 serves all N sampled actions; with recurrence the LSTM then never sees sampled actions) where
 the paper concatenates it before the MLP. Recurrent windows start from a zero state and train
 on every real transition t -> t+1 inside the window (1-step targets).
+
+Acting: ``act(greedy=True)`` is the paper's evaluation policy, the Gaussian's mean plus noise of
+variance 1e-4 (``eval_variance``, as BC's); ``act(greedy=False)`` samples the learnt Gaussian.
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from rlu.agents import common
 from rlu.agents import networks as nets
 from rlu.agents.losses import (
     abm_weights,
@@ -42,7 +46,7 @@ from rlu.agents.losses import (
     gaussian_log_prob,
     mpo_e_step,
 )
-from rlu.types import Sequence, Transition
+from rlu.types import BatchSpec, Sequence, Transition
 
 
 @dataclass(frozen=True)
@@ -91,8 +95,13 @@ class RABMConfig:
     """ABM prior weights: 'binary' (1[A >= 0], ABM+) or 'exp' (exp(A / advantage_temperature))."""
     advantage_temperature: float = 1.0
     """Temperature of the 'exp' advantage weights."""
+    eval_variance: float = 1e-4
+    """Variance of the policy when acting greedily (the paper's evaluation, as BC's)."""
     batch_size: int = 1024
     """Transitions per update; windows per update when recurrent (as BC: 1024 and 128)."""
+    num_steps: int = 1_000_000
+    """Learner steps of a full run: what ``rlu train`` runs when no --steps is given. The paper
+    states no budget for the continuous baselines; 1M is rlu's choice."""
 
 
 Config = RABMConfig
@@ -104,7 +113,7 @@ PRESETS = {
     "small": RABMConfig(hidden_size=256, num_layers=2, lstm_hidden=64, sequence_length=10,
                         prior_lr=1e-3, policy_lr=1e-3, critic_lr=1e-3, batch_size=256,
                         target_update_period=10, epsilon_mean=0.05, epsilon_std=1e-3,
-                        num_samples=10),
+                        num_samples=10, num_steps=20_000),
 }  # fmt: skip
 GRID: dict[str, list] = {}  # the paper reports no sweep for RABM
 
@@ -165,28 +174,36 @@ class RABMAgent:
     def __init__(self, observation_spec, action_spec, config: RABMConfig, seed: int = 0):
         self.config = config
         self.scaler = nets.ActionScaler(action_spec)
-        self.batch_kind = "sequence" if config.recurrent else "transition"
-        self.n_step = 1 if config.recurrent else config.n_step
-        self.sequence_length = config.sequence_length
+        self.pretrain_steps = 0
+        self.num_steps = config.num_steps
+        if config.recurrent:  # windows train on 1-step targets inside them
+            self.batch_spec = BatchSpec(
+                config.batch_size, "sequence", sequence_length=config.sequence_length,
+                gamma=config.gamma,
+            )  # fmt: skip
+        else:
+            self.batch_spec = BatchSpec(config.batch_size, n_step=config.n_step, gamma=config.gamma)
         self.generator = torch.Generator().manual_seed(seed)
         a = self.scaler.dim
-        with nets.seeded_init(seed):
+        with common.seeded(seed):
             self.prior = GaussianPolicy(observation_spec, a, config)
             self.policy = GaussianPolicy(observation_spec, a, config)
             self.critic = Critic(observation_spec, a, config)
-        self.target_policy = nets.frozen_copy(self.policy)
-        self.target_critic = nets.frozen_copy(self.critic)
+        self.target_policy = common.frozen_copy(self.policy)
+        self.target_critic = common.frozen_copy(self.critic)
         self.duals = nn.ParameterDict({
             "log_temperature": nn.Parameter(torch.tensor(1.0)),
             "log_alpha_mean": nn.Parameter(torch.tensor(1.0)),
             "log_alpha_std": nn.Parameter(torch.tensor(10.0)),
         })  # fmt: skip
         self.optimizers = {
-            "prior": nets.adam(self.prior.parameters(), config.prior_lr),
-            "policy": nets.adam(self.policy.parameters(), config.policy_lr),
-            "critic": nets.adam(self.critic.parameters(), config.critic_lr),
-            "dual": nets.adam(self.duals.parameters(), config.dual_lr),
+            "prior": common.adam(self.prior.parameters(), config.prior_lr),
+            "policy": common.adam(self.policy.parameters(), config.policy_lr),
+            "critic": common.adam(self.critic.parameters(), config.critic_lr),
+            "dual": common.adam(self.duals.parameters(), config.dual_lr),
         }
+        act_seed = common.split_seed(seed, 1)[0]
+        self.generators = {"sample": self.generator, "act": torch.Generator().manual_seed(act_seed)}
         self.modules = {
             "prior": self.prior, "policy": self.policy, "critic": self.critic, "duals": self.duals,
             "target_policy": self.target_policy, "target_critic": self.target_critic,
@@ -221,7 +238,7 @@ class RABMAgent:
             next_a = (t_mean + t_std * torch.randn((n, *t_mean.shape), generator=g)).clamp(-1, 1)
             t_logits = self.target_critic.logits(feats(self.target_critic, "next"), next_a)
             t_probs = torch.softmax(t_logits, -1).mean(0)
-            values = bootstrap_values(b.reward, b.discount, c.gamma, self.n_step,
+            values = bootstrap_values(b.reward, b.discount, self.batch_spec.bootstrap_gamma,
                                       atoms.expand(b.reward.shape[0], -1))  # fmt: skip
             target = categorical_projection(values, t_probs, atoms)
         loss_critic = categorical_cross_entropy(self.critic.logits(crit_h, b.action), target).mean()
@@ -258,39 +275,37 @@ class RABMAgent:
             opt.step()
 
         self.step += 1
-        if self.step % c.target_update_period == 0:
-            nets.hard_update(self.target_policy, self.policy)
-            nets.hard_update(self.target_critic, self.critic)
-        return nets.metrics_to_floats(metrics)
-
-    def reset(self) -> None:
-        """Forget the LSTM state between episodes (recurrent configs)."""
-        self._rollout_state = None
+        common.periodic_update(
+            self.step, c.target_update_period,
+            {self.target_policy: self.policy, self.target_critic: self.critic},
+        )  # fmt: skip
+        return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True) -> np.ndarray:
-        h, state = self.policy.torso(nets.to_torch(observation), state=self._rollout_state)
-        self._rollout_state = state
+    def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+        obs = common.to_torch(observation)
+        state = nets.carried_state(self._rollout_state, is_first, obs)
+        h, self._rollout_state = self.policy.torso(obs, state=state)
         mean, std = self.policy.head(h)
-        if not greedy:
-            mean = mean + std * torch.randn(mean.shape, generator=self.generator)
-        return self.scaler.from_unit(mean)
+        if greedy:
+            std = torch.full_like(std, self.config.eval_variance**0.5)
+        noise = torch.randn(mean.shape, generator=self.generators["act"])
+        return self.scaler.from_unit(mean + std * noise)
 
-    def state_dict(self) -> dict:
-        return nets.agent_state(self.modules, self.optimizers, self.generator, self.step)
+    state_dict = common.state_dict
 
     def load_state_dict(self, state: dict) -> None:
-        self.step = nets.load_agent_state(state, self.modules, self.optimizers, self.generator)
-        self._rollout_state = None
+        common.load_state_dict(self, state)
+        self._rollout_state = None  # acting restarts after a restore
 
 
 class _Prepared:
     """A batch as tensors, flattened to its valid transitions (all of them for Transitions)."""
 
     def __init__(self, batch, scaler: nets.ActionScaler, seq: bool):
-        self.obs = nets.to_torch(batch.observation)
-        action = scaler.to_unit(nets.to_torch(batch.action))
-        reward, discount = nets.to_torch(batch.reward), nets.to_torch(batch.discount)
+        self.obs = common.to_torch(batch.observation)
+        action = scaler.to_unit(common.to_torch(batch.action))
+        reward, discount = common.to_torch(batch.reward), common.to_torch(batch.discount)
         if seq:
             m = np.asarray(batch.mask)
             valid = m[:, :-1] & m[:, 1:] & ~np.asarray(batch.is_last)[:, :-1]
@@ -300,7 +315,7 @@ class _Prepared:
             discount = discount[:, :-1].reshape(-1)[self.valid]
         else:
             self.valid = None
-            self.next_obs = nets.to_torch(batch.next_observation)
+            self.next_obs = common.to_torch(batch.next_observation)
         self.action, self.reward, self.discount = action, reward.float(), discount.float()
 
 

@@ -10,105 +10,86 @@ The target is REM's own: max over actions of the same combination of the target 
 double-Q, which the paper names for DQN only).
 
 Acting: ``greedy=True`` is argmax_a of the mean of the heads (Agarwal et al.'s evaluation),
-replaced by a uniform action with probability ``eval_epsilon`` (0.4^8); ``greedy=False`` uses
-``explore_epsilon`` (0.01).
+replaced by a uniform action with probability ``atari.eval_epsilon`` (0.4^8); ``greedy=False``
+uses ``atari.explore_epsilon`` (0.01).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import torch
 
+from rlu.agents import common
 from rlu.agents import discrete_common as dc
 from rlu.types import Transition
 
 
 @dataclass(frozen=True)
 class REMConfig:
+    atari: dc.AtariSettings = field(default_factory=dc.AtariSettings)
+    """Settings shared by the Atari baselines (batch, discount, network, epsilons, budget)."""
     learning_rate: float = 1e-4
     """Adam step size; the paper's online policy selection picked 1e-4 for REM."""
-    adam_eps: float = 1e-7
-    """Adam epsilon: TF2's default, as the paper states."""
-    batch_size: int = 256
-    """Transitions per update (read by the training loop)."""
-    discount: float = 0.99
-    """gamma of the TD target."""
-    target_update_period: int = 2500
-    """Updates between hard copies of the online network into the target network."""
     num_heads: int = 4
     """Q-value heads mixed by a random convex combination (the paper uses 4)."""
-    huber_delta: float = 1.0
-    """Where the Huber loss turns linear."""
-    eval_epsilon: float = dc.EVAL_EPSILON
-    """Probability of a uniform action when acting greedily (the paper's evaluation epsilon)."""
-    explore_epsilon: float = 0.01
-    """Probability of a uniform action when acting with greedy=False."""
-    num_steps: int = 2_000_000
-    """Learner steps of a full run (read by the training loop)."""
-    n_step: int = 1
-    """Bootstrapping horizon of the batches the training loop samples; the target discounts
-    by discount**n_step (the views give the n-step reward sum and discount product)."""
-    channels: tuple[int, ...] = (32, 64, 64)
-    """Nature CNN output channels per convolution."""
-    kernel_sizes: tuple[int, ...] = (8, 4, 3)
-    """Nature CNN square filter sizes."""
-    strides: tuple[int, ...] = (4, 2, 1)
-    """Nature CNN strides."""
-    hidden_size: int = 512
-    """Units of the fully connected layer after the convolutions."""
 
 
 Config = REMConfig
 
 PRESETS: dict[str, REMConfig] = {
     "paper": REMConfig(),
-    "small": REMConfig(**dc.SMALL_SCALE, target_update_period=dc.SMALL_TARGET_UPDATE_PERIOD),
+    "small": REMConfig(**dc.SMALL_FIELDS),
 }
 
 GRID: dict[str, list[Any]] = {"learning_rate": list(dc.LEARNING_RATE_GRID)}
 
 
-def make_loss(config: REMConfig) -> dc.REMLoss:
-    return dc.REMLoss(config.discount**config.n_step, config.num_heads, config.huber_delta)
+def random_convex_weights(num_heads: int, generator: torch.Generator) -> torch.Tensor:
+    """REM's alpha: uniform draws normalised to sum to one (Agarwal et al. 2020, one per batch)."""
+    weights = torch.rand(num_heads, generator=generator)
+    return weights / weights.sum()
+
+
+def rem_loss(network, target_network, batch: dc.TorchTransition, gamma: float,
+             alpha: torch.Tensor, huber_delta: float = 1.0):  # fmt: skip
+    """Huber loss on one convex combination ``alpha`` of the heads, with the Q-learning (max)
+    target of the same combination of the target heads."""
+    q = torch.einsum("bka,k->ba", network(batch.observation), alpha)
+    q_taken = dc.taken(q, batch.action)
+    with torch.no_grad():
+        q_next = torch.einsum("bka,k->ba", target_network(batch.next_observation), alpha)
+        target = dc.q_learning_target(batch.reward, batch.discount, gamma, q_next)
+    loss = dc.huber(target - q_taken, huber_delta).mean()
+    return loss, {"critic/loss": loss, "critic/q": q_taken.mean(), "critic/target": target.mean()}
 
 
 class REMAgent:
-    batch_kind = "transition"
-    sequence_length = 1
-
     def __init__(self, observation_spec, action_spec, config: REMConfig, seed: int = 0) -> None:
-        shape, num_actions = dc.check_specs("rem", observation_spec, action_spec)
-        self.config = config
-        self.n_step = config.n_step
-        init_seed, learner_seed, act_seed = dc.seeds(seed)
-
-        def build() -> dc.QNetwork:
-            torso = dc.NatureTorso(shape, config.channels, config.kernel_sizes, config.strides)
-            return dc.QNetwork(torso, config.hidden_size, num_actions, config.num_heads)
-
-        network = dc.build_seeded(init_seed, build)
-        self.learner = dc.SGDLearner.from_config(network, make_loss(config), config, learner_seed)
-        self.act_generator = torch.Generator().manual_seed(act_seed)
+        dc.setup(
+            self, "rem", observation_spec, action_spec, config, seed,
+            lambda shape, n: dc.QNetwork(shape, n, config.atari, config.num_heads),
+        )  # fmt: skip
 
     def update(self, batch: Transition) -> dict[str, float]:
-        return self.learner.step(dc.to_torch(batch))
+        c = self.config
+        alpha = random_convex_weights(c.num_heads, self.generators["learner"])
+        loss, metrics = rem_loss(
+            self.network, self.target_network, dc.to_torch(batch),
+            self.batch_spec.bootstrap_gamma, alpha, c.atari.huber_delta,
+        )  # fmt: skip
+        self.step = dc.learn(self, loss)
+        return common.metrics_to_floats(metrics)
 
-    @torch.no_grad()
-    def act(self, observation: np.ndarray, greedy: bool = True) -> np.ndarray:
-        q = self.learner.network(dc.frames_to_tensor(observation)).mean(1)
-        epsilon = self.config.eval_epsilon if greedy else self.config.explore_epsilon
-        return dc.epsilon_greedy(q, epsilon, self.act_generator)
+    @torch.inference_mode()
+    def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+        q = self.network(dc.frames(observation)).mean(1)
+        return dc.epsilon_greedy(q, dc.epsilon(self.config.atari, greedy), self.generators["act"])
 
-    def state_dict(self) -> dict[str, Any]:
-        return dc.agent_state(self.learner, self.act_generator)
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        dc.load_agent_state(self.learner, self.act_generator, state)
+    state_dict = common.state_dict
+    load_state_dict = common.load_state_dict
 
 
 Agent = REMAgent
-
-__all__ = ["REMConfig", "REMAgent", "Config", "Agent", "PRESETS", "GRID", "make_loss"]

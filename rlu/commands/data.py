@@ -14,7 +14,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("export", help="export a stored dataset to another format")
     p.add_argument("path")
     p.add_argument("--format", required=True, choices=["d4rl", "minari"])
-    p.add_argument("-o", "--out", help="output file (.npz) for d4rl")
+    p.add_argument(
+        "-o", "--out", help="d4rl: output file, X.hdf5 (D4RL's HDF5 layout) or X.npz (numpy)"
+    )
     p.add_argument("--id", help="Minari dataset id NAMESPACE/NAME-vN (minari)")
     p.add_argument(
         "--minari-dir",
@@ -60,7 +62,7 @@ def _export(args: argparse.Namespace) -> int:
     ds = open_dataset(args.path)
     if args.format == "d4rl":
         if not args.out:
-            raise RluError("--format d4rl needs -o/--out FILE.npz")
+            raise RluError("--format d4rl needs -o/--out FILE.hdf5 (or FILE.npz)")
         from rlu.data.d4rl import export_d4rl
 
         out = export_d4rl(ds, args.out)

@@ -1,4 +1,5 @@
-"""``rlu envs random-scores``: measure random-policy returns and store them with provenance."""
+"""``rlu envs random-scores`` and ``rlu envs best-behaviour``: the two references of the Atari
+normalisation, measured or recomputed and stored with provenance."""
 
 from __future__ import annotations
 
@@ -33,6 +34,23 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--resume", action="store_true", help="keep the tasks already in --out, measure the rest"
     )
     r.set_defaults(func=_random_scores)
+
+    b = envs.add_parser(
+        "best-behaviour",
+        help="recompute the Atari best-behaviour scores from downloaded release files",
+        description="Best snapshot of the data-generating DQN per game: from each run's "
+        "atari_episodes_ordered shards (one per checkpoint), the checkpoint with the highest "
+        "mean raw episode return, averaged over the runs found. Reads FILE... or every "
+        "downloaded shard under a bucket-shaped --src ROOT; writes an "
+        "rlu.atari_best_behaviour/1 file (the format of rlu/resources/atari_best_behaviour.json).",
+    )
+    b.add_argument("files", nargs="*", metavar="FILE", help="atari_episodes_ordered shards")
+    b.add_argument("--task", action="append", help="an Atari task id (repeatable; with --src)")
+    b.add_argument("--src", help="bucket-shaped root holding downloaded shards")
+    b.add_argument("--run", action="append", help="with --src: run 1..5 (repeatable; default all)")
+    b.add_argument("--no-verify", action="store_true", help="skip the record CRC checks")
+    b.add_argument("--out", default="atari_best_behaviour.json", help="JSON file to write")
+    b.set_defaults(func=_best_behaviour)
 
 
 def _random_scores(args: argparse.Namespace) -> int:
@@ -77,4 +95,74 @@ def _random_scores(args: argparse.Namespace) -> int:
     scores.measure(jobs, args.episodes, args.seed, progress=progress, existing=doc)
     scores.write(doc, args.out)
     print(f"wrote {len(doc['scores'])} tasks to {args.out}")
+    return 0
+
+
+def _release_files(src: str, task_id: str, runs: list[str] | None) -> list[str]:
+    """Every downloaded ``atari_episodes_ordered`` shard of ``task_id`` under ``src``."""
+    from rlu.data.release import catalog
+    from rlu.tasks import get_task
+    from rlu.types import RluError
+
+    task = get_task(task_id)
+    if task.domain != "atari":
+        raise RluError(f"{task_id} is not an Atari task; best-behaviour scores are Atari's")
+    files: list[str] = []
+    for run in runs or list(task.datasets):
+        sel = catalog.select(task_id, "atari_episodes_ordered", run)
+        try:
+            found = catalog.find_shards(src, sel)
+        except RluError:
+            if runs:  # a run asked for by name must be there
+                raise
+            continue
+        files.extend(found)
+    if not files:
+        raise RluError(
+            f"no atari_episodes_ordered shards of {task_id} under {src}; fetch them with "
+            f"`rlu download {task_id} --family atari_episodes_ordered --run N`"
+        )
+    return files
+
+
+def _best_behaviour(args: argparse.Namespace) -> int:
+    import datetime as dt
+
+    from rlu.evaluation import reference
+    from rlu.types import RluError
+
+    jobs: list[tuple[str, list[str]]] = []
+    if args.src:
+        if args.files:
+            raise RluError("give either FILE... or --src ROOT with --task, not both")
+        if not args.task:
+            raise RluError("--src needs --task atari/GAME (repeatable)")
+        jobs = [(t, _release_files(args.src, t, args.run)) for t in args.task]
+    else:
+        if not args.files:
+            raise RluError("no release files; give FILE... (with one --task) or --src ROOT")
+        if args.run:
+            raise RluError("--run picks runs under --src; with FILE... list the files instead")
+        if not args.task or len(args.task) != 1:
+            raise RluError("with FILE... say which game they are: one --task atari/GAME")
+        jobs = [(args.task[0], list(args.files))]
+    doc = {
+        "format": reference.FORMAT,
+        "provenance": {
+            "source": "recomputed from rl_unplugged atari_episodes_ordered release files",
+            "statistic": "per run, the checkpoint with the highest mean raw episode_return; "
+            "averaged over the runs found",
+            "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        },
+        "scores": {},
+    }
+    for task_id, files in jobs:
+        entry = reference.best_behaviour_from_release(files, verify=not args.no_verify)
+        entry["files"] = len(files)
+        doc["scores"][task_id] = entry
+        runs = ", ".join(f"run {r}: ckpt {v['checkpoint']} {v['mean']:.2f}"
+                         for r, v in entry["runs"].items())  # fmt: skip
+        print(f"{task_id}: {entry['mean']:.2f} ({runs})", flush=True)
+    reference.write(args.out, doc)
+    print(f"wrote {len(doc['scores'])} games to {args.out}")
     return 0

@@ -4,8 +4,9 @@ On the bundled ``control_suite/cartpole_swingup`` dataset (40 episodes made by `
 shipped in the package): validate it, evaluate the uniform random policy, train BC and two
 offline RL agents (D4PG run offline, BCQ) with their ``small`` presets, evaluate each greedy
 policy in the env, and print the results beside the dataset's return statistics. Writes
-``OUT/report.md`` and ``OUT/results.json``; each agent's run folder (config, metrics,
-evaluations, checkpoints) is ``OUT/<agent>``.
+``OUT/report.md``, ``OUT/results.json`` and ``OUT/quickstart.png`` (each policy's mean return
+beside the dataset's episode-return distribution; needs matplotlib, the ``report`` extra); each
+agent's run folder (config, metrics, evaluations, checkpoints) is ``OUT/<agent>``.
 """
 
 from __future__ import annotations
@@ -34,6 +35,25 @@ def _row(name: str, returns) -> dict:
     return {"policy": name, "mean": float(r.mean()), "std": float(r.std()), "returns": r.tolist()}
 
 
+def _figure(rows, dataset_returns, task_id: str, path):
+    """Draw OUT/quickstart.png; None (and a note) without matplotlib."""
+    import importlib.util
+
+    from rlu.types import install_hint
+
+    if importlib.util.find_spec("matplotlib") is None:
+        print(f"  (no figure: it needs matplotlib, {install_hint('report')})")
+        return None
+    from rlu.evaluation.report.render import pyplot, quickstart_figure
+
+    plt = pyplot()
+    title = f"rlu quickstart: {task_id}, policies beside the dataset's episode returns"
+    fig = quickstart_figure(rows, dataset_returns, title, plt)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def _run(args: argparse.Namespace) -> int:
     import importlib.util
     import json
@@ -43,13 +63,13 @@ def _run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from rlu.types import RluError
+    from rlu.types import RluError, derive_seed, install_hint
 
     missing = [m for m in ("torch", "dm_control") if importlib.util.find_spec(m) is None]
     if missing:
         raise RluError(
             f"rlu quickstart trains agents (torch) in the control suite (dm_control); "
-            f"{', '.join(missing)} missing: bash scripts/install.sh control agents"
+            f"{', '.join(missing)} missing: {install_hint('control', 'agents')}"
         )
     from rlu.data import open_dataset
     from rlu.data.validate import validate
@@ -80,11 +100,13 @@ def _run(args: argparse.Namespace) -> int:
     action_shape = ds.schema.action.shape
     rng = np.random.default_rng(args.seed)
 
-    def random_policy(obs):
+    def random_policy(obs, is_first):
         n = len(next(iter(obs.values()))) if isinstance(obs, dict) else len(obs)
         return rng.uniform(-1.0, 1.0, (n, *action_shape)).astype(np.float32)
 
-    rows = [_row("random", evaluate(random_policy, env_fn, args.eval_episodes, args.seed).returns)]
+    # the episodes each agent's final evaluation plays (rlu.train seeds it with stream `steps`)
+    eval_seed = derive_seed(args.seed, args.steps)
+    rows = [_row("random", evaluate(random_policy, env_fn, args.eval_episodes, eval_seed).returns)]
     print(f"  random policy: {rows[0]['mean']:.1f}  ({time.perf_counter() - t0:.0f}s)")
     for agent in args.agents:
         cfg = TrainConfig(
@@ -125,6 +147,9 @@ def _run(args: argparse.Namespace) -> int:
         f"min {stats['min']:.1f}, max {stats['max']:.1f}.",
         "",
     ]
+    figure = _figure(rows, ds.episode_returns(), task_id, out / "quickstart.png")
+    if figure is not None:
+        lines += [f"![policies beside the dataset's returns]({figure.name})", ""]
     text = "\n".join(lines)
     (out / "report.md").write_text(text)
     result = {"task": task_id, "dataset": str(path), "dataset_returns": stats, "policies": rows,

@@ -16,7 +16,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("info", help="describe a task id or a dataset directory")
     p.add_argument("target", help="a task id (control_suite/cartpole_swingup) or a dataset path")
-    p.add_argument("--json", action="store_true")
+    p.add_argument(
+        "--json", action="store_true", help="print JSON (for a dataset: every episode's return too)"
+    )
     p.set_defaults(func=_info)
 
 
@@ -44,7 +46,10 @@ def _info(args: argparse.Namespace) -> int:
     if os.path.isdir(args.target):
         from rlu.data.store import open_dataset
 
-        info = open_dataset(args.target, verify=False).info()
+        ds = open_dataset(args.target, verify=False)
+        info = ds.info()
+        if args.json:  # every whole episode's return, in order (too long for the tree print)
+            info["returns"]["per_episode"] = ds.episode_returns().tolist()
     else:
         from rlu.tasks import get_task
 

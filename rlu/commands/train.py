@@ -1,20 +1,42 @@
-"""``rlu train``, ``rlu evaluate``, ``rlu sweep`` and ``rlu report``."""
+"""``rlu train``, ``rlu evaluate``, ``rlu sweep`` and ``rlu report``.
+
+Defaults chosen by measurement (a 2-core machine shared with other jobs):
+
+- ``--threads 1`` for train and evaluate: torch's default (one thread per core) made D4PG and
+  BCQ updates 1.6-14x slower than one thread, and an evaluation with a batch of 4 observations
+  per step 4-7x slower; intra-op threads pay off only on idle cores and large batches.
+- ``--eval-every``: every ``steps / 10`` steps but at most every ``EVAL_EVERY_MIN`` steps, and
+  always at the end. ``steps / 10`` made a 20-step ``rlu train`` of BCQ evaluate 10 times (50
+  episodes of 1000 steps; over 5 minutes); now it evaluates once, at the end.
+"""
 
 from __future__ import annotations
 
 import argparse
 import json
 
+EVAL_EVERY_MIN = 10_000
+"""Fewest gradient steps between two periodic evaluations of ``rlu train``."""
+
 
 def _add_run_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--preset", default="small", choices=["small", "paper"])
-    p.add_argument("--steps", type=int, default=1000, help="gradient steps")
+    p.add_argument(
+        "--preset",
+        default="small",
+        help="agent preset: small (CPU minutes), paper, ...",
+    )
+    p.add_argument(
+        "--steps",
+        type=int,
+        default=None,
+        help="gradient steps (default: the preset's num_steps, e.g. 2M for the Atari paper preset)",
+    )
     p.add_argument(
         "--eval-every",
         type=int,
         default=None,
-        help="steps between evaluations (default: steps / 10 for train, the end of each run "
-        "for sweep; 0: only at the end; -1: never)",
+        help=f"steps between evaluations (default: steps / 10 but at least {EVAL_EVERY_MIN:,} for "
+        "train, the end of each run for sweep; 0: only at the end; -1: never)",
     )
     p.add_argument("--eval-episodes", type=int, default=5)
     p.add_argument("--eval-envs", type=int, default=4, help="envs stepped in lockstep")
@@ -26,6 +48,12 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--env", default=None, help="env factory 'module:function' (default: rlu.envs.make_env)"
     )
+    p.add_argument(
+        "--challenge",
+        default=None,
+        choices=["none", "easy"],
+        help="RWRL: evaluate under this challenge (default: the one the data was recorded under)",
+    )
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -36,7 +64,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", required=True, help="run folder")
     p.add_argument("--resume", action="store_true", help="continue from the last checkpoint")
-    p.add_argument("--threads", type=int, default=None, help="torch threads")
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="torch threads (default 1: faster than one per core on a shared machine)",
+    )
     p.add_argument("--tensorboard", action="store_true", help="also log to OUT/tensorboard")
     p.add_argument("--no-progress", action="store_true")
     _add_run_options(p)
@@ -44,7 +77,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "overrides",
         nargs="*",
         metavar="FIELD=VALUE",
-        help="agent config overrides, e.g. learning_rate=3e-4",
+        help="agent config overrides, e.g. learning_rate=3e-4 or atari.batch_size=64",
     )
     p.set_defaults(func=_train)
 
@@ -55,6 +88,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--envs", type=int, default=4, help="envs stepped in lockstep")
     p.add_argument("--max-steps", type=int, default=None)
     p.add_argument("--env", default=None, help="env factory 'module:function'")
+    p.add_argument(
+        "--challenge",
+        default=None,
+        choices=["none", "easy"],
+        help="RWRL: evaluate under this challenge (default: the run's)",
+    )
+    p.add_argument(
+        "--threads", type=int, default=1, help="torch threads (default 1: small batches per step)"
+    )
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.set_defaults(func=_evaluate)
 
@@ -77,6 +119,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="grid for every agent instead of each agent's paper grid",
     )
     p.add_argument("--max-configs", type=int, default=None)
+    p.add_argument(
+        "--task-preset",
+        action="append",
+        default=[],
+        metavar="TASK=PRESET",
+        help="preset of one task for the agents that have it (e.g. paper_recurrent)",
+    )
     p.add_argument("--backend", default="local", choices=["local", "ray"])
     p.add_argument("--workers", type=int, default=2, help="local pool size")
     p.add_argument("--ray-address", default=None, help="Ray cluster address (default: local)")
@@ -84,21 +133,32 @@ def register(sub: argparse._SubParsersAction) -> None:
     _add_run_options(p)
     p.set_defaults(func=_sweep)
 
-    p = sub.add_parser("report", help="tables and figures of a sweep (Markdown, HTML, PNG)")
-    p.add_argument("sweep_dir", metavar="SWEEP_DIR")
-    p.add_argument("--out", default=None, help="report folder (default: SWEEP_DIR/report)")
+    p = sub.add_parser("report", help="tables and figures of sweeps (Markdown, HTML, PNG)")
+    p.add_argument(
+        "sweep_dirs",
+        nargs="+",
+        metavar="SWEEP_DIR",
+        help="one or more sweep folders, reported together (e.g. an Atari and a control sweep)",
+    )
+    p.add_argument(
+        "--out",
+        default=None,
+        help="report folder (default: SWEEP_DIR/report; required with several sweeps)",
+    )
     p.add_argument(
         "--fqe",
         action="store_true",
-        help="first run offline policy selection by FQE (writes SWEEP_DIR/fqe.json)",
+        help="first run offline policy selection by FQE (writes SWEEP_DIR/fqe.json per sweep)",
     )
     p.add_argument("--fqe-steps", type=int, default=2000, help="FQE gradient steps")
     p.set_defaults(func=_report)
 
 
 def _run_kwargs(args: argparse.Namespace, periodic_eval: bool = True) -> dict:
-    # train evaluates 10 times by default; a sweep only at the end of each run
-    default_eval = max(1, args.steps // 10) if periodic_eval else 0
+    # train evaluates up to 10 times, never more often than every EVAL_EVERY_MIN steps (a short
+    # run evaluates once, at the end; without --steps, the preset's budget, at the end too); a
+    # sweep only at the end of each run
+    default_eval = max(EVAL_EVERY_MIN, args.steps // 10) if periodic_eval and args.steps else 0
     return {
         "preset": args.preset,
         "steps": args.steps,
@@ -109,6 +169,7 @@ def _run_kwargs(args: argparse.Namespace, periodic_eval: bool = True) -> dict:
         "log_every": args.log_every,
         "checkpoint_every": args.checkpoint_every,
         "env": args.env,
+        "challenge": args.challenge,
     }
 
 
@@ -136,9 +197,18 @@ def _train(args: argparse.Namespace) -> int:
 
 
 def _evaluate(args: argparse.Namespace) -> int:
-    from rlu.train import evaluate_run
+    from rlu.runs import evaluate_run
+    from rlu.types import RluError
 
-    res = evaluate_run(args.run, args.episodes, args.seed, args.envs, args.env, args.max_steps)
+    if args.threads < 1:
+        raise RluError(f"--threads {args.threads}; use 1 or more")
+    import torch
+
+    torch.set_num_threads(args.threads)
+
+    res = evaluate_run(
+        args.run, args.episodes, args.seed, args.envs, args.env, args.max_steps, args.challenge
+    )
     if args.json:
         print(json.dumps(res.to_json()))
     else:
@@ -168,8 +238,15 @@ def _sweep(args: argparse.Namespace) -> int:
             if not sep:
                 raise RluError(f"--grid {item!r}; write it as FIELD=V1,V2")
             grid[key] = [parse_overrides([f"v={v}"])["v"] for v in values.split(",")]
+    task_presets = {}
+    for item in args.task_preset:
+        task, sep, preset = item.partition("=")
+        if not sep:
+            raise RluError(f"--task-preset {item!r}; write it as TASK=PRESET")
+        task_presets[task] = preset
     config = SweepConfig(
         tasks=tuple(args.tasks),
+        task_presets=task_presets,
         agents=tuple(args.agents),
         datasets=datasets,
         seeds=tuple(args.seeds),
@@ -184,13 +261,17 @@ def _sweep(args: argparse.Namespace) -> int:
 
 def _report(args: argparse.Namespace) -> int:
     from rlu.evaluation.report import write_report
+    from rlu.types import RluError
 
+    if args.out is None and len(args.sweep_dirs) > 1:
+        raise RluError(f"{len(args.sweep_dirs)} sweep folders: pass --out for the report folder")
     if args.fqe:
         from rlu.evaluation.fqe import FQEConfig
-        from rlu.train import fqe_selection
+        from rlu.runs import fqe_selection
 
-        fqe_selection(args.sweep_dir, FQEConfig(steps=args.fqe_steps))
-    paths = write_report(args.sweep_dir, args.out)
+        for sweep_dir in args.sweep_dirs:
+            fqe_selection(sweep_dir, FQEConfig(steps=args.fqe_steps))
+    paths = write_report(args.sweep_dirs, args.out)
     for p in paths:
         print(f"wrote {p}")
     return 0

@@ -13,6 +13,8 @@ from rlu.data.views import (
     Sampler,
     SequenceView,
     TransitionView,
+    make_sampler,
+    make_view,
     sequence_sampler,
     transition_sampler,
 )
@@ -27,6 +29,8 @@ __all__ = [
     "TransitionView",
     "load_dataset",
     "make_episode",
+    "make_sampler",
+    "make_view",
     "open_dataset",
     "sequence_sampler",
     "transition_sampler",

@@ -15,6 +15,19 @@ built). An episode of T rows maps onto rlu's step semantics exactly as d3rlpy's 
 - not terminated (a timeout): T - 1 transitions; the last row's observation is the final
   observation, its action is kept in the final step (d3rlpy's ``next_action`` of the last
   transition) and its reward is not (d3rlpy never uses it in a transition).
+
+Atari dumps come in two layouts, both stored back as single frames:
+
+- d3rlpy's default, single frames (``d3rlpy.datasets.get_atari(..., pre_stack=False)``): rows of
+  (1, 84, 84) uint8, channel first (or (84, 84)), stacked at sampling time by d3rlpy's
+  ``FrameStackTransitionPicker``, which pads the frames before an episode's first with zeros:
+  rlu stores the frames once with a zero frame prefix, and its views stack the same
+  observations;
+- pre-stacked rows ((k, 84, 84) channel first or (84, 84, k)): consecutive rows must share
+  frames, and the first row's older frames become the frame prefix.
+
+After a terminal d3rlpy's next observation is all zeros; rlu's is the stack ending in a zero
+frame (its k - 1 older frames are the episode's last ones). Both are multiplied by discount 0.
 """
 
 from __future__ import annotations
@@ -137,7 +150,7 @@ def import_d3rlpy(
 
     d3rlpy holds one observation array: for a task with dict observations it is split into the
     task's keys in the task's key order (dm_control's ``flatten_observation`` layout). Atari dumps
-    hold stacked frames (channels first, as d3rlpy's Atari wrappers give them, or last) and are
+    hold single frames (d3rlpy's default) or stacked ones (see the module docstring); both are
     stored back as single frames.
     """
     from rlu.data.d4rl import append_checked, split_flat
@@ -154,15 +167,20 @@ def import_d3rlpy(
                     seg, observation=split_flat(seg.observation, schema.observation, f"{src}")
                 )
             if schema.frame_stack > 1:
-                seg = _unstack_segment(seg, schema.frame_stack, f"{src}: episode {i}")
+                frame = schema.observation.shape  # one frame; the store keeps k
+                seg = _unstack_segment(seg, schema.frame_stack, f"{src}: episode {i}", frame)
             append_checked(w, seg, schema, i, str(src))
     return Path(dest)
 
 
-def _unstack_segment(seg: Segment, k: int, where: str) -> Segment:
+def _unstack_segment(seg: Segment, k: int, where: str, frame: tuple[int, ...]) -> Segment:
     from rlu.data.minari import _unstack
 
     obs = np.asarray(seg.observation)
+    if obs.shape[1:] in ((1, *frame), frame):  # d3rlpy's single frames, stacked when sampled
+        frames = obs.reshape(len(obs), *frame)
+        prefix = np.zeros((k - 1, *frame), frames.dtype)  # FrameStackTransitionPicker's padding
+        return dataclasses.replace(seg, observation=frames, frame_prefix=prefix)
     if obs.ndim >= 2 and obs.shape[1] == k and obs.shape[-1] != k:  # d3rlpy's channel-first stack
         obs = np.moveaxis(obs, 1, -1)
     if seg.is_terminal[-1]:  # the zero final observation is not a stack of the episode's frames

@@ -4,10 +4,20 @@ Keys: ``observations``, ``actions``, ``rewards``, ``terminals``, ``timeouts``,
 ``next_observations``; a dict observation is flattened as ``observations/<key>`` and
 ``next_observations/<key>`` (``observations/walker/joints_pos``).
 
-Export writes one row per transition of the SARSA view. ``terminals[i]`` is True when transition
-i enters a terminal state (discount 0); ``timeouts[i]`` is True on the last transition of every
-other segment (a time-limit end, or the end of a release window), so that import cuts the rows
-back into the same segments.
+Export writes one row per transition of the SARSA view, to the file type its name says:
+``.hdf5`` / ``.h5`` is an HDF5 file in D4RL's layout (one dataset per key at the top level, read
+by D4RL's ``get_dataset`` and every loader copied from it: ``visititems`` over the datasets,
+``[:]``), ``.npz`` a numpy archive of the same arrays; any other name is refused. In the files a
+dict observation whose arrays share one floating dtype is one ``observations`` array (N, D), the
+keys flattened in the task's key order as D4RL's, d3rlpy's and dm_control's
+``flatten_observation`` lay them out (import splits it back by the task's keys); other dict
+observations (a camera beside features) keep one array per key. ``metadata/rlu/...`` records the
+task id, the observation keys and sizes and the manifest's provenance (JSON); D4RL files keep
+their own ``metadata/...`` the same way, and import ignores both.
+
+``terminals[i]`` is True when transition i enters a terminal state (discount 0); ``timeouts[i]`` is
+True on the last transition of every other segment (a time-limit end, or the end of a release
+window), so that import cuts the rows back into the same segments.
 
 Import cuts episodes at terminals and timeouts, and also wherever ``next_observations[i]`` differs
 from ``observations[i + 1]`` (files in the wild miss some timeouts); a trailing run with neither
@@ -39,7 +49,7 @@ from rlu.data.foreign import (
 from rlu.data.store import Dataset, DatasetWriter, Schema
 from rlu.data.store.schema import action_problem
 from rlu.data.views import TransitionView
-from rlu.types import ArraySpec, FormatError, RluError, SpecError
+from rlu.types import ArraySpec, FormatError, RluError, SpecError, install_hint
 
 REQUIRED = ("actions", "rewards", "terminals", "timeouts")
 
@@ -67,16 +77,86 @@ def to_d4rl(ds: Dataset) -> dict[str, np.ndarray]:
     return out
 
 
-def export_d4rl(ds: Dataset, out: str | os.PathLike) -> Path:
-    """Write ``to_d4rl(ds)`` as an .npz file (atomically: a temp name, then rename)."""
-    out = Path(out)
-    tmp = out.with_name(f".{out.name}.partial.npz")
+HDF5_SUFFIXES = (".hdf5", ".h5")
+
+
+def d4rl_file_arrays(ds: Dataset) -> dict[str, np.ndarray]:
+    """The arrays of an exported D4RL file: ``to_d4rl(ds)`` with a float dict observation
+    flattened to one ``observations`` array, plus ``metadata/rlu/...`` (see the module doc)."""
+    import json
+
+    d = to_d4rl(ds)
+    spec = ds.schema.observation
+    meta: dict[str, np.ndarray] = {
+        "metadata/rlu/task_id": np.asarray(ds.schema.task_id or ""),
+        "metadata/rlu/provenance": np.asarray(json.dumps(ds.manifest.get("provenance", {}))),
+    }
+    if isinstance(spec, Mapping):
+        keys = _flat_order(ds.schema)
+        dtypes = {np.dtype(s.dtype) for s in spec.values()}
+        if keys is not None and len(dtypes) == 1 and np.issubdtype(dtypes.pop(), np.floating):
+            spec = {k: spec[k] for k in keys}
+            meta["metadata/rlu/observation_keys"] = np.asarray(keys)
+            meta["metadata/rlu/observation_sizes"] = np.asarray([s.size for s in spec.values()])
+            for prefix in ("observations", "next_observations"):
+                parts = [d.pop(f"{prefix}/{k}") for k in spec]
+                d[prefix] = np.concatenate([p.reshape(len(p), -1) for p in parts], axis=1)
+    return {**d, **meta}
+
+
+def _flat_order(schema: Schema) -> list[str] | None:
+    """The key order import splits a flat ``observations`` by (the task's), or None when the
+    stored keys are not the task's (RWRL's extra challenge features: kept one array per key)."""
+    from rlu.tasks import get_task
+
     try:
-        np.savez(tmp, **to_d4rl(ds))
+        task_keys = list(Schema.for_task(get_task(schema.task_id or "")).observation)
+    except RluError:
+        return list(schema.observation)  # no registered task: import names one; keep ours
+    return task_keys if set(task_keys) == set(schema.observation) else None
+
+
+def export_d4rl(ds: Dataset, out: str | os.PathLike) -> Path:
+    """Write ``ds`` as a D4RL file: HDF5 for a ``.hdf5``/``.h5`` name, an .npz archive for
+    ``.npz`` (see the module doc); atomically (a temp name, then rename)."""
+    out = Path(out)
+    suffix = out.suffix.lower()
+    if suffix not in (*HDF5_SUFFIXES, ".npz"):
+        raise RluError(
+            f"{out}: unknown D4RL file type {out.suffix or '(no extension)'!r}; name the output "
+            "X.hdf5 (HDF5, D4RL's own format) or X.npz (a numpy archive)"
+        )
+    if suffix in HDF5_SUFFIXES:
+        h5py = _require_h5py("writing D4RL .hdf5 files")
+    if not out.parent.is_dir():
+        raise RluError(f"{out}: the folder {out.parent} does not exist; create it first")
+    arrays = d4rl_file_arrays(ds)
+    tmp = out.with_name(f".{out.name}.partial{suffix}")
+    try:
+        if suffix == ".npz":
+            np.savez(tmp, **arrays)
+        else:
+            with h5py.File(tmp, "w") as f:
+                for name, a in arrays.items():
+                    if a.dtype.kind == "U":  # h5py stores str as variable-length UTF-8
+                        data: Any = a.tolist()
+                        f.create_dataset(name, data=data)
+                    elif a.dtype == np.uint8 and a.ndim > 2:  # frames: gzip, as D4RL's own files
+                        f.create_dataset(name, data=a, compression="gzip", compression_opts=1)
+                    else:
+                        f.create_dataset(name, data=a)
         os.replace(tmp, out)
     finally:
         tmp.unlink(missing_ok=True)
     return out
+
+
+def _require_h5py(what: str) -> Any:
+    try:
+        import h5py
+    except ImportError:
+        raise RluError(f"{what} needs h5py: {install_hint('interop')}") from None
+    return h5py
 
 
 def _split_obs(d: Mapping[str, np.ndarray], prefix: str, n: int, where: str) -> Any:
@@ -225,7 +305,7 @@ def import_d4rl(
             raise RluError(f"{path}: no such file; give a D4RL .npz or .hdf5 file")
         if path.suffix == ".npz":
             data = _read_npz(path)
-        elif path.suffix in (".hdf5", ".h5"):
+        elif path.suffix.lower() in HDF5_SUFFIXES:
             data = _read_hdf5(path)
         else:
             raise RluError(f"{path}: unknown D4RL file type; give a .npz or .hdf5 file")

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from rlu.types import FormatError, RluError
+from rlu.types import FormatError, RluError, install_hint
 
 MAX_DEFLATE_RATIO = 1032
 """The most deflate can compress (RFC 1951: a 258-byte match in 2 bits): what a compressed
@@ -92,7 +92,7 @@ def open_hdf5(path: str | os.PathLike, what: str) -> Any:
     try:
         import h5py
     except ImportError:
-        raise RluError("reading HDF5 files needs h5py: pip install 'rlu[dev]' or h5py") from None
+        raise RluError(f"reading HDF5 files needs h5py: {install_hint('interop')}") from None
     try:
         return h5py.File(path, "r")
     except (OSError, ValueError) as e:

@@ -21,6 +21,7 @@ import numpy as np
 
 from rlu.data.store import Dataset
 from rlu.data.views import make_sampler
+from rlu.types import BatchSpec, RluError
 
 
 def to_jax(batch: Any, device: Any = None) -> Any:
@@ -40,15 +41,14 @@ class JaxBatches:
     def __init__(
         self,
         dataset: str | Dataset,
-        batch_size: int,
+        spec: BatchSpec,
         seed: int = 0,
         prefetch: int = 2,
         device: Any = None,
-        **view_kwargs: Any,
     ):
         if prefetch < 0:
-            raise ValueError(f"prefetch={prefetch}; use 0 (none) or more")
-        self.sampler = make_sampler(dataset, batch_size, seed, **view_kwargs)
+            raise RluError(f"JaxBatches prefetch={prefetch}; use 0 (none) or more")
+        self.sampler = make_sampler(dataset, spec, seed)
         self.device, self.prefetch = device, int(prefetch)
         self._queue: queue.Queue | None = None
         self._thread: threading.Thread | None = None

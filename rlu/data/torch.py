@@ -1,9 +1,19 @@
 """PyTorch adapter: batches as tensors, and a DataLoader-compatible iterable dataset.
 
 Imports torch only when this module is used. ``TorchSampler`` re-opens the dataset in each worker
-process (only the path crosses the process boundary) and gives worker ``k`` the seed
-``seed + k``, so that ``DataLoader(TorchSampler(...), batch_size=None, num_workers=N)`` yields
-independent, reproducible batch streams.
+process (only the path crosses the process boundary). Its batch streams are spawned from one
+``numpy.random.SeedSequence`` per run seed (``rlu.types.seed_stream``), one child per (worker,
+pass over the loader), so no two (run seed, worker, pass) streams coincide: with ``seed + k``
+run 0's worker 1 replayed run 1's worker 0, and iterating the same loader again replayed it.
+
+- ``num_workers=0``: the stream of pass ``e`` is ``seed_stream(seed, 0, e)``, ``e`` counting the
+  ``iter()`` calls on this object.
+- worker ``k`` of ``N``: ``seed_stream(seed, 1 + k, b)`` where ``b`` is the loader's per-pass base
+  seed (``get_worker_info().seed - k``). The loader draws ``b`` afresh for every pass from its
+  ``generator`` (or torch's global generator), so a pass is reproducible when that generator is
+  seeded, as for any DataLoader shuffle: ``DataLoader(..., generator=torch.Generator()
+  .manual_seed(0))``. Worker processes are new on every pass (unless persistent), so a count of
+  passes kept in a worker would restart at 0; the base seed is what tells passes apart.
 """
 
 from __future__ import annotations
@@ -14,6 +24,7 @@ import numpy as np
 import torch
 
 from rlu.data.views import Sampler, make_sampler
+from rlu.types import BatchSpec, seed_stream
 
 
 def to_torch(batch: Any, device: str | torch.device = "cpu") -> Any:
@@ -31,35 +42,26 @@ class TorchSampler(torch.utils.data.IterableDataset):
     """Endless uniform batches from a stored dataset, as tensors (``batch_size=None`` in the
     loader)."""
 
-    def __init__(
-        self,
-        path: str,
-        batch_size: int,
-        seed: int = 0,
-        kind: str = "transition",
-        n_step: int = 1,
-        gamma: float = 1.0,
-        sequence_length: int = 1,
-        stride: int = 1,
-    ):
+    def __init__(self, path: str, spec: BatchSpec, seed: int = 0):
         super().__init__()
-        self.path, self.batch_size, self.seed, self.kind = str(path), batch_size, seed, kind
-        self.n_step, self.gamma = n_step, gamma
-        self.sequence_length, self.stride = sequence_length, stride
+        self.path, self.spec, self.seed = str(path), spec, seed
+        self._passes = 0  # iter() calls in this process (the stream key without workers)
+        seed_stream(seed)  # a bad seed fails here, not in a worker process
+
+    def stream_key(self) -> tuple[int, int]:
+        """The (lane, pass) key of the next ``iter()`` in this process (see the module doc)."""
+        info = torch.utils.data.get_worker_info()
+        if info is None:
+            return 0, self._passes
+        return 1 + info.id, (info.seed - info.id) % 2**64
 
     def _sampler(self) -> Sampler:
-        info = torch.utils.data.get_worker_info()
-        seed = self.seed + (info.id if info is not None else 0)
-        return make_sampler(
-            self.path,
-            self.batch_size,
-            seed,
-            self.kind,
-            self.n_step,
-            self.gamma,
-            self.sequence_length,
-            self.stride,
-        )
+        lane, epoch = self.stream_key()
+        self._passes += 1
+        sampler = make_sampler(self.path, self.spec, 0)
+        stream = np.random.default_rng(seed_stream(self.seed, lane, epoch))
+        sampler.set_state({"bit_generator": stream.bit_generator.state})
+        return sampler
 
     def __iter__(self):
         sampler = self._sampler()

@@ -1,7 +1,9 @@
 """Vectorised views of a stored dataset: SARSA and n-step transitions, sequences, frame stacks.
 
-Every view turns an array of indices into a named batch with numpy fancy indexing; there is no
-per-step Python. Indices are *eligible start steps*, numbered per view:
+Every view turns an array of indices into a named batch with numpy fancy indexing, with no
+per-step Python; the one Python loop is the store's, for zlib-compressed image columns, which
+decode one frame per ``zlib.decompress`` call. Indices are *eligible start steps*, numbered
+per view:
 
 - transitions: every step that is not the last step of its segment (a segment of T steps holds
   T - 1 transitions: ``(o_t, a_t, r_t, d_t, o_t+1, a_t+1)``, the paper's SARSA tuple);
@@ -26,7 +28,7 @@ from collections.abc import Iterator
 import numpy as np
 
 from rlu.data.store import Dataset, ZlibColumn, open_dataset
-from rlu.types import ArraySpec, RluError, Sequence, Transition
+from rlu.types import ArraySpec, BatchSpec, RluError, Sequence, Transition
 
 
 def _take(col, rows: np.ndarray) -> np.ndarray:
@@ -97,6 +99,28 @@ class DatasetView:
         self.ds.release_pages("observation")
         return out
 
+    def stacked_pair(
+        self, seg: np.ndarray, steps: np.ndarray, next_steps: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Frame stacks at ``steps`` and at ``next_steps`` (same segments, d = next - step >= 1
+        steps later) from one gather of k + d frames per row instead of 2k: the two stacks
+        overlap in k - d frames (all but one for 1-step transitions)."""
+        k = self.schema.frame_stack
+        gap = next_steps - steps
+        first = self.frame_start[seg] + (steps - self.start[seg])  # frame row of step - k + 1
+        span = k + int(gap.max(initial=1))
+        # rows past a row's own next stack are never read; clamp them onto its newest frame so
+        # the gather stays inside the segment's frames
+        rows = np.minimum(first[:, None] + np.arange(span), (first + gap + k - 1)[:, None])
+        frames = _take(self.ds.column("observation"), rows)  # (B, span, H, W)
+        self.ds.release_pages("observation")
+        current = frames[:, :k]
+        if int(gap.min(initial=1)) == int(gap.max(initial=1)):
+            later = frames[:, int(gap.max(initial=1)) :][:, :k]
+        else:
+            later = frames[np.arange(len(gap))[:, None], gap[:, None] + np.arange(k)]
+        return np.moveaxis(current, 1, -1), np.moveaxis(later, 1, -1)
+
     def column(self, name: str, steps: np.ndarray) -> np.ndarray:
         return np.asarray(self.ds.column(name)[steps])
 
@@ -105,11 +129,14 @@ class DatasetView:
 class TransitionView(DatasetView):
     """The paper's SARSA tuples ``(s, a, r, discount, s', a')``, optionally n-step."""
 
-    def __init__(self, ds: Dataset, n_step: int = 1, gamma: float = 1.0):
+    def __init__(
+        self, ds: Dataset, n_step: int = 1, gamma: float = 1.0, reward_clip: float | None = None
+    ):
         super().__init__(ds)
         if n_step < 1:
             raise RluError(f"n_step={n_step}; use 1 or more")
         self.n_step, self.gamma = int(n_step), float(gamma)
+        self.reward_clip = None if reward_clip is None else float(reward_clip)
         if self.n_step == 1:
             counts = self.length - 1
         else:
@@ -122,30 +149,40 @@ class TransitionView(DatasetView):
     def __len__(self) -> int:
         return self.index.size
 
+    def _reward(self, steps: np.ndarray) -> np.ndarray:
+        r = self.column("reward", steps)
+        if self.reward_clip is not None:
+            r = np.clip(r, -self.reward_clip, self.reward_clip)
+        return r
+
     def batch(self, ids: np.ndarray) -> Transition:
         seg, t = self.index.locate(ids)
         if self.n_step == 1:
             nxt = t + 1
-            reward = self.column("reward", t)
+            reward = self._reward(t)
             discount = self.column("discount", t)
         else:
             n = self.n_step
             window = t[:, None] + np.arange(n)
             valid = window < self.last[seg][:, None]  # steps that hold a transition
             window = np.minimum(window, self.last[seg][:, None])
-            r = np.where(valid, self.column("reward", window), 0.0)
+            r = np.where(valid, self._reward(window), 0.0)
             d = np.where(valid, self.column("discount", window), 0.0)
             # weight of r_{t+i}: gamma^i * prod_{j<i} d_{t+j}
             alive = np.cumprod(np.concatenate([np.ones((len(t), 1)), d[:, :-1]], axis=1), axis=1)
             reward = (r * alive * self.gamma ** np.arange(n)).sum(axis=1).astype(np.float32)
             discount = np.prod(d, axis=1).astype(np.float32)
             nxt = np.minimum(t + n, self.last[seg])
+        if self.schema.frame_stack > 1:
+            observation, next_observation = self.stacked_pair(seg, t, nxt)
+        else:
+            observation, next_observation = self.observation(seg, t), self.observation(seg, nxt)
         return Transition(
-            observation=self.observation(seg, t),
+            observation=observation,
             action=self.column("action", t),
             reward=reward,
             discount=discount,
-            next_observation=self.observation(seg, nxt),
+            next_observation=next_observation,
             next_action=self.column("action", nxt),
         )
 
@@ -226,9 +263,14 @@ class Sampler:
 
 
 def transition_sampler(
-    ds: Dataset, batch_size: int, seed: int = 0, n_step: int = 1, gamma: float = 1.0
+    ds: Dataset,
+    batch_size: int,
+    seed: int = 0,
+    n_step: int = 1,
+    gamma: float = 1.0,
+    reward_clip: float | None = None,
 ) -> Sampler:
-    return Sampler(TransitionView(ds, n_step, gamma), batch_size, seed)
+    return Sampler(TransitionView(ds, n_step, gamma, reward_clip), batch_size, seed)
 
 
 def sequence_sampler(
@@ -237,22 +279,27 @@ def sequence_sampler(
     return Sampler(SequenceView(ds, length, stride), batch_size, seed)
 
 
-def make_sampler(
-    dataset: str | Dataset,
-    batch_size: int,
-    seed: int = 0,
-    kind: str = "transition",
-    n_step: int = 1,
-    gamma: float = 1.0,
-    sequence_length: int = 1,
-    stride: int = 1,
-) -> Sampler:
-    """A sampler of ``kind`` "transition" (optionally n-step) or "sequence" over a dataset/path."""
-    ds = open_dataset(dataset) if isinstance(dataset, (str, os.PathLike)) else dataset
-    if kind == "sequence":
-        view: TransitionView | SequenceView = SequenceView(ds, sequence_length, stride)
-    elif kind == "transition":
-        view = TransitionView(ds, n_step, gamma)
-    else:
-        raise RluError(f"sampler kind={kind!r}; use 'transition' or 'sequence'")
-    return Sampler(view, batch_size, seed)
+def make_view(
+    dataset: str | os.PathLike | Dataset, spec: BatchSpec
+) -> TransitionView | SequenceView:
+    """The view a :class:`rlu.types.BatchSpec` asks for, over a dataset or its path."""
+    ds = open_dataset(dataset) if isinstance(dataset, str | os.PathLike) else dataset
+    if spec.kind == "sequence":
+        if spec.reward_clip is not None:
+            raise RluError(
+                "BatchSpec.reward_clip is applied by transition batches only; clip sequence "
+                "rewards in the agent"
+            )
+        return SequenceView(ds, spec.sequence_length)
+    return TransitionView(ds, spec.n_step, spec.gamma, spec.reward_clip)
+
+
+def make_sampler(dataset: str | os.PathLike | Dataset, spec: BatchSpec, seed: int = 0) -> Sampler:
+    """Uniform batches of what ``spec`` (an agent's ``batch_spec``) asks for."""
+    if not isinstance(spec, BatchSpec):
+        raise RluError(
+            f"make_sampler takes a rlu.types.BatchSpec, got {type(spec).__name__}; build one "
+            "with BatchSpec(batch_size, kind, n_step, gamma, sequence_length) or pass "
+            "agent.batch_spec"
+        )
+    return Sampler(make_view(dataset, spec), spec.batch_size, seed)

@@ -5,6 +5,11 @@
     env = rlu.make_env("atari/Pong", seed=0)            # (84, 84, 4) uint8, newest frame last
     venv = rlu.envs.make_vector_env("atari/Pong", num_envs=2, seed=0)
 
+Every task is also a Gymnasium id, registered when this package is imported (see
+``rlu.envs.registration``): ``gymnasium.make("rlu/control_suite-cartpole_swingup-v0")``, settings
+as keyword arguments. ``make_env(...).spec`` is the spec ``gymnasium.make`` would give the same
+env, so ``gymnasium.make(env.spec)`` makes it again.
+
 Each factory returns a Gymnasium env whose observations equal the TaskSpec (and so the dataset
 schema): a flat dict keyed as the release without its ``observation/`` prefix for the MuJoCo
 domains, one uint8 array for Atari. The factory checks the first observation against the spec.
@@ -17,7 +22,8 @@ Settings per domain (keyword arguments of ``make_env``):
   in the data; False drops it from observations and spec, ~10-40x faster).
 - atari: ``max_episode_steps`` (27,000 agent steps = the paper's 108K frames; the original
   evaluation wrapper counted 108,000 agent steps, pass ``ATARI_ORIGINAL_EVAL_STEPS``),
-  ``clip_rewards`` (default True; ``info["raw_reward"]`` always holds the unclipped reward),
+  ``clip_rewards`` (default False: ``r`` is the raw game score, what evaluation sums; the
+  agents clip to [-1, 1] when they learn; ``info["raw_reward"]`` always holds the raw score),
   ``sticky_action_prob`` (0.25), ``frame_skip`` (4).
 - rwrl: ``challenge`` ("none" or "easy" as released; "medium"/"hard" also exist),
   ``safety`` / ``safety_coeff``, ``multiobj_coeff`` / ``multiobj_reward`` /
@@ -31,7 +37,7 @@ import os
 from typing import Any
 
 from rlu.tasks import get_task
-from rlu.types import RluError
+from rlu.types import RluError, install_hint
 
 _FACTORIES = {
     "control_suite": "rlu.envs.control",
@@ -46,7 +52,7 @@ _EXTRAS = {
     "rwrl": "control",
 }
 
-__all__ = ["make_env", "make_vector_env", "ATARI_ORIGINAL_EVAL_STEPS"]
+__all__ = ["make_env", "make_vector_env", "gym_id", "ATARI_ORIGINAL_EVAL_STEPS"]
 
 # rl_unplugged/atari.py's evaluation env truncated after 108,000 *wrapper* (agent) steps,
 # i.e. 432K frames; rlu's default is the paper's 108K frames = 27,000 agent steps.
@@ -63,7 +69,7 @@ def _factory(domain: str):
         extra = _EXTRAS[domain]
         raise RluError(
             f"environments of domain {domain!r} need the {extra!r} extra ({e.name} is missing); "
-            f"install it with: bash scripts/install.sh {extra}"
+            f"install it with: {install_hint(extra)}"
         ) from e
 
 
@@ -72,10 +78,25 @@ def make_env(task_id: str, seed: int | None = None, challenge: str = "none", **s
     task = get_task(task_id)
     module = _factory(task.domain)
     if task.domain == "rwrl":
-        return module.make(task, seed=seed, challenge=challenge, **settings)
-    if challenge != "none":
+        env = module.make(task, seed=seed, challenge=challenge, **settings)
+    elif challenge != "none":
         raise RluError(f"{task.id}: `challenge` applies to rwrl tasks only; drop it")
-    return module.make(task, seed=seed, **settings)
+    else:
+        env = module.make(task, seed=seed, **settings)
+    from rlu.envs.registration import env_spec
+
+    kwargs = {"seed": seed} if seed is not None else {}
+    if challenge != "none":
+        kwargs["challenge"] = challenge
+    env.spec = env_spec(task, {**kwargs, **settings})
+    return env
+
+
+def gym_id(task_id: str) -> str:
+    """The Gymnasium id of ``task_id`` (``rlu/control_suite-cartpole_swingup-v0``)."""
+    from rlu.envs.registration import gym_id as _gym_id
+
+    return _gym_id(task_id)
 
 
 def make_vector_env(
@@ -89,3 +110,13 @@ def make_vector_env(
     from rlu.envs.vector import make_vector_env as _make
 
     return _make(task_id, num_envs=num_envs, seed=seed, challenge=challenge, **kwargs)
+
+
+try:  # register the Gymnasium ids; without gymnasium (no env extra) make_env says what to install
+    import gymnasium as _gymnasium  # noqa: F401
+except ImportError:  # pragma: no cover - exercised only without the extras
+    pass
+else:
+    from rlu.envs.registration import register_envs as _register_envs
+
+    _register_envs()

@@ -13,9 +13,13 @@ This env re-implements Dopamine's ``AtariPreprocessing`` directly over ``ale_py.
 - 4 stacked frames, newest last, shape (84, 84, 4) uint8; at an episode start the stack holds
   zero frames before the first frame, as Dopamine's agent state and replay (which produced the
   data) do;
-- reward: ``step`` returns the reward clipped to [-1, 1] (``clip_rewards=True``, what the agents
-  learn from); ``info["raw_reward"]`` always holds the unclipped game score of the step, which is
-  what evaluation sums;
+- reward: ``step`` returns the raw game score of the step (the sum over the skipped frames), so
+  every evaluation path (``rlu.evaluation.rollout.evaluate`` and all that calls it) sums the
+  score the paper reports and the random scores hold. Learning uses rewards clipped to [-1, 1]
+  (the paper's Table "Atari 2600 Environment Details"; Dopamine's runner clips before storing a
+  transition): the discrete agents clip at learning time, so the same stored raw rewards train
+  the same whatever their source. ``clip_rewards=True`` returns the clipped reward instead, for
+  code that wants Dopamine's online loop as is; ``info["raw_reward"]`` always holds the raw score;
 - episode cap: ``max_episode_steps`` agent steps, then ``truncated=True``. The default 27,000
   agent steps = 108,000 frames is the paper's and Dopamine's cap. The original RLU evaluation
   wrapper truncated after 108,000 *agent* steps (432K frames);
@@ -57,7 +61,7 @@ class AtariEnv(gym.Env):
         seed: int | None = None,
         *,
         max_episode_steps: int = ATARI_MAX_AGENT_STEPS,
-        clip_rewards: bool = True,
+        clip_rewards: bool = False,
         sticky_action_prob: float = STICKY_ACTION_PROB,
         frame_skip: int = FRAME_SKIP,
         frame_stack: int = 4,

@@ -22,15 +22,15 @@ from typing import Any
 
 import numpy as np
 
-from rlu.types import ArraySpec, BoundedSpec, DiscreteSpec, SpecError
+from rlu.types import ArraySpec, BoundedSpec, DiscreteSpec, SpecError, install_hint
 
 try:  # gymnasium is in every env extra; rlu.envs is never imported by the numpy-only core.
     import gymnasium as gym
     from gymnasium import spaces
 except ImportError as e:  # pragma: no cover - exercised only without the extras
     raise ImportError(
-        "rlu.envs needs gymnasium; install an env extra: "
-        "bash scripts/install.sh control (or locomotion, atari)"
+        f"rlu.envs needs gymnasium; install an env extra: {install_hint('control')} "
+        "(or locomotion, atari)"
     ) from e
 
 

@@ -1,8 +1,8 @@
 """DM Locomotion: the 7 RL Unplugged tasks with the walker's 64x64x3 egocentric camera.
 
 The builders copy the original's (``rl_unplugged/dm_control_suite.py`` ``_build_*``), not
-dm_control's examples, whose humanoid parameters differ (see
-../shared/reference/environments.md §5). Every number below is the original's.
+dm_control's examples, whose humanoid parameters differ. Every number below is the
+original's.
 The original then wrapped each env in: action normalisation to [-1, 1] -> clip -> float32 ->
 keep the dataset's observation keys; ``rlu.envs.core.DmControlEnv`` does the same.
 

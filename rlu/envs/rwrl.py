@@ -88,8 +88,8 @@ class Challenge:
     """Extra N(0, 1) observations dummy-0..dummy-{N-1} (dimensionality_spec)."""
 
 
-# Source: rwrl/realworld_env.py get_combined_challenge (the same numbers as
-# ../shared/reference/environments.md §9 and Dulac-Arnold et al. 2020 §2.9).
+# Source: realworldrl_suite's rwrl/realworld_env.py get_combined_challenge (the same numbers as
+# Dulac-Arnold et al. 2020 §2.9).
 CHALLENGES: dict[str, Challenge] = {
     "none": Challenge(),
     "easy": Challenge(

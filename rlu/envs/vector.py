@@ -17,8 +17,9 @@ sync for the control suite and RWRL, from bench/envs.py):
   no no-ops, no fire reset, frame skip 4 with max-pool, 84x84 grey, 4 frames zero-padded at an
   episode start, newest last). Its frames were checked to be bit-identical to ``AtariEnv``'s
   under the same actions (tests/envs/test_vector.py); its seeding differs from the single env's,
-  so a sub-env is not the single env of some seed. Observations are transposed to (N, 84, 84, 4)
-  and rewards clipped as the single env does (``info["raw_reward"]`` unclipped). It runs its
+  so a sub-env is not the single env of some seed. Observations are transposed to (N, 84, 84, 4);
+  rewards are the raw game scores, as the single env's (``clip_rewards=True`` clips them;
+  ``info["raw_reward"]`` is always raw). It runs its
   own thread pool and measured faster than processes (bench/envs.py).
 - ``"sync"``: ``gymnasium.vector.SyncVectorEnv``, the N envs stepped in this process.
 
@@ -228,7 +229,7 @@ class AleVectorEnv(gym.vector.VectorEnv):
         seed: int | None = None,
         *,
         max_episode_steps: int = ATARI_MAX_AGENT_STEPS,
-        clip_rewards: bool = True,
+        clip_rewards: bool = False,
         sticky_action_prob: float = 0.25,
         frame_skip: int = 4,
         num_threads: int | None = None,

@@ -11,13 +11,13 @@ continuous actions are an input. The policy is a callable on batched observation
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from rlu.types import DiscreteSpec, RluError
+from rlu.types import DiscreteSpec, Policy, RluError
 
 
 @dataclass(frozen=True)
@@ -52,10 +52,15 @@ def _slice(obs: Any, idx: np.ndarray) -> Any:
     return obs[idx]
 
 
+def _all_first(x: Any) -> np.ndarray:
+    first = next(iter(x.values())) if isinstance(x, Mapping) else x
+    return np.ones(len(first), bool)
+
+
 def fqe_estimate(
     transitions: Any,
     initial_observations: Any,
-    policy: Callable[[Any], np.ndarray],
+    policy: Policy,
     action_spec: Any,
     config: FQEConfig = FQEConfig(),
 ) -> float:
@@ -76,8 +81,9 @@ def fqe_estimate(
     next_obs = torch.from_numpy(_flat(transitions.next_observation))
     init = torch.from_numpy(_flat(initial_observations))
     # the policy sees observations only, in the env's format
-    next_act = np.asarray(policy(transitions.next_observation))
-    init_act = np.asarray(policy(initial_observations))
+    # every observation is valued on its own: a recurrent policy starts afresh on each row
+    next_act = np.asarray(policy(transitions.next_observation, _all_first(transitions.action)))
+    init_act = np.asarray(policy(initial_observations, _all_first(initial_observations)))
     reward = torch.as_tensor(np.asarray(transitions.reward, np.float32))
     discount = torch.as_tensor(np.asarray(transitions.discount, np.float32))
     if discrete:
@@ -143,3 +149,53 @@ def dataset_fqe_inputs(ds: Any) -> tuple[Any, Any]:
     seg = np.flatnonzero(first)
     init = DatasetView(ds).observation(seg, starts[seg])
     return view.all(), init
+
+
+def fqe_selection(
+    records: Sequence[Mapping[str, Any]],
+    datasets: Mapping[str, str],
+    policy_of: Callable[[str], tuple[Policy, Any]],
+    config: FQEConfig = FQEConfig(),
+) -> dict[str, Any]:
+    """Offline policy selection by FQE: per (task, agent), every configuration's policies (one
+    per seed, from ``policy_of(run) -> (policy, action_spec)``) are valued by FQE on the task's
+    dataset (data only); the configuration with the best mean estimate is chosen and scored
+    against the true returns (Spearman rank correlation, regret@1)."""
+    from collections import defaultdict
+    from dataclasses import asdict
+
+    from rlu.data import open_dataset
+    from rlu.evaluation.protocols import select_by_estimate
+
+    groups: dict[tuple[str, str], dict[str, list[Mapping[str, Any]]]] = defaultdict(
+        lambda: defaultdict(list)
+    )
+    for r in records:
+        groups[(r["task"], r["agent"])][r["config"]].append(r)
+    inputs: dict[str, Any] = {}
+    selections = []
+    for (task, agent), by_config in sorted(groups.items()):
+        if task not in datasets:
+            raise RluError(f"no dataset recorded for task {task!r}; FQE needs the sweep's data")
+        if task not in inputs:
+            inputs[task] = dataset_fqe_inputs(open_dataset(datasets[task]))
+        transitions, init = inputs[task]
+        estimates, true = {}, {}
+        for label, runs in sorted(by_config.items()):
+            values = []
+            for r in runs:
+                policy, action_spec = policy_of(r["run"])
+                values.append(fqe_estimate(transitions, init, policy, action_spec, config))
+            estimates[label] = float(np.mean(values))
+            true[label] = float(np.mean([r["score"] for r in runs]))
+        selection = select_by_estimate(estimates, true)
+        selections.append(
+            {
+                "task": task,
+                "agent": agent,
+                "estimates": estimates,
+                "true_returns": true,
+                **asdict(selection),
+            }  # fmt: skip
+        )
+    return {"selections": selections}

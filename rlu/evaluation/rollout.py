@@ -1,21 +1,29 @@
 """Vectorised evaluation rollouts: ``num_envs`` Gymnasium envs stepped in lockstep, one batched
-policy call per step. The policy sees observations only (a callable, never the agent).
+policy call per step. The policy sees observations and episode starts only (a
+``rlu.types.Policy`` callable, never the agent): every call has one row per env, in the same
+order (an env with no episode left keeps its last observation and its action is dropped), and
+``is_first`` marks the rows whose episode starts there, so recurrent policies keep their state
+per row and restart it with each episode.
 
-Episode ``i`` is reset with seed ``seed + i`` and runs on whichever env is free, so the returns
-(listed in episode order) do not depend on ``num_envs``. Envs come from a factory: any callable
+Episode ``i`` is reset with seed ``episode_seed(seed, i)`` (stream ``i`` spawned from ``seed``
+by numpy's SeedSequence, not ``seed + i``, under which evaluation seed 4 replayed episodes 1.. of
+seed 3) and runs on whichever env is free, so the returns (listed in episode order) do not
+depend on ``num_envs``. Envs come from a factory: any callable
 returning a Gymnasium env; ``task_env_factory`` builds ``rlu.envs.make_env`` for a task id.
 """
 
 from __future__ import annotations
 
+import contextlib
 import importlib
+import sys
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from rlu.types import RluError
+from rlu.types import Policy, RluError, derive_seed, install_hint
 
 EnvFactory = Callable[[], Any]
 
@@ -33,6 +41,11 @@ class EvalResult:
 
     def to_json(self) -> dict[str, Any]:
         return {"returns": list(self.returns), "lengths": list(self.lengths), "mean": self.mean}
+
+
+def episode_seed(seed: int, episode: int) -> int:
+    """The reset seed of episode ``episode`` of an evaluation seeded with ``seed``."""
+    return derive_seed(seed, episode)
 
 
 def resolve_env_fn(spec: str) -> Callable[..., Any]:
@@ -57,7 +70,7 @@ def task_env_factory(
         except ImportError as e:
             raise RluError(
                 f"rlu.envs cannot be imported ({e}); install the env extras "
-                "(bash scripts/install.sh control locomotion atari) or pass an env factory"
+                f"({install_hint('control', 'locomotion', 'atari')}) or pass an env factory"
             ) from None
         fn = mod.make_env
     elif isinstance(make_env, str):
@@ -77,15 +90,23 @@ def _stack(obs_list: list[Any]) -> Any:
     return np.stack([np.asarray(o) for o in obs_list])
 
 
+def _inference_mode() -> contextlib.AbstractContextManager:
+    """torch.inference_mode when torch is loaded (a torch policy: no autograd records for its
+    forward passes), else nothing; evaluation itself never imports torch."""
+    torch = sys.modules.get("torch")
+    return torch.inference_mode() if torch is not None else contextlib.nullcontext()
+
+
 def evaluate(
-    policy: Callable[[Any], np.ndarray],
+    policy: Policy,
     env_fn: EnvFactory,
     num_episodes: int = 10,
     seed: int = 0,
     num_envs: int = 4,
     max_steps: int | None = None,
 ) -> EvalResult:
-    """Run ``num_episodes`` episodes of ``policy`` (batched observations -> batched actions).
+    """Run ``num_episodes`` episodes of ``policy`` (batched observations and episode starts ->
+    batched actions).
 
     ``max_steps`` caps an episode's length on top of the env's own time limit.
     """
@@ -97,32 +118,36 @@ def evaluate(
     lengths = np.zeros(num_episodes, np.int64)
     episode = [-1] * num_envs  # episode index running on each env (-1: idle)
     obs: list[Any] = [None] * num_envs
+    is_first = np.ones(num_envs, bool)
     next_episode = 0
     try:
-        for i in range(num_envs):
-            obs[i], _ = envs[i].reset(seed=seed + next_episode)
-            episode[i] = next_episode
-            next_episode += 1
-        while True:
-            active = [i for i in range(num_envs) if episode[i] >= 0]
-            if not active:
-                break
-            actions = np.asarray(policy(_stack([obs[i] for i in active])))
-            for j, i in enumerate(active):
-                o, r, terminated, truncated, _ = envs[i].step(actions[j])
-                e = episode[i]
-                returns[e] += float(r)
-                lengths[e] += 1
-                if max_steps is not None and lengths[e] >= max_steps:
-                    truncated = True
-                if terminated or truncated:
-                    if next_episode < num_episodes:
-                        o, _ = envs[i].reset(seed=seed + next_episode)
-                        episode[i] = next_episode
-                        next_episode += 1
-                    else:
-                        episode[i] = -1
-                obs[i] = o
+        with _inference_mode():  # the policy runs once per step; no autograd
+            for i in range(num_envs):
+                obs[i], _ = envs[i].reset(seed=episode_seed(seed, next_episode))
+                episode[i] = next_episode
+                next_episode += 1
+            while True:
+                active = [i for i in range(num_envs) if episode[i] >= 0]
+                if not active:
+                    break
+                actions = np.asarray(policy(_stack(obs), is_first.copy()))
+                is_first[:] = False
+                for i in active:
+                    o, r, terminated, truncated, _ = envs[i].step(actions[i])
+                    e = episode[i]
+                    returns[e] += float(r)
+                    lengths[e] += 1
+                    if max_steps is not None and lengths[e] >= max_steps:
+                        truncated = True
+                    if terminated or truncated:
+                        if next_episode < num_episodes:
+                            o, _ = envs[i].reset(seed=episode_seed(seed, next_episode))
+                            episode[i] = next_episode
+                            is_first[i] = True
+                            next_episode += 1
+                        else:
+                            episode[i] = -1
+                    obs[i] = o
     finally:
         for env in envs:
             env.close()

@@ -1,11 +1,12 @@
 """Scores and aggregates (paper §5 and appendix; Agarwal et al. 2021 for IQM).
 
 - Control suite, locomotion, RWRL: raw episode returns.
-- Atari: ``100 * (score - random) / (best_behaviour - random)``, where ``best_behaviour`` is the
-  best checkpoint of the data-generating DQN run (paper appendix "Atari Results Normalization").
-  Random and best-behaviour scores are inputs (``load_reference_scores`` reads the json files in
-  ``rlu/resources``; ``best_behaviour_from_dataset`` computes the latter from a dataset's episode
-  metadata).
+- Atari: ``100 * (score - random) / (best_behaviour - random)`` on raw game scores, where
+  ``best_behaviour`` is the best snapshot of the data-generating DQN (paper appendix "Atari
+  Results Normalization"). Random and best-behaviour scores are inputs: ``load_reference_scores``
+  reads ``rlu/resources/random_scores.json`` and ``atari_best_behaviour.json`` (its numbers and
+  their provenance: ``rlu.evaluation.reference``); ``best_behaviour_from_dataset`` recomputes the
+  latter from a converted ``atari_episodes_ordered`` dataset.
 - Aggregates over tasks: the mean (the median for Atari) with a bootstrapped [25, 75] percentile
   interval over tasks, as in the paper's Atari figures; the interquartile mean (IQM) with
   stratified bootstrap confidence intervals over runs, as rliable computes them.
@@ -65,20 +66,29 @@ def normalize_scores(
 
 
 def best_behaviour_from_dataset(ds: Any) -> float:
-    """The best checkpoint of the data-generating run: the highest mean episode return over the
-    dataset's (run, checkpoint) groups (episodes without a checkpoint form one group per run)."""
+    """The best snapshot of the data-generating runs in a converted ``atari_episodes_ordered``
+    dataset: per run, the checkpoint with the highest mean raw episode return, averaged over
+    the runs (``rlu.evaluation.reference``, the rule ``rlu envs best-behaviour`` applies to
+    release files).
+
+    Needs each episode's raw ``episode_return`` and its ``checkpoint``: converted Atari
+    transition files have neither (their returns are clipped, their episodes unordered)."""
+    from rlu.evaluation.reference import best_of_runs
+
     returns = np.asarray(ds.metadata("episode_return"), np.float64)
     run = np.asarray(ds.metadata("run"), np.int64)
     ckpt = np.asarray(ds.metadata("checkpoint"), np.int64)
-    ok = ~np.isnan(returns)
+    ok = ~np.isnan(returns) & (ckpt >= 0)
     if not ok.any():
-        raise RluError(f"{ds.path}: no episode_return metadata; cannot find the best checkpoint")
-    keys = np.stack([run[ok], ckpt[ok]], axis=1)
-    _, group = np.unique(keys, axis=0, return_inverse=True)
-    group = group.reshape(-1)
-    sums = np.bincount(group, weights=returns[ok])
-    counts = np.bincount(group)
-    return float((sums / counts).max())
+        raise RluError(
+            f"{ds.path}: no episode has both a raw episode_return and a checkpoint (segment "
+            "metadata); the best snapshot is computed from atari_episodes_ordered data, or use "
+            "the shipped rlu/resources/atari_best_behaviour.json"
+        )
+    per_run: dict[int, dict[int, list[float]]] = {}
+    for r, c, x in zip(run[ok].tolist(), ckpt[ok].tolist(), returns[ok].tolist(), strict=True):
+        per_run.setdefault(r, {}).setdefault(c, []).append(x)
+    return float(best_of_runs(per_run)["mean"])
 
 
 def load_reference_scores(name: str) -> dict[str, float]:

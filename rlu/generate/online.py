@@ -32,7 +32,7 @@ import numpy as np
 from rlu.data.episode import Segment
 from rlu.generate.recorder import EpisodeRecorder, episode_id
 from rlu.tasks import TaskSpec
-from rlu.types import ArraySpec, RluError, Transition
+from rlu.types import ArraySpec, BatchSpec, RluError, Transition
 
 
 @dataclass(frozen=True)
@@ -87,8 +87,13 @@ class Replay:
     invalidated whole. Atari frames are stored once and stacked at sample time.
     """
 
-    def __init__(self, task: TaskSpec, capacity: int, n_step: int, gamma: float):
-        self.capacity, self.n_step, self.gamma = int(capacity), int(n_step), float(gamma)
+    def __init__(self, task: TaskSpec, capacity: int, spec: BatchSpec):
+        if spec.kind != "transition":
+            raise RluError(
+                f"the online replay samples transitions; the behaviour agent asks for {spec.kind!r}"
+            )
+        self.capacity, self.n_step, self.gamma = int(capacity), spec.n_step, spec.gamma
+        self.reward_clip = spec.reward_clip
         self.frame_stack = 4 if task.domain == "atari" else 1
         spec = task.observation_spec
         c = self.capacity
@@ -134,6 +139,8 @@ class Replay:
         r = np.zeros(n - 1 + self.n_step, np.float64)
         d = np.zeros(n - 1 + self.n_step, np.float64)
         r[: n - 1], d[: n - 1] = seg.reward[: n - 1], seg.discount[: n - 1]
+        if self.reward_clip is not None:  # the agent's BatchSpec: clip per step, then sum
+            r = np.clip(r, -self.reward_clip, self.reward_clip)
         terminal = bool(seg.is_terminal[-1])
         ret = np.zeros(n - 1)
         disc = np.ones(n - 1)
@@ -251,14 +258,11 @@ def run_online(
     try:
         run_seed = derive_seed(seed, run)
         agent = _make_agent(task, cfg, run_seed)
-        agent_cfg = agent.config
-        n_step = int(getattr(agent, "n_step", 1))
-        gamma = float(getattr(agent_cfg, "gamma", getattr(agent_cfg, "discount", 0.99)))
-        batch_size = int(agent_cfg.batch_size)
+        batch_size = agent.batch_spec.batch_size
         env = make_env(task.id, seed=run_seed, **cfg.env_settings)
         max_steps = int(cfg.env_settings.get("max_episode_steps", task.episode_length))
         recorder = EpisodeRecorder(task, max_steps)
-        replay = Replay(task, cfg.replay_capacity, n_step, gamma)
+        replay = Replay(task, cfg.replay_capacity, agent.batch_spec)
         rng = np.random.default_rng([seed, run, 1])
         episode, env_steps = 0, 0
         if state_path.exists():

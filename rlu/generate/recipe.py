@@ -57,7 +57,7 @@ SCALES = ("tiny", "small", "paper")
 CONTROL_SUCCESS_RETURN = 800.0
 
 _TINY_D4PG = {"policy_layers": (32, 32), "critic_layers": (32, 32), "batch_size": 32}
-_TINY_DQN = {"channels": (8, 16, 16), "hidden_size": 32, "batch_size": 16}
+_TINY_DQN = {"atari.channels": (8, 16, 16), "atari.hidden_size": 32, "atari.batch_size": 16}
 
 
 @dataclass(frozen=True)

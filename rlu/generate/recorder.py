@@ -7,9 +7,9 @@ One ``EpisodeRecorder`` per env. ``begin(obs)`` after ``env.reset()``, ``step(..
   ``truncated`` (a time limit) keeps discount 1, as the release stores it;
 - metadata: ``run``, ``seed``, ``checkpoint``, ``episode_index``, ``episode_id`` and
   ``episode_return`` (the sum of the stored rewards, which ``rlu validate`` checks). Atari stores
-  the clipped rewards the agents learn from, so its ``episode_return`` is the clipped sum, as in
-  the release (``clipped_episode_return`` holds the same); the unclipped game score is not
-  stored, the store having no field for it;
+  the reward the env returns, the raw game score by default (as converted
+  ``atari_episodes_ordered`` data does), so ``episode_return`` is the raw score and
+  ``clipped_episode_return`` the sum of the rewards clipped to [-1, 1];
 - Atari: the env's (84, 84, 4) stack is stored as its newest frame only; the schema stacks
   frames at sample time (zeros before the episode start, exactly what the env's stack holds).
 
@@ -107,7 +107,8 @@ class EpisodeRecorder:
         meta = dict(metadata)
         prefix = None
         if self.atari:
-            meta["clipped_episode_return"] = float(self._rewards[:n].sum(dtype=np.float64))
+            clipped = np.clip(self._rewards[:n], -1.0, 1.0)
+            meta["clipped_episode_return"] = float(clipped.sum(dtype=np.float64))
             prefix = np.zeros((schema_for(self.task).frame_stack - 1, *obs.shape[1:]), np.uint8)
         return make_episode(
             obs, self._actions[:n].copy(), self._rewards[:n].copy(), terminal, meta, prefix

@@ -24,7 +24,7 @@ suite = pytest.importorskip("dm_control.suite")
 
 from rlu.agents import make_agent  # noqa: E402
 from rlu.data import DatasetWriter, Schema, make_episode, open_dataset  # noqa: E402
-from rlu.data.views import sequence_sampler, transition_sampler  # noqa: E402
+from rlu.data.views import make_sampler  # noqa: E402
 from rlu.tasks import get_task  # noqa: E402
 
 TASK = "control_suite/cartpole_swingup"
@@ -94,12 +94,7 @@ def train(name: str, ds, updates: int, seed: int = 0, **overrides):
     task = get_task(TASK)
     agent = make_agent(name, task.observation_spec, task.action_spec, preset="small", seed=seed,
                        **{**SMALL_OVERRIDES.get(name, {}), **overrides})  # fmt: skip
-    c = agent.config
-    if agent.batch_kind == "sequence":
-        sampler = sequence_sampler(ds, c.batch_size, agent.sequence_length, seed=seed)
-    else:
-        sampler = transition_sampler(ds, c.batch_size, seed=seed, n_step=agent.n_step,
-                                     gamma=getattr(c, "gamma", 1.0))  # fmt: skip
+    sampler = make_sampler(ds, agent.batch_spec, seed=seed)
     for _ in range(updates):
         metrics = agent.update(sampler.sample())
     assert all(np.isfinite(v) for v in metrics.values()), metrics

@@ -1,4 +1,4 @@
-"""Learning check (slow): offline DQN, BCQ, REM (and IQN) beat BC where the data rewards it.
+"""Learning check (slow): offline DQN, BCQ, REM, IQN and CQL beat BC where the data rewards it.
 
 The task is a tiny corridor with the Atari observation: 84x84 uint8 frames, four stacked (newest
 last, zeros before the start), three actions (0 no-op, 1 left, 2 right). The agent starts in the
@@ -10,6 +10,14 @@ likely action is "left" everywhere) earns 0.1, while Q-learning from the same da
 
 The Q-learners use discount 0.9 here: with 0.99 a wasted no-op costs 1% of the value, less than
 the approximation error after a thousand updates, and a greedy policy can loop on no-op forever.
+
+CQL runs with alpha 0.1, not its preset's 1.0. The regulariser's gradient on Q(s, .) is
+alpha (softmax Q(s, .) - pi_behaviour(. | s)): it pulls Q towards log pi_behaviour + const with
+strength alpha, here a preference of up to log(0.5 / 0.35) = 0.36 for "left" in every cell,
+against a true advantage of 0.15 for "right" at the start (0.9^2 = 0.81 vs 0.9^4 = 0.66). At
+alpha 1 the pull wins and the greedy policy never reaches the 1.0 (measured: return 0.0-0.02
+after 1000-1500 updates); at alpha 0.1 or 0.3 it does. Atari values, sums of many clipped
+rewards, dwarf the same pull.
 
 The data goes through the real store: episodes recorded with ``DatasetWriter`` (single frames,
 ``frame_stack=4``) and sampled with the transition sampler, which stacks the frames.
@@ -25,7 +33,7 @@ torch = pytest.importorskip("torch")
 from rlu.agents import make_agent  # noqa: E402
 from rlu.data.episode import make_episode  # noqa: E402
 from rlu.data.store import DatasetWriter, Schema, open_dataset  # noqa: E402
-from rlu.data.views import transition_sampler  # noqa: E402
+from rlu.data.views import make_sampler, transition_sampler  # noqa: E402
 from rlu.types import ArraySpec, DiscreteSpec  # noqa: E402
 
 CELLS, START, CAP = 7, 3, 30
@@ -35,7 +43,12 @@ FRAME = ArraySpec((84, 84), "uint8")
 OBS = ArraySpec((84, 84, 4), "uint8")
 ACTION = DiscreteSpec((), "int64", 3)
 STEPS = 1000
-COMMON = {"batch_size": 32, "channels": (8, 16, 16), "hidden_size": 64, "learning_rate": 3e-4}
+COMMON = {
+    "atari.batch_size": 32,
+    "atari.channels": (8, 16, 16),
+    "atari.hidden_size": 64,
+    "learning_rate": 3e-4,
+}
 
 
 def frame(cell: int) -> np.ndarray:
@@ -127,17 +140,19 @@ def test_the_stored_data_is_what_the_corridor_makes(dataset):
 def test_offline_rl_beats_bc_where_the_data_rewards_it(dataset, one_thread):
     ds, returns = dataset
     scores = {}
-    for name in ("bc", "dqn", "bcq", "rem", "iqn"):
+    for name in ("bc", "dqn", "bcq", "rem", "iqn", "cql"):
         overrides = dict(COMMON)
         if name != "bc":
-            overrides.update(target_update_period=100, discount=0.9)
+            overrides.update({"atari.target_update_period": 100, "atari.gamma": 0.9})
+        if name == "cql":
+            overrides["alpha"] = 0.1  # see the module docstring
         agent = make_agent(name, OBS, ACTION, "small", seed=0, **overrides)
-        sampler = transition_sampler(ds, overrides["batch_size"], seed=1, n_step=agent.n_step)
+        sampler = make_sampler(ds, agent.batch_spec, seed=1)
         for _ in range(STEPS):
             metrics = agent.update(sampler.sample())
         assert all(np.isfinite(v) for v in metrics.values())
         scores[name] = evaluate(agent)
     print(f"\ncorridor: behaviour mean return {returns.mean():.3f}; after {STEPS} updates {scores}")
     assert scores["bc"] <= LEFT_REWARD + 1e-6  # cloning the majority action goes left
-    for name in ("dqn", "bcq", "rem", "iqn"):
+    for name in ("dqn", "bcq", "rem", "iqn", "cql"):
         assert scores[name] > scores["bc"] + 0.5, scores

@@ -50,7 +50,7 @@ def test_n_step_return_discounts_and_stops_at_a_terminal():
 
 
 def test_n_step_target_bootstraps_with_gamma_to_the_n():
-    values = L.bootstrap_values(t([2.75, 1.0]), t([1.0, 0.0]), 0.5, 3, t([[4.0, 8.0], [4.0, 8.0]]))
+    values = L.bootstrap_values(t([2.75, 1.0]), t([1.0, 0.0]), 0.5**3, t([[4.0, 8.0], [4.0, 8.0]]))
     close(values, [[2.75 + 0.125 * 4, 2.75 + 0.125 * 8], [1.0, 1.0]])
 
 
@@ -80,7 +80,7 @@ def test_d4pg_critic_loss_is_cross_entropy_to_the_projected_target():
     target_logits = torch.log(t([[0.0 + 1e-30, 1.0, 0.0 + 1e-30]]))  # next state: all mass at 1
     logits = torch.log(t([[0.25, 0.5, 0.25]]))
     # r = 0.5, gamma^n d = 0.5: 1 -> 1.0 exactly, so the target is [0, 1, 0].
-    loss, metrics = d4pg.critic_loss(logits, target_logits, t([0.5]), t([1.0]), atoms, 0.5, 1)
+    loss, metrics = d4pg.critic_loss(logits, target_logits, t([0.5]), t([1.0]), atoms, 0.5)
     close(loss, -math.log(0.5))
     close(metrics["critic/q_mean"], 1.0)
 

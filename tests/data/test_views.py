@@ -83,7 +83,7 @@ def obs_at(seg: Segment, t: int, stack: int):
     return np.stack([frames[t + j] for j in range(stack)], axis=-1)
 
 
-def ref_transitions(segs, stack, n_step=1, gamma=1.0):
+def ref_transitions(segs, stack, n_step=1, gamma=1.0, clip=None):
     rows = []
     for seg in segs:
         T = len(seg)
@@ -95,12 +95,15 @@ def ref_transitions(segs, stack, n_step=1, gamma=1.0):
                 if t + i >= T - 1:
                     disc = 0.0  # past a terminal end
                     break
-                ret += (gamma**i) * disc * float(seg.reward[t + i])
+                r = float(seg.reward[t + i])
+                r = r if clip is None else min(max(r, -clip), clip)
+                ret += (gamma**i) * disc * r
                 disc *= float(seg.discount[t + i])
                 k = i + 1
             nxt = min(t + n_step, T - 1) if n_step > 1 else t + 1
             if n_step == 1:
                 ret, disc = float(seg.reward[t]), float(seg.discount[t])
+                ret = ret if clip is None else min(max(ret, -clip), clip)
             rows.append(
                 (
                     obs_at(seg, t, stack),
@@ -190,6 +193,82 @@ def test_frame_stacks_equal_reference(tmp_path, segs, encoding):
         np.testing.assert_array_equal(b.next_observation[i], o2)
         assert b.action[i] == a and b.next_action[i] == a2
         assert b.reward[i] == np.float32(r) and b.discount[i] == np.float32(d)
+
+
+@FAST
+@given(
+    segs=segments(frames=True),
+    n_step=st.integers(1, 4),
+    clip=st.sampled_from([None, 0.5]),
+    encoding=st.sampled_from(["raw", "zlib"]),
+)
+def test_nstep_frame_stacks_and_reward_clip_equal_reference(tmp_path, segs, n_step, clip, encoding):
+    ds = write(tmp_path, segs, FRAME_SCHEMA, encoding)
+    view = TransitionView(ds, n_step=n_step, gamma=0.9, reward_clip=clip)
+    ref = ref_transitions(segs, 4, n_step, 0.9, clip)
+    assert len(view) == len(ref)
+    if not ref:
+        return
+    b = view.all()
+    for i, (o, a, r, d, o2, a2) in enumerate(ref):
+        np.testing.assert_array_equal(b.observation[i], o)
+        np.testing.assert_array_equal(b.next_observation[i], o2)
+        assert b.action[i] == a and b.next_action[i] == a2
+        np.testing.assert_allclose(b.reward[i], r, rtol=1e-5, atol=1e-6)
+        assert b.discount[i] == np.float32(d)
+
+
+def test_frame_pair_is_one_gather_of_stack_plus_n_frames(tmp_path, monkeypatch):
+    """Observation and next observation come from one gather of k + n frames per row (they
+    overlap), not two gathers of k."""
+    import rlu.data.views as views
+
+    rng = np.random.default_rng(0)
+    frames = rng.integers(0, 256, (9, 3, 2), dtype=np.uint8)
+    first, last, term = np.zeros(9, bool), np.zeros(9, bool), np.zeros(9, bool)
+    first[0], last[-1] = True, True
+    disc = np.ones(9, np.float32)
+    seg = Segment(frames, np.zeros(9, np.int64), np.zeros(9, np.float32), disc, first, last,
+                  term, {}, None)  # fmt: skip
+    ds = write(tmp_path, [seg], FRAME_SCHEMA)
+    shapes = []
+    real_take = views._take
+
+    def counting_take(col, rows):
+        shapes.append(np.shape(rows))
+        return real_take(col, rows)
+
+    monkeypatch.setattr(views, "_take", counting_take)
+    for n in (1, 3):
+        shapes.clear()
+        TransitionView(ds, n_step=n).batch(np.arange(4))
+        assert shapes == [(4, 4 + n)], (n, shapes)
+
+
+def test_make_sampler_takes_a_batch_spec(tmp_path):
+    from rlu.data import make_sampler
+    from rlu.types import BatchSpec, RluError, SpecError
+
+    rng = np.random.default_rng(1)
+    n = 6
+    first, last, term = np.zeros(n, bool), np.zeros(n, bool), np.zeros(n, bool)
+    first[0], last[-1] = True, True
+    obs = {"a": rng.standard_normal((n, 2)).astype(np.float32),
+           "cam": rng.integers(0, 256, (n, 3, 3, 2), dtype=np.uint8)}  # fmt: skip
+    reward = np.array([3.0, -2.0, 0.5, 0.0, 7.0, 0.0], np.float32)
+    seg = Segment(obs, np.zeros((n, 1), np.float32), reward, np.ones(n, np.float32), first,
+                  last, term, {}, None)  # fmt: skip
+    ds = write(tmp_path, [seg], DICT_SCHEMA)
+    b = make_sampler(ds, BatchSpec(64, reward_clip=1.0), seed=0).sample()
+    assert set(np.unique(b.reward)) <= {-1.0, 0.0, 0.5, 1.0}
+    seq = make_sampler(ds, BatchSpec(2, "sequence", sequence_length=3), seed=0).sample()
+    assert seq.mask.shape == (2, 3)
+    with pytest.raises(RluError, match="BatchSpec"):
+        make_sampler(ds, 64)
+    with pytest.raises(SpecError, match="kind"):
+        BatchSpec(8, "windows")
+    with pytest.raises(SpecError, match="batch_size"):
+        BatchSpec(0)
 
 
 def test_frame_stack_at_episode_start_is_zero_padded(tmp_path):

@@ -72,9 +72,10 @@ def test_sticky_actions_frame_skip_and_pooling_match_the_ale():
     assert ale.getFloat("repeat_action_probability") == pytest.approx(0.25)
 
 
-@pytest.mark.parametrize("clip", [True, False])
-def test_rewards_are_clipped_for_learning_and_raw_in_info(clip):
-    env = rlu.make_env("atari/Atlantis", seed=0, clip_rewards=clip)
+@pytest.mark.parametrize("clip", [None, True, False])
+def test_reward_is_the_raw_score_unless_clipping_is_asked_for(clip):
+    settings = {} if clip is None else {"clip_rewards": clip}
+    env = rlu.make_env("atari/Atlantis", seed=0, **settings)
     env.reset()
     for _ in range(2000):
         _, r, term, trunc, info = env.step(env.action_space.sample())
@@ -82,6 +83,66 @@ def test_rewards_are_clipped_for_learning_and_raw_in_info(clip):
             assert r == (1.0 if clip else info["raw_reward"])
             return
     pytest.fail("no reward above 1 in 2000 steps of Atlantis")
+
+
+def _plain_ale_returns(game, seeds, rng, num_actions, cap):
+    """The oracle: ale_py's ALEInterface driven by hand with the paper's settings (sticky
+    actions 0.25, each action repeated for 4 frames, minimal action set, game over ends the
+    episode, ``cap`` agent steps at most), seeded as ale-py's own Gymnasium env seeds it
+    (``SeedSequence(seed)``'s second word). Returns the raw game score of each episode and the
+    largest raw reward of one agent step."""
+    import ale_py
+
+    returns, biggest = [], 0.0
+    for seed in seeds:
+        ale = ale_py.ALEInterface()
+        ale.setLoggerMode(ale_py.LoggerMode.Error)
+        ale.setFloat("repeat_action_probability", 0.25)
+        _, ale_seed = np.random.SeedSequence(seed).generate_state(n_words=2)
+        ale.setInt("random_seed", np.int32(ale_seed))
+        ale.loadROM(ale_py.roms.get_rom_path(game))
+        actions = ale.getMinimalActionSet()
+        assert len(actions) == num_actions
+        ale.reset_game()
+        total = 0.0
+        for _ in range(cap):
+            a = actions[int(rng.integers(num_actions, size=1)[0])]
+            step = 0.0
+            for _ in range(4):
+                step += ale.act(a)
+                if ale.game_over():
+                    break
+            total += step
+            biggest = max(biggest, step)
+            if ale.game_over():
+                break
+        returns.append(total)
+    return returns, biggest
+
+
+def test_evaluation_scores_the_raw_game_score_of_a_plain_ale_loop():
+    """Issue 18 item 1: what ``evaluate`` reports for Atari is the game's score. The same random
+    policy (one seeded generator, one draw per step) scores exactly what a hand-written ALE loop
+    scores with the same seeds; SpaceInvaders pays 5-30 points a hit, so a clipped sum differs."""
+    from rlu.evaluation.rollout import episode_seed, evaluate, task_env_factory
+
+    n, cap, seed, episodes = rlu.get_task("atari/SpaceInvaders").action_dim, 400, 11, 3
+    rng = np.random.default_rng(7)
+
+    def policy(obs, is_first):
+        return rng.integers(n, size=len(obs))
+
+    factory = task_env_factory("atari/SpaceInvaders", max_episode_steps=cap)
+    got = evaluate(policy, factory, num_episodes=episodes, seed=seed, num_envs=1)
+    want, biggest = _plain_ale_returns(
+        "space_invaders",
+        [episode_seed(seed, i) for i in range(episodes)],
+        np.random.default_rng(7),
+        n,
+        cap,
+    )
+    assert biggest > 1  # the oracle's episodes hold rewards that clipping would change
+    assert list(got.returns) == want
 
 
 def test_episode_cap_in_agent_steps_and_the_original_setting():

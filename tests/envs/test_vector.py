@@ -100,3 +100,24 @@ def test_process_backend_autoresets_on_the_next_step():
         assert not obs[:, :, :, :3].any() and (r == 0).all() and not trunc.any()
     finally:
         venv.close()
+
+
+@pytest.mark.parametrize("clip", [False, True])
+def test_ale_vector_env_returns_raw_scores_unless_clipping_is_asked_for(clip):
+    pytest.importorskip("ale_py")
+    from rlu.envs import make_vector_env
+
+    settings = {"clip_rewards": True} if clip else {}  # the default is the raw score
+    venv = make_vector_env("atari/SpaceInvaders", num_envs=2, seed=0, **settings)
+    rng = np.random.default_rng(0)
+    try:
+        venv.reset()
+        for _ in range(2000):
+            _, r, _, _, info = venv.step(rng.integers(6, size=2))
+            raw = info["raw_reward"]
+            if (raw > 1).any():
+                np.testing.assert_array_equal(r, np.clip(raw, -1, 1) if clip else raw)
+                return
+    finally:
+        venv.close()
+    pytest.fail("no reward above 1 in 2000 steps of SpaceInvaders")

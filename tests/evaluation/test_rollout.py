@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from rlu.evaluation.rollout import evaluate, task_env_factory
+from rlu.evaluation.rollout import episode_seed, evaluate, task_env_factory
 from rlu.types import RluError
 
 pytest.importorskip("gymnasium")
@@ -19,7 +19,7 @@ def _factory():
 
 
 def _pd_policy(seen):
-    def policy(obs):
+    def policy(obs, is_first):
         seen.append(obs)
         th = np.arctan2(obs["orientation"][:, 1], obs["orientation"][:, 0])
         return np.clip(-(6.0 * th + 1.5 * obs["velocity"][:, 0]), -2, 2)[:, None].astype(np.float32)
@@ -33,12 +33,15 @@ def test_returns_do_not_depend_on_num_envs():
     three = evaluate(_pd_policy([]), _factory(), num_episodes=5, seed=3, num_envs=3)
     assert one.returns == three.returns
     assert one.lengths == (50,) * 5
-    assert len(set(one.returns)) == 5  # episode i is seeded with seed + i
+    assert len(set(one.returns)) == 5  # episode i is seeded with episode_seed(3, i)
     # batched dict observations, nothing else
     assert all(set(o) == {"orientation", "velocity"} for o in seen)
     assert {o["orientation"].shape for o in seen} == {(1, 2)}
+    # no episode of seed 4 replays one of seed 3 (under seed + i, four of five did)
     other_seed = evaluate(_pd_policy([]), _factory(), num_episodes=5, seed=4, num_envs=2)
-    assert other_seed.returns[:4] == one.returns[1:]  # seeds 4..7 are episodes 1..4 of seed 3
+    assert not set(other_seed.returns) & set(one.returns)
+    seeds = {episode_seed(s, i) for s in range(50) for i in range(50)}
+    assert len(seeds) == 2500
 
 
 def test_max_steps_and_errors(monkeypatch):
@@ -54,3 +57,33 @@ def test_max_steps_and_errors(monkeypatch):
     monkeypatch.setitem(sys.modules, "rlu.envs", None)  # as if rlu.envs were not installed
     with pytest.raises(RluError, match="rlu.envs cannot be imported"):
         task_env_factory("control_suite/cartpole_swingup")
+
+
+def test_a_torch_policy_runs_in_inference_mode():
+    torch = pytest.importorskip("torch")
+    modes = []
+
+    def policy(obs, is_first):
+        modes.append(torch.is_inference_mode_enabled())
+        return np.zeros((len(obs["velocity"]), 1), np.float32)
+
+    evaluate(policy, _factory(), num_episodes=2, seed=0, num_envs=2, max_steps=3)
+    assert modes == [True] * 3 and not torch.is_inference_mode_enabled()
+
+
+def test_every_call_has_one_row_per_env_and_marks_episode_starts():
+    """Recurrent policies keep a state per row: rows never move between envs, and ``is_first``
+    marks the step each episode starts on (an env with no episode left keeps its row)."""
+    calls = []
+
+    def policy(obs, is_first):
+        calls.append((obs["velocity"].shape[0], is_first.tolist()))
+        return np.zeros((len(is_first), 1), np.float32)
+
+    res = evaluate(policy, _factory(), num_episodes=3, seed=0, num_envs=2, max_steps=4)
+    assert res.lengths == (4, 4, 4)
+    assert {rows for rows, _ in calls} == {2}
+    firsts = [f for _, f in calls]
+    # episodes 0 and 1 start together; episode 2 starts on env 0 when episode 0 ends
+    assert firsts == [[True, True], [False, False], [False, False], [False, False],
+                      [True, False], [False, False], [False, False], [False, False]]  # fmt: skip

@@ -83,7 +83,8 @@ def test_stratified_bootstrap_rejects_bad_input():
 def test_best_behaviour_from_dataset(tmp_path):
     schema = Schema(ArraySpec((2,), "float32"), DiscreteSpec((), "int64", 3))
     # (run, checkpoint): (1, 0) returns 1, 3 -> mean 2; (1, 1) returns 10, 6 -> mean 8;
-    # (2, 0) returns 7 -> mean 7. Best checkpoint mean is 8 (not the best single episode, 10).
+    # (2, 0) returns 7 -> mean 7. Run 1's best checkpoint has mean 8 (not the best single
+    # episode, 10), run 2's 7: the reference averages the runs' best snapshots, 7.5.
     eps = [(1, 0, 1.0), (1, 0, 3.0), (1, 1, 10.0), (1, 1, 6.0), (2, 0, 7.0)]
     with DatasetWriter(tmp_path / "d", schema, {"source": "test"}) as w:
         for i, (run, ckpt, ret) in enumerate(eps):
@@ -96,7 +97,7 @@ def test_best_behaviour_from_dataset(tmp_path):
                     metadata={"episode_id": i, "run": run, "checkpoint": ckpt},
                 )
             )
-    assert scores.best_behaviour_from_dataset(open_dataset(tmp_path / "d")) == pytest.approx(8.0)
+    assert scores.best_behaviour_from_dataset(open_dataset(tmp_path / "d")) == pytest.approx(7.5)
 
 
 def test_reference_scores_files_load():

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from rlu.generate.recipe import select_episodes
+from rlu.types import BatchSpec
 
 TASK = "control_suite/cartpole_swingup"
 
@@ -41,7 +42,7 @@ def test_replay_n_step_targets_by_hand():
     from rlu.tasks import get_task
 
     task = get_task(TASK)
-    replay = Replay(task, capacity=10, n_step=2, gamma=0.5)
+    replay = Replay(task, 10, BatchSpec(4, n_step=2, gamma=0.5))
     obs = {k: np.arange(5, dtype=np.float32)[:, None].repeat(s.shape[0], 1) for k, s in
            task.observation_spec.items()}  # fmt: skip
     # 4 transitions ending in a terminal state: rewards 1, 2, 3, 4
@@ -191,7 +192,7 @@ def test_atari_frames_stack_back_to_the_envs_observations_in_store_and_replay(tm
     view = TransitionView(ds).all()
     # every transition's observation is exactly the env's (84, 84, 4) stack at that step
     np.testing.assert_array_equal(view.observation, np.stack(seen))
-    replay = Replay(task, capacity=100, n_step=1, gamma=0.99)
+    replay = Replay(task, 100, BatchSpec(4, gamma=0.99))
     for s in segs:
         replay.add(s)
     got = replay._observation(replay._eligible)
@@ -211,7 +212,7 @@ def test_replay_n_step_transitions_equal_the_store_view(tmp_path):
 
     task, segs, _, ds = _record(TASK, 2, {}, tmp_path)
     view = TransitionView(ds, n_step=3, gamma=0.9).all()
-    replay = Replay(task, capacity=5_000, n_step=3, gamma=0.9)
+    replay = Replay(task, 5_000, BatchSpec(4, n_step=3, gamma=0.9))
     for s in segs:
         replay.add(s)
     idx = replay._eligible

@@ -105,6 +105,29 @@ def test_d3rlpy_dump_imports_with_the_transitions_d3rlpy_reads(tmp_path):
         np.testing.assert_array_equal(ref[k], expected[k].reshape(ref[k].shape), err_msg=k)
 
 
+def test_d3rlpy_single_frame_atari_dump_imports_with_the_stacks_d3rlpy_samples(tmp_path):
+    """d3rlpy's default Atari layout, (N, 1, 84, 84) frames stacked at sampling time: the fixture
+    was written by d3rlpy 2.8.1's MDPDataset.dump, the expected transitions are its own
+    FrameStackTransitionPicker(n_frames=4) over what it loads back (channel first, oldest first;
+    rlu's stacks are channel last, newest last)."""
+    pong = get_task("atari/Pong")
+    ds = open_dataset(import_d3rlpy(FIXTURES / "d3rlpy_pong.h5", tmp_path / "ds", pong.id))
+    with np.load(FIXTURES / "d3rlpy_pong_transitions.npz", allow_pickle=False) as z:
+        exp = {k: z[k] for k in z.files}
+    assert str(exp["d3rlpy_version"]) == "2.8.1" and exp["observation"].shape == (14, 4, 84, 84)
+    assert len(ds) == 3 and ds.num_steps == 4 + 1 + 6 + 5 + 1  # terminal episodes gain a step
+    b = all_transitions(ds)
+    np.testing.assert_array_equal(b.observation, np.moveaxis(exp["observation"], 1, -1))
+    np.testing.assert_array_equal(b.action, exp["action"].reshape(-1))
+    np.testing.assert_array_equal(b.reward, exp["reward"].reshape(-1))
+    np.testing.assert_array_equal(b.discount, 1.0 - exp["terminal"].reshape(-1))
+    nxt = np.moveaxis(exp["next_observation"], 1, -1)
+    live = exp["terminal"].reshape(-1) == 0
+    np.testing.assert_array_equal(b.next_observation[live], nxt[live])
+    # after a terminal: d3rlpy's next observation is all zeros, rlu's newest frame is zero
+    assert not nxt[~live].any() and not b.next_observation[~live][..., -1].any()
+
+
 def test_h5py_writer_matches_d3rlpys_file(tmp_path):
     write_d3rlpy_dump(tmp_path / "mine.h5", read_d3rlpy_fixture())
 
@@ -380,3 +403,87 @@ def test_cli_imports_d3rlpy_and_d4rl_hdf5(tmp_path, capsys):
         == 0
     )
     assert_same_transitions(src, open_dataset(tmp_path / "c"))
+
+
+# --- rlu export --format d4rl: the file its name says ---------------------------------------------
+def d4rl_get_dataset(path, observation_shape, action_shape):
+    """D4RL's own reader (d4rl/offline_env.py ``OfflineEnv.get_dataset``, D4RL 1.1): every HDF5
+    dataset by ``visititems`` read with ``[:]`` (``[()]`` for scalars), then its sanity checks."""
+    data, keys = {}, []
+
+    def visitor(name, item):
+        if isinstance(item, h5py.Dataset):
+            keys.append(name)
+
+    with h5py.File(path, "r") as f:
+        f.visititems(visitor)
+        for k in keys:
+            try:
+                data[k] = f[k][:]
+            except ValueError:
+                data[k] = f[k][()]
+    for key in ("observations", "actions", "rewards", "terminals"):
+        assert key in data, f"Dataset is missing key {key}"
+    n = data["observations"].shape[0]
+    assert data["observations"].shape[1:] == observation_shape
+    assert data["actions"].shape[1:] == action_shape
+    assert data["rewards"].shape == (n,) and data["terminals"].shape == (n,)
+    return data
+
+
+@pytest.mark.parametrize("suffix", [".hdf5", ".npz"])
+def test_export_d4rl_writes_the_format_its_name_says_and_round_trips(tmp_path, suffix, capsys):
+    src = write_synthetic(
+        tmp_path / "src", Schema.for_task(WALKER), 4, 6, seed=1, terminal_prob=0.5,
+        vary_length=True,
+    )  # fmt: skip
+    out = tmp_path / f"walker{suffix}"
+    assert main(["export", str(src), "--format", "d4rl", "-o", str(out)]) == 0
+    magic = out.read_bytes()[:8]
+    if suffix == ".npz":
+        assert magic[:4] == b"PK\x03\x04"  # a zip archive, what numpy.savez writes
+    else:
+        assert magic == b"\x89HDF\r\n\x1a\n"  # the HDF5 signature
+        d = d4rl_get_dataset(out, (24,), (6,))
+        expected = all_transitions(open_dataset(src))
+        np.testing.assert_array_equal(d["observations"], flat(expected.observation))
+        np.testing.assert_array_equal(d["next_observations"], flat(expected.next_observation))
+        np.testing.assert_array_equal(d["actions"], expected.action)
+        np.testing.assert_array_equal(d["rewards"], expected.reward)
+        assert d["terminals"].dtype == bool and d["timeouts"].dtype == bool
+        assert d["metadata/rlu/task_id"] == WALKER.id.encode()
+        assert [k.decode() for k in d["metadata/rlu/observation_keys"]] == KEYS
+    assert not [p for p in tmp_path.iterdir() if "partial" in p.name]
+    argv = ["import", str(out), "--format", "d4rl", "--task", WALKER.id, "--out"]
+    assert main([*argv, str(tmp_path / "back")]) == 0
+    back = open_dataset(tmp_path / "back")
+    assert_same_transitions(open_dataset(src), back)
+    assert_same_segments(open_dataset(src), back)
+
+
+def test_export_d4rl_of_stacked_frames_and_of_a_camera_round_trips(tmp_path):
+    """Atari: stacked (N, 84, 84, 4) uint8 rows; a camera beside features: one array per key."""
+    from rlu.data.d4rl import export_d4rl
+
+    for task_id in ("atari/Pong", "locomotion/rodent_two_touch"):
+        schema = Schema.for_task(get_task(task_id))
+        src = open_dataset(write_synthetic(tmp_path / task_id, schema, 2, 5, seed=2))
+        name = task_id.replace("/", "_")
+        out = export_d4rl(src, tmp_path / f"{name}.hdf5")
+        with h5py.File(out, "r") as f:
+            if task_id == "atari/Pong":
+                assert f["observations"].shape == (len(all_transitions(src).reward), 84, 84, 4)
+                assert f["observations"].compression == "gzip"
+            else:
+                assert isinstance(f["observations"], h5py.Group)
+        back = open_dataset(import_d4rl(out, tmp_path / f"{name}_back", task_id))
+        assert_same_segments(src, back)
+
+
+def test_export_d4rl_refuses_an_unknown_extension(tmp_path, capsys):
+    src = write_synthetic(tmp_path / "src", Schema.for_task(WALKER), 2, 3)
+    for name in ("out.zip", "out", "out.hdf"):
+        assert main(["export", str(src), "--format", "d4rl", "-o", str(tmp_path / name)]) == 2
+        err = capsys.readouterr().err
+        assert "unknown D4RL file type" in err and "X.hdf5" in err and "X.npz" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["src"]  # nothing half-written

@@ -14,7 +14,7 @@ from rlu.data import Schema, open_dataset, transition_sampler  # noqa: E402
 from rlu.data.jax import JaxBatches, to_jax  # noqa: E402
 from rlu.data.synthetic import write_synthetic  # noqa: E402
 from rlu.tasks import get_task  # noqa: E402
-from rlu.types import Sequence, Transition  # noqa: E402
+from rlu.types import BatchSpec, Sequence, Transition  # noqa: E402
 
 CARTPOLE = Schema.for_task(get_task("control_suite/cartpole_swingup"))
 
@@ -39,7 +39,8 @@ def test_to_jax_keeps_names_values_and_dtypes(tmp_path):
 
 
 def test_dict_observations_and_sequences(cartpole):
-    with JaxBatches(str(cartpole), 5, seed=1, prefetch=0, kind="sequence", sequence_length=7) as it:
+    spec = BatchSpec(5, "sequence", sequence_length=7)
+    with JaxBatches(str(cartpole), spec, seed=1, prefetch=0) as it:
         b = next(it)
     assert isinstance(b, Sequence)
     assert set(b.observation) == {"position", "velocity"}
@@ -49,7 +50,7 @@ def test_dict_observations_and_sequences(cartpole):
 @pytest.mark.parametrize("prefetch", [0, 1, 3])
 def test_prefetch_gives_the_samplers_stream(cartpole, prefetch):
     ref = transition_sampler(open_dataset(cartpole), 8, seed=9)
-    with JaxBatches(str(cartpole), 8, seed=9, prefetch=prefetch) as it:
+    with JaxBatches(str(cartpole), BatchSpec(8), seed=9, prefetch=prefetch) as it:
         for _ in range(6):
             got, want = next(it), ref.sample()
             np.testing.assert_array_equal(np.asarray(got.reward), want.reward)
@@ -69,14 +70,14 @@ def test_a_jitted_update_consumes_the_batches(cartpole):
         return jnp.mean((b.reward + 0.99 * b.discount * q2 - q) ** 2)
 
     w = jnp.ones(3)
-    with JaxBatches(str(cartpole), 16, seed=0, prefetch=2) as it:
+    with JaxBatches(str(cartpole), BatchSpec(16), seed=0, prefetch=2) as it:
         losses = [float(td(next(it), w)) for _ in range(3)]
     assert all(np.isfinite(losses))
 
 
 def test_errors_in_the_prefetch_thread_reach_the_caller(tmp_path):
     path = write_synthetic(tmp_path / "ds", CARTPOLE, 1, 5)
-    it = JaxBatches(str(path), 4, prefetch=2)
+    it = JaxBatches(str(path), BatchSpec(4), prefetch=2)
     (path / "steps" / "reward.bin").unlink()  # the column is mapped lazily, on the first sample
     with pytest.raises(Exception, match="reward.bin"):
         next(it)

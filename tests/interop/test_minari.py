@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import uuid
 
 import numpy as np
@@ -423,3 +424,57 @@ def test_minari_import_property(tmp_path, seed, eps, discrete):
     ds = open_dataset(import_minari(tmp / "m" / "rand" / "episodes-v0", tmp / "ds"))
     ends = check_against_minari(mds, ds)
     assert ends == [(e in ("term", "both"), e in ("trunc", "both")) for _, e in eps]
+
+
+# --- the environment and provenance of an export ------------------------------------------------
+def test_recover_environment_of_the_bundled_export_is_rlus_env(tmp_path, minari_root):
+    """Minari's own load_dataset(...).recover_environment() makes rlu's env from the stored spec,
+    and the description says where the data came from (the manifest's provenance)."""
+    pytest.importorskip("dm_control")
+    from rlu.generate.recipe import bundled_dataset
+
+    ds = open_dataset(bundled_dataset())
+    export_minari(ds, "rlu/cartpole-bundled-v0")
+    mds = minari.load_dataset("rlu/cartpole-bundled-v0")
+    assert mds.env_spec.id == "rlu/control_suite-cartpole_swingup-v0"
+    assert mds.env_spec.kwargs == {"task_id": "control_suite/cartpole_swingup"}
+    desc = mds.storage.metadata["description"]
+    assert "rlu generate control_suite/cartpole_swingup --scale small" in desc
+    assert "40 of 90 recorded episodes kept" in desc and "unknown" not in desc
+    assert json.loads(mds.storage.metadata["rlu_provenance"]) == ds.manifest["provenance"]
+    env = mds.recover_environment()
+    obs, _ = env.reset(seed=0)
+    assert mds.observation_space.contains(obs)
+    assert env.unwrapped.spec.id == mds.env_spec.id
+    obs, reward, terminated, truncated, _ = env.step(env.action_space.sample())
+    assert mds.observation_space.contains(obs) and np.isfinite(reward) and not terminated
+    env.close()
+
+
+def test_export_spec_carries_the_recorded_settings(tmp_path, minari_root):
+    """An RWRL 'easy' dataset's spec makes the env with challenge 'easy' (its dummy features)."""
+    pytest.importorskip("dm_control")
+    from rlu.tasks import rwrl_observation_spec
+
+    task = get_task("rwrl/cartpole_swingup")
+    schema = Schema.for_task(task, observation=rwrl_observation_spec(task, "easy"))
+    prov = {
+        "source": "rl_unplugged release",
+        "family": "rwrl",
+        "challenge": "easy",
+        "code_version": "rlu 0.1.0",
+        "files": [{"name": "cartpole_swingup-00000-of-00001", "bytes": 1, "records": 2}],
+    }
+    src = write_synthetic(tmp_path / "src", schema, 2, 5, seed=0)
+    with DatasetWriter(tmp_path / "easy", schema, prov) as w:
+        for i in range(2):
+            w.append(open_dataset(src).segment(i))
+    export_minari(open_dataset(tmp_path / "easy"), "rlu/rwrl-easy-v0")
+    mds = minari.load_dataset("rlu/rwrl-easy-v0")
+    assert mds.env_spec.kwargs == {"task_id": "rwrl/cartpole_swingup", "challenge": "easy"}
+    desc = mds.storage.metadata["description"]
+    assert desc.startswith("The original RL Unplugged release") and "cartpole_swingup-00000" in desc
+    env = mds.recover_environment()
+    obs, _ = env.reset(seed=0)
+    assert set(obs) == set(schema.observation) and mds.observation_space.contains(obs)
+    env.close()

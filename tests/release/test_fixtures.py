@@ -85,7 +85,11 @@ def test_atari_converts_to_loader_tuples(fixtures, tmp_path):
     assert np.array_equal(t.action, exp["a_t"]) and np.array_equal(t.next_action, exp["a_tp1"])
     assert _bits(t.reward, exp["r_t"]) and _bits(t.discount, exp["d_t"])
     assert _bits(ds.metadata("episode_id"), exp["episode_id"])
-    assert np.array_equal(ds.metadata("episode_return"), exp["episode_return"].astype(np.float64))
+    # the transitions' return is summed from clipped rewards: it is the clipped return, and the
+    # raw game score is unknown in this family
+    clipped = exp["episode_return"].astype(np.float64)
+    assert np.array_equal(ds.metadata("clipped_episode_return"), clipped)
+    assert np.isnan(ds.metadata("episode_return")).all()
     assert np.all(ds.metadata("run") == 1)
     # the fixture's actions are random in [0, 18) (README: "random but fixed contents"); Pong's
     # minimal action set has 6, so validate flags the first action >= 6 and nothing else

@@ -13,7 +13,7 @@ from collections.abc import Mapping
 import numpy as np
 import torch
 
-from rlu.types import BoundedSpec
+from rlu.types import BatchSpec, BoundedSpec
 
 
 @dataclasses.dataclass(frozen=True)
@@ -22,8 +22,8 @@ class Config:
     """Adam learning rate."""
     batch_size: int = 64
     """Transitions per update."""
-    gamma: float = 0.99
-    """Unused by BC; the loop reads it for n-step views."""
+    num_steps: int = 200
+    """Learner steps of a full run (the loop's default)."""
     hidden: int = 0
     """Hidden units (0: a linear policy)."""
     input_noise: float = 0.05
@@ -42,12 +42,11 @@ def _flat(obs) -> torch.Tensor:
 
 
 class Agent:
-    batch_kind = "transition"
-    n_step = 1
-    sequence_length = 1
-
     def __init__(self, observation_spec, action_spec: BoundedSpec, config: Config, seed: int = 0):
         self.config, self.spec = config, action_spec
+        self.batch_spec = BatchSpec(config.batch_size)
+        self.pretrain_steps = 0
+        self.num_steps = config.num_steps
         obs_dim = sum(s.size for s in observation_spec.values())
         act_dim = action_spec.size
         self.gen = torch.Generator().manual_seed(seed)
@@ -62,6 +61,7 @@ class Agent:
             else:
                 self.net = torch.nn.Linear(obs_dim, act_dim)
         self.opt = torch.optim.Adam(self.net.parameters(), lr=config.learning_rate)
+        self.modules = {"net": self.net}
         self.scale = float(action_spec.maximum)
 
     def _forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -81,7 +81,7 @@ class Agent:
         self.opt.step()
         return {"actor/bc_loss": float(loss.detach())}
 
-    def act(self, observation, greedy: bool = True) -> np.ndarray:
+    def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
         with torch.no_grad():
             a = self._forward(_flat(observation)).numpy()
         return a.reshape(len(a), *self.spec.shape).astype(self.spec.dtype)

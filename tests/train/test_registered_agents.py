@@ -18,6 +18,7 @@ from rlu.agents import AGENTS
 torch = pytest.importorskip("torch")
 
 TASKS = {False: "control_suite/cartpole_swingup", True: "atari/Pong"}
+PHASES = {"brac": {"behaviour_steps": 2}}  # a short pre-training phase, run on top of the steps
 
 
 def _flat(state, prefix=""):
@@ -48,7 +49,8 @@ def test_loop_runs_and_resumes_exactly(name, discrete, synthetic_datasets, tmp_p
     if importlib.util.find_spec(AGENTS[(name, discrete)]) is None:
         pytest.skip(f"{AGENTS[(name, discrete)]} has not landed yet")
     import rlu.data.views as views
-    from rlu.train import TrainConfig, evaluate_run, train
+    from rlu.runs import evaluate_run
+    from rlu.train import TrainConfig, train
 
     cfg = TrainConfig(
         task=TASKS[discrete],
@@ -59,7 +61,9 @@ def test_loop_runs_and_resumes_exactly(name, discrete, synthetic_datasets, tmp_p
         log_every=1,
         checkpoint_every=3,
         torch_threads=1,
-        overrides={"batch_size": 8},
+        overrides={"atari.batch_size": 8}
+        if discrete
+        else {"batch_size": 8, **PHASES.get(name, {})},
     )
     train(cfg, tmp_path / "a")
     calls = {"n": 0}
@@ -78,15 +82,16 @@ def test_loop_runs_and_resumes_exactly(name, discrete, synthetic_datasets, tmp_p
     train(cfg, tmp_path / "b", resume=True)
     metrics = [(tmp_path / r / "metrics.jsonl").read_text() for r in "ab"]
     assert metrics[0] == metrics[1]
-    assert len(metrics[0].splitlines()) == 6
+    pretrain = json.loads((tmp_path / "a" / "result.json").read_text())["pretrain_steps"]
+    assert len(metrics[0].splitlines()) == 6 + pretrain
     assert all(
         all(v == v for v in json.loads(line).values()) for line in metrics[0].splitlines()
     ), "NaN in the metrics"
     a, b = (
         _flat(
-            torch.load(tmp_path / r / "checkpoints" / "step_00000006.pt", weights_only=True)[
-                "agent"
-            ]
+            torch.load(
+                tmp_path / r / "checkpoints" / f"step_{6 + pretrain:08d}.pt", weights_only=True
+            )["agent"]
         )
         for r in "ab"
     )

@@ -8,7 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from rlu.sweep import SweepConfig, expand, load_results, results_table, sweep
+from rlu.runs import load_results
+from rlu.sweep import SweepConfig, expand, results_table, sweep
 from rlu.types import RluError
 from tests.train.conftest import AGENTS
 from tests.train.conftest import sweep_config as _config

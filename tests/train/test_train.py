@@ -3,6 +3,7 @@ SIGKILL, evaluate, errors."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import signal
@@ -13,8 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rlu.train import TrainConfig, evaluate_run, parse_overrides, train
-from rlu.types import RluError
+from rlu.runs import evaluate_run
+from rlu.train import TrainConfig, parse_overrides, train
+from rlu.types import RluError, derive_seed
 
 ROOT = Path(__file__).resolve().parents[2]
 ENV = "tests.train.pendulum:make_env"
@@ -68,7 +70,7 @@ def test_run_folder_contents(pendulum_datasets, tmp_path):
     with pytest.raises(RluError, match="--resume"):
         train(cfg, run)
     # evaluate the checkpoint: same seeds, same returns as the loop's last evaluation
-    res = evaluate_run(run, episodes=3, seed=(0 + 1) * 1_000_003 + 120 * 1_009, num_envs=3)
+    res = evaluate_run(run, episodes=3, seed=derive_seed(0, 120), num_envs=3)
     assert list(res.returns) == evals[-1]["returns"]
 
 
@@ -132,3 +134,36 @@ def test_cli_evaluate(pendulum_datasets, tmp_path):
     assert out.returncode == 0, out.stderr
     res = json.loads(out.stdout)
     assert len(res["returns"]) == 2 and res["lengths"] == [50, 50]
+
+
+def test_rwrl_easy_shard_trains_and_evaluates_in_its_challenge(tmp_path):
+    """A converted combined-challenge-easy release shard: the loop evaluates in the easy env
+    (its dummy observations exist only there), rlu evaluate does too, and a challenge whose
+    observations differ is refused with a clear error."""
+    pytest.importorskip("torch")
+    pytest.importorskip("dm_control")
+    from rlu.data.release.convert import convert
+    from rlu.runs import evaluate_run
+    from rlu.tasks import get_task
+    from rlu.types import RluError
+    from tests.release.test_convert import _shard
+    from tests.release.test_families import rwrl_record
+
+    rng = np.random.default_rng(0)
+    task = get_task("rwrl/cartpole_swingup")
+    path = _shard(tmp_path, "rwrl", [rwrl_record(rng, 21, easy=True) for _ in range(3)],
+                  "episodes.tfrecord-00000-of-00001")  # fmt: skip
+    data = tmp_path / "easy"
+    convert([path], "rwrl", task.id, data, challenge="easy", workers=1)
+    config = TrainConfig(task=task.id, agent="bc", dataset=str(data), steps=3, eval_every=0,
+                         eval_episodes=1, eval_envs=1, eval_max_steps=5, torch_threads=1,
+                         overrides={"hidden_size": 16, "batch_size": 8})  # fmt: skip
+    result = train(config, tmp_path / "run")
+    assert result["env_settings"] == {"challenge": "easy"}
+    assert result["final_eval"]["lengths"] == [5]
+    res = evaluate_run(tmp_path / "run", episodes=1, num_envs=1, max_steps=4)
+    assert res.lengths == (4,)
+    with pytest.raises(RluError, match="recorded under RWRL challenge 'easy'"):
+        evaluate_run(tmp_path / "run", episodes=1, num_envs=1, challenge="none")
+    with pytest.raises(RluError, match="drop --challenge"):
+        train(dataclasses.replace(config, challenge="none"), tmp_path / "run_none")

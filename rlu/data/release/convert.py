@@ -35,6 +35,20 @@ from rlu.tasks import TaskSpec, get_task, rwrl_observation_spec
 from rlu.types import ArraySpec, FormatError, RluError, SpecError, available_cores
 
 _RUN_RE = re.compile(r"run_(\d+)")
+# What the stored reward of each Atari family is, written into the dataset's manifest.
+ATARI_REWARD = {
+    "atari": (
+        "clipped to [-1, 1]: r_t of the release's transition files is the reward the recording "
+        "DQN stored (Dopamine's runner clips before storing; atari.py documents the episode "
+        "return as clipped). The raw game score is not in these files: episode_return is "
+        "missing and clipped_episode_return holds the file's clipped return."
+    ),
+    "atari_episodes_ordered": (
+        "raw game score (the file's unclipped_rewards); the clipped reward is clip(r, -1, 1), "
+        "checked against the file's clipped_rewards. episode_return is the raw sum, "
+        "clipped_episode_return the clipped one."
+    ),
+}
 _QUEUE_MIB = 256  # decoded data a reader may hold queued ahead of the parent
 
 
@@ -369,6 +383,7 @@ def convert(
     prov = {
         "source": "rl_unplugged release",
         "family": family,
+        **({"reward": ATARI_REWARD[family]} if family in ATARI_REWARD else {}),
         "task": task.id,
         "challenge": challenge,
         "run": meta.get("run"),

@@ -12,10 +12,14 @@ Two views of each record (rlu_release_format.md §3, §4):
   family                        reward_t / discount_t / final step
   ============================  ==============================================================
   atari (transitions)           2 steps (o_t, o_tp1 stacks); reward_0 = r_t, discount_0 = d_t;
-                                d_t == 0 marks step 1 is_last + is_terminal; step 1's reward 0
-  atari_episodes_ordered        rewards unshifted (unclipped); if the last discount is 0 the
-                                episode is terminal and discounts shift left with a 0 appended
-                                (TFDS ``atari_utils``); frames stored once, stack 4 at sample time
+                                d_t == 0 marks step 1 is_last + is_terminal; step 1's reward 0.
+                                r_t is the clipped reward (the only one these files hold); the
+                                file's clipped episode return goes to clipped_episode_return
+  atari_episodes_ordered        rewards unshifted, the raw game score (unclipped_rewards; the
+                                file's clipped_rewards must equal clip(raw, -1, 1), checked); if
+                                the last discount is 0 the episode is terminal and discounts
+                                shift left with a 0 appended (TFDS ``atari_utils``); frames
+                                stored once, stack 4 at sample time
   dm_control_suite, dm_locomotion windows (seq2 / seq40): values as stored; reward_t = reward[t],
                                 discount_t = discount[t] (the loader's r_t = reward[0], p_t =
                                 discount[0]); is_first / is_last from step_type (FIRST 0, LAST 2);
@@ -370,7 +374,9 @@ def atari_transition_segments(raw: Raw) -> SegmentBatch:
         is_terminal=is_last.copy(),
         metadata={
             "episode_id": raw["episode_id"],
-            "episode_return": raw["episode_return"].astype(np.float64),
+            # atari.py: "Total episode return computed using per-step [-1, 1] clipping". The
+            # raw game score is not in these files, so episode_return stays missing.
+            "clipped_episode_return": raw["episode_return"].astype(np.float64),
         },
     )
 
@@ -419,6 +425,19 @@ def parse_atari_episodes(cols: Mapping[str, Any], where: str = "record") -> list
 
 def atari_episode_segment(raw: Raw) -> SegmentBatch:
     (n, t) = raw["actions"].shape
+    # rlu stores the raw reward and derives the clipped one as clip(r, -1, 1) (what Dopamine's
+    # runner stores and the agents learn from); a file whose clipped_rewards say otherwise
+    # would make that derived reward wrong, so it is refused rather than silently changed.
+    raw_r = raw["unclipped_rewards"].astype(np.float32)
+    bad = np.argwhere(np.clip(raw_r, -1, 1) != raw["clipped_rewards"].astype(np.float32))
+    if bad.size:
+        i, j = (int(x) for x in bad[0])
+        raise FormatError(
+            f"atari_episodes_ordered episode {i} step {j}: clipped_rewards holds "
+            f"{float(raw['clipped_rewards'][i, j])} but clip(unclipped_rewards, -1, 1) is "
+            f"{float(np.clip(raw_r[i, j], -1, 1))}; rlu keeps the raw reward and derives the "
+            "clipped one, so it cannot store this file faithfully (is the file damaged?)"
+        )
     disc = raw["discounts"].astype(np.float32)
     terminal = disc[:, -1] == 0
     discount = disc.copy()
@@ -434,7 +453,7 @@ def atari_episode_segment(raw: Raw) -> SegmentBatch:
     return SegmentBatch(
         observation=raw["observations"],
         action=raw["actions"].astype(np.int64),
-        reward=raw["unclipped_rewards"].astype(np.float32),
+        reward=raw_r,
         discount=discount,
         is_first=is_first,
         is_last=is_last,

@@ -1,0 +1,117 @@
+"""``rlu report SWEEP_DIR``: the paper's tables and figures from a sweep's results, as Markdown,
+HTML, PNG and JSON (the numbers the tables print).
+
+Two halves: ``numbers`` computes every number (a pure function of the sweep's records, one dict,
+written as report.json) and ``render`` lays them out (Markdown and HTML through Jinja2
+templates, PNG through matplotlib). A new panel is one function in ``numbers.PANELS`` and one
+renderer in ``render.RENDERERS``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from rlu.evaluation.report.numbers import (
+    PANELS,
+    Absent,
+    DomainContext,
+    build_report,
+    dataset_percentile,
+    load_paper_results,
+    paper_entry,
+    task_info,
+)
+from rlu.types import RluError
+
+__all__ = [
+    "PANELS",
+    "Absent",
+    "DomainContext",
+    "build_report",
+    "dataset_percentile",
+    "load_paper_results",
+    "paper_entry",
+    "task_info",
+    "write_report",
+]
+
+
+def write_report(
+    sweep_dir: str | os.PathLike | Sequence[str | os.PathLike],
+    out: str | os.PathLike | None = None,
+    random_scores: Mapping[str, float] | None = None,
+    best_behaviour: Mapping[str, float] | None = None,
+    figures: bool = True,
+) -> list[Path]:
+    """Write report.md, report.html, report.json and figures/*.png; return their paths.
+
+    ``sweep_dir`` is one sweep folder or several (an Atari sweep and a control suite sweep
+    run different agents, so the paper's figures come from more than one sweep); their
+    records are reported together, and ``out`` is then required."""
+    from rlu.evaluation.report import render
+
+    dirs = [Path(sweep_dir)] if isinstance(sweep_dir, str | os.PathLike) else [
+        Path(d) for d in sweep_dir
+    ]  # fmt: skip
+    if not dirs:
+        raise RluError("no sweep folder given; pass one or more SWEEP_DIR")
+    if out is None and len(dirs) > 1:
+        raise RluError(f"{len(dirs)} sweep folders: pass --out for the report folder")
+    records, datasets, fqe = _read_sweeps(dirs)
+    rep = build_report(records, datasets, random_scores, best_behaviour, fqe=fqe)
+    out = Path(out) if out is not None else dirs[0] / "report"
+    out.mkdir(parents=True, exist_ok=True)
+    parts = render.sections(rep, render.Figures(out) if figures else None)
+    paths = [out / "report.md", out / "report.html", out / "report.json"]
+    paths[0].write_text(render.render("report.md.j2", "rlu report", parts))
+    paths[1].write_text(render.render("report.html.j2", "rlu report", parts))
+    paths[2].write_text(json.dumps(rep, indent=2) + "\n")
+    images = [b.path for s in parts for b in s.blocks if isinstance(b, render.Image)]
+    return paths + [out / p for p in images]
+
+
+def _read_sweeps(
+    dirs: Sequence[Path],
+) -> tuple[list[dict[str, Any]], dict[str, str] | None, dict[str, Any] | None]:
+    """(records, datasets by task, FQE selections) of one or more sweep folders; a run of the
+    same (task, agent, config, seed) in two of them, or one task with two datasets, is an
+    error (the report would pick one silently)."""
+    records: list[dict[str, Any]] = []
+    seen: dict[tuple[str, str, str, int], Path] = {}
+    datasets: dict[str, str] = {}
+    where: dict[str, Path] = {}
+    selections: list[dict[str, Any]] = []
+    any_datasets = any_fqe = False
+    for d in dirs:
+        results = d / "results.jsonl"
+        if not results.exists():
+            raise RluError(f"{results} is missing; run the sweep first (rlu sweep ... --out {d})")
+        for r in (json.loads(x) for x in results.read_text().splitlines() if x.strip()):
+            key = (r["task"], r["agent"], r["config"], int(r["seed"]))
+            if key in seen:
+                raise RluError(
+                    f"{results}: run {key} is also in {seen[key] / 'results.jsonl'}; report "
+                    "sweeps that do not overlap, or one of them"
+                )
+            seen[key] = d
+            records.append(r)
+        cfg = d / "sweep.json"
+        if cfg.exists():
+            any_datasets = True
+            for task, path in (json.loads(cfg.read_text()).get("datasets") or {}).items():
+                if task in datasets and datasets[task] != path:
+                    raise RluError(
+                        f"{cfg}: task {task} has dataset {path}, but {where[task] / 'sweep.json'} "
+                        f"has {datasets[task]}; report sweeps of one dataset per task"
+                    )
+                datasets[task], where[task] = path, d
+        fqe_path = d / "fqe.json"
+        if fqe_path.exists():
+            any_fqe = True
+            selections += json.loads(fqe_path.read_text()).get("selections", [])
+    fqe = {"selections": selections} if any_fqe else None
+    return records, datasets if any_datasets else None, fqe

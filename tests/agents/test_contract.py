@@ -1,0 +1,245 @@
+"""The one contract every registered agent meets (d3rlpy's contract test), through its public
+API only: it runs over ``rlu.agents.AGENTS``, so a new agent is tested by being registered.
+
+Cases: continuous agents on low-dimensional dict observations, on features + a camera image and,
+where the config has ``recurrent``, on sequence windows; discrete agents on Atari frame stacks.
+``SHRINK`` makes the networks tiny so the file runs in seconds (the code paths are the presets'
+own); an agent without an entry runs its ``small`` preset.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from rlu.agents import AGENTS, agent_module, make_agent  # noqa: E402
+from rlu.types import ArraySpec, BatchSpec, BoundedSpec, SpecError  # noqa: E402
+from tests.fakes import (  # noqa: E402
+    ATARI_ACTION,
+    ATARI_OBS,
+    IMAGE_OBS,
+    LOWDIM_OBS,
+    fake_sequence,
+    fake_transition,
+)
+
+# An off-centre box, so the [-1, 1] <-> spec mapping is exercised too.
+BOX = BoundedSpec((3,), "float32", -2.0, 0.5)
+TINY_ATARI = {"atari.channels": (4, 8, 8), "atari.hidden_size": 16}
+
+# Tiny networks; phases short enough that three updates reach every trainable parameter.
+SHRINK = {
+    ("bc", False): dict(hidden_size=32, num_layers=2, lstm_hidden=16, sequence_length=5),
+    ("d4pg", False): dict(policy_layers=(32, 32), critic_layers=(32, 32), torso_hidden=16),
+    ("bcq", False): dict(actor_layers=(32,), critic_layers=(32,), vae_layers=(32,),
+                         torso_hidden=16),
+    ("brac", False): dict(policy_layers=(32,), critic_layers=(32,), behaviour_layers=(32,),
+                          torso_hidden=16, behaviour_steps=1),
+    ("rabm", False): dict(hidden_size=32, num_layers=2, lstm_hidden=16, sequence_length=5,
+                          num_samples=4),
+}  # fmt: skip
+UPDATES = 3
+
+
+def cases() -> list[tuple[str, bool, str]]:
+    out = []
+    for name, discrete in sorted(AGENTS):
+        if discrete:
+            out.append((name, True, "atari"))
+            continue
+        out += [(name, False, "lowdim"), (name, False, "image")]
+        fields = {f.name for f in dataclasses.fields(agent_module(name, False).Config)}
+        if "recurrent" in fields:
+            out.append((name, False, "sequence"))
+    return out
+
+
+CASES = cases()
+IDS = [f"{n}-{'discrete' if d else 'continuous'}-{k}" for n, d, k in CASES]
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    # Tiny tensors: intra-op threads only add synchronisation (many times slower on a busy CPU).
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def specs(kind: str):
+    if kind == "atari":
+        return ATARI_OBS, ATARI_ACTION
+    return (IMAGE_OBS if kind == "image" else LOWDIM_OBS), BOX
+
+
+def build(name: str, discrete: bool, kind: str, seed: int = 0, **extra):
+    obs_spec, action_spec = specs(kind)
+    overrides = dict(TINY_ATARI if discrete else {}, **SHRINK.get((name, discrete), {}))
+    if kind == "sequence":
+        overrides["recurrent"] = True
+    return make_agent(name, obs_spec, action_spec, seed=seed, **overrides, **extra)
+
+
+def batches(agent, kind: str, n: int = UPDATES, seed: int = 0):
+    obs_spec, action_spec = specs(kind)
+    spec = agent.batch_spec
+    if spec.kind == "sequence":
+        length = spec.sequence_length
+        return [fake_sequence(obs_spec, action_spec, 4, length, seed + i) for i in range(n)]
+    return [fake_transition(obs_spec, action_spec, 6, seed + i) for i in range(n)]
+
+
+def observation(kind: str, n: int = 5, seed: int = 99):
+    obs_spec, action_spec = specs(kind)
+    return fake_transition(obs_spec, action_spec, batch=n, seed=seed).observation
+
+
+def trainable(agent) -> dict[str, torch.Tensor]:
+    return {
+        f"{m}.{k}": p.detach().clone()
+        for m, module in agent.modules.items()
+        for k, p in module.named_parameters()
+        if p.requires_grad
+    }
+
+
+def everything(agent) -> dict[str, torch.Tensor]:
+    return {
+        f"{m}.{k}": p.detach().clone()
+        for m, module in agent.modules.items()
+        for k, p in module.state_dict().items()
+    }
+
+
+@pytest.mark.parametrize(("name", "discrete"), sorted(AGENTS), ids=lambda x: str(x))
+def test_module_convention(name, discrete):
+    module = agent_module(name, discrete)
+    assert set(module.PRESETS) >= {"paper", "small"}
+    assert dataclasses.is_dataclass(module.Config) and module.Config.__dataclass_params__.frozen
+    assert module.PRESETS["paper"] == module.Config()  # the paper preset is the defaults
+    for preset in module.PRESETS.values():
+        assert isinstance(preset, module.Config)
+    fields = {f.name for f in dataclasses.fields(module.Config)}
+    assert set(module.GRID) <= fields and all(module.GRID.values())
+    for f in dataclasses.fields(module.Config):  # every field says what it is
+        assert f.type, f"{name}: field {f.name} has no annotation"
+    assert module.__doc__ and len(module.__doc__) > 200, f"{name}: module docstring (paper, code)"
+
+
+@pytest.mark.parametrize(("name", "discrete", "kind"), CASES, ids=IDS)
+def test_update_gives_metrics_and_moves_every_trainable_parameter(name, discrete, kind):
+    agent = build(name, discrete, kind)
+    assert isinstance(agent.batch_spec, BatchSpec)
+    assert isinstance(agent.pretrain_steps, int) and agent.pretrain_steps >= 0
+    assert isinstance(agent.num_steps, int) and agent.num_steps >= 1
+    assert agent.batch_spec.kind == ("sequence" if kind == "sequence" else "transition")
+    before = trainable(agent)
+    assert before, f"{name}: agent.modules holds no trainable parameter"
+    for batch in batches(agent, kind):
+        metrics = agent.update(batch)
+    assert metrics and all(isinstance(v, float) and np.isfinite(v) for v in metrics.values())
+    assert all("/" in k for k in metrics), f"metric keys carry a prefix: {list(metrics)}"
+    after = trainable(agent)
+    frozen = [k for k in before if torch.equal(before[k], after[k])]
+    assert not frozen, f"{name}: parameters never changed: {frozen}"
+
+
+@pytest.mark.parametrize(("name", "discrete", "kind"), CASES, ids=IDS)
+def test_actions_lie_inside_the_action_spec(name, discrete, kind):
+    agent = build(name, discrete, kind)
+    for batch in batches(agent, kind):
+        agent.update(batch)
+    _, action_spec = specs(kind)
+    obs = observation(kind, 6)
+    first = np.ones(6, bool)
+    for greedy in (True, False):
+        a = agent.act(obs, greedy=greedy, is_first=first)
+        assert a.shape == (6, *action_spec.shape) and a.dtype == np.dtype(action_spec.dtype)
+        if discrete:
+            assert a.min() >= 0 and a.max() < action_spec.num_values
+        else:
+            assert np.all(np.isfinite(a))
+            assert np.all(a >= action_spec.minimum) and np.all(a <= action_spec.maximum)
+
+
+@pytest.mark.parametrize(("name", "discrete", "kind"), CASES, ids=IDS)
+def test_state_round_trip_resumes_identically(name, discrete, kind):
+    agent = build(name, discrete, kind, seed=0)
+    data = batches(agent, kind)
+    agent.update(data[0])
+    buffer = io.BytesIO()
+    torch.save(agent.state_dict(), buffer)
+    buffer.seek(0)
+    state = torch.load(buffer, weights_only=True)  # plain tensors and containers only
+
+    other = build(name, discrete, kind, seed=123)
+    other.load_state_dict(state)
+    obs, first = observation(kind), np.ones(5, bool)
+    np.testing.assert_array_equal(agent.act(obs, is_first=first), other.act(obs, is_first=first))
+    # Networks, optimisers, step counters and RNG state all travel: the next updates match.
+    for batch in data[1:]:
+        assert agent.update(batch) == other.update(batch)
+    a, b = everything(agent), everything(other)
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    np.testing.assert_array_equal(
+        agent.act(obs, greedy=False, is_first=first), other.act(obs, greedy=False, is_first=first)
+    )
+
+
+@pytest.mark.parametrize(("name", "discrete", "kind"), CASES, ids=IDS)
+def test_same_seed_same_numbers_other_seed_other_numbers_global_rng_untouched(name, discrete, kind):
+    results = []
+    for seed in (7, 7, 8):
+        torch.manual_seed(1234 + seed)  # the global RNG must not matter ...
+        expected = torch.get_rng_state()
+        agent = build(name, discrete, kind, seed=seed)
+        metrics = [agent.update(b) for b in batches(agent, kind)]
+        actions = agent.act(observation(kind), greedy=False, is_first=np.ones(5, bool))
+        assert torch.equal(torch.get_rng_state(), expected)  # ... nor be touched
+        results.append((metrics, actions, everything(agent)))
+    (m0, a0, p0), (m1, a1, p1), (m2, _, p2) = results
+    assert m0 == m1
+    np.testing.assert_array_equal(a0, a1)
+    assert all(torch.equal(p0[k], p1[k]) for k in p0)
+    assert m0 != m2 and not all(torch.equal(p0[k], p2[k]) for k in p0)
+
+
+@pytest.mark.parametrize(("name", "discrete"), sorted(AGENTS), ids=lambda x: str(x))
+def test_specs_of_the_other_action_type_are_refused(name, discrete):
+    module = agent_module(name, discrete)
+    config = module.PRESETS["small"]
+    if discrete:
+        with pytest.raises(SpecError):
+            module.Agent(ATARI_OBS, BOX, config)
+        with pytest.raises(SpecError, match="uint8"):
+            module.Agent(ArraySpec((84, 84, 4), "float32"), ATARI_ACTION, config)
+    else:
+        with pytest.raises(SpecError):
+            module.Agent(LOWDIM_OBS, ATARI_ACTION, config)
+
+
+@pytest.mark.parametrize(("name", "discrete"), sorted(AGENTS), ids=lambda x: str(x))
+def test_paper_presets_build_and_act(name, discrete):
+    kind = "atari" if discrete else "image"
+    module = agent_module(name, discrete)
+    for preset in [p for p in module.PRESETS if p.startswith("paper")]:
+        obs_spec, action_spec = specs(kind)
+        agent = make_agent(name, obs_spec, action_spec, preset=preset)
+        a = agent.act(observation(kind, 2), is_first=np.ones(2, bool))
+        assert a.shape == (2, *action_spec.shape)
+
+
+def test_read_only_batches_are_accepted():
+    for name, discrete, kind in [("dqn", True, "atari"), ("bc", False, "image")]:
+        agent = build(name, discrete, kind)
+        batch = batches(agent, kind, 1)[0]
+        for array in (batch.observation, batch.next_observation, batch.action, batch.reward):
+            for a in array.values() if isinstance(array, dict) else [array]:
+                a.setflags(write=False)
+        assert all(np.isfinite(v) for v in agent.update(batch).values())

@@ -1,0 +1,228 @@
+"""rlu report's rendering: Markdown and HTML from the numbers through the templates, figures
+whose titles and legends fit, and the HTML as a real browser (headless chromium) draws it."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rlu.evaluation.report import build_report, write_report
+
+CONTROL = ["control_suite/cartpole_swingup", "control_suite/walker_walk", "control_suite/fish_swim"]
+
+
+def records(tasks, agents, seeds=(0, 1, 2), seed=0):
+    """Result records of a fake sweep (the report is what is under test, not training)."""
+    rng = np.random.default_rng(seed)
+    return [
+        {"task": t, "agent": a, "config": c, "seed": s, "score": float(rng.uniform(100, 800)),
+         "run": f"{t}/{a}/{c}/{s}"}
+        for t in tasks for a in agents for c in ("lr=1e-4", "lr=3e-4") for s in seeds
+    ]  # fmt: skip
+
+
+def write_sweep(path: Path, recs) -> Path:
+    path.mkdir(parents=True)
+    (path / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in recs))
+    return path
+
+
+def test_markdown_and_html_hold_every_number_of_the_json(tmp_path):
+    pytest.importorskip("jinja2")
+    recs = records(CONTROL, ["bc", "d4pg", "tests.train.fake|agent"])
+    write_report(write_sweep(tmp_path / "s", recs), tmp_path / "r", figures=False)
+    rep = json.loads((tmp_path / "r" / "report.json").read_text())
+    md = (tmp_path / "r" / "report.md").read_text()
+    html = (tmp_path / "r" / "report.html").read_text()
+    dom = rep["domains"]["control_suite"]
+    assert dom["panels"] == ["online", "offline_naive", "aggregates", "task_bars"]
+    assert html.count("<table>") == 3 and html.count("<section") == 1
+    for row in dom["online"]["rows"]:
+        for agent, c in row["cells"].items():
+            text = f"{c['mean']:.1f} ± {c['std']:.1f}"
+            assert (f"| **{text}** |" if c["bold"] else f"| {text} |") in md, (agent, text)
+            assert (f"<b>{text}</b>" if c["bold"] else f">{text}<") in html
+    # a '|' in a name is escaped in Markdown, '<' and '&' in HTML
+    assert "tests.train.fake\\|agent" in md and "fake|agent" in html
+    table_lines = [line for line in md.splitlines() if "| " in line]
+    assert all(line.startswith("|") and line.endswith("|") for line in table_lines)
+    for agent, e in dom["aggregates"].items():
+        if agent != "statistic":
+            assert f"| {agent.replace('|', chr(92) + '|')} | 3 | {e['mean']:.1f} |" in md
+
+
+def test_html_escapes_what_it_shows(tmp_path):
+    pytest.importorskip("jinja2")
+    recs = records(["test/<script>alert(1)</script>&"], ["bc"])
+    write_report(write_sweep(tmp_path / "s", recs), tmp_path / "r", figures=False)
+    html = (tmp_path / "r" / "report.html").read_text()
+    assert "<script>" not in html and "&lt;script&gt;alert(1)&lt;/script&gt;&amp;" in html
+
+
+def _layout_problems(fig):
+    """Titles and legends outside the figure or overlapping each other or the axes' titles."""
+    fig.canvas.draw()
+    r = fig.canvas.get_renderer()
+    W, H = fig.bbox.width, fig.bbox.height
+    boxes = {"suptitle": fig._suptitle.get_window_extent(r)}
+    for i, leg in enumerate(fig.legends):
+        boxes[f"legend{i}"] = leg.get_window_extent(r)
+    for i, ax in enumerate(fig.axes):
+        if ax.get_title():
+            boxes[f"title{i}"] = ax.title.get_window_extent(r)
+        if ax.axison:
+            boxes[f"axes{i}"] = ax.get_tightbbox(r)
+    problems = [
+        f"{k} outside the figure: {b.bounds}"
+        for k, b in boxes.items()
+        if b.x0 < -0.5 or b.y0 < -0.5 or b.x1 > W + 0.5 or b.y1 > H + 0.5
+    ]
+    names = list(boxes)
+    for i, a in enumerate(names):
+        for b in names[i + 1 :]:
+            if {a, b} == {a.replace("axes", "title"), a.replace("title", "axes")}:
+                continue  # an axes' tight box holds its own title
+            if boxes[a].overlaps(boxes[b]):
+                problems.append(f"{a} overlaps {b}")
+    return problems
+
+
+@pytest.mark.parametrize(
+    "tasks,agents",
+    [
+        (CONTROL[:1], ["bc"]),  # the one-task sweep whose title was cut at both edges
+        (CONTROL[:1], ["bc", "d4pg", "bcq", "crr"]),
+        (["test/a_task_name_that_is_quite_long_for_a_title"], ["tests.train.fake_agent"]),
+        (CONTROL, ["bc", "d4pg"]),
+        ([t for t in CONTROL] + ["control_suite/cheetah_run", "control_suite/humanoid_run"],
+         ["bc", "d4pg", "bcq", "brac", "rabm"]),
+    ],
+)  # fmt: skip
+def test_task_figures_keep_title_and_legend_inside_and_apart(tasks, agents):
+    pytest.importorskip("matplotlib")
+    from rlu.evaluation.report.render import pyplot, tasks_figure
+
+    plt = pyplot()
+    rep = build_report(records(tasks, agents), reps=50)
+    for domain, dom in rep["domains"].items():
+        dom["dataset_p90"] = {t: 500.0 for t in dom["tasks"]}  # the dashed line and its legend
+        fig = tasks_figure(dom, domain, plt)
+        try:
+            assert fig.legends, "no legend"
+            assert _layout_problems(fig) == []
+        finally:
+            plt.close(fig)
+
+
+def test_quickstart_figure_shows_policies_beside_the_data():
+    pytest.importorskip("matplotlib")
+    from rlu.evaluation.report.render import pyplot, quickstart_figure
+
+    plt = pyplot()
+    pol = [{"policy": p, "mean": m, "std": 10.0, "returns": [m - 10, m + 10]}
+           for p, m in (("random", 30.0), ("bc", 300.0), ("d4pg", 500.0))]  # fmt: skip
+    fig = quickstart_figure(pol, np.linspace(100, 700, 40), "cartpole_swingup", plt)
+    try:
+        bars, hist = fig.axes
+        assert [t.get_text() for t in bars.get_xticklabels()] == ["random", "bc", "d4pg"]
+        assert [p.get_height() for p in bars.patches[:3]] == [30.0, 300.0, 500.0]
+        assert sum(p.get_width() for p in hist.patches) == 40  # every dataset episode counted
+        assert _layout_problems(fig) == []
+    finally:
+        plt.close(fig)
+
+
+# --- the HTML in a real browser -----------------------------------------------------------------
+CHROMIUM_FLAGS = [
+    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+    "--disable-background-networking", "--disable-component-update", "--disable-sync",
+    "--hide-scrollbars",
+]  # fmt: skip
+
+
+def screenshot(html: Path, out: Path, profile: Path, size=(1200, 1600)) -> np.ndarray:
+    exe = shutil.which("chromium") or shutil.which("chromium-browser")
+    if exe is None:
+        pytest.skip("no chromium (scripts/test.sh installs Debian's: apt-get install -y chromium)")
+    profile.mkdir()
+    cmd = [exe, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", f"--window-size={size[0]},{size[1]}",
+           f"--screenshot={out}", html.resolve().as_uri()]  # fmt: skip
+    env = {**os.environ, "HOME": str(profile)}
+    run = subprocess.run(cmd, capture_output=True, text=True, timeout=120, env=env)
+    assert run.returncode == 0 and out.exists(), run.stderr[-2000:]
+    from PIL import Image
+
+    return np.asarray(Image.open(out).convert("RGB"))
+
+
+def _rows_with_run(img: np.ndarray, color, min_run: int) -> int:
+    """Pixel rows holding a horizontal run of at least ``min_run`` pixels of ``color``."""
+    match = np.all(np.abs(img.astype(int) - color) <= 6, axis=2)
+    count = 0
+    for row in match:
+        edges = np.diff(np.concatenate([[0], row.astype(np.int8), [0]]))
+        starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+        count += bool(len(starts) and (stops - starts).max() >= min_run)
+    return count
+
+
+@pytest.mark.slow
+def test_report_html_in_headless_chromium(tmp_path):
+    """Renders report.html in Debian's chromium and reads the screenshot: not blank, the tables'
+    borders and header rows drawn, the figure loaded (its bars' colours on screen)."""
+    pytest.importorskip("matplotlib")
+    pytest.importorskip("PIL")
+    sweep = write_sweep(tmp_path / "s", records(CONTROL, ["bc", "d4pg", "bcq"]))
+    paths = write_report(sweep, tmp_path / "r")
+    img = screenshot(tmp_path / "r" / "report.html", tmp_path / "shot.png", tmp_path / "profile")
+    assert img.shape == (1600, 1200, 3)
+    ink = np.any(img < 200, axis=2).mean()
+    assert 0.02 < ink < 0.6, f"{ink:.3f} of the page is ink: blank or unstyled"
+    # table borders (#bbb) as long horizontal lines: 3 tables, a line per row edge
+    assert _rows_with_run(img, (187, 187, 187), 300) >= 10
+    assert _rows_with_run(img, (242, 242, 242), 100) >= 40  # header rows (3 x ~25 px)
+    # the PNG is on screen: matplotlib's first colours fill the bars
+    for color in ((31, 119, 180), (255, 127, 14), (44, 160, 44)):
+        assert np.all(np.abs(img.astype(int) - color) <= 8, axis=2).sum() > 2000, color
+    # and the page without its figure draws no bar colour (the check above can fail)
+    (tmp_path / "r" / "figures" / "control_suite_tasks.png").unlink()
+    img2 = screenshot(tmp_path / "r" / "report.html", tmp_path / "shot2.png", tmp_path / "p2")
+    assert np.all(np.abs(img2.astype(int) - (31, 119, 180)) <= 8, axis=2).sum() < 50
+    assert len(paths) == 4
+
+
+def test_a_new_panel_is_one_function_and_one_renderer(tmp_path, monkeypatch):
+    """What the paper's Atari/control panels will do: data in numbers.PANELS, blocks in
+    render.RENDERERS; report.json, report.md and report.html pick it up."""
+    pytest.importorskip("jinja2")
+    from rlu.evaluation.report import numbers, render
+
+    def best_agent(ctx):
+        return {"tasks": len(ctx.tasks), "agents": list(ctx.agents)}
+
+    def render_best(dom, domain, figures):
+        d = dom["best_agent"]
+        rows = tuple(
+            (render.Cell(a, numeric=False), render.Cell(str(d["tasks"]))) for a in d["agents"]
+        )
+        return [render.Text("Agents over tasks."), render.Table(("agent", "tasks"), rows)]
+
+    monkeypatch.setitem(numbers.PANELS, "best_agent", best_agent)
+    monkeypatch.setitem(render.RENDERERS, "best_agent", render_best)
+    write_report(write_sweep(tmp_path / "s", records(CONTROL, ["bc", "crr"])), tmp_path / "r",
+                 figures=False)  # fmt: skip
+    rep = json.loads((tmp_path / "r" / "report.json").read_text())
+    assert rep["domains"]["control_suite"]["best_agent"] == {"tasks": 3, "agents": ["bc", "crr"]}
+    assert rep["domains"]["control_suite"]["panels"][-1] == "best_agent"
+    md = (tmp_path / "r" / "report.md").read_text()
+    assert "Agents over tasks.\n\n| agent | tasks |\n|---|---|\n| bc | 3 |\n| crr | 3 |" in md
+    assert (
+        '<td class="label">crr</td><td class="num">3</td>'
+        in (tmp_path / "r" / "report.html").read_text()
+    )
