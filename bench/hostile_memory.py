@@ -190,7 +190,8 @@ def main() -> None:
     shutil.rmtree(work / "out", ignore_errors=True)
     sample = (
         "import sys; from rlu.data import open_dataset; from rlu.data.views import make_sampler\n"
-        "s = make_sampler(open_dataset(sys.argv[1]), 256, seed=0)\n"
+        "from rlu.types import BatchSpec\n"
+        "s = make_sampler(open_dataset(sys.argv[1]), BatchSpec(256), seed=0)\n"
         "for _ in range(200): s.sample()\n"
     )
     measure("sample a dataset with a bomb frame", [py, "-c", sample, str(work / "pong")])

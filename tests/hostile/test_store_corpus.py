@@ -27,7 +27,7 @@ from rlu.data.synthetic import write_synthetic
 from rlu.data.validate import validate
 from rlu.data.views import make_sampler
 from rlu.tasks import get_task
-from rlu.types import RluError
+from rlu.types import BatchSpec, RluError
 
 ROOT = Path(__file__).resolve().parents[2]
 CARTPOLE = Schema.for_task(get_task("control_suite/cartpole_swingup"))
@@ -610,8 +610,9 @@ def _use(ds: Path) -> None:
     d = open_dataset(ds)
     for i in range(len(d)):
         d.segment(i)
-    make_sampler(d, 8, seed=0).sample()
-    make_sampler(d, 4, seed=0, kind="sequence", sequence_length=3).sample()
+    make_sampler(d, BatchSpec(8), seed=0).sample()
+    make_sampler(d, BatchSpec(8, n_step=3, gamma=0.9), seed=0).sample()
+    make_sampler(d, BatchSpec(4, kind="sequence", sequence_length=3), seed=0).sample()
     d.info()
 
 
