@@ -98,18 +98,12 @@ def save_checkpoint(run: Path, step: int, state: Mapping[str, Any], keep: int) -
     return path
 
 
-def load_checkpoint(path: Path) -> dict[str, Any]:
-    """A checkpoint's content, loaded without unpickling anything but tensors and plain data."""
-    import torch
+def load_checkpoint(path: Path, keys: tuple[str, ...] = ("agent",)) -> dict[str, Any]:
+    """A checkpoint's content, loaded without unpickling anything but tensors and plain data;
+    a damaged, empty or planted file is a FormatError naming it (:mod:`rlu.checkpoints`)."""
+    from rlu.checkpoints import load_checkpoint as load
 
-    try:
-        return torch.load(path, weights_only=True)
-    except Exception as e:  # torch raises several types for a damaged or hostile file
-        raise RluError(
-            f"{path}: not a readable rlu checkpoint ({type(e).__name__}); rlu checkpoints hold "
-            "tensors, numbers and dicts only. Delete it to fall back to the previous one, or "
-            "retrain"
-        ) from None
+    return load(path, keys)
 
 
 def load_run(path: str | os.PathLike) -> tuple[dict[str, Any], Path]:
