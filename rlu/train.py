@@ -213,14 +213,14 @@ def _train(
             raise RluError(
                 f"{run} already holds a run; pass --resume to continue it or choose a new --out"
             )
-        old = json.loads((run / runs.CONFIG).read_text())
+        old = runs.read_json(run / runs.CONFIG)
         if old != json.loads(json.dumps(resolved)):
             raise RluError(
                 f"{run}/{runs.CONFIG} was written by a different configuration; resume with the "
                 "same arguments or choose a new --out"
             )
         if (run / runs.RESULT).exists():  # finished: nothing left to do
-            return json.loads((run / runs.RESULT).read_text())
+            return runs.read_json(run / runs.RESULT)
     if config.env is None and config.eval_every >= 0:
         from rlu.tasks import get_task
 
