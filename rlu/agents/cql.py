@@ -204,6 +204,8 @@ class CQLAgent:
         self.config = config
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, gamma=config.gamma)
+        self.pretrain_steps = 0
+        self.num_steps = config.num_steps
         self.generator = torch.Generator().manual_seed(seed)
         a = self.scaler.dim
         self.target_entropy = -float(a) if config.target_entropy is None else config.target_entropy
@@ -290,11 +292,8 @@ class CQLAgent:
             return self.scaler.from_unit(torch.tanh(mean))
         return self.scaler.from_unit(sample_tanh_gaussian(mean, std, 1, self.generator)[0][0])
 
-    def state_dict(self) -> dict:
-        return common.agent_state(self.modules, self.optimizers, self.generators, self.step)
-
-    def load_state_dict(self, state: dict) -> None:
-        self.step = common.load_agent_state(state, self.modules, self.optimizers, self.generators)
+    state_dict = common.state_dict
+    load_state_dict = common.load_state_dict
 
 
 Agent = CQLAgent

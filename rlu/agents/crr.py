@@ -199,6 +199,8 @@ class CRRAgent:
         self.config = config
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, gamma=config.gamma)
+        self.pretrain_steps = 0
+        self.num_steps = config.num_steps
         self.generator = torch.Generator().manual_seed(seed)
         with common.seeded(seed):
             self.policy = Policy(observation_spec, self.scaler.dim, config)
@@ -257,11 +259,8 @@ class CRRAgent:
             return self.scaler.from_unit(nets.mixture_mode(logits, mean))
         return self.scaler.from_unit(nets.mixture_sample(logits, mean, std, self.generator))
 
-    def state_dict(self) -> dict:
-        return common.agent_state(self.modules, self.optimizers, self.generators, self.step)
-
-    def load_state_dict(self, state: dict) -> None:
-        self.step = common.load_agent_state(state, self.modules, self.optimizers, self.generators)
+    state_dict = common.state_dict
+    load_state_dict = common.load_state_dict
 
 
 Agent = CRRAgent

@@ -174,6 +174,8 @@ class IQLAgent:
         self.config = config
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, gamma=config.gamma)
+        self.pretrain_steps = 0
+        self.num_steps = config.num_steps
         self.generator = torch.Generator().manual_seed(seed)
         with common.seeded(seed):
             self.value = ValueNet(observation_spec, config)
@@ -232,11 +234,8 @@ class IQLAgent:
             mean = mean + std * torch.randn(mean.shape, generator=self.generator)
         return self.scaler.from_unit(mean)
 
-    def state_dict(self) -> dict:
-        return common.agent_state(self.modules, self.optimizers, self.generators, self.step)
-
-    def load_state_dict(self, state: dict) -> None:
-        self.step = common.load_agent_state(state, self.modules, self.optimizers, self.generators)
+    state_dict = common.state_dict
+    load_state_dict = common.load_state_dict
 
 
 Agent = IQLAgent
