@@ -94,8 +94,11 @@ def to_torch(x: Any, device: torch.device | None = None, dtype: str | None = Non
 
 
 def adam(params: Iterable[torch.Tensor], lr: float, eps: float = 1e-8) -> torch.optim.Adam:
-    # fused CPU Adam: one kernel per step instead of one per tensor (measured in the bench).
-    return torch.optim.Adam(params, lr=lr, eps=eps, fused=True)
+    # fused Adam: one kernel per step instead of one per tensor (measured in the bench, CPU);
+    # devices without the fused kernel (meta, the placement tests') take the plain one
+    params = list(params)
+    fused = all(p.device.type in ("cpu", "cuda") for p in params)
+    return torch.optim.Adam(params, lr=lr, eps=eps, fused=fused or None)
 
 
 def sgd_step(
@@ -107,7 +110,8 @@ def sgd_step(
     (an actor loss that reads a critic leaves the critic's gradients alone)."""
     optimizer.zero_grad(set_to_none=True)
     kind = loss.device.type
-    if torch.is_autocast_enabled(kind):  # the loop's bf16 autocast covers forward passes only
+    if torch.amp.is_autocast_available(kind) and torch.is_autocast_enabled(kind):
+        # the loop's bf16 autocast covers forward passes only
         with torch.autocast(kind, enabled=False):
             loss.backward(inputs=inputs)
             optimizer.step()
