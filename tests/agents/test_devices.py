@@ -4,8 +4,8 @@ device, checked on a CPU-only machine in two ways, and its checkpoints cross dev
 - On ``meta`` (PyTorch's shape-only device): the agent built there must hold every parameter,
   buffer and optimiser state there and run its updates from numpy batches with every metric
   there; a module left on the CPU, a batch not brought to the device or a draw made on the CPU
-  meets a meta tensor and fails. (Acting ends in ``.cpu()``, which meta cannot do: acting is
-  covered by the next test.)
+  meets a meta tensor and fails. Acting must get as far as its one copy to the host
+  (``.cpu()``, which meta cannot make).
 - With torch's default device set to ``meta`` while a CPU agent updates and acts: a tensor an
   agent makes without naming its device (``torch.arange(n)``, ``torch.rand(..., generator=g)``)
   lands on meta and meets the agent's CPU tensors.
@@ -77,6 +77,12 @@ def test_an_agent_built_for_a_device_lives_and_learns_there(name, discrete, kind
     assert states and all(t.device == META for _, t in states)
     off = [k for k, t in _tensors(agent) if t.device != META]
     assert not off, f"{name}: moved off the device by an update: {off}"
+    # acting runs on the device up to its one copy to the host, which meta cannot make (twice:
+    # a recurrent agent's second step carries its state, reset where an episode starts)
+    obs = observation(kind)
+    for greedy, first in [(True, np.ones(5, bool)), (False, np.array([1, 0, 0, 1, 0], bool))]:
+        with pytest.raises(NotImplementedError, match="Cannot copy out of meta tensor"):
+            agent.act(obs, greedy=greedy, is_first=first)
 
 
 @pytest.mark.parametrize(("name", "discrete", "kind"), CASES, ids=IDS)
@@ -123,6 +129,7 @@ def _trained(name, discrete, kind, seed=0, **extra):
 FLAT = [(c, i) for c, i in zip(CASES, IDS, strict=True) if c[2] != "sequence"]
 
 
+@pytest.mark.filterwarnings("ignore:for .* copying from a non-meta parameter:UserWarning")
 @pytest.mark.parametrize(
     ("name", "discrete", "kind"), [c for c, _ in FLAT], ids=[i for _, i in FLAT]
 )
