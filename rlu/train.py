@@ -228,11 +228,6 @@ def train(
             )
         if (run / runs.RESULT).exists():  # finished: nothing left to do
             return json.loads((run / runs.RESULT).read_text())
-    run.mkdir(parents=True, exist_ok=True)
-    (run / runs.CHECKPOINTS).mkdir(exist_ok=True)
-    for tmp in run.rglob("*.tmp"):
-        tmp.unlink()
-    runs.write_json(run / runs.CONFIG, resolved)
 
     if config.torch_threads:
         torch.set_num_threads(config.torch_threads)
@@ -240,10 +235,15 @@ def train(
     np.random.seed(config.seed)
     module = agent_module(config.agent, discrete)
     agent = module.Agent(obs_spec, action_spec, agent_cfg, seed=config.seed, device=runtime.device)
-    if runtime.data_on_device:
+    if runtime.data_on_device:  # before the run folder: a dataset that does not fit writes none
         sampler = DeviceSampler(ds, agent.batch_spec, config.seed, runtime.device)
     else:
         sampler = make_sampler(ds, agent.batch_spec, seed=config.seed)
+    run.mkdir(parents=True, exist_ok=True)
+    (run / runs.CHECKPOINTS).mkdir(exist_ok=True)
+    for tmp in run.rglob("*.tmp"):
+        tmp.unlink()
+    runs.write_json(run / runs.CONFIG, resolved)
     steps = agent.num_steps if config.steps is None else int(config.steps)
     total = agent.pretrain_steps + steps  # a pre-training phase comes on top of the budget
 
