@@ -103,10 +103,11 @@ def numerics(runtime: Runtime) -> Iterator[Callable[[], Any]]:
     device = torch.device(runtime.device)
     saved = None
     if device.type == "cuda":
-        matmul, conv = torch.backends.cuda.matmul, torch.backends.cudnn.conv
-        saved = (matmul.fp32_precision, conv.fp32_precision)
-        mode = "tf32" if runtime.tf32 else "ieee"
-        matmul.fp32_precision, conv.fp32_precision = mode, mode
+        # the flags torch.compile's inductor reads too (mixing them with the newer
+        # ``fp32_precision`` properties makes torch raise when either is read)
+        saved = (torch.get_float32_matmul_precision(), torch.backends.cudnn.allow_tf32)
+        torch.set_float32_matmul_precision("high" if runtime.tf32 else "highest")
+        torch.backends.cudnn.allow_tf32 = runtime.tf32
     try:
         if runtime.precision == "bf16":
             yield lambda: torch.autocast(device.type, dtype=torch.bfloat16)
@@ -114,8 +115,8 @@ def numerics(runtime: Runtime) -> Iterator[Callable[[], Any]]:
             yield contextlib.nullcontext
     finally:
         if saved is not None:
-            torch.backends.cuda.matmul.fp32_precision = saved[0]
-            torch.backends.cudnn.conv.fp32_precision = saved[1]
+            torch.set_float32_matmul_precision(saved[0])
+            torch.backends.cudnn.allow_tf32 = saved[1]
 
 
 def compile_modules(modules: Mapping[str, Any]) -> list[str]:

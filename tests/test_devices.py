@@ -121,3 +121,15 @@ def test_compile_wraps_forwards_in_place_and_keeps_the_checkpoint_keys():
     assert compile_modules(agent.modules) == ["policy.torso", "policy.head"]
     assert {k: list(m.state_dict()) for k, m in agent.modules.items()} == keys
     assert agent.modules["policy"]["torso"]._compiled_call_impl is not None
+
+
+def test_tf32_is_set_for_a_cuda_run_and_restored_after():
+    """The CUDA branch sets process-wide flags (they exist on a CPU build too)."""
+    before = (torch.get_float32_matmul_precision(), torch.backends.cudnn.allow_tf32)
+    with numerics(Runtime(device="cuda:0", tf32=True, prefetch=2)):
+        assert torch.get_float32_matmul_precision() == "high" and torch.backends.cudnn.allow_tf32
+    assert (torch.get_float32_matmul_precision(), torch.backends.cudnn.allow_tf32) == before
+    with numerics(Runtime(device="cuda:0", prefetch=2)):  # fp32 means fp32, convolutions too
+        assert torch.get_float32_matmul_precision() == "highest"
+        assert not torch.backends.cudnn.allow_tf32
+    assert (torch.get_float32_matmul_precision(), torch.backends.cudnn.allow_tf32) == before
