@@ -210,3 +210,24 @@ def test_cli_device_errors_name_the_fix(datasets, tmp_path):
     res = subprocess.run([*args[:-1], "tpu"], cwd=ROOT, capture_output=True, text=True)
     assert res.returncode == 2 and "auto, cpu, cuda or cuda:N" in res.stderr
     assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.slow  # torch.compile's first updates compile (about a minute on a loaded CPU)
+def test_compiled_modules_train_to_the_eager_numbers_within_rounding(datasets, tmp_path):
+    from torch._dynamo.utils import counters
+
+    counters.clear()
+    train(_config("d4pg", datasets), tmp_path / "eager")
+    assert counters["stats"]["unique_graphs"] == 0
+    train(_config("d4pg", datasets, compile=True), tmp_path / "compiled")
+    assert counters["stats"]["unique_graphs"] > 0  # the loop ran compiled forwards
+    eager, compiled = (
+        [json.loads(x) for x in (tmp_path / r / "metrics.jsonl").read_text().splitlines()]
+        for r in ("eager", "compiled")
+    )
+    assert [m["step"] for m in compiled] == [m["step"] for m in eager]
+    for a, b in zip(eager, compiled, strict=True):
+        for k in a:
+            assert b[k] == pytest.approx(a[k], rel=1e-3, abs=1e-5), (k, a, b)
+    weights = _weights(tmp_path / "compiled")
+    assert weights.keys() == _weights(tmp_path / "eager").keys()  # checkpoints unchanged
