@@ -145,7 +145,7 @@ def run_one(spec: RunSpec, config: SweepConfig, sys_path: Sequence[str] = ()) ->
 
     run = Path(spec.run_dir)
     if (run / runs.RESULT).exists():
-        result = json.loads((run / runs.RESULT).read_text())
+        result = runs.read_json(run / runs.RESULT)
     else:
         tc = TrainConfig(
             task=spec.task,
@@ -198,7 +198,7 @@ def sweep(
             "--gpus-per-run asks Ray for GPUs; use --backend ray, or drop it (local runs all see "
             "the machine's GPUs)"
         )
-    if cfg_path.exists() and _what(json.loads(cfg_path.read_text())) != _what(config.to_json()):
+    if cfg_path.exists() and _what(runs.read_json(cfg_path)) != _what(config.to_json()):
         raise RluError(
             f"{cfg_path} was written by a different sweep configuration; use the same arguments "
             "to continue it or choose a new --out"
