@@ -28,7 +28,8 @@ def load_checkpoint(path: str | os.PathLike, keys: tuple[str, ...] = ()) -> dict
     if path.stat().st_size == 0:
         raise FormatError(f"{path}: an empty file (0 bytes), not a checkpoint; {fix}")
     try:
-        state = torch.load(path, weights_only=True)
+        # on the CPU whatever device wrote it: a GPU run's checkpoint loads on a CPU-only machine
+        state = torch.load(path, weights_only=True, map_location="cpu")
     except Exception as e:  # noqa: BLE001 (torch raises UnpicklingError, RuntimeError, EOFError...)
         # torch's own text is not repeated: for a refused object it recommends unsafe loading
         text = str(e).lower().replace("_", " ")

@@ -111,7 +111,8 @@ def save_checkpoint(run: Path, step: int, state: Mapping[str, Any], keep: int) -
 
 
 def load_checkpoint(path: Path, keys: tuple[str, ...] = ("agent",)) -> dict[str, Any]:
-    """A checkpoint's content, loaded without unpickling anything but tensors and plain data;
+    """A checkpoint's content, loaded without unpickling anything but tensors and plain data, on
+    the CPU whatever device wrote it (the agent's ``load_state_dict`` copies it onto its own);
     a damaged, empty or planted file is a FormatError naming it (:mod:`rlu.checkpoints`)."""
     from rlu.checkpoints import load_checkpoint as load
 
@@ -136,8 +137,9 @@ def load_run(path: str | os.PathLike) -> tuple[dict[str, Any], Path]:
     return read_json(cfg_path), ckpt
 
 
-def build_agent(resolved: Mapping[str, Any]) -> Any:
-    """The agent a run's resolved config describes, freshly initialised (config, specs, seed)."""
+def build_agent(resolved: Mapping[str, Any], device: Any = "cpu") -> Any:
+    """The agent a run's resolved config describes, freshly initialised (config, specs, seed)
+    on ``device`` (any device: the one the run trained on does not matter)."""
     from rlu.agents import agent_module, config_from_json
 
     train_cfg = resolved["train"]
@@ -145,13 +147,14 @@ def build_agent(resolved: Mapping[str, Any]) -> Any:
     action_spec = ArraySpec.from_json(resolved["action_spec"])
     module = agent_module(train_cfg["agent"], isinstance(action_spec, DiscreteSpec))
     config = config_from_json(module.Config, resolved["agent_config"])
-    return module.Agent(obs_spec, action_spec, config, seed=int(train_cfg["seed"]))
+    return module.Agent(obs_spec, action_spec, config, seed=int(train_cfg["seed"]), device=device)
 
 
-def load_agent(path: str | os.PathLike) -> tuple[Any, dict[str, Any]]:
-    """(agent restored from a run's newest checkpoint or a given checkpoint, resolved config)."""
+def load_agent(path: str | os.PathLike, device: Any = "cpu") -> tuple[Any, dict[str, Any]]:
+    """(agent restored on ``device`` from a run's newest checkpoint or a given checkpoint,
+    resolved config)."""
     resolved, ckpt = load_run(path)
-    agent = build_agent(resolved)
+    agent = build_agent(resolved, device)
     agent.load_state_dict(load_checkpoint(ckpt)["agent"])
     return agent, resolved
 
@@ -165,9 +168,10 @@ def greedy_policy(agent: Any) -> Any:
     return policy
 
 
-def load_policy(path: str | os.PathLike) -> tuple[Any, dict[str, Any]]:
-    """(greedy policy of a run's newest checkpoint or of a given checkpoint, resolved config)."""
-    agent, resolved = load_agent(path)
+def load_policy(path: str | os.PathLike, device: Any = "cpu") -> tuple[Any, dict[str, Any]]:
+    """(greedy policy of a run's newest checkpoint or of a given checkpoint, acting on
+    ``device``, resolved config)."""
+    agent, resolved = load_agent(path, device)
     return greedy_policy(agent), resolved
 
 
@@ -179,12 +183,14 @@ def evaluate_run(
     env: str | None = None,
     max_steps: int | None = None,
     challenge: str | None = None,
+    device: Any = "cpu",
 ) -> Any:
     """Roll out the greedy policy of a run folder's newest checkpoint (or a given checkpoint) in
-    the env the run evaluated in (an RWRL run: its data's challenge, unless ``challenge``)."""
+    the env the run evaluated in (an RWRL run: its data's challenge, unless ``challenge``),
+    acting on ``device``."""
     from rlu.evaluation.rollout import evaluate, task_env_factory
 
-    policy, resolved = load_policy(path)
+    policy, resolved = load_policy(path, device)
     train_cfg = resolved["train"]
     settings = dict(resolved["env_settings"])
     if challenge is not None:
@@ -231,9 +237,12 @@ def write_results(sweep_dir: str | os.PathLike, records: Sequence[Mapping[str, A
     write_atomic(Path(sweep_dir) / RESULTS, text)
 
 
-def fqe_selection(sweep_dir: str | os.PathLike, config: Any = None) -> dict[str, Any]:
+def fqe_selection(
+    sweep_dir: str | os.PathLike, config: Any = None, device: Any = "cpu"
+) -> dict[str, Any]:
     """Offline policy selection by FQE over a finished sweep (see
-    ``rlu.evaluation.fqe.fqe_selection``); writes and returns ``SWEEP_DIR/fqe.json``."""
+    ``rlu.evaluation.fqe.fqe_selection``), policies and FQE on ``device``; writes and returns
+    ``SWEEP_DIR/fqe.json``."""
     from rlu.evaluation.fqe import FQEConfig
     from rlu.evaluation.fqe import fqe_selection as select
 
@@ -241,10 +250,10 @@ def fqe_selection(sweep_dir: str | os.PathLike, config: Any = None) -> dict[str,
     datasets = load_sweep_config(sweep_dir)["datasets"]
 
     def policy_of(run: str) -> tuple[Any, Any]:
-        policy, resolved = load_policy(run)
+        policy, resolved = load_policy(run, device)
         return policy, ArraySpec.from_json(resolved["action_spec"])
 
-    out = select(load_results(sweep_dir), datasets, policy_of, config)
+    out = select(load_results(sweep_dir), datasets, policy_of, config, device)
     out["fqe_config"] = dataclasses.asdict(config)
     write_json(Path(sweep_dir) / FQE, out)
     return out

@@ -6,6 +6,10 @@ its last checkpoint). Backends: a local process pool (default) or a Ray cluster
 (``backend="ray"``; ``ray.init`` on ``ray_address``, or a local instance). Every run sets its own
 seeds and torch thread count, so both backends give the same numbers. ``OUT/results.jsonl``
 holds one record per run (task, agent, config, overrides, seed, score, run folder), sorted.
+
+Every run computes on ``SweepConfig.runtime`` (device, precision, data path). On Ray a run asks
+for one CPU and ``gpus_per_run`` GPUs: a fraction packs several small runs onto one GPU (0.25:
+four). The runtime and the GPU request may change when an interrupted sweep is continued.
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from rlu import runs
+from rlu.devices import Runtime, check_gpus_per_run, check_ray_gpus, ray_options
 from rlu.types import DiscreteSpec, RluError, install_hint
 
 
@@ -53,6 +58,13 @@ class SweepConfig:
     presets on the sequence locomotion tasks, ``{"locomotion/rodent_mazes": "paper_recurrent"}``."""
     torch_threads: int = 1
     """Threads per run: runs are the unit of parallelism."""
+    runtime: Runtime = field(default_factory=Runtime)
+    """Device, precision and data path of every run (``rlu.devices.Runtime``)."""
+    gpus_per_run: float = 0.0
+    """Ray backend: GPUs each run asks for (a fraction shares a GPU: 0.25 packs four runs)."""
+
+    def __post_init__(self) -> None:
+        check_gpus_per_run(self.gpus_per_run)
 
     def to_json(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
@@ -152,6 +164,7 @@ def run_one(spec: RunSpec, config: SweepConfig, sys_path: Sequence[str] = ()) ->
             env=config.env,
             challenge=config.challenge,
             torch_threads=config.torch_threads,
+            runtime=config.runtime,
         )
         result = train(tc, run, resume=True)
     return {
@@ -180,8 +193,12 @@ def sweep(
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     cfg_path = out / runs.SWEEP_CONFIG
-    wanted = json.loads(json.dumps(config.to_json()))
-    if cfg_path.exists() and runs.read_json(cfg_path) != wanted:
+    if backend == "local" and config.gpus_per_run:
+        raise RluError(
+            "--gpus-per-run asks Ray for GPUs; use --backend ray, or drop it (local runs all see "
+            "the machine's GPUs)"
+        )
+    if cfg_path.exists() and _what(runs.read_json(cfg_path)) != _what(config.to_json()):
         raise RluError(
             f"{cfg_path} was written by a different sweep configuration; use the same arguments "
             "to continue it or choose a new --out"
@@ -198,6 +215,15 @@ def sweep(
     records.sort(key=lambda r: (r["task"], r["agent"], r["config"], r["seed"]))
     runs.write_results(out, records)
     return records
+
+
+def _what(sweep_json: Mapping[str, Any]) -> dict[str, Any]:
+    """A sweep config without how its runs compute (runtime, GPU request): what must match to
+    continue a sweep in the same folder."""
+    out = json.loads(json.dumps(sweep_json))
+    out.pop("runtime", None)
+    out.pop("gpus_per_run", None)
+    return out
 
 
 def _note(progress: bool, done: int, total: int, rec: dict[str, Any]) -> None:
@@ -244,7 +270,8 @@ def _run_ray(specs, config, address, paths, progress) -> list[dict[str, Any]]:
             )
         started = True
     try:
-        remote = ray.remote(num_cpus=1)(run_one)
+        check_ray_gpus(ray, config.gpus_per_run, config.runtime.device)
+        remote = ray.remote(**ray_options(config.gpus_per_run))(run_one)
         pending = {remote.remote(r, config, paths): r for r in specs}
         records = []
         while pending:

@@ -8,6 +8,13 @@ global torch and numpy generators and the step; on ``resume`` the logs are cut b
 checkpoint's step and the loop goes on. Evaluation at step k uses env seeds derived from
 (seed, k) only, so it needs no state.
 
+Devices (``TrainConfig.runtime``, docs/devices.md): the agent lives on the runtime's device;
+batches come from the sampler in line (the CPU default), from a background prefetcher (CUDA's
+default: pinned host batches copied on a side stream) or from the dataset held on the device;
+every update runs in the runtime's precision. All three data paths give the same batches. The
+runtime may differ between a run's sessions (train on a GPU, resume on a CPU): resume compares
+the run's config without it, and checkpoints load on any device.
+
 Agents are built by name through ``rlu.agents`` or, for a dotted module path
 (``tests.train.fake_agent``), from any module that follows the agent-module convention
 (``Config``, ``Agent``, ``PRESETS``, ``GRID``). Envs come from ``rlu.envs.make_env`` or from an
@@ -30,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from rlu import runs
+from rlu.devices import Runtime, compile_modules, numerics
 from rlu.types import ArraySpec, DiscreteSpec, RluError, derive_seed, observation_spec_to_json
 
 
@@ -70,6 +78,9 @@ class TrainConfig:
     was recorded under (its provenance's ``challenge``)."""
     torch_threads: int | None = None
     """torch.set_num_threads for this run (None: leave torch's default)."""
+    runtime: Runtime = field(default_factory=Runtime)
+    """Device, precision, TF32, compile and data path: how the run computes, which may change
+    between its sessions (``rlu.devices.Runtime``)."""
 
     def to_json(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
@@ -165,6 +176,13 @@ class _Progress:
         sys.stderr.flush()
 
 
+def comparable(resolved: Mapping[str, Any]) -> dict[str, Any]:
+    """A run's resolved config without its runtime: what must match for ``--resume``."""
+    out = json.loads(json.dumps(resolved))
+    out.get("train", {}).pop("runtime", None)
+    return out
+
+
 # --- the loop -------------------------------------------------------------------------------
 def train(
     config: TrainConfig,
@@ -191,16 +209,18 @@ def _train(
 
     from rlu.agents import agent_module
     from rlu.data import make_sampler, open_dataset
+    from rlu.data.torch import DeviceSampler, prefetched
     from rlu.evaluation.rollout import evaluate, task_env_factory
 
     run = Path(out)
+    runtime = config.runtime.resolve()
     ds = open_dataset(config.dataset)
     obs_spec, action_spec = dataset_specs(ds)
     discrete = isinstance(action_spec, DiscreteSpec)
     agent_cfg = agent_config(config.agent, discrete, config.preset, config.overrides)
     env_kwargs = env_settings(config.task, ds, config.challenge)
     resolved = {
-        "train": config.to_json(),
+        "train": dataclasses.replace(config, runtime=runtime).to_json(),
         "env_settings": env_kwargs,
         "agent_config": _jsonable(agent_cfg),
         "observation_spec": observation_spec_to_json(obs_spec),
@@ -214,7 +234,7 @@ def _train(
                 f"{run} already holds a run; pass --resume to continue it or choose a new --out"
             )
         old = runs.read_json(run / runs.CONFIG)
-        if old != json.loads(json.dumps(resolved)):
+        if comparable(old) != comparable(resolved):
             raise RluError(
                 f"{run}/{runs.CONFIG} was written by a different configuration; resume with the "
                 "same arguments or choose a new --out"
@@ -231,8 +251,11 @@ def _train(
     torch.manual_seed(config.seed)
     np.random.seed(config.seed)
     module = agent_module(config.agent, discrete)
-    agent = module.Agent(obs_spec, action_spec, agent_cfg, seed=config.seed)
-    sampler = make_sampler(ds, agent.batch_spec, seed=config.seed)
+    agent = module.Agent(obs_spec, action_spec, agent_cfg, seed=config.seed, device=runtime.device)
+    if runtime.data_on_device:  # a dataset that does not fit fails here, before any writing
+        sampler = DeviceSampler(ds, agent.batch_spec, config.seed, runtime.device)
+    else:
+        sampler = make_sampler(ds, agent.batch_spec, seed=config.seed)
     steps = agent.num_steps if config.steps is None else int(config.steps)
     total = agent.pretrain_steps + steps  # a pre-training phase comes on top of the budget
 
@@ -274,13 +297,21 @@ def _train(
         runs.cut_log(path, start)
     writer = summary_writer(str(run / "tensorboard")) if summary_writer is not None else None
 
+    if runtime.compile:
+        compile_modules(agent.modules)
     policy = runs.greedy_policy(agent)
     eval_every = config.eval_every if config.eval_every > 0 else total
     bar = _Progress(total, start, progress and sys.stderr.isatty())
     last_eval: dict[str, Any] | None = None
-    with open(metrics_path, "a") as mlog, open(eval_path, "a") as elog:
+    with (
+        open(metrics_path, "a") as mlog,
+        open(eval_path, "a") as elog,
+        numerics(runtime) as update_context,
+        prefetched(sampler, runtime.device, runtime.prefetch) as batches,
+    ):
         for step in range(start + 1, total + 1):
-            metrics = agent.update(sampler.sample())
+            with update_context():
+                metrics = agent.update(batches.sample())
             if step % config.log_every == 0 or step == total:
                 rec = {"step": step, **{k: float(v) for k, v in metrics.items()}}
                 mlog.write(json.dumps(rec) + "\n")
@@ -307,7 +338,7 @@ def _train(
                 state = {
                     "step": step,
                     "agent": agent.state_dict(),
-                    "sampler": sampler.get_state(),
+                    "sampler": batches.get_state(),
                     "torch_rng": torch.get_rng_state(),
                     "numpy_rng": [alg, keys.tolist(), int(pos), int(has_gauss), float(cached)],
                 }

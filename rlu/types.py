@@ -213,7 +213,9 @@ class BatchSpec:
 class Agent(Protocol):
     """The contract every agent in ``rlu.agents`` meets (one file each; see docs/agents.md).
 
-    Built as ``Agent(observation_spec, action_spec, config, seed=...)``. ``batch_spec`` says what
+    Built as ``Agent(observation_spec, action_spec, config, seed=..., device="cpu")``: its
+    modules, random draws and batches live on ``device`` (``resolve_device``), and ``update``
+    takes numpy batches or tensors already on that device. ``batch_spec`` says what
     batches ``update`` takes; ``act`` maps a batched observation (leading batch axis) to a batch
     of actions, and ``is_first`` (bool, one per row) marks rows whose episode starts at this
     observation, so recurrent agents restart their state there (others ignore it).
@@ -230,6 +232,7 @@ class Agent(Protocol):
     num_steps: int
     pretrain_steps: int
     modules: Mapping[str, Any]
+    device: Any
 
     def update(self, batch: Any) -> dict[str, float]: ...
 
@@ -280,3 +283,43 @@ def install_hint(*extras: str) -> str:
     if os.path.exists(os.path.join(root, "scripts", "install.sh")):
         hint += f" (in this checkout: bash scripts/install.sh {' '.join(extras)})"
     return hint
+
+
+DEVICES = "auto, cpu, cuda or cuda:N"
+"""The device strings rlu accepts (``--device`` of the commands, ``device=`` of agents)."""
+
+
+def resolve_device(device: Any = "auto") -> Any:
+    """The ``torch.device`` that ``device`` names on this machine, checked here once for every
+    part of rlu (agents, the loop, FQE, generation): ``auto`` is the first CUDA GPU if PyTorch
+    sees one and the CPU otherwise; ``cuda`` is ``cuda:0``; ``cuda:N`` must exist. A
+    ``torch.device`` passes through as given (the placement tests build agents on ``meta``).
+    Imports torch."""
+    import torch
+
+    if isinstance(device, torch.device):
+        return device
+    text = device.strip().lower() if isinstance(device, str) else None
+    if text == "cpu" or (text == "auto" and not torch.cuda.is_available()):
+        return torch.device("cpu")
+    if text == "auto":
+        return torch.device("cuda", 0)
+    kind, sep, index = (text or "").partition(":")
+    if kind != "cuda" or (sep and not index.isdigit()):
+        raise RluError(f"device {device!r}; use one of {DEVICES} (e.g. --device cuda:0)")
+    if not torch.cuda.is_available():
+        build = f"CUDA {torch.version.cuda}" if torch.version.cuda else "a CPU-only build"
+        raise RluError(
+            f"device {device!r}: PyTorch sees no CUDA GPU here (torch {torch.__version__}, "
+            f"{build}); use --device cpu (or auto), or install a CUDA build of torch on a "
+            "machine with an NVIDIA GPU"
+        )
+    count, number = torch.cuda.device_count(), int(index) if sep else 0
+    if number >= count:
+        visible = os.environ.get("CUDA_VISIBLE_DEVICES")
+        seen = f" (CUDA_VISIBLE_DEVICES={visible})" if visible is not None else ""
+        raise RluError(
+            f"device {device!r}: PyTorch sees {count} CUDA GPU(s){seen}, cuda:0 .. "
+            f"cuda:{count - 1}; pick one of those"
+        )
+    return torch.device("cuda", number)

@@ -3,9 +3,11 @@
 Every agent module defines, top to bottom: a frozen ``Config`` dataclass (paper defaults, a
 docstring per field), ``PRESETS = {"paper": ..., "small": ...}``, ``GRID`` (the paper's
 hyper-parameter grid as data, ``{field: [values]}``), pure loss functions returning
-``(loss, metrics)`` and ``Agent`` meeting ``rlu.types.Agent``: ``batch_spec`` (what its batches
-are), ``update(batch) -> dict[str, float]``, ``act(obs, greedy=True, is_first=None)``,
-``modules``, ``state_dict()`` / ``load_state_dict()``. Adding an agent = one file + one line in
+``(loss, metrics)`` and ``Agent(observation_spec, action_spec, config, seed=0, device="cpu")``
+meeting ``rlu.types.Agent``: ``batch_spec`` (what its batches are), ``update(batch) ->
+dict[str, float]``, ``act(obs, greedy=True, is_first=None)``, ``modules``, ``state_dict()`` /
+``load_state_dict()``; its modules, batches and draws live on ``device`` (the pattern:
+``rlu.agents.common`` and docs/devices.md). Adding an agent = one file + one line in
 ``AGENTS``; the contract test (tests/agents/test_contract.py) then runs it. See docs/agents.md.
 
 Config fields of a composed settings dataclass (the Atari agents' ``atari``) are overridden by
@@ -140,11 +142,13 @@ def make_agent(
     preset: str = "small",
     seed: int = 0,
     config: Any = None,
+    device: Any = "cpu",
     **overrides: Any,
 ) -> Any:
-    """Build agent ``name`` for the given specs (``config`` wins over ``preset``/``overrides``)."""
+    """Build agent ``name`` for the given specs (``config`` wins over ``preset``/``overrides``)
+    on ``device`` ('cpu', 'cuda', 'cuda:N', 'auto'; docs/devices.md)."""
     discrete = isinstance(action_spec, DiscreteSpec)
     module = agent_module(name, discrete)
     if config is None:
         config = make_config(name, discrete, preset, **overrides)
-    return module.Agent(observation_spec, action_spec, config, seed=seed)
+    return module.Agent(observation_spec, action_spec, config, seed=seed, device=device)

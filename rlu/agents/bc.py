@@ -76,8 +76,10 @@ def bc_loss(logits, mean, std, action, weight=None):
 
 
 class BCAgent:
-    def __init__(self, observation_spec, action_spec, config: BCConfig, seed: int = 0):
-        self.config = config
+    def __init__(
+        self, observation_spec, action_spec, config: BCConfig, seed: int = 0, device="cpu"
+    ):
+        self.config, self.device = config, common.device(device)
         self.scaler = nets.ActionScaler(action_spec)
         kind = "sequence" if config.recurrent else "transition"
         self.batch_spec = BatchSpec(config.batch_size, kind, sequence_length=config.sequence_length)
@@ -91,18 +93,18 @@ class BCAgent:
                 torso_hidden=config.torso_hidden,
             )  # fmt: skip
             head = nets.MixtureHead(torso.output_dim, self.scaler.dim, config.mixture_components)
-            self.policy = nn.ModuleDict({"torso": torso, "head": head})
+            self.policy = nn.ModuleDict({"torso": torso, "head": head}).to(self.device)
         self.modules = {"policy": self.policy}
         self.optimizers = {"policy": common.adam(self.policy.parameters(), config.learning_rate)}
-        self.generators = {"act": torch.Generator().manual_seed(act_seed)}
+        self.generators = {"act": common.generator(act_seed, self.device)}
         self.step = 0
         self._rollout_state = None
 
     def update(self, batch: Transition | Sequence) -> dict[str, float]:
         seq = isinstance(batch, Sequence)
-        obs = common.to_torch(batch.observation)
-        action = self.scaler.to_unit(common.to_torch(batch.action))
-        weight = common.to_torch(batch.mask & ~batch.is_last).float() if seq else None
+        obs = common.to_torch(batch.observation, self.device)
+        action = self.scaler.to_unit(common.to_torch(batch.action, self.device))
+        weight = common.to_torch(batch.mask & ~batch.is_last, self.device).float() if seq else None
         h, _ = self.policy["torso"](obs, sequence=seq)
         loss, metrics = bc_loss(*self.policy["head"](h), action, weight)
         common.sgd_step(self.optimizers["policy"], loss)
@@ -111,7 +113,7 @@ class BCAgent:
 
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
-        obs = common.to_torch(observation)
+        obs = common.to_torch(observation, self.device)
         state = nets.carried_state(self._rollout_state, is_first, obs)
         h, self._rollout_state = self.policy["torso"](obs, state=state)
         logits, mean, std = self.policy["head"](h)

@@ -52,27 +52,30 @@ def bc_loss(logits: torch.Tensor, action: torch.Tensor):
 
 
 class BCAgent:
-    def __init__(self, observation_spec, action_spec, config: BCConfig, seed: int = 0) -> None:
+    def __init__(
+        self, observation_spec, action_spec, config: BCConfig, seed: int = 0, device="cpu"
+    ) -> None:
         dc.setup(
             self, "bc", observation_spec, action_spec, config, seed,
             lambda shape, n: dc.QNetwork(shape, n, config.atari),
             target=False,
+            device=device,
         )  # fmt: skip
 
     def update(self, batch: Transition) -> dict[str, float]:
-        frames = dc.frames(batch.observation)
-        action = common.to_torch(np.asarray(batch.action, np.int64))
+        frames = dc.frames(batch.observation, device=self.device)
+        action = common.to_torch(batch.action, self.device, "int64")
         loss, metrics = bc_loss(self.network(frames), action)
         self.step = common.learn(self.optimizers["network"], loss, self.step)
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
-        logits = self.network(dc.frames(observation))
+        logits = self.network(dc.frames(observation, device=self.device))
         if greedy:
             return dc.epsilon_greedy(logits, self.config.atari.eval_epsilon, self.generators["act"])
         sample = torch.multinomial(logits.softmax(-1), 1, generator=self.generators["act"])
-        return sample.squeeze(-1).numpy().astype(np.int64)
+        return sample.squeeze(-1).cpu().numpy().astype(np.int64)
 
     state_dict = common.state_dict
     load_state_dict = common.load_state_dict

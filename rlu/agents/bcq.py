@@ -88,12 +88,13 @@ class VAE(nn.Module):
     def forward(self, s: torch.Tensor, a: torch.Tensor, generator: torch.Generator):
         mean, log_std = self.encoder(torch.cat([s, a], -1)).chunk(2, -1)
         std = log_std.clamp(-4, 15).exp()
-        z = mean + std * torch.randn(std.shape, generator=generator)
+        z = mean + std * torch.randn(std.shape, generator=generator, device=std.device)
         return self.decode(s, z=z), mean, std
 
     def decode(self, s, generator: torch.Generator | None = None, z=None) -> torch.Tensor:
         if z is None:
-            z = torch.randn((s.shape[0], self.latent_dim), generator=generator).clamp(-0.5, 0.5)
+            z = torch.randn((s.shape[0], self.latent_dim), generator=generator, device=s.device)
+            z = z.clamp(-0.5, 0.5)
         return torch.tanh(self.decoder(torch.cat([s, z], -1)))
 
 
@@ -130,15 +131,17 @@ def critic_loss(q1, q2, target):
 
 
 class BCQAgent:
-    def __init__(self, observation_spec, action_spec, config: BCQConfig, seed: int = 0):
-        self.config = config
+    def __init__(
+        self, observation_spec, action_spec, config: BCQConfig, seed: int = 0, device="cpu"
+    ):
+        self.config, self.device = config, common.device(device)
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, gamma=config.gamma)
         self.pretrain_steps = 0
         self.num_steps = config.num_steps
-        self.generator = torch.Generator().manual_seed(seed)
+        self.generator = common.generator(seed, self.device)
         with common.seeded(seed):
-            self.nets = BCQNets(observation_spec, self.scaler.dim, config)
+            self.nets = BCQNets(observation_spec, self.scaler.dim, config).to(self.device)
         self.target = common.frozen_copy(self.nets)
         n = self.nets
         self.actor_params = [*n.actor_enc.parameters(), *n.actor.parameters()]
@@ -154,11 +157,11 @@ class BCQAgent:
         self.step = 0
 
     def update(self, batch: Transition) -> dict[str, float]:
-        c, n, t, g = self.config, self.nets, self.target, self.generator
-        obs = common.to_torch(batch.observation)
-        next_obs = common.to_torch(batch.next_observation)
-        action = self.scaler.to_unit(common.to_torch(batch.action))
-        reward, discount = common.to_torch(batch.reward), common.to_torch(batch.discount)
+        c, n, t, g, d = self.config, self.nets, self.target, self.generator, self.device
+        obs = common.to_torch(batch.observation, d)
+        next_obs = common.to_torch(batch.next_observation, d)
+        action = self.scaler.to_unit(common.to_torch(batch.action, d))
+        reward, discount = common.to_torch(batch.reward, d), common.to_torch(batch.discount, d)
         batch_size = action.shape[0]
 
         s_vae = n.vae_enc(obs)
@@ -197,14 +200,14 @@ class BCQAgent:
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
         n, reps = self.nets, self.config.num_samples
-        g = torch.Generator().manual_seed(0) if greedy else self.generator
-        obs = common.to_torch(observation)
+        g = common.generator(0, self.device) if greedy else self.generator
+        obs = common.to_torch(observation, self.device)
         sv = n.vae_enc(obs).repeat_interleave(reps, 0)
         sa = n.actor_enc(obs).repeat_interleave(reps, 0)
         sc = n.critic_enc(obs).repeat_interleave(reps, 0)
         a = n.perturb(sa, n.vae.decode(sv, g), self.config.phi)
         q1 = n.q(sc, a)[0].reshape(-1, reps)
-        best = q1.argmax(1) + torch.arange(q1.shape[0]) * reps
+        best = q1.argmax(1) + torch.arange(q1.shape[0], device=q1.device) * reps
         return self.scaler.from_unit(a[best])
 
     state_dict = common.state_dict

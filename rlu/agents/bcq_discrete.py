@@ -112,16 +112,19 @@ def bcq_loss(
 
 
 class BCQAgent:
-    def __init__(self, observation_spec, action_spec, config: BCQConfig, seed: int = 0) -> None:
+    def __init__(
+        self, observation_spec, action_spec, config: BCQConfig, seed: int = 0, device="cpu"
+    ) -> None:
         dc.setup(
             self, "bcq", observation_spec, action_spec, config, seed,
             lambda shape, n: QAndPolicyNetwork(shape, n, config.atari),
+            device=device,
         )  # fmt: skip
 
     def update(self, batch: Transition) -> dict[str, float]:
         c = self.config
         loss, metrics = bcq_loss(
-            self.network, self.target_network, dc.to_torch(batch),
+            self.network, self.target_network, dc.to_torch(batch, self.device),
             self.batch_spec.bootstrap_gamma, c.threshold, c.atari.huber_delta, c.logit_penalty,
         )  # fmt: skip
         self.step = dc.learn(self, loss)
@@ -129,7 +132,7 @@ class BCQAgent:
 
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
-        q, logits = self.network(dc.frames(observation))
+        q, logits = self.network(dc.frames(observation, device=self.device))
         q = q.masked_fill(~bcq_action_mask(logits, self.config.threshold), float("-inf"))
         return dc.epsilon_greedy(q, dc.epsilon(self.config.atari, greedy), self.generators["act"])
 

@@ -109,7 +109,7 @@ class TanhGaussian(nn.Module):
     def sample(self, obs, num: int, generator: torch.Generator):
         """(num, B, A) actions and their log densities (reparameterised)."""
         mean, std = self(obs)
-        u = mean + std * torch.randn((num, *mean.shape), generator=generator)
+        u = mean + std * torch.randn((num, *mean.shape), generator=generator, device=mean.device)
         return torch.tanh(u), tanh_gaussian_log_prob(mean, std, u)
 
 
@@ -146,18 +146,20 @@ def actor_loss(q_min, kl, alpha: float):
 
 
 class BRACAgent:
-    def __init__(self, observation_spec, action_spec, config: BRACConfig, seed: int = 0):
-        self.config = config
+    def __init__(
+        self, observation_spec, action_spec, config: BRACConfig, seed: int = 0, device="cpu"
+    ):
+        self.config, self.device = config, common.device(device)
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, gamma=config.gamma)
         self.pretrain_steps = config.behaviour_steps
         self.num_steps = config.num_steps
-        self.generator = torch.Generator().manual_seed(seed)
-        a, th = self.scaler.dim, config.torso_hidden
+        self.generator = common.generator(seed, self.device)
+        a, th, d = self.scaler.dim, config.torso_hidden, self.device
         with common.seeded(seed):
-            self.policy = TanhGaussian(observation_spec, a, config.policy_layers, th)
-            self.behaviour = TanhGaussian(observation_spec, a, config.behaviour_layers, th)
-            self.critics = Critics(observation_spec, a, config.critic_layers, th)
+            self.policy = TanhGaussian(observation_spec, a, config.policy_layers, th).to(d)
+            self.behaviour = TanhGaussian(observation_spec, a, config.behaviour_layers, th).to(d)
+            self.critics = Critics(observation_spec, a, config.critic_layers, th).to(d)
         self.target_critics = common.frozen_copy(self.critics)
         self.optimizers = {
             "policy": common.adam(self.policy.parameters(), config.policy_lr),
@@ -176,17 +178,17 @@ class BRACAgent:
         return sample_kl(log_pi, self.behaviour.log_prob(obs, samples))
 
     def update(self, batch: Transition) -> dict[str, float]:
-        c, g = self.config, self.generator
-        obs = common.to_torch(batch.observation)
-        action = self.scaler.to_unit(common.to_torch(batch.action))
+        c, g, d = self.config, self.generator, self.device
+        obs = common.to_torch(batch.observation, d)
+        action = self.scaler.to_unit(common.to_torch(batch.action, d))
         if self.step < c.behaviour_steps:
             loss, metrics = behaviour_loss(self.behaviour.log_prob(obs, action))
             common.sgd_step(self.optimizers["behaviour"], loss)
             self.step += 1
             return common.metrics_to_floats(metrics)
 
-        next_obs = common.to_torch(batch.next_observation)
-        reward, discount = common.to_torch(batch.reward), common.to_torch(batch.discount)
+        next_obs = common.to_torch(batch.next_observation, d)
+        reward, discount = common.to_torch(batch.reward, d), common.to_torch(batch.discount, d)
         with torch.no_grad():
             next_a, next_logp = self.policy.sample(next_obs, c.num_kl_samples, g)
             kl_next = self._kl(next_obs, next_a, next_logp)
@@ -212,7 +214,7 @@ class BRACAgent:
 
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
-        obs = common.to_torch(observation)
+        obs = common.to_torch(observation, self.device)
         if greedy:
             return self.scaler.from_unit(torch.tanh(self.policy(obs)[0]))
         return self.scaler.from_unit(self.policy.sample(obs, 1, self.generator)[0][0])

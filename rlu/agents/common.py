@@ -7,8 +7,17 @@ field), ``discount`` the per-step continuation of a batch (``rlu.types.Transitio
 ``generators`` every ``torch.Generator`` it draws from; ``step`` counts updates.
 
 Checkpoint format (``agent_state``): ``{"modules": {name: state_dict}, "optimizers":
-{name: state_dict}, "generators": {name: uint8 tensor}, "step": int}`` -- plain tensors, dicts
-and numbers, so ``torch.load(..., weights_only=True)`` reads it.
+{name: state_dict}, "generators": {name: uint8 tensor}, "generator_devices": {name: device
+type}, "step": int}`` -- plain tensors, dicts and numbers, so ``torch.load(...,
+weights_only=True)`` reads it. It loads on any device (``rlu.runs`` maps it to the CPU, then
+``load_state_dict`` copies into the agent's own device).
+
+Devices (docs/devices.md): an agent takes ``device`` ("cpu", "cuda", "cuda:N", "auto" or a
+``torch.device``) and resolves it once with :func:`device`; its parameters are initialised on
+the CPU under :func:`seeded` (the same initial weights on every device) and then moved, before
+its optimisers are built; its generators live on its device (:func:`generator`) and every draw
+names the device of the tensors it joins; :func:`to_torch` brings batches and observations to
+the device and passes tensors already there through; results leave with ``.cpu()``.
 
 Determinism: parameters are initialised under :func:`seeded` (a private copy of torch's global
 RNG), every later draw goes through the agent's own generators, so building or training an agent
@@ -20,12 +29,15 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import hashlib
 from collections.abc import Iterable, Iterator, Mapping
 from typing import Any
 
 import numpy as np
 import torch
 from torch import nn
+
+from rlu.types import resolve_device
 
 Metrics = dict[str, torch.Tensor]
 
@@ -44,22 +56,49 @@ def seeded(seed: int) -> Iterator[None]:
         yield
 
 
-def to_torch(x: Any) -> Any:
-    """numpy (or a dict of numpy) -> tensors without copying where the dtype allows: float64
-    becomes float32, uint8 frames stay uint8, read-only arrays (the store's views) are copied."""
+def device(spec: Any = "cpu") -> torch.device:
+    """An agent's device, resolved once in its ``__init__`` (``rlu.types.resolve_device``: an
+    unknown or missing device is an ``RluError`` naming the fix)."""
+    return resolve_device(spec)
+
+
+def generator(seed: int, device: torch.device) -> torch.Generator:
+    """A generator seeded with ``seed`` on ``device``, so draws happen where the tensors they
+    join live. A device without generators (``meta``, the placement tests') gets a CPU one."""
+    if device.type in ("cpu", "meta"):
+        return torch.Generator().manual_seed(int(seed))
+    return torch.Generator(device=device).manual_seed(int(seed))
+
+
+_DTYPES = {"int64": (np.int64, torch.int64), "float32": (np.float32, torch.float32)}
+
+
+def to_torch(x: Any, device: torch.device | None = None, dtype: str | None = None) -> Any:
+    """numpy (or a dict of numpy) -> tensors on ``device`` (None: the CPU), without copying on
+    the CPU where the dtype allows: float64 becomes float32, uint8 frames stay uint8, read-only
+    arrays (the store's views) are copied; ``dtype`` ('int64', 'float32') casts first. A tensor
+    already on ``device`` with the dtype passes through untouched (batches the loop prepared)."""
     if isinstance(x, Mapping):
-        return {k: to_torch(v) for k, v in x.items()}
-    a = np.asarray(x)
+        return {k: to_torch(v, device, dtype) for k, v in x.items()}
+    if isinstance(x, torch.Tensor):
+        if dtype is not None:
+            x = x.to(_DTYPES[dtype][1])
+        return x if device is None or x.device == device else x.to(device)
+    a = np.asarray(x) if dtype is None else np.asarray(x, _DTYPES[dtype][0])
     if a.dtype == np.float64:
         a = a.astype(np.float32)
     elif a.dtype == np.bool_ or not a.flags.writeable:
         a = a.copy()
-    return torch.from_numpy(a)
+    t = torch.from_numpy(a)
+    return t if device is None or device.type == "cpu" else t.to(device)
 
 
 def adam(params: Iterable[torch.Tensor], lr: float, eps: float = 1e-8) -> torch.optim.Adam:
-    # fused CPU Adam: one kernel per step instead of one per tensor (measured in the bench).
-    return torch.optim.Adam(params, lr=lr, eps=eps, fused=True)
+    # fused Adam: one kernel per step instead of one per tensor (measured in the bench, CPU);
+    # devices without the fused kernel (meta, the placement tests') take the plain one
+    params = list(params)
+    fused = all(p.device.type in ("cpu", "cuda") for p in params)
+    return torch.optim.Adam(params, lr=lr, eps=eps, fused=fused or None)
 
 
 def sgd_step(
@@ -70,6 +109,13 @@ def sgd_step(
     """One gradient step on ``loss``; ``inputs`` limits the backward pass to those parameters
     (an actor loss that reads a critic leaves the critic's gradients alone)."""
     optimizer.zero_grad(set_to_none=True)
+    kind = loss.device.type
+    if torch.amp.is_autocast_available(kind) and torch.is_autocast_enabled(kind):
+        # the loop's bf16 autocast covers forward passes only
+        with torch.autocast(kind, enabled=False):
+            loss.backward(inputs=inputs)
+            optimizer.step()
+        return
     loss.backward(inputs=inputs)
     optimizer.step()
 
@@ -123,6 +169,7 @@ def agent_state(
         "modules": {k: m.state_dict() for k, m in modules.items()},
         "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
         "generators": {k: g.get_state() for k, g in generators.items()},
+        "generator_devices": {k: g.device.type for k, g in generators.items()},
         "step": int(step),
     }
 
@@ -133,13 +180,26 @@ def load_agent_state(
     optimizers: Mapping[str, torch.optim.Optimizer],
     generators: Mapping[str, torch.Generator],
 ) -> int:
-    """Restore what :func:`agent_state` saved; returns the step."""
+    """Restore what :func:`agent_state` saved, onto the devices the agent lives on (modules and
+    optimisers copy in; a checkpoint is read on the CPU); returns the step.
+
+    A generator saved on another device type cannot go on: a CPU generator's state is a
+    Mersenne Twister, a CUDA one's a Philox seed and offset. Such a generator restarts from a
+    seed taken from the saved state (the same checkpoint gives the same stream); everything
+    else resumes exactly. Checkpoints older than ``generator_devices`` were written on the CPU.
+    """
     for k, m in modules.items():
         m.load_state_dict(state["modules"][k])
     for k, o in optimizers.items():
         o.load_state_dict(state["optimizers"][k])
+    saved_on = state.get("generator_devices", {})
     for k, g in generators.items():
-        g.set_state(state["generators"][k])
+        saved = state["generators"][k]
+        if saved_on.get(k, "cpu") == g.device.type:
+            g.set_state(saved)
+        else:
+            digest = hashlib.sha256(saved.cpu().numpy().tobytes()).digest()
+            g.manual_seed(int.from_bytes(digest[:8], "little") >> 1)
     return int(state["step"])
 
 

@@ -121,7 +121,7 @@ class TanhGaussianPolicy(nn.Module):
 
 def sample_tanh_gaussian(mean, std, num: int, generator: torch.Generator):
     """(num, B, A) reparameterised actions tanh(mean + std eps) and their (num, B) log densities."""
-    u = mean + std * torch.randn((num, *mean.shape), generator=generator)
+    u = mean + std * torch.randn((num, *mean.shape), generator=generator, device=mean.device)
     return torch.tanh(u), tanh_gaussian_log_prob(mean, std, u)
 
 
@@ -200,23 +200,25 @@ def bc_policy_loss(alpha: torch.Tensor, log_pi: torch.Tensor, log_prob_data: tor
 
 
 class CQLAgent:
-    def __init__(self, observation_spec, action_spec, config: CQLConfig, seed: int = 0):
-        self.config = config
+    def __init__(
+        self, observation_spec, action_spec, config: CQLConfig, seed: int = 0, device="cpu"
+    ):
+        self.config, self.device = config, common.device(device)
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, gamma=config.gamma)
         self.pretrain_steps = 0
         self.num_steps = config.num_steps
-        self.generator = torch.Generator().manual_seed(seed)
-        a = self.scaler.dim
+        self.generator = common.generator(seed, self.device)
+        a, d = self.scaler.dim, self.device
         self.target_entropy = -float(a) if config.target_entropy is None else config.target_entropy
         with common.seeded(seed):
-            self.policy = TanhGaussianPolicy(observation_spec, a, config)
-            self.critics = Critics(observation_spec, a, config)
+            self.policy = TanhGaussianPolicy(observation_spec, a, config).to(d)
+            self.critics = Critics(observation_spec, a, config).to(d)
         self.target_critics = common.frozen_copy(self.critics)
         duals = {"log_alpha": nn.Parameter(torch.zeros(()))}
         if config.lagrange_threshold is not None:
             duals["log_alpha_prime"] = nn.Parameter(torch.zeros(()))
-        self.duals = nn.ParameterDict(duals)
+        self.duals = nn.ParameterDict(duals).to(d)
         self.optimizers = {
             "policy": common.adam(self.policy.parameters(), config.policy_lr),
             "critic": common.adam(self.critics.parameters(), config.critic_lr),
@@ -234,12 +236,12 @@ class CQLAgent:
         self.step = 0
 
     def update(self, batch: Transition) -> dict[str, float]:
-        c, g, n = self.config, self.generator, self.config.num_samples
-        obs = common.to_torch(batch.observation)
-        next_obs = common.to_torch(batch.next_observation)
-        action = self.scaler.to_unit(common.to_torch(batch.action))
-        reward = common.to_torch(batch.reward) * c.reward_scale
-        discount = common.to_torch(batch.discount)
+        c, g, n, d = self.config, self.generator, self.config.num_samples, self.device
+        obs = common.to_torch(batch.observation, d)
+        next_obs = common.to_torch(batch.next_observation, d)
+        action = self.scaler.to_unit(common.to_torch(batch.action, d))
+        reward = common.to_torch(batch.reward, d) * c.reward_scale
+        discount = common.to_torch(batch.discount, d)
 
         # Every action the critics' side needs, drawn from the policy before its step.
         mean, std = self.policy(obs)
@@ -248,7 +250,7 @@ class CQLAgent:
             next_a, _ = sample_tanh_gaussian(next_mean, next_std, 1, g)
             q_next_target = self.target_critics(next_obs, next_a[0]).amin(0)
             target = reward + self.batch_spec.bootstrap_gamma * discount * q_next_target
-            rand_a = torch.rand((n, *action.shape), generator=g) * 2.0 - 1.0
+            rand_a = torch.rand((n, *action.shape), generator=g, device=d) * 2.0 - 1.0
             curr_a, log_pi_curr = sample_tanh_gaussian(mean, std, n, g)
             next_prop_a, log_pi_next = sample_tanh_gaussian(next_mean, next_std, n, g)
 
@@ -287,7 +289,7 @@ class CQLAgent:
 
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
-        mean, std = self.policy(common.to_torch(observation))
+        mean, std = self.policy(common.to_torch(observation, self.device))
         if greedy:
             return self.scaler.from_unit(torch.tanh(mean))
         return self.scaler.from_unit(sample_tanh_gaussian(mean, std, 1, self.generator)[0][0])

@@ -109,17 +109,18 @@ def cql_loss(network, target_network, batch: dc.TorchTransition, gamma: float, a
 
 class DiscreteCQLAgent:
     def __init__(
-        self, observation_spec, action_spec, config: DiscreteCQLConfig, seed: int = 0
+        self, observation_spec, action_spec, config: DiscreteCQLConfig, seed: int = 0, device="cpu"
     ) -> None:
         dc.setup(
             self, "cql", observation_spec, action_spec, config, seed,
             lambda shape, n: dc.QNetwork(shape, n, config.atari),
+            device=device,
         )  # fmt: skip
 
     def update(self, batch: Transition) -> dict[str, float]:
         c = self.config
         loss, metrics = cql_loss(
-            self.network, self.target_network, dc.to_torch(batch),
+            self.network, self.target_network, dc.to_torch(batch, self.device),
             self.batch_spec.bootstrap_gamma, c.alpha, c.atari.huber_delta, c.double_q,
         )  # fmt: skip
         self.step = dc.learn(self, loss)
@@ -127,7 +128,7 @@ class DiscreteCQLAgent:
 
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
-        q = self.network(dc.frames(observation))
+        q = self.network(dc.frames(observation, device=self.device))
         return dc.epsilon_greedy(q, dc.epsilon(self.config.atari, greedy), self.generators["act"])
 
     state_dict = common.state_dict

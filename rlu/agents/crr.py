@@ -184,27 +184,30 @@ def _step(optimizer: torch.optim.Optimizer, loss: torch.Tensor, params: list, ma
     optimizer.zero_grad(set_to_none=True)
     loss.backward(inputs=params)
     if max_norm > 0:
-        nn.utils.clip_grad_norm_(params, max_norm, foreach=True)
+        # foreach where the device has it (the CPU and CUDA: one kernel), per tensor elsewhere
+        nn.utils.clip_grad_norm_(params, max_norm, foreach=None)
     optimizer.step()
 
 
 class CRRAgent:
-    def __init__(self, observation_spec, action_spec, config: CRRConfig, seed: int = 0):
+    def __init__(
+        self, observation_spec, action_spec, config: CRRConfig, seed: int = 0, device="cpu"
+    ):
         if config.advantage_weight not in WEIGHTS:
             raise RluError(f"CRRConfig.advantage_weight={config.advantage_weight!r}; "
                            f"use one of {', '.join(WEIGHTS)}")  # fmt: skip
         if config.baseline not in BASELINES:
             raise RluError(f"CRRConfig.baseline={config.baseline!r}; "
                            f"use one of {', '.join(BASELINES)}")  # fmt: skip
-        self.config = config
+        self.config, self.device = config, common.device(device)
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, gamma=config.gamma)
         self.pretrain_steps = 0
         self.num_steps = config.num_steps
-        self.generator = torch.Generator().manual_seed(seed)
+        self.generator = common.generator(seed, self.device)
         with common.seeded(seed):
-            self.policy = Policy(observation_spec, self.scaler.dim, config)
-            self.critic = Critic(observation_spec, self.scaler.dim, config)
+            self.policy = Policy(observation_spec, self.scaler.dim, config).to(self.device)
+            self.critic = Critic(observation_spec, self.scaler.dim, config).to(self.device)
         self.target_policy = common.frozen_copy(self.policy)
         self.target_critic = common.frozen_copy(self.critic)
         self.modules = {
@@ -219,11 +222,11 @@ class CRRAgent:
         self.step = 0
 
     def update(self, batch: Transition) -> dict[str, float]:
-        c, g = self.config, self.generator
-        obs = common.to_torch(batch.observation)
-        next_obs = common.to_torch(batch.next_observation)
-        action = self.scaler.to_unit(common.to_torch(batch.action))
-        reward, discount = common.to_torch(batch.reward), common.to_torch(batch.discount)
+        c, g, d = self.config, self.generator, self.device
+        obs = common.to_torch(batch.observation, d)
+        next_obs = common.to_torch(batch.next_observation, d)
+        action = self.scaler.to_unit(common.to_torch(batch.action, d))
+        reward, discount = common.to_torch(batch.reward, d), common.to_torch(batch.discount, d)
         atoms = self.critic.head.atoms
 
         with torch.no_grad():
@@ -254,7 +257,7 @@ class CRRAgent:
 
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
-        logits, mean, std = self.policy(common.to_torch(observation))
+        logits, mean, std = self.policy(common.to_torch(observation, self.device))
         if greedy:
             return self.scaler.from_unit(nets.mixture_mode(logits, mean))
         return self.scaler.from_unit(nets.mixture_sample(logits, mean, std, self.generator))

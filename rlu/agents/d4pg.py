@@ -116,16 +116,18 @@ def policy_loss(q_logits, atoms):
 
 
 class D4PGAgent:
-    def __init__(self, observation_spec, action_spec, config: D4PGConfig, seed: int = 0):
-        self.config = config
+    def __init__(
+        self, observation_spec, action_spec, config: D4PGConfig, seed: int = 0, device="cpu"
+    ):
+        self.config, self.device = config, common.device(device)
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, n_step=config.n_step, gamma=config.gamma)
         self.pretrain_steps = 0
         self.num_steps = config.num_steps
-        self.generator = torch.Generator().manual_seed(seed)
+        self.generator = common.generator(seed, self.device)
         with common.seeded(seed):
-            self.policy = Policy(observation_spec, self.scaler.dim, config)
-            self.critic = Critic(observation_spec, self.scaler.dim, config)
+            self.policy = Policy(observation_spec, self.scaler.dim, config).to(self.device)
+            self.critic = Critic(observation_spec, self.scaler.dim, config).to(self.device)
         self.target_policy = common.frozen_copy(self.policy)
         self.target_critic = common.frozen_copy(self.critic)
         self.modules = {
@@ -140,10 +142,11 @@ class D4PGAgent:
         self.step = 0
 
     def update(self, batch: Transition) -> dict[str, float]:
-        obs = common.to_torch(batch.observation)
-        next_obs = common.to_torch(batch.next_observation)
-        action = self.scaler.to_unit(common.to_torch(batch.action))
-        reward, discount = common.to_torch(batch.reward), common.to_torch(batch.discount)
+        d = self.device
+        obs = common.to_torch(batch.observation, d)
+        next_obs = common.to_torch(batch.next_observation, d)
+        action = self.scaler.to_unit(common.to_torch(batch.action, d))
+        reward, discount = common.to_torch(batch.reward, d), common.to_torch(batch.discount, d)
         atoms = self.critic.head.atoms
         with torch.no_grad():
             target_logits = self.target_critic(next_obs, self.target_policy(next_obs))
@@ -167,7 +170,7 @@ class D4PGAgent:
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
         # Deterministic policy: greedy or not, the action is pi(s) (offline, no exploration).
-        return self.scaler.from_unit(self.policy(common.to_torch(observation)))
+        return self.scaler.from_unit(self.policy(common.to_torch(observation, self.device)))
 
     state_dict = common.state_dict
     load_state_dict = common.load_state_dict

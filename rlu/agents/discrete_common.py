@@ -115,7 +115,7 @@ def check_specs(name: str, observation_spec: Any, action_spec: Any) -> tuple[tup
 
 
 class TorchTransition(NamedTuple):
-    """A :class:`rlu.types.Transition` as CPU tensors (observations stay uint8)."""
+    """A :class:`rlu.types.Transition` as tensors on the agent's device (frames stay uint8)."""
 
     observation: torch.Tensor
     action: torch.Tensor
@@ -125,24 +125,25 @@ class TorchTransition(NamedTuple):
     next_action: torch.Tensor
 
 
-def frames(x: Any, field: str = "observation") -> torch.Tensor:
-    array = np.asarray(x)
-    if array.dtype != np.uint8:
+def frames(x: Any, field: str = "observation", device: torch.device | None = None) -> torch.Tensor:
+    """uint8 frame stacks (numpy, or a tensor the loop prepared) on ``device``."""
+    array = x if isinstance(x, torch.Tensor) else np.asarray(x)
+    if array.dtype not in (np.uint8, torch.uint8):
         raise SpecError(
             f"batch.{field} has dtype {array.dtype}; the discrete agents take uint8 frame stacks "
             "(B, H, W, frames), newest frame last, as the Atari views give them"
         )
-    return common.to_torch(array)
+    return common.to_torch(array, device)
 
 
-def to_torch(batch: Transition) -> TorchTransition:
+def to_torch(batch: Transition, device: torch.device | None = None) -> TorchTransition:
     return TorchTransition(
-        observation=frames(batch.observation),
-        action=common.to_torch(np.asarray(batch.action, np.int64)),
-        reward=common.to_torch(np.asarray(batch.reward, np.float32)),
-        discount=common.to_torch(np.asarray(batch.discount, np.float32)),
-        next_observation=frames(batch.next_observation, "next_observation"),
-        next_action=common.to_torch(np.asarray(batch.next_action, np.int64)),
+        observation=frames(batch.observation, device=device),
+        action=common.to_torch(batch.action, device, "int64"),
+        reward=common.to_torch(batch.reward, device, "float32"),
+        discount=common.to_torch(batch.discount, device, "float32"),
+        next_observation=frames(batch.next_observation, "next_observation", device),
+        next_action=common.to_torch(batch.next_action, device, "int64"),
     )
 
 
@@ -217,19 +218,22 @@ def setup(
     seed: int,
     build: Callable[[tuple[int, ...], int], nn.Module],
     target: bool = True,
+    device: Any = "cpu",
 ) -> None:
     """Give a discrete agent what every discrete agent owns, as attributes: ``config``,
     ``batch_spec`` (from ``config.atari``), ``num_steps``, ``pretrain_steps`` (0), ``step`` (0),
-    ``network`` = ``build(frame shape, number of actions)`` made under the agent's
-    initialisation seed, ``target_network`` (its frozen copy, or None with ``target=False``),
-    ``modules``, ``optimizers`` (one Adam with TF2's epsilon, ``config.learning_rate``) and
-    ``generators`` ('learner' for the loss's draws, 'act' for acting). Seeds are split from
+    ``device`` (``common.device(device)``), ``network`` = ``build(frame shape, number of
+    actions)`` made on the CPU under the agent's initialisation seed and moved to ``device``,
+    ``target_network`` (its frozen copy, or None with ``target=False``), ``modules``,
+    ``optimizers`` (one Adam with TF2's epsilon, ``config.learning_rate``) and ``generators``
+    on the device ('learner' for the loss's draws, 'act' for acting). Seeds are split from
     ``seed`` as (init, learner, act). The agent's own file holds its loss, update and act."""
     shape, num_actions = check_specs(name, observation_spec, action_spec)
     settings: AtariSettings = config.atari
     init_seed, learner_seed, act_seed = common.split_seed(seed, 3)
+    agent.device = common.device(device)
     with common.seeded(init_seed):
-        network = build(shape, num_actions)
+        network = build(shape, num_actions).to(agent.device)
     agent.config, agent.batch_spec = config, settings.batch_spec()
     agent.num_steps, agent.pretrain_steps, agent.step = settings.num_steps, 0, 0
     agent.network, agent.modules = network, {"network": network}
@@ -239,8 +243,8 @@ def setup(
     optimizer = common.adam(network.parameters(), config.learning_rate, settings.adam_eps)
     agent.optimizers = {"network": optimizer}
     agent.generators = {
-        "learner": torch.Generator().manual_seed(learner_seed),
-        "act": torch.Generator().manual_seed(act_seed),
+        "learner": common.generator(learner_seed, agent.device),
+        "act": common.generator(act_seed, agent.device),
     }
 
 
@@ -281,9 +285,9 @@ def epsilon_greedy(scores: torch.Tensor, epsilon: float, generator: torch.Genera
     """argmax of scores (B, A), replaced by a uniform action with probability epsilon. Both
     draws are always made, so the generator advances the same way whatever the outcome."""
     batch, num_actions = scores.shape
-    explore = torch.rand(batch, generator=generator) < epsilon
-    uniform = torch.randint(num_actions, (batch,), generator=generator)
-    return torch.where(explore, uniform, scores.argmax(-1)).numpy().astype(np.int64)
+    explore = torch.rand(batch, generator=generator, device=scores.device) < epsilon
+    uniform = torch.randint(num_actions, (batch,), generator=generator, device=scores.device)
+    return torch.where(explore, uniform, scores.argmax(-1)).cpu().numpy().astype(np.int64)
 
 
 def learn(agent: Any, loss: torch.Tensor) -> int:

@@ -63,16 +63,19 @@ def dqn_loss(network, target_network, batch: dc.TorchTransition, gamma: float,
 
 
 class DQNAgent:
-    def __init__(self, observation_spec, action_spec, config: DQNConfig, seed: int = 0) -> None:
+    def __init__(
+        self, observation_spec, action_spec, config: DQNConfig, seed: int = 0, device="cpu"
+    ) -> None:
         dc.setup(
             self, "dqn", observation_spec, action_spec, config, seed,
             lambda shape, n: dc.QNetwork(shape, n, config.atari),
+            device=device,
         )  # fmt: skip
 
     def update(self, batch: Transition) -> dict[str, float]:
         c = self.config
         loss, metrics = dqn_loss(
-            self.network, self.target_network, dc.to_torch(batch),
+            self.network, self.target_network, dc.to_torch(batch, self.device),
             self.batch_spec.bootstrap_gamma, c.atari.huber_delta, c.double_q,
         )  # fmt: skip
         self.step = dc.learn(self, loss)
@@ -80,7 +83,7 @@ class DQNAgent:
 
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
-        q = self.network(dc.frames(observation))
+        q = self.network(dc.frames(observation, device=self.device))
         return dc.epsilon_greedy(q, dc.epsilon(self.config.atari, greedy), self.generators["act"])
 
     state_dict = common.state_dict

@@ -170,17 +170,20 @@ class GaussianPolicy(nn.Module):
 
 
 class IQLAgent:
-    def __init__(self, observation_spec, action_spec, config: IQLConfig, seed: int = 0):
-        self.config = config
+    def __init__(
+        self, observation_spec, action_spec, config: IQLConfig, seed: int = 0, device="cpu"
+    ):
+        self.config, self.device = config, common.device(device)
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, gamma=config.gamma)
         self.pretrain_steps = 0
         self.num_steps = config.num_steps
-        self.generator = torch.Generator().manual_seed(seed)
+        self.generator = common.generator(seed, self.device)
+        a, d = self.scaler.dim, self.device
         with common.seeded(seed):
-            self.value = ValueNet(observation_spec, config)
-            self.critics = Critics(observation_spec, self.scaler.dim, config)
-            self.policy = GaussianPolicy(observation_spec, self.scaler.dim, config)
+            self.value = ValueNet(observation_spec, config).to(d)
+            self.critics = Critics(observation_spec, a, config).to(d)
+            self.policy = GaussianPolicy(observation_spec, a, config).to(d)
         self.target_critics = common.frozen_copy(self.critics)
         self.modules = {
             "value": self.value, "critics": self.critics, "policy": self.policy,
@@ -195,12 +198,12 @@ class IQLAgent:
         self.step = 0
 
     def update(self, batch: Transition) -> dict[str, float]:
-        c = self.config
-        obs = common.to_torch(batch.observation)
-        next_obs = common.to_torch(batch.next_observation)
-        action = self.scaler.to_unit(common.to_torch(batch.action))
-        reward = common.to_torch(batch.reward) * c.reward_scale
-        discount = common.to_torch(batch.discount)
+        c, d = self.config, self.device
+        obs = common.to_torch(batch.observation, d)
+        next_obs = common.to_torch(batch.next_observation, d)
+        action = self.scaler.to_unit(common.to_torch(batch.action, d))
+        reward = common.to_torch(batch.reward, d) * c.reward_scale
+        discount = common.to_torch(batch.discount, d)
 
         with torch.no_grad():
             q_min = self.target_critics(obs, action).amin(0)
@@ -229,9 +232,10 @@ class IQLAgent:
 
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
-        mean, std = self.policy(common.to_torch(observation))
+        mean, std = self.policy(common.to_torch(observation, self.device))
         if not greedy:
-            mean = mean + std * torch.randn(mean.shape, generator=self.generator)
+            noise = torch.randn(mean.shape, generator=self.generator, device=mean.device)
+            mean = mean + std * noise
         return self.scaler.from_unit(mean)
 
     state_dict = common.state_dict

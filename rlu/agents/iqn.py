@@ -72,7 +72,7 @@ def cosine_tau_embedding(taus: torch.Tensor, embedding_size: int) -> torch.Tenso
     """IQN eq. (4): cos(pi i tau) for i = 0 .. n-1; (..., N) -> (..., N, n).
 
     Dopamine uses i = 1 .. n; we follow the paper (i = 0 is a constant feature, a bias)."""
-    i = torch.arange(embedding_size, dtype=taus.dtype)
+    i = torch.arange(embedding_size, dtype=taus.dtype, device=taus.device)
     return torch.cos(math.pi * taus[..., None] * i)
 
 
@@ -120,11 +120,11 @@ def iqn_loss(network, target_network, batch: dc.TorchTransition, gamma: float,
     """Quantile Huber loss between N online quantiles and N' target quantiles. The next action
     is the argmax of the mean of the target quantiles (Acme's IQN learner); with ``double_q`` it
     is the online network's on the same N' fractions."""
-    size = batch.action.shape[0]
-    taus = torch.rand(size, num_taus, generator=generator)
+    size, device = batch.action.shape[0], batch.action.device
+    taus = torch.rand(size, num_taus, generator=generator, device=device)
     quantiles = _taken_quantiles(network(batch.observation, taus), batch.action)
     with torch.no_grad():
-        taus_next = torch.rand(size, num_taus_next, generator=generator)
+        taus_next = torch.rand(size, num_taus_next, generator=generator, device=device)
         next_quantiles = target_network(batch.next_observation, taus_next)  # (B, N', A)
         if double_q:
             selector = network(batch.next_observation, taus_next).mean(1)
@@ -139,16 +139,19 @@ def iqn_loss(network, target_network, batch: dc.TorchTransition, gamma: float,
 
 
 class IQNAgent:
-    def __init__(self, observation_spec, action_spec, config: IQNConfig, seed: int = 0) -> None:
+    def __init__(
+        self, observation_spec, action_spec, config: IQNConfig, seed: int = 0, device="cpu"
+    ) -> None:
         dc.setup(
             self, "iqn", observation_spec, action_spec, config, seed,
             lambda shape, n: ImplicitQuantileNetwork(shape, n, config.atari, config.embedding_size),
+            device=device,
         )  # fmt: skip
 
     def update(self, batch: Transition) -> dict[str, float]:
         c = self.config
         loss, metrics = iqn_loss(
-            self.network, self.target_network, dc.to_torch(batch),
+            self.network, self.target_network, dc.to_torch(batch, self.device),
             self.batch_spec.bootstrap_gamma, self.generators["learner"],
             c.num_tau_samples, c.num_tau_samples, c.kappa, c.double_q,
         )  # fmt: skip
@@ -157,8 +160,11 @@ class IQNAgent:
 
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
-        frames, generator = dc.frames(observation), self.generators["act"]
-        taus = torch.rand(frames.shape[0], self.config.num_quantile_samples, generator=generator)
+        frames, generator = dc.frames(observation, device=self.device), self.generators["act"]
+        taus = torch.rand(
+            frames.shape[0], self.config.num_quantile_samples, generator=generator,
+            device=self.device,
+        )  # fmt: skip
         q = self.network(frames, taus).mean(1)
         return dc.epsilon_greedy(q, dc.epsilon(self.config.atari, greedy), generator)
 

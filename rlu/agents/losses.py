@@ -21,7 +21,7 @@ def n_step_return(rewards: torch.Tensor, discounts: torch.Tensor, gamma: float):
     n = rewards.shape[-1]
     before = torch.cat([torch.ones_like(discounts[..., :1]), discounts[..., :-1]], -1)
     alive = torch.cumprod(before, -1)  # prod_{j<k} d_j
-    powers = gamma ** torch.arange(n, dtype=rewards.dtype)
+    powers = gamma ** torch.arange(n, dtype=rewards.dtype, device=rewards.device)
     return (rewards * alive * powers).sum(-1), discounts.prod(-1)
 
 

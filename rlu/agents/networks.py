@@ -252,7 +252,7 @@ def mixture_sample(logits, mean, std, generator: torch.Generator, std_override=N
     mu, sd = mean.gather(-2, idx).squeeze(-2), std.gather(-2, idx).squeeze(-2)
     if std_override is not None:
         sd = torch.full_like(sd, std_override)
-    return mu + sd * torch.randn(mu.shape, generator=generator)
+    return mu + sd * torch.randn(mu.shape, generator=generator, device=mu.device)
 
 
 def mixture_mode(logits, mean):
@@ -279,7 +279,7 @@ class ActionScaler:
     def from_unit(self, a: torch.Tensor) -> np.ndarray:
         a = (a.clamp(-1.0, 1.0) + 1.0) * 0.5 * (self.hi - self.lo) + self.lo
         a = a.clamp(self.lo, self.hi)  # float rounding can step just outside the box
-        return a.reshape(*a.shape[:-1], *self.shape).numpy().astype(self.dtype)
+        return a.reshape(*a.shape[:-1], *self.shape).cpu().numpy().astype(self.dtype)
 
 
 def carried_state(state: Any, is_first: Any, obs: Mapping[str, torch.Tensor] | torch.Tensor):
@@ -291,4 +291,5 @@ def carried_state(state: Any, is_first: Any, obs: Mapping[str, torch.Tensor] | t
     if is_first is None:
         return state
     keep = torch.from_numpy(~np.asarray(is_first, bool).reshape(-1))[None, :, None]
+    keep = keep.to(state[0].device)
     return tuple(s * keep for s in state)

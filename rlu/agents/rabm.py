@@ -171,8 +171,10 @@ def mpo_m_step(weights, samples, mean, std, target_mean, target_std, duals, c: R
 
 
 class RABMAgent:
-    def __init__(self, observation_spec, action_spec, config: RABMConfig, seed: int = 0):
-        self.config = config
+    def __init__(
+        self, observation_spec, action_spec, config: RABMConfig, seed: int = 0, device="cpu"
+    ):
+        self.config, self.device = config, common.device(device)
         self.scaler = nets.ActionScaler(action_spec)
         self.pretrain_steps = 0
         self.num_steps = config.num_steps
@@ -183,19 +185,19 @@ class RABMAgent:
             )  # fmt: skip
         else:
             self.batch_spec = BatchSpec(config.batch_size, n_step=config.n_step, gamma=config.gamma)
-        self.generator = torch.Generator().manual_seed(seed)
-        a = self.scaler.dim
+        self.generator = common.generator(seed, self.device)
+        a, d = self.scaler.dim, self.device
         with common.seeded(seed):
-            self.prior = GaussianPolicy(observation_spec, a, config)
-            self.policy = GaussianPolicy(observation_spec, a, config)
-            self.critic = Critic(observation_spec, a, config)
+            self.prior = GaussianPolicy(observation_spec, a, config).to(d)
+            self.policy = GaussianPolicy(observation_spec, a, config).to(d)
+            self.critic = Critic(observation_spec, a, config).to(d)
         self.target_policy = common.frozen_copy(self.policy)
         self.target_critic = common.frozen_copy(self.critic)
         self.duals = nn.ParameterDict({
             "log_temperature": nn.Parameter(torch.tensor(1.0)),
             "log_alpha_mean": nn.Parameter(torch.tensor(1.0)),
             "log_alpha_std": nn.Parameter(torch.tensor(10.0)),
-        })  # fmt: skip
+        }).to(d)  # fmt: skip
         self.optimizers = {
             "prior": common.adam(self.prior.parameters(), config.prior_lr),
             "policy": common.adam(self.policy.parameters(), config.policy_lr),
@@ -203,7 +205,7 @@ class RABMAgent:
             "dual": common.adam(self.duals.parameters(), config.dual_lr),
         }
         act_seed = common.split_seed(seed, 1)[0]
-        self.generators = {"sample": self.generator, "act": torch.Generator().manual_seed(act_seed)}
+        self.generators = {"sample": self.generator, "act": common.generator(act_seed, d)}
         self.modules = {
             "prior": self.prior, "policy": self.policy, "critic": self.critic, "duals": self.duals,
             "target_policy": self.target_policy, "target_critic": self.target_critic,
@@ -222,7 +224,7 @@ class RABMAgent:
     def update(self, batch: Transition | Sequence) -> dict[str, float]:
         c, g = self.config, self.generator
         seq = isinstance(batch, Sequence)
-        b = _Prepared(batch, self.scaler, seq)
+        b = _Prepared(batch, self.scaler, seq, self.device)
         valid = b.valid
         atoms = self.critic.head.atoms
         n = c.num_samples
@@ -235,7 +237,8 @@ class RABMAgent:
         with torch.no_grad():
             # Critic target: the target policy's actions at s', distributions averaged over them.
             t_mean, t_std = self.target_policy.head(feats(self.target_policy, "next"))
-            next_a = (t_mean + t_std * torch.randn((n, *t_mean.shape), generator=g)).clamp(-1, 1)
+            noise = torch.randn((n, *t_mean.shape), generator=g, device=t_mean.device)
+            next_a = (t_mean + t_std * noise).clamp(-1, 1)
             t_logits = self.target_critic.logits(feats(self.target_critic, "next"), next_a)
             t_probs = torch.softmax(t_logits, -1).mean(0)
             values = bootstrap_values(b.reward, b.discount, self.batch_spec.bootstrap_gamma,
@@ -249,9 +252,11 @@ class RABMAgent:
         with torch.no_grad():
             crit_d = crit_h.detach()
             q_data = self.critic.head.mean(self.critic.logits(crit_d, b.action))
-            pi_a = (mean + std * torch.randn((n, *mean.shape), generator=g)).clamp(-1, 1)
+            noise = torch.randn((n, *mean.shape), generator=g, device=mean.device)
+            pi_a = (mean + std * noise).clamp(-1, 1)
             advantage = q_data - self.critic.head.mean(self.critic.logits(crit_d, pi_a)).mean(0)
-            prior_a = prior_mean + prior_std * torch.randn((n, *mean.shape), generator=g)
+            noise = torch.randn((n, *mean.shape), generator=g, device=mean.device)
+            prior_a = prior_mean + prior_std * noise
             prior_a = prior_a.clamp(-1, 1)
             q_prior = self.critic.head.mean(self.critic.logits(crit_d, prior_a))
             tp_mean, tp_std = self.target_policy.head(feats(self.target_policy, "cur"))
@@ -283,13 +288,13 @@ class RABMAgent:
 
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
-        obs = common.to_torch(observation)
+        obs = common.to_torch(observation, self.device)
         state = nets.carried_state(self._rollout_state, is_first, obs)
         h, self._rollout_state = self.policy.torso(obs, state=state)
         mean, std = self.policy.head(h)
         if greedy:
             std = torch.full_like(std, self.config.eval_variance**0.5)
-        noise = torch.randn(mean.shape, generator=self.generators["act"])
+        noise = torch.randn(mean.shape, generator=self.generators["act"], device=mean.device)
         return self.scaler.from_unit(mean + std * noise)
 
     state_dict = common.state_dict
@@ -302,20 +307,21 @@ class RABMAgent:
 class _Prepared:
     """A batch as tensors, flattened to its valid transitions (all of them for Transitions)."""
 
-    def __init__(self, batch, scaler: nets.ActionScaler, seq: bool):
-        self.obs = common.to_torch(batch.observation)
-        action = scaler.to_unit(common.to_torch(batch.action))
-        reward, discount = common.to_torch(batch.reward), common.to_torch(batch.discount)
+    def __init__(self, batch, scaler: nets.ActionScaler, seq: bool, device: torch.device):
+        self.obs = common.to_torch(batch.observation, device)
+        action = scaler.to_unit(common.to_torch(batch.action, device))
+        reward = common.to_torch(batch.reward, device)
+        discount = common.to_torch(batch.discount, device)
         if seq:
-            m = np.asarray(batch.mask)
-            valid = m[:, :-1] & m[:, 1:] & ~np.asarray(batch.is_last)[:, :-1]
-            self.valid = torch.from_numpy(valid.reshape(-1).copy())
+            m = common.to_torch(batch.mask, device)
+            last = common.to_torch(batch.is_last, device)
+            self.valid = (m[:, :-1] & m[:, 1:] & ~last[:, :-1]).reshape(-1)
             action = action[:, :-1].reshape(-1, action.shape[-1])[self.valid]
             reward = reward[:, :-1].reshape(-1)[self.valid]
             discount = discount[:, :-1].reshape(-1)[self.valid]
         else:
             self.valid = None
-            self.next_obs = common.to_torch(batch.next_observation)
+            self.next_obs = common.to_torch(batch.next_observation, device)
         self.action, self.reward, self.discount = action, reward.float(), discount.float()
 
 

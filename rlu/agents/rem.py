@@ -47,9 +47,12 @@ PRESETS: dict[str, REMConfig] = {
 GRID: dict[str, list[Any]] = {"learning_rate": list(dc.LEARNING_RATE_GRID)}
 
 
-def random_convex_weights(num_heads: int, generator: torch.Generator) -> torch.Tensor:
-    """REM's alpha: uniform draws normalised to sum to one (Agarwal et al. 2020, one per batch)."""
-    weights = torch.rand(num_heads, generator=generator)
+def random_convex_weights(
+    num_heads: int, generator: torch.Generator, device: torch.device | None = None
+) -> torch.Tensor:
+    """REM's alpha: uniform draws normalised to sum to one (Agarwal et al. 2020, one per batch),
+    on ``device`` (None: the generator's)."""
+    weights = torch.rand(num_heads, generator=generator, device=device or generator.device)
     return weights / weights.sum()
 
 
@@ -67,17 +70,20 @@ def rem_loss(network, target_network, batch: dc.TorchTransition, gamma: float,
 
 
 class REMAgent:
-    def __init__(self, observation_spec, action_spec, config: REMConfig, seed: int = 0) -> None:
+    def __init__(
+        self, observation_spec, action_spec, config: REMConfig, seed: int = 0, device="cpu"
+    ) -> None:
         dc.setup(
             self, "rem", observation_spec, action_spec, config, seed,
             lambda shape, n: dc.QNetwork(shape, n, config.atari, config.num_heads),
+            device=device,
         )  # fmt: skip
 
     def update(self, batch: Transition) -> dict[str, float]:
         c = self.config
-        alpha = random_convex_weights(c.num_heads, self.generators["learner"])
+        alpha = random_convex_weights(c.num_heads, self.generators["learner"], self.device)
         loss, metrics = rem_loss(
-            self.network, self.target_network, dc.to_torch(batch),
+            self.network, self.target_network, dc.to_torch(batch, self.device),
             self.batch_spec.bootstrap_gamma, alpha, c.atari.huber_delta,
         )  # fmt: skip
         self.step = dc.learn(self, loss)
@@ -85,7 +91,7 @@ class REMAgent:
 
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
-        q = self.network(dc.frames(observation)).mean(1)
+        q = self.network(dc.frames(observation, device=self.device)).mean(1)
         return dc.epsilon_greedy(q, dc.epsilon(self.config.atari, greedy), self.generators["act"])
 
     state_dict = common.state_dict

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from rlu.commands.train import add_device_option
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -32,6 +34,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     p.add_argument("--keep-work", action="store_true", help="keep the per-run parts afterwards")
+    p.add_argument(
+        "--gpus-per-run",
+        type=float,
+        default=0.0,
+        metavar="F",
+        help="Ray: GPUs each run asks for; a fraction shares one (0.25: four runs per GPU)",
+    )
+    add_device_option(p)
     p.set_defaults(func=_run)
 
 
@@ -52,6 +62,8 @@ def _run(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
         keep_work=args.keep_work,
         policy=args.policy,
+        device=args.device,
+        gpus_per_run=args.gpus_per_run,
     )
     from pathlib import Path
 

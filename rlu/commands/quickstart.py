@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import argparse
 
+from rlu.commands.train import add_device_option
+
 DEFAULT_AGENTS = ("bc", "d4pg", "bcq")
 
 
@@ -25,6 +27,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--dataset", default=None, help="another rlu dataset of the same task")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=1, help="torch threads")
+    add_device_option(p)
     p.set_defaults(func=_run)
 
 
@@ -73,6 +76,7 @@ def _run(args: argparse.Namespace) -> int:
         )
     from rlu.data import open_dataset
     from rlu.data.validate import validate
+    from rlu.devices import Runtime
     from rlu.evaluation.rollout import evaluate, task_env_factory
     from rlu.generate.recipe import bundled_dataset
     from rlu.train import TrainConfig, train
@@ -95,6 +99,9 @@ def _run(args: argparse.Namespace) -> int:
         f"p90 {stats['p90']:.1f} max {stats['max']:.1f}; validate: "
         f"{'valid' if report.ok else report.problems}"
     )
+
+    runtime = Runtime(device=args.device)
+    print(f"  device: {runtime.resolve().device}")
 
     env_fn = task_env_factory(task_id)
     action_shape = ds.schema.action.shape
@@ -121,6 +128,7 @@ def _run(args: argparse.Namespace) -> int:
             checkpoint_every=args.steps,
             keep_checkpoints=1,
             torch_threads=args.threads,
+            runtime=runtime,
         )
         result = train(cfg, out / agent, progress=True)
         rows.append(_row(agent, result["final_eval"]["returns"]))

@@ -8,15 +8,71 @@ Defaults chosen by measurement (a 2-core machine shared with other jobs):
 - ``--eval-every``: every ``steps / 10`` steps but at most every ``EVAL_EVERY_MIN`` steps, and
   always at the end. ``steps / 10`` made a 20-step ``rlu train`` of BCQ evaluate 10 times (50
   episodes of 1000 steps; over 5 minutes); now it evaluates once, at the end.
+- ``--device auto``: the first CUDA GPU if PyTorch sees one, else the CPU (docs/devices.md);
+  the device a run used is in its config.json. The library's own default stays ``cpu``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+from typing import Any
 
 EVAL_EVERY_MIN = 10_000
 """Fewest gradient steps between two periodic evaluations of ``rlu train``."""
+
+
+def add_device_option(p: argparse.ArgumentParser) -> None:
+    """``--device``, shared by every command that runs an agent (train, evaluate, sweep,
+    generate, quickstart, report --fqe)."""
+    p.add_argument(
+        "--device",
+        default="auto",
+        metavar="DEVICE",
+        help="auto, cpu, cuda or cuda:N (default auto: the first CUDA GPU if there is one)",
+    )
+
+
+def add_runtime_options(p: argparse.ArgumentParser) -> None:
+    """How training computes (``rlu.devices.Runtime``): device, precision, TF32, compile and
+    the data path."""
+    add_device_option(p)
+    p.add_argument(
+        "--precision",
+        default="fp32",
+        choices=["fp32", "bf16"],
+        help="bf16: updates under bfloat16 autocast (weights and optimiser states stay fp32)",
+    )
+    p.add_argument("--tf32", action="store_true", help="CUDA: TF32 matmuls and convolutions")
+    p.add_argument(
+        "--compile", action="store_true", help="torch.compile the agent's modules (opt-in)"
+    )
+    p.add_argument(
+        "--prefetch",
+        type=int,
+        default=None,
+        metavar="N",
+        help="batches sampled ahead by a background thread (default: 2 on CUDA, 0 on the CPU)",
+    )
+    p.add_argument(
+        "--data-on-device",
+        action="store_true",
+        help="hold the dataset on the device and gather batches there (transition batches)",
+    )
+
+
+def runtime_from_args(args: argparse.Namespace) -> Any:
+    """The ``rlu.devices.Runtime`` of ``add_runtime_options``' flags."""
+    from rlu.devices import Runtime
+
+    return Runtime(
+        device=args.device,
+        precision=args.precision,
+        tf32=args.tf32,
+        compile=args.compile,
+        prefetch=args.prefetch,
+        data_on_device=args.data_on_device,
+    )
 
 
 def _add_run_options(p: argparse.ArgumentParser) -> None:
@@ -73,6 +129,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--tensorboard", action="store_true", help="also log to OUT/tensorboard")
     p.add_argument("--no-progress", action="store_true")
     _add_run_options(p)
+    add_runtime_options(p)
     p.add_argument(
         "overrides",
         nargs="*",
@@ -98,6 +155,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--threads", type=int, default=1, help="torch threads (default 1: small batches per step)"
     )
     p.add_argument("--json", action="store_true", help="print the result as JSON")
+    add_device_option(p)
     p.set_defaults(func=_evaluate)
 
     p = sub.add_parser("sweep", help="tasks x agents x grids x seeds, locally or on Ray")
@@ -129,8 +187,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--backend", default="local", choices=["local", "ray"])
     p.add_argument("--workers", type=int, default=2, help="local pool size")
     p.add_argument("--ray-address", default=None, help="Ray cluster address (default: local)")
+    p.add_argument(
+        "--gpus-per-run",
+        type=float,
+        default=0.0,
+        metavar="F",
+        help="Ray: GPUs each run asks for; a fraction shares one (0.25: four runs per GPU)",
+    )
     p.add_argument("--out", required=True)
     _add_run_options(p)
+    add_runtime_options(p)
     p.set_defaults(func=_sweep)
 
     p = sub.add_parser("report", help="tables and figures of sweeps (Markdown, HTML, PNG)")
@@ -151,6 +217,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="first run offline policy selection by FQE (writes SWEEP_DIR/fqe.json per sweep)",
     )
     p.add_argument("--fqe-steps", type=int, default=2000, help="FQE gradient steps")
+    add_device_option(p)
     p.set_defaults(func=_report)
 
 
@@ -174,6 +241,8 @@ def _run_kwargs(args: argparse.Namespace, periodic_eval: bool = True) -> dict:
 
 
 def _train(args: argparse.Namespace) -> int:
+    import sys
+
     from rlu.train import TrainConfig, parse_overrides, train
 
     config = TrainConfig(
@@ -183,8 +252,10 @@ def _train(args: argparse.Namespace) -> int:
         seed=args.seed,
         overrides=parse_overrides(args.overrides),
         torch_threads=args.threads,
+        runtime=runtime_from_args(args),
         **_run_kwargs(args),
     )
+    print(f"rlu train: {args.agent} on {config.runtime.resolve().device}", file=sys.stderr)
     result = train(
         config,
         args.out,
@@ -207,8 +278,9 @@ def _evaluate(args: argparse.Namespace) -> int:
     torch.set_num_threads(args.threads)
 
     res = evaluate_run(
-        args.run, args.episodes, args.seed, args.envs, args.env, args.max_steps, args.challenge
-    )
+        args.run, args.episodes, args.seed, args.envs, args.env, args.max_steps, args.challenge,
+        device=args.device,
+    )  # fmt: skip
     if args.json:
         print(json.dumps(res.to_json()))
     else:
@@ -252,6 +324,8 @@ def _sweep(args: argparse.Namespace) -> int:
         seeds=tuple(args.seeds),
         grid=grid,
         max_configs=args.max_configs,
+        runtime=runtime_from_args(args),
+        gpus_per_run=args.gpus_per_run,
         **_run_kwargs(args, periodic_eval=False),
     )
     records = sweep(config, args.out, args.backend, args.workers, args.ray_address, progress=True)
@@ -270,7 +344,7 @@ def _report(args: argparse.Namespace) -> int:
         from rlu.runs import fqe_selection
 
         for sweep_dir in args.sweep_dirs:
-            fqe_selection(sweep_dir, FQEConfig(steps=args.fqe_steps))
+            fqe_selection(sweep_dir, FQEConfig(steps=args.fqe_steps), args.device)
     paths = write_report(args.sweep_dirs, args.out)
     for p in paths:
         print(f"wrote {p}")

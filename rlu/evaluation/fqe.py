@@ -6,7 +6,10 @@ transitions, with a target network copied every ``target_period`` steps; the est
 mean of ``Q(s_0, pi(s_0))`` over the dataset's first observations. Observations are flattened
 and concatenated (dict keys in sorted order); discrete actions use one Q head per action,
 continuous actions are an input. The policy is a callable on batched observations, as in
-``rlu.evaluation.rollout``. PyTorch is imported when an estimate is computed.
+``rlu.evaluation.rollout``. PyTorch is imported when an estimate is computed. ``device`` holds
+the whole transition set and the network (the CPU by default); the network is initialised on
+the CPU under ``config.seed`` and the minibatch indices come from numpy, so only the arithmetic
+depends on the device.
 """
 
 from __future__ import annotations
@@ -17,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from rlu.types import DiscreteSpec, Policy, RluError
+from rlu.types import DiscreteSpec, Policy, RluError, resolve_device
 
 
 @dataclass(frozen=True)
@@ -63,6 +66,7 @@ def fqe_estimate(
     policy: Policy,
     action_spec: Any,
     config: FQEConfig = FQEConfig(),
+    device: Any = "cpu",
 ) -> float:
     """FQE estimate of ``policy``'s value at the data's initial observations.
 
@@ -76,6 +80,7 @@ def fqe_estimate(
         raise RluError("FQE needs at least one transition; the dataset is empty")
     discrete = isinstance(action_spec, DiscreteSpec)
     rng = np.random.default_rng(config.seed)
+    dev = resolve_device(device)
 
     obs = torch.from_numpy(_flat(transitions.observation))
     next_obs = torch.from_numpy(_flat(transitions.next_observation))
@@ -98,6 +103,9 @@ def fqe_estimate(
         init_act_t = torch.as_tensor(init_act.astype(np.float32).reshape(len(init), -1))
         in_dim, out_dim = obs.shape[1] + act.shape[1], 1
 
+    obs, next_obs, init, reward, discount, act, next_act_t, init_act_t = (
+        t.to(dev) for t in (obs, next_obs, init, reward, discount, act, next_act_t, init_act_t)
+    )
     # inputs standardised with data statistics (what the network sees is data only)
     mu = obs.mean(0)
     sd = obs.std(0, unbiased=False).clamp_min(1e-6)
@@ -119,14 +127,14 @@ def fqe_estimate(
 
     with torch.random.fork_rng(devices=[]):  # leaves the caller's global torch RNG untouched
         torch.manual_seed(config.seed)
-        net = build()
-        target = build()
+        net = build().to(dev)
+        target = build().to(dev)
     target.load_state_dict(net.state_dict())
     opt = torch.optim.Adam(net.parameters(), lr=config.learning_rate)
     for step in range(config.steps):
         if step % config.target_period == 0:
             target.load_state_dict(net.state_dict())
-        idx = torch.from_numpy(rng.integers(0, n, size=min(config.batch_size, n)))
+        idx = torch.from_numpy(rng.integers(0, n, size=min(config.batch_size, n))).to(dev)
         with torch.no_grad():
             y = reward[idx] + config.gamma * discount[idx] * q_values(
                 target, next_obs[idx], next_act_t[idx]
@@ -156,6 +164,7 @@ def fqe_selection(
     datasets: Mapping[str, str],
     policy_of: Callable[[str], tuple[Policy, Any]],
     config: FQEConfig = FQEConfig(),
+    device: Any = "cpu",
 ) -> dict[str, Any]:
     """Offline policy selection by FQE: per (task, agent), every configuration's policies (one
     per seed, from ``policy_of(run) -> (policy, action_spec)``) are valued by FQE on the task's
@@ -185,7 +194,7 @@ def fqe_selection(
             values = []
             for r in runs:
                 policy, action_spec = policy_of(r["run"])
-                values.append(fqe_estimate(transitions, init, policy, action_spec, config))
+                values.append(fqe_estimate(transitions, init, policy, action_spec, config, device))
             estimates[label] = float(np.mean(values))
             true[label] = float(np.mean([r["score"] for r in runs]))
         selection = select_by_estimate(estimates, true)

@@ -16,7 +16,9 @@ Determinism and resumption: every episode resets the env with a seed derived fro
 ``(seed, run, episode)``, so the env carries no state across episodes; the agent, the replay and
 the actor's random generator are saved after every chunk of episodes (``RunState``), so a run
 resumed from its last chunk produces the same bytes as an uninterrupted one. Torch runs on one
-thread here: reductions then do not depend on the machine's core count.
+thread here: reductions then do not depend on the machine's core count. The agent may live on a
+GPU (``device``); its state is saved device-independently, so a run may resume on another
+device (the bytes then follow that device's arithmetic).
 """
 
 from __future__ import annotations
@@ -213,12 +215,13 @@ def _from_tensors(v: Any) -> Any:
 
 
 # --------------------------------------------------------------------------------- a run
-def _make_agent(task: TaskSpec, cfg: OnlineConfig, seed: int):
+def _make_agent(task: TaskSpec, cfg: OnlineConfig, seed: int, device: Any = "cpu"):
     from rlu.agents import make_agent
 
     return make_agent(
-        cfg.agent, task.observation_spec, task.action_spec, cfg.preset, seed, **cfg.agent_overrides
-    )
+        cfg.agent, task.observation_spec, task.action_spec, cfg.preset, seed, device=device,
+        **cfg.agent_overrides,
+    )  # fmt: skip
 
 
 def _save_atomic(obj: Any, path: Path) -> None:
@@ -242,6 +245,7 @@ def run_online(
     on_episode: Callable[[int, int, Segment], None] | None = None,
     on_chunk: Callable[[int, int], None] | None = None,
     on_snapshot: Callable[[int, Any, list[Segment]], None] | None = None,
+    device: Any = "cpu",
 ) -> None:
     """Play run ``run`` of ``cfg`` (resuming from ``run_dir/state.pt``), handing each finished
     chunk of recorded episodes to ``write_chunk(chunk_index, segments)``, then saving its state
@@ -257,7 +261,7 @@ def run_online(
     torch.set_num_threads(1)
     try:
         run_seed = derive_seed(seed, run)
-        agent = _make_agent(task, cfg, run_seed)
+        agent = _make_agent(task, cfg, run_seed, device)
         batch_size = agent.batch_spec.batch_size
         env = make_env(task.id, seed=run_seed, **cfg.env_settings)
         max_steps = int(cfg.env_settings.get("max_episode_steps", task.episode_length))
@@ -266,7 +270,7 @@ def run_online(
         rng = np.random.default_rng([seed, run, 1])
         episode, env_steps = 0, 0
         if state_path.exists():
-            st = torch.load(state_path, weights_only=True)
+            st = torch.load(state_path, weights_only=True, map_location="cpu")
             if st["done"]:
                 return
             agent.load_state_dict(st["agent"])

@@ -48,6 +48,7 @@ import numpy as np
 
 from rlu.data import DatasetWriter, open_dataset
 from rlu.data.episode import Segment
+from rlu.devices import check_gpus_per_run, check_ray_gpus, ray_options
 from rlu.generate.online import OnlineConfig, run_online
 from rlu.generate.recorder import schema_for
 from rlu.tasks import TaskSpec, get_task
@@ -213,7 +214,7 @@ def _part_path(work: Path, run: int, chunk: int) -> Path:
 
 
 def _run_one(task_id: str, online: OnlineConfig, seed: int, run: int, work: str,
-             on_chunk=None, on_episode=None) -> None:  # fmt: skip
+             on_chunk=None, on_episode=None, device: str = "cpu") -> None:  # fmt: skip
     task = get_task(task_id)
     schema = schema_for(task)
 
@@ -223,7 +224,8 @@ def _run_one(task_id: str, online: OnlineConfig, seed: int, run: int, work: str,
                 w.append(s)
 
     run_dir = Path(work) / f"run_{run:03d}"
-    run_online(task, online, seed, run, run_dir, write_chunk, on_episode, on_chunk)
+    run_online(task, online, seed, run, run_dir, write_chunk, on_episode, on_chunk,
+               device=device)  # fmt: skip
 
 
 def generate(
@@ -237,11 +239,17 @@ def generate(
     on_chunk: Callable[[int, int], None] | None = None,
     keep_work: bool = False,
     policy: str | None = None,
+    device: str = "cpu",
+    gpus_per_run: float = 0.0,
 ) -> Path:
     """Run the recipe (see the module docstring); returns the dataset's path. ``policy``
     ('module:factory', see ``rlu.generate.policy``) records a user policy instead of training
-    the behaviour agent (required for locomotion)."""
+    the behaviour agent (required for locomotion). The behaviour agents learn on ``device``;
+    on Ray each run asks for ``gpus_per_run`` GPUs (a fraction shares one)."""
     task = get_task(task_id)
+    check_gpus_per_run(gpus_per_run)
+    if gpus_per_run and backend != "ray":
+        raise RluError("--gpus-per-run asks Ray for GPUs; use it with --backend ray")
     if policy is not None or task.domain == "locomotion":
         from rlu.generate.policy import generate_with_policy
 
@@ -261,7 +269,7 @@ def generate(
             raise RluError(f"unknown --scale {scale!r}; use one of {', '.join(SCALES)}")
         if backend != "local":
             raise RluError("rwrl generation runs with --backend local only")
-        return generate_rwrl(task, Path(out), scale, runs, seed, progress, keep_work)
+        return generate_rwrl(task, Path(out), scale, runs, seed, progress, keep_work, device)
     sc = get_scale(task, scale)
     runs = sc.runs if runs is None else int(runs)
     if runs < 1:
@@ -306,9 +314,9 @@ def generate(
                    task.id, progress)  # fmt: skip
     if backend == "local":
         for r in range(runs):
-            _run_one(task.id, sc.online, seed, r, str(work), on_chunk, bar.update)
+            _run_one(task.id, sc.online, seed, r, str(work), on_chunk, bar.update, device)
     elif backend == "ray":
-        _run_ray(task.id, sc.online, seed, runs, str(work))
+        _run_ray(task.id, sc.online, seed, runs, str(work), device, gpus_per_run)
     else:
         raise RluError(f"unknown --backend {backend!r}; use 'local' or 'ray'")
     bar.close()
@@ -318,7 +326,8 @@ def generate(
     return path
 
 
-def _run_ray(task_id: str, online: OnlineConfig, seed: int, runs: int, work: str) -> None:
+def _run_ray(task_id: str, online: OnlineConfig, seed: int, runs: int, work: str,
+             device: str = "cpu", gpus_per_run: float = 0.0) -> None:  # fmt: skip
     try:
         import ray
     except ImportError as e:
@@ -329,10 +338,12 @@ def _run_ray(task_id: str, online: OnlineConfig, seed: int, runs: int, work: str
     if started:
         ray.init(ignore_reinit_error=True, log_to_driver=False, include_dashboard=False)
     try:
-        remote = ray.remote(num_cpus=1)(_run_one)
+        check_ray_gpus(ray, gpus_per_run, device)
+        remote = ray.remote(**ray_options(gpus_per_run))(_run_one)
         # Runs share nothing but the work folder, which must be on a filesystem every node sees;
         # each run is a function of (seed, run) alone, so the bytes equal the local backend's.
-        ray.get([remote.remote(task_id, online, seed, r, work) for r in range(runs)])
+        ray.get([remote.remote(task_id, online, seed, r, work, device=device)
+                 for r in range(runs)])  # fmt: skip
     finally:
         if started:
             ray.shutdown()

@@ -62,7 +62,8 @@ def _choose(returns: list[float]) -> tuple[int, float]:
 
 
 def generate_rwrl(task: TaskSpec, out: Path, scale: str, runs: int | None, seed: int,
-                  progress: bool = True, keep_work: bool = False) -> Path:  # fmt: skip
+                  progress: bool = True, keep_work: bool = False,
+                  device: str = "cpu") -> Path:  # fmt: skip
     import torch
 
     from rlu.envs import make_env
@@ -93,7 +94,7 @@ def generate_rwrl(task: TaskSpec, out: Path, scale: str, runs: int | None, seed:
             hist_path = run_dir / "snapshots.pt"
             history: dict[int, Any] = {}
             if hist_path.exists():
-                history = torch.load(hist_path, weights_only=True)
+                history = torch.load(hist_path, weights_only=True, map_location="cpu")
 
             def keep(chunk: int, agent: Any, segs: list, history=history, path=hist_path) -> None:
                 ret = float(np.mean([s.metadata["episode_return"] for s in segs]))
@@ -104,7 +105,7 @@ def generate_rwrl(task: TaskSpec, out: Path, scale: str, runs: int | None, seed:
 
             # the run's own recorded episodes are not part of the RWRL datasets
             run_online(task, online, seed, r, run_dir, lambda c, s: None, bar.update,
-                       on_snapshot=keep)  # fmt: skip
+                       on_snapshot=keep, device=device)  # fmt: skip
             chunks = sorted(history)
             i, converged = _choose([history[c][0] for c in chunks])
             snap = {"chunk": chunks[i], "return": history[chunks[i]][0], "converged": converged,
@@ -112,11 +113,11 @@ def generate_rwrl(task: TaskSpec, out: Path, scale: str, runs: int | None, seed:
             tmp = snap_path.with_name(".snapshot.pt.tmp")
             torch.save(snap, tmp)
             os.replace(tmp, snap_path)
-        snapshots.append(torch.load(snap_path, weights_only=True))
+        snapshots.append(torch.load(snap_path, weights_only=True, map_location="cpu"))
     bar.close()
     agents = []
     for r, snap in enumerate(snapshots):
-        agent = _make_agent(task, online, derive_seed(seed, r))
+        agent = _make_agent(task, online, derive_seed(seed, r), device)
         agent.load_state_dict(snap["agent"])
         agents.append(agent)
 

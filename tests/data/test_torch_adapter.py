@@ -87,3 +87,115 @@ def test_dataloader_passes_are_reproducible_under_a_seeded_generator(cartpole):
     again = _first_batches(cartpole, 5, 0, 2)
     np.testing.assert_array_equal(np.stack(single[1]), np.stack(again[1]))
     assert not np.array_equal(single[0][0], single[1][0])  # a second pass is a new stream
+
+
+# --- the training loop's data path: DeviceSampler and Prefetcher ------------------------------
+def _equal_batches(host, device_batch):
+    for x, y in zip(host, device_batch, strict=True):
+        if isinstance(x, dict):
+            assert x.keys() == y.keys()
+            for k in x:
+                np.testing.assert_array_equal(x[k], y[k].numpy())
+        else:
+            assert isinstance(y, torch.Tensor)
+            np.testing.assert_array_equal(x, y.numpy())
+
+
+@pytest.mark.parametrize(
+    ("task", "encoding"),
+    [("atari/Pong", "raw"), ("atari/Pong", "zlib"), ("control_suite/cartpole_swingup", "raw"),
+     ("locomotion/rodent_gaps", "zlib")],
+)  # fmt: skip
+@pytest.mark.parametrize(
+    "spec", [BatchSpec(16), BatchSpec(16, n_step=3, gamma=0.9, reward_clip=0.5)]
+)
+def test_device_sampler_gives_the_host_samplers_batches(task, encoding, spec, tmp_path):
+    from rlu.data import make_sampler
+    from rlu.data.torch import DeviceSampler
+
+    schema = Schema.for_task(get_task(task), image_encoding=encoding)
+    ds = open_dataset(write_synthetic(tmp_path / "ds", schema, 4, 12, vary_length=True))
+    host, dev = make_sampler(ds, spec, seed=3), DeviceSampler(ds, spec, seed=3, device="cpu")
+    for _ in range(4):
+        _equal_batches(host.sample(), dev.sample())
+    state = host.get_state()
+    assert dev.get_state() == state
+    expected = host.sample()
+    dev.set_state(state)
+    _equal_batches(expected, dev.sample())
+    if schema.frame_stack > 1:  # frames are held once, as stored: the stacks are made by index
+        assert dev.columns[""].shape == (ds.num_frames, 84, 84)
+        assert dev.columns[""].dtype == torch.uint8
+
+
+def test_device_sampler_refuses_a_dataset_that_does_not_fit_and_sequences(tmp_path, monkeypatch):
+    import rlu.data.torch as adapter
+
+    path = write_synthetic(tmp_path / "ds", Schema.for_task(get_task("atari/Pong")), 2, 10)
+    monkeypatch.setattr(adapter, "_free_bytes", lambda device: 100_000)
+    with pytest.raises(adapter.RluError, match=r"GiB free on cpu; drop --data-on-device"):
+        adapter.DeviceSampler(path, BatchSpec(4), device="cpu")
+    monkeypatch.undo()
+    with pytest.raises(adapter.RluError, match="transition batches"):
+        adapter.DeviceSampler(path, BatchSpec(4, "sequence", sequence_length=3), device="cpu")
+
+
+class _Counting:
+    """A sampler stand-in handing out numbered batches (its state: how many were drawn), failing
+    at draw ``fail_at``."""
+
+    def __init__(self, fail_at: int = 0):
+        self.n, self.fail_at = 0, fail_at
+
+    def sample(self):
+        self.n += 1
+        if self.n == self.fail_at:
+            raise ValueError(f"draw {self.n} failed")
+        return (np.full(3, self.n),)
+
+    def get_state(self):
+        return {"drawn": self.n}
+
+
+def _prefetch_threads():
+    import threading
+
+    return [t for t in threading.enumerate() if t.name == "rlu-prefetch"]
+
+
+def test_prefetcher_hands_out_the_samplers_batches_in_order_with_their_state(cartpole):
+    from rlu.data import make_sampler
+    from rlu.data.torch import Prefetcher
+
+    ds = open_dataset(cartpole)
+    reference = make_sampler(ds, BatchSpec(8, n_step=2, gamma=0.9), seed=4)
+    with Prefetcher(make_sampler(ds, BatchSpec(8, n_step=2, gamma=0.9), seed=4), "cpu") as p:
+        for _ in range(6):
+            got, want = p.sample(), reference.sample()
+            np.testing.assert_array_equal(got.reward, want.reward)
+            np.testing.assert_array_equal(got.observation["position"], want.observation["position"])
+            assert p.get_state() == reference.get_state()  # the last batch handed out's
+    assert not _prefetch_threads()
+
+
+def test_prefetcher_raises_the_threads_error_in_order_and_stops():
+    from rlu.data.torch import Prefetcher
+
+    p = Prefetcher(_Counting(fail_at=4), "cpu", depth=2)
+    assert [int(p.sample()[0][0]) for _ in range(3)] == [1, 2, 3]
+    assert p.get_state() == {"drawn": 3}
+    with pytest.raises(ValueError, match="draw 4 failed"):
+        p.sample()
+    assert not _prefetch_threads()
+
+
+def test_prefetcher_closes_while_its_thread_waits_on_a_full_queue():
+    from rlu.data.torch import Prefetcher, prefetched
+
+    sampler = _Counting()
+    with Prefetcher(sampler, "cpu", depth=1) as p:
+        assert int(p.sample()[0][0]) == 1
+        assert _prefetch_threads()
+    assert not _prefetch_threads()
+    with prefetched(sampler, "cpu", 0) as same:
+        assert same is sampler  # depth 0: sampled in line, no thread

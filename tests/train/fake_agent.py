@@ -13,7 +13,7 @@ from collections.abc import Mapping
 import numpy as np
 import torch
 
-from rlu.types import BatchSpec, BoundedSpec
+from rlu.types import BatchSpec, BoundedSpec, resolve_device
 
 
 @dataclasses.dataclass(frozen=True)
@@ -34,16 +34,23 @@ PRESETS = {"small": Config(), "paper": Config(hidden=64)}
 GRID = {"learning_rate": [1e-2, 3e-3]}
 
 
-def _flat(obs) -> torch.Tensor:
+def _flat(obs, device) -> torch.Tensor:
     if isinstance(obs, Mapping):
-        parts = [np.asarray(obs[k], np.float32).reshape(len(obs[k]), -1) for k in sorted(obs)]
-        return torch.from_numpy(np.concatenate(parts, axis=1))
-    return torch.from_numpy(np.asarray(obs, np.float32).reshape(len(obs), -1))
+        parts = [_numpy(obs[k]).reshape(len(obs[k]), -1) for k in sorted(obs)]
+        return torch.from_numpy(np.concatenate(parts, axis=1)).to(device)
+    return torch.from_numpy(_numpy(obs).reshape(len(obs), -1)).to(device)
+
+
+def _numpy(x) -> np.ndarray:  # the loop may hand over tensors (prefetched, or on the device)
+    return (x.cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)).astype(np.float32)
 
 
 class Agent:
-    def __init__(self, observation_spec, action_spec: BoundedSpec, config: Config, seed: int = 0):
-        self.config, self.spec = config, action_spec
+    def __init__(
+        self, observation_spec, action_spec: BoundedSpec, config: Config, seed: int = 0,
+        device="cpu",
+    ):  # fmt: skip
+        self.config, self.spec, self.device = config, action_spec, resolve_device(device)
         self.batch_spec = BatchSpec(config.batch_size)
         self.pretrain_steps = 0
         self.num_steps = config.num_steps
@@ -60,6 +67,7 @@ class Agent:
                 )
             else:
                 self.net = torch.nn.Linear(obs_dim, act_dim)
+        self.net.to(self.device)
         self.opt = torch.optim.Adam(self.net.parameters(), lr=config.learning_rate)
         self.modules = {"net": self.net}
         self.scale = float(action_spec.maximum)
@@ -72,9 +80,9 @@ class Agent:
         self._updates = getattr(self, "_updates", 0) + 1
         if self._updates == int(os.environ.get("RLU_TEST_SIGKILL_AT_UPDATE", "0")):
             os.kill(os.getpid(), signal.SIGKILL)
-        x = _flat(batch.observation)
-        x = x + self.config.input_noise * torch.randn(x.shape, generator=self.gen)
-        target = torch.from_numpy(np.asarray(batch.action, np.float32).reshape(len(x), -1))
+        x = _flat(batch.observation, self.device)
+        x = x + self.config.input_noise * torch.randn(x.shape, generator=self.gen).to(x.device)
+        target = torch.from_numpy(_numpy(batch.action).reshape(len(x), -1)).to(self.device)
         loss = torch.nn.functional.mse_loss(self._forward(x), target)
         self.opt.zero_grad()
         loss.backward()
@@ -83,7 +91,7 @@ class Agent:
 
     def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
         with torch.no_grad():
-            a = self._forward(_flat(observation)).numpy()
+            a = self._forward(_flat(observation, self.device)).cpu().numpy()
         return a.reshape(len(a), *self.spec.shape).astype(self.spec.dtype)
 
     def state_dict(self) -> dict:
