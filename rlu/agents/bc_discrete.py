@@ -60,7 +60,7 @@ class BCAgent:
         )  # fmt: skip
 
     def update(self, batch: Transition) -> dict[str, float]:
-        frames = dc.frames(batch.observation)
+        frames = dc.frames(batch.observation, channels_last=True)
         action = common.to_torch(np.asarray(batch.action, np.int64))
         loss, metrics = bc_loss(self.network(frames), action)
         self.step = common.learn(self.optimizers["network"], loss, self.step)
