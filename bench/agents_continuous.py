@@ -83,9 +83,9 @@ SETTINGS: dict[str, dict] = {
     "d4pg": dict(),
     "brac": dict(behaviour_steps=0),  # time the full update, not the behaviour-cloning phase
     "rabm": dict(hidden_size=256, num_layers=2, batch_size=256, num_samples=10),
-    "crr": dict(hidden_size=256, num_layers=2),
+    "crr": dict(hidden_size=256, num_layers=2),  # the paper's 8 x 1024 as BC's: 256 x 2 here
     "iql": dict(),
-    "cql": dict(),
+    "cql": dict(bc_steps=0),  # time the full update, not the behaviour-cloning phase
 }
 PENDING = ("crr", "iql", "cql")  # written on another branch; run once registered
 
@@ -480,7 +480,183 @@ def minimal_rabm(c, seed: int = 0):
     return update, nn.ModuleList([prior, policy, critic])
 
 
+# The next three mirror rlu/agents/{iql,crr,cql}.py as the agents-cont branch wrote them
+# (commit 010fd57); if their maths changes before they land, these follow.
+
+
+def minimal_iql(c, seed: int = 0):
+    torch.manual_seed(seed)
+    layers = c.hidden_layers
+    value = relu_mlp(OBS_DIM, layers, 1)
+    critics = nn.ModuleList([relu_mlp(OBS_DIM + ACT_DIM, layers, 1) for _ in range(2)])
+    t_critics = frozen(critics)
+    policy = relu_mlp(OBS_DIM, layers, ACT_DIM)
+    log_std = nn.Parameter(torch.zeros(ACT_DIM))
+    opt_v, opt_c = adam(value.parameters(), c.value_lr), adam(critics.parameters(), c.critic_lr)
+    opt_p = adam([*policy.parameters(), log_std], c.actor_lr)
+    steps = [0]
+
+    def update(batch):
+        x, a, r, d, nx = tensors(batch)
+        xa = torch.cat([x, a], -1)
+        with torch.no_grad():
+            q_min = torch.minimum(t_critics[0](xa), t_critics[1](xa)).squeeze(-1)
+        u = q_min - value(x).squeeze(-1)
+        weight = torch.where(u > 0, c.expectile, 1.0 - c.expectile)
+        step(opt_v, (weight * u.pow(2)).mean())
+        with torch.no_grad():
+            adv = q_min - value(x).squeeze(-1)
+            y = r * c.reward_scale + c.gamma * d * value(nx).squeeze(-1)
+        if c.cosine_decay:
+            frac = min(steps[0], c.num_steps) / c.num_steps
+            opt_p.param_groups[0]["lr"] = c.actor_lr * 0.5 * (1.0 + math.cos(math.pi * frac))
+        mean = torch.tanh(policy(x))
+        std = log_std.clamp(c.log_std_min, c.log_std_max).exp().expand_as(mean)
+        w = torch.exp(c.beta * adv).clamp(max=c.max_weight)
+        step(opt_p, -(w * gaussian_log_prob(mean, std, a)).mean())
+        loss_q = sum((q(xa).squeeze(-1) - y).pow(2).mean() for q in critics)
+        step(opt_c, loss_q)
+        lerp_into(t_critics, critics, c.tau)
+        steps[0] += 1
+        return loss_q.item()
+
+    return update, nn.ModuleList([value, critics, policy, nn.ParameterList([log_std])])
+
+
+def sample_mixture(logits, mean, std, num: int, g):
+    """(num, B, A) actions from (B,) mixtures: a component by weight, then Gaussian noise."""
+    probs = torch.softmax(logits, -1)
+    idx = (
+        torch.multinomial(
+            probs.expand(num, *probs.shape).reshape(-1, probs.shape[-1]), 1, generator=g
+        )
+        .reshape(num, -1, 1, 1)
+        .expand(-1, -1, 1, ACT_DIM)
+    )
+    mu = mean.expand(num, *mean.shape).gather(-2, idx).squeeze(-2)
+    sd = std.expand(num, *std.shape).gather(-2, idx).squeeze(-2)
+    return (mu + sd * torch.randn(mu.shape, generator=g)).clamp(-1.0, 1.0)  # fmt: skip
+
+
+def minimal_crr(c, seed: int = 0):
+    torch.manual_seed(seed)
+    g = torch.Generator().manual_seed(seed)
+    k, h = c.mixture_components, c.hidden_size
+    policy = nn.Sequential(ResidualMLP(OBS_DIM, h, c.num_layers),
+                           nn.Linear(h, k * (1 + 2 * ACT_DIM)))  # fmt: skip
+    critic = nn.Sequential(ResidualMLP(OBS_DIM + ACT_DIM, h, c.num_layers),
+                           nn.Linear(h, c.num_atoms))  # fmt: skip
+    t_policy, t_critic = frozen(policy), frozen(critic)
+    atoms = torch.linspace(c.vmin, c.vmax, c.num_atoms)
+    opt_p, opt_c = adam(policy.parameters(), c.policy_lr), adam(critic.parameters(), c.critic_lr)
+    p_params, c_params = list(policy.parameters()), list(critic.parameters())
+    bootstrap = c.gamma
+    steps = [0]
+
+    def q_logits(net, x, a):
+        return net(torch.cat([x.expand(*a.shape[:-1], OBS_DIM), a], -1))
+
+    def q_mean(logits):
+        return (torch.softmax(logits, -1) * atoms).sum(-1)
+
+    def clipped_step(opt, loss, params):
+        opt.zero_grad(set_to_none=True)
+        loss.backward(inputs=params)
+        if c.max_grad_norm > 0:
+            nn.utils.clip_grad_norm_(params, c.max_grad_norm, foreach=True)
+        opt.step()
+
+    def update(batch):
+        x, a, r, d, nx = tensors(batch)
+        with torch.no_grad():
+            na = sample_mixture(*mixture(t_policy(nx), k), c.num_target_samples, g)
+            probs = torch.softmax(q_logits(t_critic, nx, na), -1).mean(0)
+            target = project(r[:, None] + bootstrap * d[:, None] * atoms, probs, atoms)
+        logits = q_logits(critic, x, a)
+        loss_c = -(target * F.log_softmax(logits, -1)).sum(-1).mean()
+        mix = mixture(policy(x), k)
+        with torch.no_grad():
+            sampled = sample_mixture(*mix, c.num_advantage_samples, g)
+            q_samples = q_mean(q_logits(critic, x, sampled))
+            v = q_samples.mean(0) if c.baseline == "mean" else q_samples.amax(0)
+            adv = q_mean(logits) - v
+            if c.advantage_weight == "exp":
+                w = torch.exp(adv / c.beta).clamp(max=c.ratio_upper_bound)
+            else:
+                w = (adv > 0).float()
+        comp = gaussian_log_prob(mix[1], mix[2], a[:, None])
+        log_prob = torch.logsumexp(F.log_softmax(mix[0], -1) + comp, -1)
+        clipped_step(opt_c, loss_c, c_params)
+        clipped_step(opt_p, -(w * log_prob).mean(), p_params)
+        steps[0] += 1
+        if steps[0] % c.target_update_period == 0:
+            copy_into(t_policy, policy)
+            copy_into(t_critic, critic)
+        return loss_c.item()
+
+    return update, nn.ModuleList([policy, critic])
+
+
+def minimal_cql(c, seed: int = 0):
+    """CQL(H) on SAC past its cloning phase (the bench sets ``bc_steps=0``), fixed alpha'."""
+    torch.manual_seed(seed)
+    g = torch.Generator().manual_seed(seed)
+    n = c.num_samples
+    policy = relu_mlp(OBS_DIM, c.policy_layers, 2 * ACT_DIM)
+    critics = nn.ModuleList([relu_mlp(OBS_DIM + ACT_DIM, c.critic_layers, 1) for _ in range(2)])
+    t_critics = frozen(critics)
+    log_alpha = nn.Parameter(torch.zeros(()))
+    opt_p, opt_c = adam(policy.parameters(), c.policy_lr), adam(critics.parameters(), c.critic_lr)
+    opt_alpha = adam([log_alpha], c.alpha_lr)
+    p_params = list(policy.parameters())
+    target_entropy = -float(ACT_DIM) if c.target_entropy is None else c.target_entropy
+    log_uniform = ACT_DIM * math.log(0.5)
+
+    def dist(x):
+        mean, log_std = policy(x).chunk(2, -1)
+        return mean, log_std.clamp(-20.0, 2.0).exp()
+
+    def sample(mean, std, num: int):
+        u = mean + std * torch.randn((num, *mean.shape), generator=g)
+        log_det = 2.0 * (math.log(2.0) - u - F.softplus(-2.0 * u))
+        return torch.tanh(u), gaussian_log_prob(mean, std, u) - log_det.sum(-1)
+
+    def q_both(nets, x, a):
+        sa = torch.cat([x.expand(*a.shape[:-1], OBS_DIM), a], -1)
+        return torch.stack([nets[0](sa).squeeze(-1), nets[1](sa).squeeze(-1)])
+
+    def update(batch):
+        x, a, r, d, nx = tensors(batch)
+        mean, std = dist(x)
+        with torch.no_grad():
+            n_mean, n_std = dist(nx)
+            na, _ = sample(n_mean, n_std, 1)
+            y = r * c.reward_scale + c.gamma * d * q_both(t_critics, nx, na[0]).amin(0)
+            rand_a = torch.rand((n, *a.shape), generator=g) * 2.0 - 1.0
+            curr_a, lp_curr = sample(mean, std, n)
+            next_a, lp_next = sample(n_mean, n_std, n)
+        pi_a, log_pi = sample(mean, std, 1)
+        step(opt_alpha, -(log_alpha * (log_pi[0].detach() + target_entropy)).mean())
+        alpha = log_alpha.detach().exp()
+        step(opt_p, (alpha * log_pi[0] - q_both(critics, x, pi_a[0]).amin(0)).mean(), p_params)
+        q_all = q_both(critics, x, torch.cat([a[None], rand_a, curr_a, next_a]))
+        q_data, q_rand, q_curr, q_next = q_all.split([1, n, n, n], dim=1)
+        logits = torch.cat([q_rand - log_uniform, q_next - lp_next, q_curr - lp_curr], 1)
+        t = c.cql_temperature
+        reg = t * torch.logsumexp(logits / t, 1).mean(-1) - q_data[:, 0].mean(-1)
+        td = (q_data[:, 0] - y).pow(2).mean(1)
+        loss = (td + c.cql_weight * reg).sum()
+        step(opt_c, loss)
+        lerp_into(t_critics, critics, c.tau)
+        return loss.item()
+
+    return update, nn.ModuleList([policy, critics, nn.ParameterList([log_alpha])])
+
+
 MINIMAL = {
+    "iql": minimal_iql,
+    "crr": minimal_crr,
+    "cql": minimal_cql,
     "bc": minimal_bc,
     "bcq": minimal_bcq,
     "d4pg": minimal_d4pg,
@@ -509,9 +685,10 @@ def d3rlpy_buffer(ds):
 
 
 def residual_encoder_factory(hidden: int, layers: int):
-    """A d3rlpy encoder factory building rlu's residual MLP (the same layers as rlu's BC torso)."""
+    """A d3rlpy encoder factory building rlu's residual MLP (the torso of rlu's BC and CRR; with
+    an action, the action joins the observation before it, as in rlu's CRR critic)."""
     from d3rlpy.models.encoders import EncoderFactory
-    from d3rlpy.models.torch import Encoder
+    from d3rlpy.models.torch import Encoder, EncoderWithAction
 
     class ResidualEncoder(Encoder):
         def __init__(self, inp: int):
@@ -521,10 +698,21 @@ def residual_encoder_factory(hidden: int, layers: int):
         def forward(self, x):
             return self.net(x)
 
+    class ResidualEncoderWithAction(EncoderWithAction):
+        def __init__(self, inp: int):
+            super().__init__()
+            self.net = ResidualMLP(inp, hidden, layers)
+
+        def forward(self, x, action):
+            return self.net(torch.cat([x, action], -1))
+
     @dataclasses.dataclass()
     class ResidualEncoderFactory(EncoderFactory):
         def create(self, observation_shape):
             return ResidualEncoder(observation_shape[0])
+
+        def create_with_action(self, observation_shape, action_size, discrete_action=False):
+            return ResidualEncoderWithAction(observation_shape[0] + action_size)
 
         @staticmethod
         def get_type() -> str:
@@ -570,6 +758,9 @@ def d3rlpy_config(name: str, c, same_network: bool = False):
         )  # fmt: skip
     if name == "crr":
         widths = [c.hidden_size] * c.num_layers
+        if same_network:
+            residual = residual_encoder_factory(c.hidden_size, c.num_layers)
+            mlp = lambda _widths: residual  # noqa: E731
         return d3rlpy.algos.CRRConfig(
             actor_learning_rate=c.policy_lr, critic_learning_rate=c.critic_lr,
             batch_size=c.batch_size, gamma=c.gamma, beta=c.beta,
@@ -679,7 +870,17 @@ def main(argv: list[str] | None = None) -> None:
                       "(it runs here once registered)")  # fmt: skip
                 continue
             overrides = SETTINGS[name]
-            if name == "bc":
+            if name == "crr":
+                results["crr (preset)"] = run_agent("crr (preset: mixture, categorical critic; "
+                                                    "d3rlpy: plain MLPs, Gaussian, scalar Q)",
+                                                    name, ds, buffer, args, overrides)  # fmt: skip
+                one = {**overrides, "mixture_components": 1}
+                results["crr (same torso)"] = run_agent(
+                    "crr (same torso: rlu's residual MLPs in d3rlpy, one Gaussian each; critic "
+                    "heads still differ: 21 atoms vs one value)", name, ds, buffer, args, one,
+                    same_network=True,
+                )  # fmt: skip
+            elif name == "bc":
                 results["bc (preset)"] = run_agent("bc (preset: 5-component mixture)", name, ds,
                                                    buffer, args, overrides)  # fmt: skip
                 one = {**overrides, "mixture_components": 1}
