@@ -31,7 +31,8 @@ CQL and CRR run with d3rlpy's vector encoders at rlu's widths. d4pg, brac and ra
 counterpart: rlu and its minimal loop only.
 
 Timing (bench/agents_timing.py): "sample + update" and "update only", updates per CPU-second of
-the process (and wall), median of interleaved rounds, one torch thread unless ``--threads``.
+the process (and wall), one over the median time of an update in many short interleaved rounds,
+one torch thread unless ``--threads``.
 """
 
 from __future__ import annotations
@@ -834,8 +835,8 @@ def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     names = list(SETTINGS)
     p.add_argument("--agents", nargs="+", default=names, choices=names)
-    p.add_argument("--rounds", type=int, default=7, help="interleaved rounds (median counts)")
-    p.add_argument("--block", type=float, default=0.3,
+    p.add_argument("--rounds", type=int, default=30, help="interleaved rounds")
+    p.add_argument("--block", type=float, default=0.05,
                    help="CPU-seconds of updates per contestant per round")  # fmt: skip
     p.add_argument("--warmup", type=int, default=6)
     p.add_argument("--bf16", action="store_true",
@@ -859,7 +860,7 @@ def main(argv: list[str] | None = None) -> None:
             have_d3rlpy = False
             print("d3rlpy is not installed here: rlu and the minimal loops only (bench/README.md)")
     print(f"torch {torch.__version__}, {torch.get_num_threads()} thread(s), {args.rounds} rounds "
-          f"x {args.block:g} CPU-s per contestant (median round); {load_line()}")  # fmt: skip
+          f"x {args.block:g} CPU-s per contestant (median update); {load_line()}")  # fmt: skip
     results = {}
     with tempfile.TemporaryDirectory() as tmp:
         ds = make_data(f"{tmp}/data", episodes=50, length=1000)

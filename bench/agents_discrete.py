@@ -27,7 +27,8 @@ time, 6 actions), written with rlu's writer; every contestant samples the same s
   has no d3rlpy counterpart.
 
 Timing (bench/agents_timing.py): "sample + update" and "update only", updates per CPU-second of
-the process (and wall), median of interleaved rounds, one torch thread unless ``--threads``.
+the process (and wall), one over the median time of an update in many short interleaved rounds,
+one torch thread unless ``--threads``.
 d3rlpy's sampler casts frames to float32 itself, so its "update only" starts from float32 arrays.
 """
 
@@ -489,8 +490,8 @@ def main(argv: list[str] | None = None) -> None:
     names = list(AGENT_SETTINGS)
     p.add_argument("--agents", nargs="+", default=names, choices=names)
     p.add_argument("--batch", type=int, default=32)
-    p.add_argument("--rounds", type=int, default=7, help="interleaved rounds (median counts)")
-    p.add_argument("--block", type=float, default=0.4,
+    p.add_argument("--rounds", type=int, default=30, help="interleaved rounds")
+    p.add_argument("--block", type=float, default=0.05,
                    help="CPU-seconds of updates per contestant per round")  # fmt: skip
     p.add_argument("--warmup", type=int, default=4)
     p.add_argument("--bf16", action="store_true",
@@ -515,7 +516,7 @@ def main(argv: list[str] | None = None) -> None:
             have_d3rlpy = False
             print("d3rlpy is not installed here: rlu and the minimal loops only (bench/README.md)")
     print(f"torch {torch.__version__}, {torch.get_num_threads()} thread(s), batch {args.batch}, "
-          f"{args.rounds} rounds x {args.block:g} CPU-s per contestant (median round); "
+          f"{args.rounds} rounds x {args.block:g} CPU-s per contestant (median update); "
           f"{load_line()}")  # fmt: skip
     results = {}
     with tempfile.TemporaryDirectory() as tmp:

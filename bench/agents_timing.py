@@ -6,11 +6,13 @@ runs one learner step on it. Each contestant is timed two ways in the same run:
 - "sample + update": ``update(sample())``, what a training loop pays per step;
 - "update only": ``update(batch)`` on batches it drew before timing (cycled), the learner alone.
 
-Rounds interleave every (contestant, way) pair in a fresh random order each round, so a burst of
-load from elsewhere on a shared machine hits every contestant alike, and the median round counts.
-Rates are updates per second of process CPU time (one torch thread by default: it equals wall
-time on an idle machine and is far less disturbed by neighbours than the wall clock) and of wall
-time; ratios are of the CPU rates. The load average is printed before and after each agent.
+Many short rounds interleave every (contestant, way) pair in a fresh random order each round, and
+every update is timed on its own: the rate is one over the median time of an update, so a burst
+of load from elsewhere on a shared machine moves a few updates of every contestant, not the
+figure of one. Rates are updates per second of process CPU time (one torch thread by default: it
+equals wall time on an idle machine and is far less disturbed by neighbours than the wall clock)
+and of wall time; ratios are of the CPU rates. The load average is printed before and after each
+agent.
 """
 
 from __future__ import annotations
@@ -47,9 +49,11 @@ def load_line() -> str:
 def time_contestants(
     contestants: dict[str, Contestant], rounds: int, block: float, warmup: int, pool: int = 4
 ) -> dict[str, dict[str, tuple[float, float]]]:
-    """{name: {mode: (median wall updates/s, median updates per CPU-second)}}. Each timed block
-    runs as many updates as take about ``block`` CPU-seconds (sized from the warm-up), so fast
-    and slow learners are timed over comparable stretches."""
+    """{name: {mode: (wall updates/s, updates per CPU-second)}}, from the median time of one
+    update over every update timed. Each round runs every (contestant, way) pair in a fresh
+    random order for about ``block`` CPU-seconds (at least two updates, sized from the
+    warm-up); every update is timed on its own, so a burst of load from elsewhere shifts a few
+    updates of every contestant, not the median of one."""
     updates = {}
     for name, c in contestants.items():
         c.pool = [c.sample() for _ in range(pool)]
@@ -65,19 +69,21 @@ def time_contestants(
     for _ in range(rounds):
         for k in order.permutation(len(pairs)):
             name, mode = pairs[k]
-            c, n = contestants[name], updates[name]
-            w0, c0 = time.perf_counter(), time.process_time()
-            if mode == MODES[0]:
-                for _ in range(n):
+            c, w, t = contestants[name], wall[pairs[k]], cpu[pairs[k]]
+            for i in range(updates[name]):
+                w0, c0 = time.perf_counter(), time.process_time()
+                if mode == MODES[0]:
                     c.update(c.sample())
-            else:
-                for i in range(n):
+                else:
                     c.update(c.pool[i % len(c.pool)])
-            wall[name, mode].append(n / (time.perf_counter() - w0))
-            cpu[name, mode].append(n / max(time.process_time() - c0, 1e-9))
+                t.append(time.process_time() - c0)
+                w.append(time.perf_counter() - w0)
     return {
         name: {
-            mode: (statistics.median(wall[name, mode]), statistics.median(cpu[name, mode]))
+            mode: (
+                1.0 / max(statistics.median(wall[name, mode]), 1e-9),
+                1.0 / max(statistics.median(cpu[name, mode]), 1e-9),
+            )
             for mode in MODES
         }
         for name in contestants
