@@ -3,23 +3,39 @@
 Every module in ``rlu/commands/`` contributes subcommands through ``register(subparsers)``; such
 modules import only the standard library at the top and the library inside their handlers, so
 ``rlu list`` stays a numpy-only command.
+
+Bad input never ends in a traceback: the library raises :class:`~rlu.types.RluError` (the message
+names the file, the field and the fix), and a file the system refuses (permissions, a full disk)
+is an ``OSError``; both print one line. A reader that goes away (``rlu list | head -1``) ends the
+command quietly. Exit codes are ``EXIT_CODES``.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import pkgutil
 import sys
 
 from rlu.types import RluError
+
+EXIT_CODES = {
+    0: "success",
+    1: "rlu validate found problems",
+    2: "bad input or usage (the message says what and how to fix it)",
+    130: "interrupted (Ctrl-C)",
+    141: "the output pipe was closed by its reader (128 + SIGPIPE, as a shell reports it)",
+}
 
 
 def build_parser() -> argparse.ArgumentParser:
     import rlu.commands
 
     parser = argparse.ArgumentParser(
-        prog="rlu", description="RL Unplugged: datasets, environments, baselines, evaluation."
+        prog="rlu",
+        description="RL Unplugged: datasets, environments, baselines, evaluation.",
+        epilog="exit codes: " + "; ".join(f"{k} {v}" for k, v in EXIT_CODES.items()),
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for info in sorted(pkgutil.iter_modules(rlu.commands.__path__), key=lambda m: m.name):
@@ -31,13 +47,40 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        return int(args.func(args) or 0)
+        code = int(args.func(args) or 0)
+        sys.stdout.flush()  # a closed pipe shows here, not in the interpreter's exit
+        return code
+    except BrokenPipeError:
+        _drop_stdout()
+        return 141
     except RluError as e:
-        print(f"rlu: error: {e}", file=sys.stderr)
+        _say(f"rlu: error: {e}")
+        return 2
+    except OSError as e:  # the system refused a file: permissions, a full disk, a missing dir
+        where = f"{e.filename}: " if e.filename else ""
+        _say(f"rlu: error: {where}{e.strerror or e}; check the path and its permissions")
         return 2
     except KeyboardInterrupt:
-        print("rlu: interrupted", file=sys.stderr)
+        _say("rlu: interrupted")
         return 130
+
+
+def _say(line: str) -> None:
+    try:
+        print(line, file=sys.stderr)
+    except OSError:  # stderr closed too: nothing left to tell
+        pass
+
+
+def _drop_stdout() -> None:
+    """Point stdout at /dev/null so that the interpreter's final flush does not fail again."""
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):  # not a real file (captured in tests)
+        return
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, fd)
+    os.close(devnull)
 
 
 if __name__ == "__main__":

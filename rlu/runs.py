@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from rlu.types import ArraySpec, DiscreteSpec, RluError, observation_spec_from_json
+from rlu.types import ArraySpec, DiscreteSpec, FormatError, RluError, observation_spec_from_json
 
 CONFIG = "config.json"
 METRICS = "metrics.jsonl"
@@ -56,6 +56,18 @@ def write_atomic(path: Path, text: str) -> None:
 
 def write_json(path: Path, data: Any) -> None:
     write_atomic(path, json.dumps(data, indent=2) + "\n")
+
+
+def read_json(path: Path) -> Any:
+    """A JSON file rlu wrote (run config, result, sweep config), or a clear error if it is not."""
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise FormatError(
+            f"{path}: not a readable JSON file ({type(e).__name__}: {e}); rlu writes it whole "
+            "(temporary file + rename), so it was damaged or replaced: restore it or rerun the "
+            "command that wrote it into a new folder"
+        ) from None
 
 
 def read_jsonl(path: Path, max_step: int | None = None) -> list[dict[str, Any]]:
@@ -98,18 +110,12 @@ def save_checkpoint(run: Path, step: int, state: Mapping[str, Any], keep: int) -
     return path
 
 
-def load_checkpoint(path: Path) -> dict[str, Any]:
-    """A checkpoint's content, loaded without unpickling anything but tensors and plain data."""
-    import torch
+def load_checkpoint(path: Path, keys: tuple[str, ...] = ("agent",)) -> dict[str, Any]:
+    """A checkpoint's content, loaded without unpickling anything but tensors and plain data;
+    a damaged, empty or planted file is a FormatError naming it (:mod:`rlu.checkpoints`)."""
+    from rlu.checkpoints import load_checkpoint as load
 
-    try:
-        return torch.load(path, weights_only=True)
-    except Exception as e:  # torch raises several types for a damaged or hostile file
-        raise RluError(
-            f"{path}: not a readable rlu checkpoint ({type(e).__name__}); rlu checkpoints hold "
-            "tensors, numbers and dicts only. Delete it to fall back to the previous one, or "
-            "retrain"
-        ) from None
+    return load(path, keys)
 
 
 def load_run(path: str | os.PathLike) -> tuple[dict[str, Any], Path]:
@@ -127,7 +133,7 @@ def load_run(path: str | os.PathLike) -> tuple[dict[str, Any], Path]:
     cfg_path = run / CONFIG
     if not cfg_path.exists():
         raise RluError(f"{cfg_path} is missing; {path} is not an rlu run folder or checkpoint")
-    return json.loads(cfg_path.read_text()), ckpt
+    return read_json(cfg_path), ckpt
 
 
 def build_agent(resolved: Mapping[str, Any]) -> Any:
@@ -199,14 +205,25 @@ def load_sweep_config(sweep_dir: str | os.PathLike) -> dict[str, Any]:
     path = Path(sweep_dir) / SWEEP_CONFIG
     if not path.exists():
         raise RluError(f"{path} is missing; {sweep_dir} is not a sweep folder (rlu sweep --out)")
-    return json.loads(path.read_text())
+    return read_json(path)
 
 
 def load_results(sweep_dir: str | os.PathLike) -> list[dict[str, Any]]:
     path = Path(sweep_dir) / RESULTS
     if not path.exists():
         raise RluError(f"{path} is missing; run the sweep first (rlu sweep ... --out {sweep_dir})")
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    records = []
+    for i, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            records.append(json.loads(line))
+        except json.JSONDecodeError as e:
+            raise FormatError(
+                f"{path}: line {i} is not JSON ({e}); rerun the sweep (it rewrites this file from "
+                "its finished runs)"
+            ) from None
+    return records
 
 
 def write_results(sweep_dir: str | os.PathLike, records: Sequence[Mapping[str, Any]]) -> None:

@@ -133,7 +133,7 @@ def run_one(spec: RunSpec, config: SweepConfig, sys_path: Sequence[str] = ()) ->
 
     run = Path(spec.run_dir)
     if (run / runs.RESULT).exists():
-        result = json.loads((run / runs.RESULT).read_text())
+        result = runs.read_json(run / runs.RESULT)
     else:
         tc = TrainConfig(
             task=spec.task,
@@ -181,7 +181,7 @@ def sweep(
     out.mkdir(parents=True, exist_ok=True)
     cfg_path = out / runs.SWEEP_CONFIG
     wanted = json.loads(json.dumps(config.to_json()))
-    if cfg_path.exists() and json.loads(cfg_path.read_text()) != wanted:
+    if cfg_path.exists() and runs.read_json(cfg_path) != wanted:
         raise RluError(
             f"{cfg_path} was written by a different sweep configuration; use the same arguments "
             "to continue it or choose a new --out"

@@ -173,7 +173,20 @@ def train(
     progress: bool = False,
     tensorboard: bool = False,
 ) -> dict[str, Any]:
-    """Train ``config.agent`` on ``config.dataset``; returns the content of ``result.json``."""
+    """Train ``config.agent`` on ``config.dataset``; returns the content of ``result.json``.
+
+    One process per run folder: a second ``train`` into the same ``out`` fails with "in use by
+    PID N" (:class:`rlu.locks.OutputLock`) while the first lives.
+    """
+    from rlu.locks import OutputLock
+
+    with OutputLock(Path(out), "run folder"):
+        return _train(config, out, resume, progress, tensorboard)
+
+
+def _train(
+    config: TrainConfig, out: str | os.PathLike, resume: bool, progress: bool, tensorboard: bool
+) -> dict[str, Any]:
     import torch
 
     from rlu.agents import agent_module
@@ -200,19 +213,18 @@ def train(
             raise RluError(
                 f"{run} already holds a run; pass --resume to continue it or choose a new --out"
             )
-        old = json.loads((run / runs.CONFIG).read_text())
+        old = runs.read_json(run / runs.CONFIG)
         if old != json.loads(json.dumps(resolved)):
             raise RluError(
                 f"{run}/{runs.CONFIG} was written by a different configuration; resume with the "
                 "same arguments or choose a new --out"
             )
         if (run / runs.RESULT).exists():  # finished: nothing left to do
-            return json.loads((run / runs.RESULT).read_text())
-    run.mkdir(parents=True, exist_ok=True)
-    (run / runs.CHECKPOINTS).mkdir(exist_ok=True)
-    for tmp in run.rglob("*.tmp"):
-        tmp.unlink()
-    runs.write_json(run / runs.CONFIG, resolved)
+            return runs.read_json(run / runs.RESULT)
+    if config.env is None and config.eval_every >= 0:
+        from rlu.tasks import get_task
+
+        get_task(config.task)  # an unknown task fails here, before the run folder is touched
 
     if config.torch_threads:
         torch.set_num_threads(config.torch_threads)
@@ -226,31 +238,41 @@ def train(
 
     start = 0
     if resume and ckpts:
-        state = runs.load_checkpoint(ckpts[-1])
+        state = runs.load_checkpoint(
+            ckpts[-1], ("agent", "sampler", "torch_rng", "numpy_rng", "step")
+        )
         agent.load_state_dict(state["agent"])
         sampler.set_state(state["sampler"])
         torch.set_rng_state(state["torch_rng"])
         alg, keys, pos, has_gauss, cached = state["numpy_rng"]
         np.random.set_state((alg, np.asarray(keys, np.uint32), pos, has_gauss, cached))
         start = int(state["step"])
-    metrics_path, eval_path = run / runs.METRICS, run / runs.EVAL
-    for path in (metrics_path, eval_path):  # drop what was logged after the checkpoint
-        runs.cut_log(path, start)
-
     # resolved before the first step (a missing rlu.envs fails fast); a run that never evaluates
     # needs no env
     env_fn = None
     if config.eval_every >= 0:
         env_fn = task_env_factory(config.task, config.env, **env_kwargs)
-    writer = None
+    summary_writer: Any = None
     if tensorboard:
         try:
             from torch.utils.tensorboard import SummaryWriter
+
+            summary_writer = SummaryWriter
         except ImportError:
             raise RluError(
                 "TensorBoard logging needs the tensorboard package: pip install tensorboard"
             ) from None
-        writer = SummaryWriter(str(run / "tensorboard"))
+
+    # everything that can fail before the first step has run: only now is the run folder written
+    run.mkdir(parents=True, exist_ok=True)
+    (run / runs.CHECKPOINTS).mkdir(exist_ok=True)
+    for tmp in run.rglob("*.tmp"):
+        tmp.unlink()
+    runs.write_json(run / runs.CONFIG, resolved)
+    metrics_path, eval_path = run / runs.METRICS, run / runs.EVAL
+    for path in (metrics_path, eval_path):  # drop what was logged after the checkpoint
+        runs.cut_log(path, start)
+    writer = summary_writer(str(run / "tensorboard")) if summary_writer is not None else None
 
     policy = runs.greedy_policy(agent)
     eval_every = config.eval_every if config.eval_every > 0 else total

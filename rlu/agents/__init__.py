@@ -33,6 +33,10 @@ AGENTS: dict[tuple[str, bool], str] = {
     ("bcq", False): "rlu.agents.bcq",
     ("brac", False): "rlu.agents.brac",
     ("rabm", False): "rlu.agents.rabm",
+    # continuous, beyond the paper
+    ("crr", False): "rlu.agents.crr",
+    ("iql", False): "rlu.agents.iql",
+    ("cql", False): "rlu.agents.cql",
     # discrete (Atari): paper appendix A.2
     ("bc", True): "rlu.agents.bc_discrete",
     ("dqn", True): "rlu.agents.dqn",

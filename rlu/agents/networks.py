@@ -255,6 +255,12 @@ def mixture_sample(logits, mean, std, generator: torch.Generator, std_override=N
     return mu + sd * torch.randn(mu.shape, generator=generator)
 
 
+def mixture_mode(logits, mean):
+    """The mean of the most probable component (a mixture's deterministic action)."""
+    idx = logits.argmax(-1)[..., None, None].expand(*mean.shape[:-2], 1, mean.shape[-1])
+    return mean.gather(-2, idx).squeeze(-2)
+
+
 class ActionScaler:
     """Maps the spec's [minimum, maximum] box to [-1, 1] and back; agents learn in [-1, 1]."""
 

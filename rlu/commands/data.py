@@ -47,6 +47,8 @@ def _validate(args: argparse.Namespace) -> int:
     report = validate(args.path, checksums=not args.no_checksums)
     for c in report.checked:
         print(f"ok   {c}")
+    for n in report.notes:
+        print(f"note {n}")
     for p in report.problems:
         print(f"FAIL {p}")
     print(f"{args.path}: {'valid' if report.ok else f'{len(report.problems)} problem(s)'}")

@@ -22,6 +22,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--cache-dir", help="cache directory (default: $RLU_CACHE_DIR or ~/.cache/rlu)")
     p.add_argument("--workers", type=int, default=4, help="parallel downloads")
     p.add_argument("--retries", type=int, default=5)
+    p.add_argument(
+        "--timeout",
+        type=float,
+        default=30.0,
+        help="seconds a connection may stay silent before the attempt fails (default 30)",
+    )
+    p.add_argument(
+        "--allow-redirects",
+        action="store_true",
+        help="follow redirects to other hosts (a mirror behind a CDN); same-host ones always are",
+    )
     p.add_argument("--list", action="store_true", help="print the URLs and exit")
     p.set_defaults(func=_download)
 
@@ -63,14 +74,22 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _download(args: argparse.Namespace) -> int:
     from rlu.data.release import catalog
     from rlu.data.release.download import Downloader
+    from rlu.types import RluError
 
     sel = catalog.select(args.task, args.family, args.run, args.challenge, args.size, args.shards)
     if args.list:
         for u in sel.urls(args.base_url):
             print(u)
         return 0
+    if args.timeout <= 0 or args.workers < 1 or args.retries < 0:
+        raise RluError("--timeout must be > 0, --workers >= 1 and --retries >= 0")
     d = Downloader(
-        cache_dir=args.cache_dir, base_url=args.base_url, workers=args.workers, retries=args.retries
+        cache_dir=args.cache_dir,
+        base_url=args.base_url,
+        workers=args.workers,
+        retries=args.retries,
+        timeout=args.timeout,
+        allow_redirects=args.allow_redirects,
     )
     got = d.fetch(sel.objects)
     reused = sum(f.reused for f in got)

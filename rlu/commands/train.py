@@ -133,13 +133,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     _add_run_options(p)
     p.set_defaults(func=_sweep)
 
-    p = sub.add_parser("report", help="tables and figures of a sweep (Markdown, HTML, PNG)")
-    p.add_argument("sweep_dir", metavar="SWEEP_DIR")
-    p.add_argument("--out", default=None, help="report folder (default: SWEEP_DIR/report)")
+    p = sub.add_parser("report", help="tables and figures of sweeps (Markdown, HTML, PNG)")
+    p.add_argument(
+        "sweep_dirs",
+        nargs="+",
+        metavar="SWEEP_DIR",
+        help="one or more sweep folders, reported together (e.g. an Atari and a control sweep)",
+    )
+    p.add_argument(
+        "--out",
+        default=None,
+        help="report folder (default: SWEEP_DIR/report; required with several sweeps)",
+    )
     p.add_argument(
         "--fqe",
         action="store_true",
-        help="first run offline policy selection by FQE (writes SWEEP_DIR/fqe.json)",
+        help="first run offline policy selection by FQE (writes SWEEP_DIR/fqe.json per sweep)",
     )
     p.add_argument("--fqe-steps", type=int, default=2000, help="FQE gradient steps")
     p.set_defaults(func=_report)
@@ -252,13 +261,17 @@ def _sweep(args: argparse.Namespace) -> int:
 
 def _report(args: argparse.Namespace) -> int:
     from rlu.evaluation.report import write_report
+    from rlu.types import RluError
 
+    if args.out is None and len(args.sweep_dirs) > 1:
+        raise RluError(f"{len(args.sweep_dirs)} sweep folders: pass --out for the report folder")
     if args.fqe:
         from rlu.evaluation.fqe import FQEConfig
         from rlu.runs import fqe_selection
 
-        fqe_selection(args.sweep_dir, FQEConfig(steps=args.fqe_steps))
-    paths = write_report(args.sweep_dir, args.out)
+        for sweep_dir in args.sweep_dirs:
+            fqe_selection(sweep_dir, FQEConfig(steps=args.fqe_steps))
+    paths = write_report(args.sweep_dirs, args.out)
     for p in paths:
         print(f"wrote {p}")
     return 0

@@ -41,54 +41,72 @@ from typing import Any
 import numpy as np
 
 from rlu.data.episode import Segment, make_episode
+from rlu.data.foreign import (
+    finite_array,
+    flag_array,
+    h5_array,
+    h5_check,
+    open_hdf5,
+    real_array,
+)
 from rlu.data.store import DatasetWriter, Schema
-from rlu.types import FormatError, RluError, install_hint
+from rlu.types import FormatError, RluError
 
 SUPPORTED_VERSIONS = ("2.1",)
 
 
 def d3rlpy_segments(path: str | os.PathLike) -> Iterator[Segment]:
     """The episodes of a d3rlpy dump as whole-episode segments (see the module docstring)."""
-    try:
-        import h5py
-    except ImportError:
-        raise RluError(f"reading d3rlpy dumps needs h5py: {install_hint('interop')}") from None
     path = Path(path)
-    try:
-        f = h5py.File(path, "r")
-    except OSError as e:
-        raise FormatError(
-            f"{path}: not an HDF5 file ({e}); give a file from d3rlpy's dump()"
-        ) from None
-    with f:
+    if not path.is_file():
+        raise RluError(f"{path}: no such file; give a file from d3rlpy's dump()")
+    with open_hdf5(path, "a file from d3rlpy's dump()") as f:
         for key in ("version", "columns", "num_episodes"):
             if key not in f:
                 raise FormatError(
                     f"{path}: no {key!r} entry; not a d3rlpy dump (MDPDataset.dump writes "
                     "version, columns, num_episodes)"
                 )
-        version = f["version"][()]
+        version = _small(f, "version", path)
         version = version.decode() if isinstance(version, bytes) else str(version)
         if version not in SUPPORTED_VERSIONS:
             raise FormatError(
                 f"{path}: field 'version' is {version!r}; rlu reads d3rlpy dump version(s) "
                 f"{SUPPORTED_VERSIONS}: re-dump with d3rlpy >= 2.1"
             )
-        columns = [c.decode() if isinstance(c, bytes) else str(c) for c in f["columns"][()]]
+        raw_columns = _small(f, "columns", path)
+        columns = [c.decode() if isinstance(c, bytes) else str(c) for c in np.ravel(raw_columns)]
         for need in ("observations", "actions", "rewards", "terminated"):
             if need not in columns:
                 raise FormatError(f"{path}: column {need!r} missing from 'columns' {columns}")
-        for i in range(int(f["num_episodes"][()])):
+        num = np.asarray(h5_array(f["num_episodes"], path, "num_episodes"))
+        if num.size != 1 or num.dtype.kind not in "iu" or not 0 <= int(num.reshape(())) < 1 << 40:
+            raise FormatError(f"{path}: 'num_episodes' is {num!r}; a count of episodes")
+        for i in range(int(num.reshape(()))):
             yield _episode(f, i, path)
+
+
+def _small(f: Any, key: str, path: Path) -> Any:
+    """A header entry (version, columns) of a few values, checked before it is read."""
+    import h5py
+
+    obj = f[key]
+    if not isinstance(obj, h5py.Dataset) or obj.size is None or obj.size > 64:
+        raise FormatError(f"{path}: entry {key!r} is not a short list; not a d3rlpy dump")
+    h5_check(obj, path, key, numeric=False)
+    try:
+        return obj[()]
+    except (OSError, ValueError, TypeError) as e:
+        raise FormatError(f"{path}: entry {key!r} cannot be read ({e})") from None
 
 
 def _read(f: Any, key: str, i: int, path: Path) -> Any:
     name = f"{key}_{i}"
     if name in f:
-        return f[name][()]
+        return h5_array(f[name], path, name)
     parts = []
     while f"{name}_{len(parts)}" in f:
-        parts.append(f[f"{name}_{len(parts)}"][()])
+        parts.append(h5_array(f[f"{name}_{len(parts)}"], path, f"{name}_{len(parts)}"))
     if not parts:
         raise FormatError(f"{path}: episode {i} has no {name!r} entry")
     return tuple(parts)
@@ -98,13 +116,18 @@ def _episode(f: Any, i: int, path: Path) -> Segment:
     obs = _read(f, "observations", i, path)
     if isinstance(obs, tuple):
         raise FormatError(f"{path}: episode {i} has tuple observations; rlu stores one array")
-    actions = np.asarray(_read(f, "actions", i, path))
-    rewards = np.asarray(_read(f, "rewards", i, path), np.float32).reshape(-1)
-    terminated = bool(np.asarray(_read(f, "terminated", i, path)).reshape(()))
+    where = f"{path}: episode {i}"
+    actions = real_array(_read(f, "actions", i, path), "actions", where)
+    rewards = finite_array(_read(f, "rewards", i, path), "rewards", where).reshape(-1)
+    terminated = flag_array(_read(f, "terminated", i, path), "terminated", where)
+    if terminated.size != 1:
+        raise FormatError(f"{where}: 'terminated' holds {terminated.size} values; want one")
+    terminated = bool(terminated[0])
     t = len(rewards)
-    if len(obs) != t or len(actions) != t:
+    if obs.ndim == 0 or actions.ndim == 0 or len(obs) != t or len(actions) != t:
         raise FormatError(
-            f"{path}: episode {i} has {len(obs)} observations, {len(actions)} actions, {t} rewards"
+            f"{where}: {np.shape(obs)[:1]} observations, {np.shape(actions)[:1]} actions, {t} "
+            "rewards; want one of each per step"
         )
     if t == 0:
         raise FormatError(f"{path}: episode {i} is empty")
@@ -130,7 +153,7 @@ def import_d3rlpy(
     hold single frames (d3rlpy's default) or stacked ones (see the module docstring); both are
     stored back as single frames.
     """
-    from rlu.data.d4rl import _cast, split_flat
+    from rlu.data.d4rl import append_checked, split_flat
     from rlu.tasks import get_task
 
     task = get_task(task_id)
@@ -146,7 +169,7 @@ def import_d3rlpy(
             if schema.frame_stack > 1:
                 frame = schema.observation.shape  # one frame; the store keeps k
                 seg = _unstack_segment(seg, schema.frame_stack, f"{src}: episode {i}", frame)
-            w.append(_cast(seg, schema, i))
+            append_checked(w, seg, schema, i, str(src))
     return Path(dest)
 
 

@@ -37,9 +37,19 @@ from typing import Any
 import numpy as np
 
 from rlu.data.episode import Segment, make_episode
+from rlu.data.foreign import (
+    finite_array,
+    fits,
+    flag_array,
+    read_hdf5,
+    read_npz,
+    real_array,
+    rows,
+)
 from rlu.data.store import Dataset, DatasetWriter, Schema
+from rlu.data.store.schema import action_problem
 from rlu.data.views import TransitionView
-from rlu.types import ArraySpec, FormatError, RluError, install_hint
+from rlu.types import ArraySpec, FormatError, RluError, SpecError, install_hint
 
 REQUIRED = ("actions", "rewards", "terminals", "timeouts")
 
@@ -149,13 +159,15 @@ def _require_h5py(what: str) -> Any:
     return h5py
 
 
-def _split_obs(d: Mapping[str, np.ndarray], prefix: str) -> Any:
+def _split_obs(d: Mapping[str, np.ndarray], prefix: str, n: int, where: str) -> Any:
+    """The ``prefix`` observations (one array, or ``prefix/<key>`` arrays), one real row per
+    step."""
     if prefix in d:
-        return np.asarray(d[prefix])
+        return rows(real_array(d[prefix], prefix, where), prefix, where, n)
     keys = {k[len(prefix) + 1 :]: k for k in d if k.startswith(prefix + "/")}
     if not keys:
-        raise FormatError(f"no {prefix!r} array and no '{prefix}/<key>' arrays")
-    return {k: np.asarray(d[full]) for k, full in keys.items()}
+        raise FormatError(f"{where}: no {prefix!r} array and no '{prefix}/<key>' arrays")
+    return {k: rows(real_array(d[full], full, where), full, where, n) for k, full in keys.items()}
 
 
 def _rows(obs: Any, sl: slice | np.ndarray) -> Any:
@@ -164,30 +176,45 @@ def _rows(obs: Any, sl: slice | np.ndarray) -> Any:
     return obs[sl]
 
 
-def _step_columns(d: Mapping[str, np.ndarray]) -> tuple[np.ndarray, ...]:
-    """actions, rewards, terminals, timeouts of a D4RL dict, checked to have one row each."""
-    actions = np.asarray(d["actions"])
-    rewards = np.asarray(d["rewards"], np.float32).reshape(-1)
-    terminals = np.asarray(d["terminals"]).astype(bool).reshape(-1)
-    timeouts = np.asarray(d["timeouts"]).astype(bool).reshape(-1)
+def _step_columns(d: Mapping[str, np.ndarray], where: str) -> tuple[np.ndarray, ...]:
+    """actions, rewards, terminals, timeouts of a D4RL dict: real numbers, finite rewards, flags
+    of 0 or 1, one row each (at least one)."""
+    rewards = finite_array(d["rewards"], "rewards", where)
+    if rewards.ndim == 2 and rewards.shape[1] == 1:
+        rewards = rewards[:, 0]  # (n, 1), as d3rlpy and some D4RL copies store them
+    if rewards.ndim != 1:
+        raise FormatError(f"{where}: 'rewards' has shape {rewards.shape}; one reward per row")
     n = len(rewards)
-    for name, arr in (("actions", actions), ("terminals", terminals), ("timeouts", timeouts)):
-        if len(arr) != n:
-            raise FormatError(f"array {name!r} has {len(arr)} rows, 'rewards' has {n}")
+    if n == 0:
+        raise FormatError(f"{where}: 'rewards' has no rows; there is nothing to import")
+    actions = rows(real_array(d["actions"], "actions", where), "actions", where, n)
+    terminals = rows(flag_array(d["terminals"], "terminals", where), "terminals", where, n)
+    timeouts = rows(flag_array(d["timeouts"], "timeouts", where), "timeouts", where, n)
     return actions, rewards, terminals, timeouts
 
 
-def d4rl_segments(d: Mapping[str, np.ndarray], frame_stack: int = 1) -> list[Segment]:
+def d4rl_segments(
+    d: Mapping[str, np.ndarray], frame_stack: int = 1, where: str = "D4RL dict"
+) -> list[Segment]:
     """Cut a D4RL-style dict into whole episodes (see the module docstring)."""
     missing = [k for k in REQUIRED if k not in d]
     if missing:
-        raise FormatError(f"missing array(s) {missing}; a D4RL dict has {', '.join(REQUIRED)}")
-    obs = _split_obs(d, "observations")
-    if "next_observations" not in d and not any(k.startswith("next_observations/") for k in d):
-        return _segments_without_next(d, obs, frame_stack)
-    nxt = _split_obs(d, "next_observations")
-    actions, rewards, terminals, timeouts = _step_columns(d)
+        raise FormatError(
+            f"{where}: missing array(s) {missing}; a D4RL dict has {', '.join(REQUIRED)}"
+        )
+    actions, rewards, terminals, timeouts = _step_columns(d, where)
     n = len(rewards)
+    obs = _split_obs(d, "observations", n, where)
+    if "next_observations" not in d and not any(k.startswith("next_observations/") for k in d):
+        return _segments_without_next(obs, actions, rewards, terminals, timeouts, frame_stack)
+    nxt = _split_obs(d, "next_observations", n, where)
+    if isinstance(obs, dict) != isinstance(nxt, dict) or (
+        isinstance(obs, dict) and set(obs) != set(nxt)
+    ):
+        raise FormatError(f"{where}: 'observations' and 'next_observations' differ in their keys")
+    pairs = [(obs[k], nxt[k]) for k in obs] if isinstance(obs, dict) else [(obs, nxt)]
+    if any(a.shape != b.shape for a, b in pairs):
+        raise FormatError(f"{where}: 'observations' and 'next_observations' differ in shape")
     ends = terminals | timeouts
     if n > 1:
         # a row whose successor does not continue from its next observation ends an episode
@@ -213,8 +240,11 @@ def d4rl_segments(d: Mapping[str, np.ndarray], frame_stack: int = 1) -> list[Seg
             ep_obs = np.concatenate([o, last_next])
         prefix = None
         if frame_stack > 1:  # stacked Atari observations -> frames stored once
-            if isinstance(ep_obs, dict):
-                raise FormatError("frame-stacked import needs a single 'observations' array")
+            if isinstance(ep_obs, dict) or ep_obs.ndim < 2 or ep_obs.shape[-1] != frame_stack:
+                raise FormatError(
+                    f"{where}: frame-stacked import needs one 'observations' array of stacks "
+                    f"(..., {frame_stack}), newest frame last"
+                )
             prefix = np.moveaxis(ep_obs[0, ..., : frame_stack - 1], -1, 0)
             ep_obs = ep_obs[..., -1]
         segments.append(
@@ -226,13 +256,17 @@ def d4rl_segments(d: Mapping[str, np.ndarray], frame_stack: int = 1) -> list[Seg
 
 
 def _segments_without_next(
-    d: Mapping[str, np.ndarray], obs: Any, frame_stack: int
+    obs: Any,
+    actions: np.ndarray,
+    rewards: np.ndarray,
+    terminals: np.ndarray,
+    timeouts: np.ndarray,
+    frame_stack: int,
 ) -> list[Segment]:
     """Files without ``next_observations`` (several of D4RL's, AntMaze among them): cut at
     terminals and timeouts only, and read as d3rlpy does: after a terminal the final observation is
     zeros;
     a timeout row (or a trailing run) holds the final observation, its action and reward unused."""
-    actions, rewards, terminals, timeouts = _step_columns(d)
     n = len(rewards)
     if frame_stack > 1:
         raise FormatError("frame-stacked import needs 'next_observations'")
@@ -267,6 +301,8 @@ def import_d4rl(
     task = get_task(task_id)
     if isinstance(src, (str, os.PathLike)):
         path = Path(src)
+        if not path.is_file():
+            raise RluError(f"{path}: no such file; give a D4RL .npz or .hdf5 file")
         if path.suffix == ".npz":
             data = _read_npz(path)
         elif path.suffix.lower() in HDF5_SUFFIXES:
@@ -275,12 +311,13 @@ def import_d4rl(
             raise RluError(f"{path}: unknown D4RL file type; give a .npz or .hdf5 file")
     else:
         data = dict(src)
+    where = str(src) if not isinstance(src, Mapping) else "D4RL dict"
     schema = Schema.for_task(task)
     if task.domain == "rwrl" and "observations/dummy-0" in data:
         from rlu.tasks import rwrl_observation_spec
 
         schema = Schema.for_task(task, observation=rwrl_observation_spec(task, "easy"))
-    segments = d4rl_segments(data, frame_stack=schema.frame_stack)
+    segments = d4rl_segments(data, frame_stack=schema.frame_stack, where=where)
     prov = {"source": "d4rl", "file": str(src) if not isinstance(src, Mapping) else None}
     prov.update(provenance or {})
     with DatasetWriter(dest, schema, prov) as w:
@@ -288,43 +325,55 @@ def import_d4rl(
             if isinstance(schema.observation, Mapping) and not isinstance(seg.observation, Mapping):
                 obs = split_flat(seg.observation, schema.observation, f"{src}: 'observations'")
                 seg = dataclasses.replace(seg, observation=obs)
-            w.append(_cast(seg, schema, i))
+            append_checked(w, seg, schema, i, where)
     return Path(dest)
 
 
 def _read_npz(path: Path) -> dict[str, np.ndarray]:
     """The arrays of an .npz file; object arrays (pickles) are refused, never unpickled."""
+    return read_npz(path)
+
+
+def append_checked(w: DatasetWriter, seg: Segment, schema: Schema, index: int, where: str) -> None:
+    """Append imported episode ``index`` of ``where`` after :func:`_cast`; the writer's own
+    refusals name the source file and the episode too."""
+    seg = _cast(seg, schema, index, where)
     try:
-        with np.load(path, allow_pickle=False) as z:
-            if not hasattr(z, "files"):
-                raise FormatError(f"{path}: a single .npy array, not an .npz archive of arrays")
-            data = {}
-            for k in z.files:
-                try:
-                    data[k] = z[k]
-                except ValueError as e:
-                    raise FormatError(
-                        f"{path}: array {k!r} holds Python objects, which only a pickle can "
-                        f"load ({e}); rlu never unpickles: save it as a numeric array"
-                    ) from None
-            return data
-    except (ValueError, OSError) as e:  # np.load refuses a pickle file outright
-        raise FormatError(
-            f"{path}: not an .npz archive of numeric arrays ({e}); rlu never unpickles data: "
-            "write it with numpy.savez"
-        ) from None
+        w.append(seg)
+    except SpecError as e:
+        raise SpecError(f"{where}: episode {index}: {e}") from None
 
 
-def _cast(seg: Segment, schema: Schema, index: int) -> Segment:
-    def cast(v: np.ndarray, spec: ArraySpec) -> np.ndarray:
-        return np.asarray(v).astype(spec.dtype, copy=False).reshape(len(v), *spec.shape)
+def _cast(seg: Segment, schema: Schema, index: int, where: str = "") -> Segment:
+    """``seg``'s observations and actions in the schema's dtypes and shapes, refused where a
+    value would not survive the cast or an action lies outside the action space."""
+    where = f"{where}: episode {index}" if where else f"episode {index}"
+
+    def cast(v: np.ndarray, spec: ArraySpec, name: str) -> np.ndarray:
+        v = fits(v, spec.dtype, name, where)
+        if v.ndim == 0 or v[0].size != spec.size:
+            raise SpecError(
+                f"{where}: {name} has per-step shape {v.shape[1:]}; the task wants {spec.shape}"
+            )
+        return v.reshape(len(v), *spec.shape)
 
     if isinstance(schema.observation, ArraySpec):
-        obs = cast(seg.observation, schema.observation)
+        if isinstance(seg.observation, Mapping):
+            raise SpecError(f"{where}: dict observations; the task stores one array")
+        obs = cast(seg.observation, schema.observation, "observations")
     else:
         spec = schema.observation
-        obs = {k: cast(v, spec[k]) if k in spec else v for k, v in seg.observation.items()}
-    action = cast(seg.action, schema.action)
+        if not isinstance(seg.observation, Mapping):
+            raise SpecError(f"{where}: one observation array; the task stores a dict")
+        obs = {
+            k: cast(v, spec[k], f"observations/{k}") if k in spec else v
+            for k, v in seg.observation.items()
+        }
+    action = cast(seg.action, schema.action, "actions")
+    live = ~np.asarray(seg.is_last, bool)  # a final step's action is a placeholder
+    bad = action_problem(schema.action, action[live])
+    if bad is not None:
+        raise SpecError(f"{where}: step {int(np.flatnonzero(live)[bad[0]])}: {bad[1]}")
     meta = {**seg.metadata, "episode_index": index}
     return dataclasses.replace(seg, observation=obs, action=action, metadata=meta)
 
@@ -343,17 +392,10 @@ def split_flat(obs: np.ndarray, spec: Mapping[str, Any], where: str) -> dict[str
 
 
 def _read_hdf5(path: Path) -> dict[str, np.ndarray]:
-    h5py = _require_h5py("reading D4RL .hdf5 files")
-    out: dict[str, np.ndarray] = {}
-    try:
-        f = h5py.File(path, "r")
-    except OSError as e:
-        raise FormatError(f"{path}: not an HDF5 file ({e}); give D4RL's .hdf5 or an .npz") from None
-    with f:
+    """The step arrays of a D4RL .hdf5 file (``infos/`` and ``metadata/`` are never read)."""
 
-        def visit(name: str, obj: Any) -> None:
-            if isinstance(obj, h5py.Dataset):
-                out[name] = obj[()]
+    def want(name: str) -> bool:
+        top = name.split("/", 1)[0]
+        return top in ("observations", "next_observations") or name in REQUIRED
 
-        f.visititems(visit)
-    return out
+    return read_hdf5(path, want, "D4RL's .hdf5 or an .npz")

@@ -52,6 +52,7 @@ from typing import Any
 import numpy as np
 
 from rlu.data.episode import METADATA_FIELDS, Segment, make_episode
+from rlu.data.foreign import finite_array, fits, flag_array, h5_check, open_hdf5, real_array
 from rlu.data.store import Dataset, DatasetWriter, Schema
 from rlu.types import (
     ArraySpec,
@@ -431,44 +432,160 @@ class _datasets_root:
 
 
 # --- import -----------------------------------------------------------------------------------
+MAX_METADATA_BYTES = 16 << 20
+
+
+def _check_metadata(data: Path) -> None:
+    """Refuse a Minari ``metadata.json`` that Minari itself would trip on, or act on, unsafely.
+
+    Minari builds an env from ``env_spec`` (``gym.make``: any entry point, so any code) when the
+    spaces are missing, and allocates ``arange(total_episodes)`` before reading an episode; rlu
+    insists on serialised spaces and on an episode count the data file can hold.
+    """
+    mpath = data / "metadata.json"
+    fix = "re-create the dataset (minari, or rlu export --format minari)"
+    if not mpath.is_file() or mpath.stat().st_size > MAX_METADATA_BYTES:
+        raise FormatError(f"{mpath}: not a regular file of at most {MAX_METADATA_BYTES} bytes")
+    try:
+        meta = json.loads(mpath.read_bytes())
+    except (ValueError, UnicodeDecodeError, RecursionError) as e:
+        raise FormatError(
+            f"{mpath}: not a Minari metadata JSON file ({type(e).__name__}: {e}); rlu reads only "
+            "JSON metadata and never unpickles: re-create the dataset"
+        ) from None
+    if not isinstance(meta, dict):
+        raise FormatError(f"{mpath}: holds a {type(meta).__name__}, not an object; {fix}")
+    for key in ("observation_space", "action_space"):
+        if not isinstance(meta.get(key), str):
+            raise FormatError(
+                f"{mpath}: field {key!r} is missing or not a serialised space; rlu reads spaces "
+                f"from the metadata and never builds an env from env_spec: {fix}"
+            )
+        try:
+            _check_space(json.loads(meta[key]), key)
+        except (ValueError, RecursionError) as e:
+            raise FormatError(f"{mpath}: field {key!r}: {e}; {fix}") from None
+    if meta.get("data_format", "hdf5") not in ("hdf5", "arrow"):
+        raise FormatError(f"{mpath}: field 'data_format' is {meta.get('data_format')!r}; {fix}")
+    total = meta.get("total_episodes")
+    stored = sum(p.stat().st_size for p in data.iterdir() if p.is_file())
+    if isinstance(total, bool) or not isinstance(total, int) or not 0 <= total <= stored:
+        raise FormatError(
+            f"{mpath}: field 'total_episodes' is {total!r}; the data files ({stored} bytes) cannot "
+            f"hold that many episodes: {fix}"
+        )
+    h5 = data / "main_data.hdf5"
+    if meta.get("data_format", "hdf5") == "hdf5" and h5.is_file():
+        import h5py
+
+        with open_hdf5(h5, "a Minari dataset's main_data.hdf5") as f:
+
+            def visit(name: str, obj: Any) -> None:
+                if isinstance(obj, h5py.Dataset):
+                    h5_check(obj, h5, name, numeric=False)
+
+            try:
+                f.visititems(visit)
+            except (OSError, RuntimeError, ValueError) as e:
+                raise FormatError(f"{h5}: damaged HDF5 structure ({e}); {fix}") from None
+
+
+_SPACE_TYPES = ("Box", "Discrete", "Dict")
+
+
+def _check_space(d: Any, field: str, depth: int = 0) -> None:
+    """A serialised Minari space rlu can store, checked before Minari builds it (a Box of shape
+    1e9 x 1e9 would allocate its bounds); raises ValueError naming the field."""
+    if depth > 16 or not isinstance(d, dict):
+        raise ValueError(f"{field} is not a (shallow) serialised space")
+    kind = d.get("type")
+    if kind not in _SPACE_TYPES:
+        raise ValueError(f"{field} is a {kind!r} space; rlu reads {', '.join(_SPACE_TYPES)}")
+    if kind == "Dict":
+        subs = d.get("subspaces")
+        if not isinstance(subs, dict):
+            raise ValueError(f"{field}.subspaces is not an object")
+        for k, v in subs.items():
+            _check_space(v, f"{field}.{k}", depth + 1)
+    elif kind == "Box":
+        shape = d.get("shape")
+        ok = isinstance(shape, list) and all(
+            isinstance(x, int) and not isinstance(x, bool) and 0 <= x <= 1 << 28 for x in shape
+        )
+        if not ok or len(shape) > 8 or int(np.prod(shape, dtype=np.float64)) > 1 << 28:
+            raise ValueError(f"{field}.shape is {shape!r}; a list of at most 8 sizes, 2^28 values")
+
+
 def load_minari(id_or_path: str | os.PathLike, root: str | os.PathLike | None = None) -> Any:
     """A ``MinariDataset`` from a dataset directory (or its ``data`` folder) or a local id."""
     minari = _require_minari()
     path = Path(id_or_path)
-    if path.is_dir():
-        data = path / "data" if (path / "data").is_dir() else path
-        if not (data / "metadata.json").exists():
-            raise FormatError(f"{data}: no metadata.json; not a Minari dataset directory")
-        try:
-            return minari.MinariDataset(data)
-        except (ValueError, UnicodeDecodeError) as e:  # json.JSONDecodeError is a ValueError
-            raise FormatError(
-                f"{data / 'metadata.json'}: not a Minari metadata JSON file ({e}); rlu reads only "
-                "JSON metadata and never unpickles: re-create the dataset"
-            ) from None
-    with _datasets_root(root):
-        try:
-            return minari.load_dataset(str(id_or_path))
-        except FileNotFoundError as e:
+    if not path.is_dir():
+        with _datasets_root(root):
+            from minari.storage import get_dataset_path
+
+            try:
+                path = Path(get_dataset_path(str(id_or_path)))
+            except Exception as e:  # noqa: BLE001 (minari raises several types for a bad id)
+                raise RluError(
+                    f"{id_or_path}: no such directory and no local Minari dataset of that id "
+                    f"({e}); give a dataset directory or set MINARI_DATASETS_PATH"
+                ) from None
+        if not path.is_dir():
             raise RluError(
-                f"{id_or_path}: no such directory and no local Minari dataset of that id ({e}); "
-                "give a dataset directory or set MINARI_DATASETS_PATH"
-            ) from None
+                f"{id_or_path}: no such directory and no local Minari dataset of that id (looked "
+                f"in {path}); give a dataset directory or set MINARI_DATASETS_PATH"
+            )
+    data = path / "data" if (path / "data").is_dir() else path
+    if not (data / "metadata.json").exists():
+        raise FormatError(f"{data}: no metadata.json; not a Minari dataset directory")
+    _check_metadata(data)
+    try:
+        return minari.MinariDataset(data)
+    except Exception as e:  # noqa: BLE001 (minari raises ValueError, KeyError, AssertionError...)
+        raise FormatError(
+            f"{data / 'metadata.json'}: Minari cannot open the dataset ({type(e).__name__}: {e}); "
+            "re-create it"
+        ) from None
 
 
 def minari_segments(mds: Any, schema: Schema) -> Iterator[Segment]:
-    """The episodes of Minari dataset ``mds`` as segments in ``schema`` (see module docstring)."""
-    indices = [int(i) for i in mds.episode_indices]
-    metas = mds.storage.get_episode_metadata(indices)
-    for ep, meta in zip(mds.iterate_episodes(indices), metas, strict=True):
-        yield _segment(ep, dict(meta), schema)
+    """The episodes of Minari dataset ``mds`` as segments in ``schema`` (see module docstring).
+
+    Whatever Minari raises on a damaged episode (a missing ``actions`` dataset, a bad attribute)
+    becomes a :class:`FormatError` naming the dataset and the episode.
+    """
+    where = f"Minari dataset {mds.storage.data_path}"
+    try:
+        indices = [int(i) for i in mds.episode_indices]
+        metas = list(mds.storage.get_episode_metadata(indices))
+        episodes = mds.iterate_episodes(indices)
+        if len(metas) != len(indices):
+            raise FormatError(f"{where}: {len(indices)} episodes but {len(metas)} metadata")
+        for i, meta in zip(indices, metas, strict=True):
+            try:
+                ep = next(episodes)
+            except StopIteration:
+                raise FormatError(f"{where}: episode {i} is missing") from None
+            if not isinstance(meta, Mapping):
+                raise FormatError(f"{where}: episode {i}'s metadata is not a mapping")
+            yield _segment(ep, dict(meta), schema, where)
+    except RluError:
+        raise
+    except Exception as e:  # noqa: BLE001 (minari and h5py raise many types on damaged data)
+        raise FormatError(
+            f"{where}: a damaged episode ({type(e).__name__}: {e}); re-create the dataset"
+        ) from None
 
 
-def _segment(ep: Any, meta: Mapping[str, Any], schema: Schema) -> Segment:
-    n = len(ep.rewards)
-    where = f"Minari episode {ep.id}"
-    term = np.asarray(ep.terminations, bool).reshape(-1)
-    trunc = np.asarray(ep.truncations, bool).reshape(-1)
+def _segment(ep: Any, meta: Mapping[str, Any], schema: Schema, source: str = "Minari") -> Segment:
+    where = f"{source}: episode {ep.id}"
+    rewards = finite_array(ep.rewards, "rewards", where).reshape(-1)
+    n = len(rewards)
+    if n == 0:
+        raise FormatError(f"{where}: no steps (an episode needs at least one action)")
+    term = flag_array(ep.terminations, "terminations", where)
+    trunc = flag_array(ep.truncations, "truncations", where)
     if len(term) != n or len(trunc) != n:
         raise FormatError(
             f"{where}: {n} rewards but {len(term)} terminations, {len(trunc)} truncations"
@@ -479,11 +596,14 @@ def _segment(ep: Any, meta: Mapping[str, Any], schema: Schema) -> Segment:
     obs: Any = ep.observations
     prefix = None
     if isinstance(obs, Mapping):
-        obs = _flatten(obs)
+        obs = {k: real_array(v, f"observations/{k}", where) for k, v in _flatten(obs).items()}
+    else:
+        obs = real_array(obs, "observations", where)
     if schema.frame_stack > 1:
         if isinstance(obs, Mapping):
             raise FormatError(f"{where}: dict observations for a frame-stacked task")
         obs, prefix = _unstack(np.asarray(obs), schema.frame_stack, where)
+    actions = real_array(ep.actions, "actions", where)
     meta_out: dict[str, Any] = {}
     for k in METADATA_FIELDS:
         if f"rlu_{k}" in meta:
@@ -491,10 +611,11 @@ def _segment(ep: Any, meta: Mapping[str, Any], schema: Schema) -> Segment:
     if "episode_id" not in meta_out:
         meta_out["episode_id"] = int(ep.id)
     if "seed" not in meta_out and meta.get("seed") is not None:
-        meta_out["seed"] = int(meta["seed"])
-    seg = make_episode(
-        obs, np.asarray(ep.actions), np.asarray(ep.rewards), terminal, meta_out, prefix
-    )
+        meta_out["seed"] = np.asarray(meta["seed"]).item()
+    try:
+        seg = make_episode(obs, actions, rewards, terminal, meta_out, prefix)
+    except SpecError as e:
+        raise FormatError(f"{where}: {e}") from None
     is_first = bool(np.asarray(meta.get("rlu_is_first", True)))
     is_last = bool(np.asarray(meta.get("rlu_is_last", True)))
     if not (is_first and is_last):
@@ -504,9 +625,13 @@ def _segment(ep: Any, meta: Mapping[str, Any], schema: Schema) -> Segment:
         flags_last[-1] = is_last
         action, reward, discount = seg.action.copy(), seg.reward.copy(), seg.discount.copy()
         if not is_last:
-            action[-1] = np.asarray(meta.get("rlu_final_action", 0)).astype(action.dtype)
-            reward[-1] = np.float32(meta.get("rlu_final_reward", 0.0))
-            discount[-1] = np.float32(meta.get("rlu_final_discount", 1.0))
+            action[-1] = fits(
+                np.asarray(meta.get("rlu_final_action", 0)), str(action.dtype), "final", where
+            )
+            reward[-1] = finite_array(meta.get("rlu_final_reward", 0.0), "final reward", where)
+            discount[-1] = finite_array(
+                meta.get("rlu_final_discount", 1.0), "final discount", where
+            )
         seg = dataclasses.replace(
             seg,
             is_first=flags_first,
@@ -543,7 +668,7 @@ def import_minari(
     With ``task_id`` the task's schema is used (observations cast to its dtypes); without, the
     schema comes from the Minari dataset's spaces.
     """
-    from rlu.data.d4rl import _cast
+    from rlu.data.d4rl import append_checked
 
     mds = load_minari(id_or_path, root)
     if task_id is not None:
@@ -551,9 +676,14 @@ def import_minari(
 
         schema = Schema.for_task(get_task(task_id))
     else:
-        schema = schema_from_spaces(mds.observation_space, mds.action_space)
+        try:
+            schema = schema_from_spaces(mds.observation_space, mds.action_space)
+        except SpecError as e:
+            raise SpecError(
+                f"{id_or_path}: {e}; import it with --task for a known schema"
+            ) from None
     prov = {"source": "minari", "minari_id": str(mds.id), "from": str(id_or_path)}
     with DatasetWriter(dest, schema, prov) as w:
         for i, seg in enumerate(minari_segments(mds, schema)):
-            w.append(_cast(seg, schema, i))
+            append_checked(w, seg, schema, i, str(id_or_path))
     return Path(dest)

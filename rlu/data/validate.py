@@ -1,7 +1,10 @@
 """``rlu validate``: every check a stored dataset must pass, each problem named with its file.
 
-Checks: manifest and file sizes, sha256 of every file, schema against the task registry, step
-flags (RLDS), discounts, stored episode returns against the rewards, NaN / inf in float columns.
+Checks: manifest fields, files inside the folder and their sizes, the segment index (all done by
+:func:`~rlu.data.store.open_dataset`), sha256 of every file, schema against the task registry, step
+flags (RLDS; stored as bytes 0 or 1), discounts, actions inside the action space, stored episode
+returns against the rewards, NaN / inf in float columns, and every compressed frame inflating to
+exactly one frame. Whatever sampling could trip on, validate reports first.
 """
 
 from __future__ import annotations
@@ -11,8 +14,16 @@ from pathlib import Path
 
 import numpy as np
 
-from rlu.data.store import Dataset, ZlibColumn, open_dataset, read_manifest, verify_checksums
-from rlu.types import RluError, observation_spec_to_json
+from rlu.data.store import (
+    FLAG_COLUMNS,
+    Dataset,
+    ZlibColumn,
+    open_dataset,
+    read_manifest,
+    verify_checksums,
+)
+from rlu.data.store.schema import action_problem
+from rlu.types import BoundedSpec, RluError, observation_spec_to_json
 
 _CHUNK = 1 << 20  # steps per chunk when scanning columns
 
@@ -22,6 +33,8 @@ class Report:
     path: Path
     problems: list[str] = field(default_factory=list)
     checked: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    """Facts worth knowing that are not problems (release data as recorded)."""
 
     @property
     def ok(self) -> bool:
@@ -40,15 +53,17 @@ def validate(path: str | Path, checksums: bool = True) -> Report:
     except RluError as e:
         report.add(str(e))
         return report
-    report.checked.append("manifest and file sizes")
+    report.checked.append("manifest, files, sizes and segment index")
     if checksums:
         for p in verify_checksums(path, manifest):
             report.add(f"{p}: sha256 differs from the manifest (corrupt file)")
         report.checked.append("sha256 of every file")
-    _check_task(ds, report)
-    _check_flags(ds, report)
-    _check_returns(ds, report)
-    _check_finite(ds, report)
+    for check in (_check_task, _check_flags, _check_actions, _check_returns, _check_finite):
+        try:
+            check(ds, report)
+        except RluError as e:
+            report.add(str(e))
+    _check_frames(ds, report)
     return report
 
 
@@ -90,6 +105,14 @@ def _norm(x):
 
 
 def _check_flags(ds: Dataset, report: Report) -> None:
+    for name in FLAG_COLUMNS:  # a bool column is bytes: 2 or 255 would read as True, unequal to it
+        raw = np.asarray(ds.column(name)).view(np.uint8)
+        if (raw > 1).any():
+            i = int(np.flatnonzero(raw > 1)[0])
+            report.add(
+                f"{ds.path / 'steps' / name}.bin: step {i} holds byte {raw[i]}; flags are 0/1"
+            )
+            return
     first = np.asarray(ds.column("is_first"))
     last = np.asarray(ds.column("is_last"))
     term = np.asarray(ds.column("is_terminal"))
@@ -139,6 +162,53 @@ def _check_flags(ds: Dataset, report: Report) -> None:
     if ((disc < 0) | (disc > 1)).any():
         report.add(f"{f / 'discount.bin'}: discounts outside [0, 1]")
     report.checked.append("step flags and discounts")
+
+
+def _check_actions(ds: Dataset, report: Report) -> None:
+    """Every action that is taken (not a final step's placeholder) lies in the action space.
+
+    One exception: continuous actions of data converted from the original release are kept as
+    recorded, and the environments clip them (MuJoCo clamps controls to their range); those
+    outside the bounds are noted, not failed. Discrete actions out of range always fail (an
+    agent would index past its Q-values).
+    """
+    action = ds.column("action")
+    last = np.asarray(ds.column("is_last"))
+    as_recorded = (
+        isinstance(ds.schema.action, BoundedSpec)
+        and ds.manifest["provenance"].get("source") == "rl_unplugged release"
+    )
+    noted = False
+    for a in range(0, len(action), _CHUNK):
+        block = np.asarray(action[a : a + _CHUNK])
+        live = np.flatnonzero(~last[a : a + _CHUNK])
+        bad = action_problem(ds.schema.action, block[live])
+        if bad is None:
+            continue
+        msg = f"{ds.path / 'steps/action.bin'}: step {a + int(live[bad[0]])}: {bad[1]}"
+        if not (as_recorded and np.isfinite(block[live]).all()):
+            report.add(msg)
+            return
+        if not noted:
+            report.notes.append(f"{msg} (as recorded in the release; the env clips actions)")
+            noted = True
+    report.checked.append("actions inside the action space")
+
+
+def _check_frames(ds: Dataset, report: Report) -> None:
+    """Every frame of a compressed column inflates to exactly one frame (what sampling does)."""
+    specs = {**ds.schema.step_columns(), **ds.schema.frame_columns()}
+    for name in specs:
+        try:
+            col = ds.column(name)
+            if not isinstance(col, ZlibColumn):
+                continue
+            for a in range(0, len(col), 4096):
+                col.take(np.arange(a, min(a + 4096, len(col))))
+        except RluError as e:
+            report.add(str(e))
+            return
+        report.checked.append(f"every frame of {name} inflates")
 
 
 def _check_returns(ds: Dataset, report: Report) -> None:

@@ -42,6 +42,10 @@ SHRINK = {
                           torso_hidden=16, behaviour_steps=1),
     ("rabm", False): dict(hidden_size=32, num_layers=2, lstm_hidden=16, sequence_length=5,
                           num_samples=4),
+    ("crr", False): dict(hidden_size=32, num_layers=2, torso_hidden=16, num_advantage_samples=2),
+    ("iql", False): dict(hidden_layers=(32,), torso_hidden=16),
+    ("cql", False): dict(policy_layers=(32,), critic_layers=(32,), torso_hidden=16, bc_steps=1,
+                         num_samples=2),
 }  # fmt: skip
 UPDATES = 3
 

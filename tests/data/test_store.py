@@ -58,7 +58,7 @@ def test_zlib_images_are_smaller_than_raw(tmp_path):
 
 
 def test_threaded_zlib_writes_the_bytes_of_one_frame_at_a_time(tmp_path, monkeypatch):
-    from rlu.data import store
+    from rlu.data.store import writer
 
     rng = np.random.default_rng(3)
     frames = np.zeros((301, 84, 84), np.uint8)
@@ -67,7 +67,7 @@ def test_threaded_zlib_writes_the_bytes_of_one_frame_at_a_time(tmp_path, monkeyp
     schema = Schema.for_task(get_task("atari/Pong"), image_encoding="zlib")
     manifests = {}
     for name, threshold in (("threaded", 2), ("serial", 10**9)):
-        monkeypatch.setattr(store, "_ZLIB_THREADED_FRAMES", threshold)
+        monkeypatch.setattr(writer, "_ZLIB_THREADED_FRAMES", threshold)
         with DatasetWriter(tmp_path / name, schema) as w:
             w.append(ep)
         manifests[name] = open_dataset(tmp_path / name, verify=True).manifest["files"]

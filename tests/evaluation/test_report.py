@@ -41,7 +41,7 @@ def test_markdown_and_html_hold_every_number_of_the_json(tmp_path):
     md = (tmp_path / "r" / "report.md").read_text()
     html = (tmp_path / "r" / "report.html").read_text()
     dom = rep["domains"]["control_suite"]
-    assert dom["panels"] == ["online", "offline_naive", "aggregates"]
+    assert dom["panels"] == ["online", "offline_naive", "aggregates", "task_bars"]
     assert html.count("<table>") == 3 and html.count("<section") == 1
     for row in dom["online"]["rows"]:
         for agent, c in row["cells"].items():

@@ -1,19 +1,26 @@
 """The downloader against HTTP servers on 127.0.0.1 that misbehave: a cut connection, HTTP 500s,
-a wrong byte. Final files equal the source; nothing partial is left under a final name."""
+a wrong byte, an HTML page served with 200, a body longer than its Content-Length, a redirect to
+another host, a server that accepts and never answers. Final files equal the source; nothing
+partial or unverified is left under a final name or recorded in the cache manifest."""
 
 from __future__ import annotations
 
 import base64
+import gzip
 import hashlib
 import http.server
 import os
+import socket
 import threading
 
 import google_crc32c
 import numpy as np
 import pytest
 
+from rlu.cli import main
+from rlu.data.release import framing as F
 from rlu.data.release.download import Downloader, DownloadError
+from rlu.locks import LockBusy, OutputLock
 
 
 class _Handler(http.server.BaseHTTPRequestHandler):
@@ -32,6 +39,21 @@ class _Handler(http.server.BaseHTTPRequestHandler):
         action = plan.pop(0) if plan else "ok"
         if action == "500":
             self.send_error(500, "try again")
+            return
+        if action.startswith("redirect:"):  # to the same path on another host name
+            self.send_response(302)
+            self.send_header("Location", f"http://{action[9:]}:{srv.server_address[1]}/{name}")
+            self.send_header("Content-Length", "0")
+            self.end_headers()
+            return
+        if action in ("html", "html-as-bytes"):
+            page = b"<!doctype html><html><body>Sign in to continue</body></html>"
+            self.send_response(200)
+            ctype = "text/html; charset=utf-8" if action == "html" else "application/octet-stream"
+            self.send_header("Content-Type", ctype)
+            self.send_header("Content-Length", str(len(page)))
+            self.end_headers()
+            self.wfile.write(page)
             return
         start = 0
         rng = self.headers.get("Range")
@@ -53,6 +75,9 @@ class _Handler(http.server.BaseHTTPRequestHandler):
             self.send_header("x-goog-hash", f"md5={md5}")
         self.send_header("ETag", '"v1"')
         self.end_headers()
+        if action == "long":  # the announced bytes, then more, before closing
+            self.wfile.write(data + b"trailing bytes the header did not announce")
+            return
         if action == "cut":
             self.wfile.write(data[: len(data) // 3])
             self.wfile.flush()
@@ -76,7 +101,10 @@ def server():
 
 
 def _blob(n=300_000, seed=0):
-    return np.random.default_rng(seed).integers(0, 256, n, dtype=np.uint8).tobytes()
+    """A gzip TFRecord shard of about ``n`` bytes of random records (what the release holds)."""
+    rng = np.random.default_rng(seed)
+    raw = b"".join(F.frame(rng.bytes(1000)) for _ in range(n // 1016))
+    return gzip.compress(raw, mtime=0)
 
 
 def _downloader(tmp_path, server, **kw):
@@ -204,3 +232,92 @@ def test_load_release_dataset_downloads_converts_then_reuses(fixtures, tmp_path,
 
     ds3 = rlu.load_dataset("control_suite/cartpole_swingup", source="release", **kw)
     assert ds3.path == ds.path
+
+
+# --- hostile and unlucky servers ----------------------------------------------------------------
+OBJ = "dm_control_suite/y/train-00000-of-00001"  # a family the catalog knows: gzip TFRecords
+
+
+@pytest.mark.parametrize("kind", ["html", "html-as-bytes"])
+def test_html_page_with_200_is_never_recorded(tmp_path, server, kind):
+    server.files[OBJ] = body = _blob(seed=20)
+    server.plans[OBJ] = [kind] * 3
+    d = _downloader(tmp_path, server, retries=2)
+    why = "web page" if kind == "html" else "not a gzip file"
+    with pytest.raises(DownloadError, match=why):
+        d.fetch([OBJ])
+    assert not os.path.exists(d.path_of(OBJ)) and d.manifest.get(OBJ) is None
+    _no_partials(d.root)
+    (f,) = _downloader(tmp_path, server).fetch([OBJ])  # the real file once the server is sane
+    assert open(f.path, "rb").read() == body
+
+
+def test_body_longer_than_content_length_is_refused_then_fetched_whole(tmp_path, server):
+    server.files[OBJ] = body = _blob(seed=21)
+    server.hashes = False  # only the length can tell
+    server.plans[OBJ] = ["long"]
+    d = _downloader(tmp_path, server)
+    (f,) = d.fetch([OBJ])
+    assert open(f.path, "rb").read() == body and len(server.requests) == 2
+    server.plans[OBJ] = ["long"] * 3
+    with pytest.raises(DownloadError, match="more bytes than its Content-Length"):
+        _downloader(tmp_path / "again", server, retries=2).fetch([OBJ])
+
+
+def test_redirect_to_another_host_only_when_allowed(tmp_path, server):
+    server.files[OBJ] = body = _blob(seed=22)
+    server.plans[OBJ] = ["redirect:localhost"]
+    d = _downloader(tmp_path, server)
+    with pytest.raises(DownloadError, match="another host, localhost.*--allow-redirects"):
+        d.fetch([OBJ])
+    assert len(server.requests) == 1  # refused, not retried
+    server.plans[OBJ] = ["redirect:localhost"]
+    (f,) = _downloader(tmp_path, server, allow_redirects=True).fetch([OBJ])
+    assert open(f.path, "rb").read() == body
+    server.plans[OBJ] = ["redirect:127.0.0.1"]  # the same host: always followed
+    (f,) = _downloader(tmp_path / "same", server).fetch([OBJ])
+    assert open(f.path, "rb").read() == body
+
+
+@pytest.fixture
+def stalled():
+    """A server that accepts connections (the kernel's backlog) and never says a word."""
+    sock = socket.socket()
+    sock.bind(("127.0.0.1", 0))
+    sock.listen(8)
+    yield f"http://127.0.0.1:{sock.getsockname()[1]}"
+    sock.close()
+
+
+def test_stalled_server_fails_within_the_timeout(tmp_path, stalled, capsys):
+    d = Downloader(cache_dir=tmp_path / "c", base_url=stalled, progress=False, timeout=0.2)
+    d.retries, d.sleep = 1, lambda s: None
+    with pytest.raises(DownloadError, match=r"no answer within --timeout 0.2 s"):
+        d.fetch([OBJ])
+    args = ["download", "control_suite/cartpole_swingup", "--shards", "0", "--retries", "0"]
+    code = main([*args, "--base-url", stalled, "--timeout", "0.2", "--cache-dir", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert code == 2 and "--timeout 0.2" in err and "Traceback" not in err
+
+
+def test_reused_entry_that_fails_verification_is_fetched_again(tmp_path, server):
+    server.files[OBJ] = body = _blob(seed=23)
+    d = _downloader(tmp_path, server)
+    path = d.path_of(OBJ)
+    os.makedirs(os.path.dirname(path))
+    page = b"<html>an error page an older downloader recorded</html>"
+    open(path, "wb").write(page)
+    d.manifest.put(OBJ, {"size": len(page), "sha256": hashlib.sha256(page).hexdigest()})
+    (f,) = _downloader(tmp_path, server).fetch([OBJ])
+    assert not f.reused and open(f.path, "rb").read() == body and len(server.requests) == 1
+
+
+def test_a_cache_entry_being_fetched_is_in_use(tmp_path, server):
+    server.files[OBJ] = _blob(seed=24)
+    d = _downloader(tmp_path, server)
+    with OutputLock(d.path_of(OBJ), "cache entry"):  # another fetch of it, live
+        with pytest.raises(LockBusy, match=rf"in use by PID {os.getpid()}"):
+            d.fetch([OBJ])
+    assert server.requests == []
+    (f,) = d.fetch([OBJ])  # released: fetched
+    assert f.size > 0

@@ -32,8 +32,8 @@ def atari_record(rng, d_t=1.0, episode_id=5):
     return {
         "o_t": np.moveaxis(frames[:4], 0, -1),
         "o_tp1": np.moveaxis(frames[1:], 0, -1),
-        "a_t": np.int32(rng.integers(0, 18)),
-        "a_tp1": np.int32(rng.integers(0, 18)),
+        "a_t": np.int32(rng.integers(0, 6)),
+        "a_tp1": np.int32(rng.integers(0, 6)),
         "r_t": np.float32(rng.choice([-1, 0, 1])),
         "d_t": np.float32(d_t),
         "episode_id": np.uint64(episode_id),
@@ -62,7 +62,7 @@ def rwrl_record(rng, t=1001, last_discount=1.0, easy=False):
     rec = {
         "observation:position": _f32(rng, t, 3),
         "observation:velocity": _f32(rng, t, 2),
-        "action": _f32(rng, t, 1),
+        "action": rng.uniform(-1, 1, (t, 1)).astype(np.float32),
         "reward": _f32(rng, t, 1),
         "discount": np.ones((t, 1), np.float32),
     }
@@ -208,6 +208,11 @@ def test_rule_episode_files_rsa(tmp_path):
     assert s.is_terminal[-1]
     assert s.metadata["episode_id"] == 2**64 - 1
     assert s.metadata["episode_return"] == pytest.approx(float(rec["reward"][1:].sum()))
+    # a time-limit end (last discount 1): TFDS appends discount 1, and the episode is not terminal
+    rec = window_record(rng, 5, {"position": 3}, discount=[1, 1, 1, 1, 1])
+    (tmp_path / "limit").mkdir()
+    (s,) = _one("dm_control_suite_episodes", tmp_path / "limit", [rec])
+    assert s.discount.tolist() == [1, 1, 1, 1, 1] and not s.is_terminal[-1]
 
 
 def test_rule_atari_transitions(tmp_path):

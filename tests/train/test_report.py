@@ -58,7 +58,10 @@ def test_report_tables_match_the_run_files(local_sweep, tmp_path):
         lo, hi = agg[agent]["interval_25_75"]
         assert lo <= agg[agent]["mean"] <= hi or np.isclose(lo, hi)
     html = (tmp_path / "report" / "report.html").read_text()
-    assert html.count("<table>") == 2 and "<b>" in html and "other_tasks.png" in html
+    # the online table, the aggregates and the per-task figure's p90 lines as a table
+    assert html.count("<table>") == 3 and "<b>" in html and "other_tasks.png" in html
+    for task, p90 in dom["dataset_p90"].items():
+        assert f"| {task} | online | {p90:.1f} |" in md
     # a cell far below the best is not bold; one overlapping it is
     rows = [{"task": "t", "agent": a, "config": "c", "seed": s, "score": v}
             for a, vals in (("x", [10.0, 12.0]), ("y", [11.0, 13.0]), ("z", [0.0, 1.0]))

@@ -125,6 +125,14 @@ def test_bad_inputs_name_the_fix(pendulum_datasets, tmp_path):
         train(_config(dataset, env="nocolon"), tmp_path / "b")
     with pytest.raises(RluError, match="not an rlu run folder|no checkpoints"):
         evaluate_run(tmp_path)
+    # a damaged config.json of an existing run: named, with the fix, never a traceback
+    run = tmp_path / "c"
+    train(_config(dataset, steps=2, eval_every=-1), run)
+    (run / "config.json").write_text('{"train": ')
+    with pytest.raises(RluError, match=r"config\.json: not a readable JSON file"):
+        train(_config(dataset, steps=2, eval_every=-1), run, resume=True)
+    with pytest.raises(RluError, match=r"config\.json: not a readable JSON file"):
+        evaluate_run(run)
 
 
 def test_cli_evaluate(pendulum_datasets, tmp_path):

@@ -16,7 +16,9 @@ import multiprocessing as mp
 import os
 import queue
 import re
+import signal
 import sys
+import threading
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -25,10 +27,10 @@ from typing import Any
 
 import numpy as np
 
-from rlu.data.episode import METADATA_FIELDS, METADATA_MISSING
-from rlu.data.release.families import SegmentBatch, get_family, iter_raw
+from rlu.data.episode import METADATA_FIELDS
+from rlu.data.release.families import SegmentBatch, get_family, iter_segments
 from rlu.data.release.framing import RecordReader
-from rlu.data.store import DatasetWriter, Deflated, Schema, segment_columns
+from rlu.data.store import DatasetWriter, Deflated, Schema, SegmentColumns, segment_columns
 from rlu.tasks import TaskSpec, get_task, rwrl_observation_spec
 from rlu.types import ArraySpec, FormatError, RluError, SpecError, available_cores
 
@@ -125,37 +127,18 @@ def _with_meta(batch: SegmentBatch, meta: Mapping[str, Any]) -> SegmentBatch:
     return batch
 
 
-@dataclass
-class Columns:
-    """N equal-length segments as the store's flat step columns, ready to append.
-
-    Built by :func:`batch_columns` (in a reader process when converting in parallel), appended by
-    :func:`append_columns` in the process that owns the writer. Image columns that the store
-    deflates may already be :class:`~rlu.data.store.Deflated`, so the writer only writes bytes.
-    """
-
-    n: int
-    t: int
-    cols: dict[str, Any]
-    metadata: Mapping[str, np.ndarray]
-    episodes: int
-
-
 def fast_path(batch: SegmentBatch, schema: Schema) -> bool:
     """Whether ``batch`` appends as whole columns (else segment by segment)."""
     return batch.lengths is None and schema.frame_stack == 1 and len(batch) > 1
 
 
-def batch_columns(batch: SegmentBatch, schema: Schema, deflate: bool = False) -> Columns:
-    """Flatten a fast-path batch (:func:`fast_path`) into checked columns.
+def batch_columns(batch: SegmentBatch, schema: Schema, deflate: bool = False) -> SegmentColumns:
+    """Flatten a fast-path batch (:func:`fast_path`) into the store's columns.
 
     ``deflate``: compress the columns the store keeps as zlib here, one thread (for readers).
     """
     n, t = len(batch), batch.reward.shape[1]
     segment_columns(schema, next(iter(batch)))  # keys, shapes and dtypes, the store's messages
-    unknown = set(batch.metadata) - set(METADATA_FIELDS)
-    if unknown:
-        raise SpecError(f"segment metadata has unknown key(s) {sorted(unknown)}")
     flat = lambda a: np.asarray(a).reshape(n * t, *np.asarray(a).shape[2:])  # noqa: E731
     cols: dict[str, Any] = {}
     if isinstance(batch.observation, Mapping):
@@ -174,40 +157,21 @@ def batch_columns(batch: SegmentBatch, schema: Schema, deflate: bool = False) ->
         for name, spec in schema.step_columns().items():
             if schema.encoding(spec) == "zlib":
                 cols[name] = Deflated.of(cols[name], spec.dtype, threaded=False)
-    episodes = int((batch.is_first[:, 0] & batch.is_last[:, -1]).sum())
-    return Columns(n, t, cols, batch.metadata, episodes)
-
-
-def append_columns(writer: DatasetWriter, c: Columns) -> None:
-    """Append what :func:`batch_columns` built (the column files get one write each)."""
-    for name, values in c.cols.items():
-        writer._steps[name].append(values)
-    starts = writer.num_steps + c.t * np.arange(c.n)
-    writer._seg["start"].extend(starts.tolist())
-    writer._seg["length"].extend([c.t] * c.n)
-    writer._seg["frame_start"].extend([writer.num_frames] * c.n)
-    for k, dtype in METADATA_FIELDS.items():
-        if k in c.metadata:
-            writer._meta[k].extend(np.asarray(c.metadata[k]).tolist())
-        else:
-            writer._meta[k].extend([METADATA_MISSING[dtype]] * c.n)
-    writer.num_steps += c.n * c.t
-    writer.num_episodes += c.episodes
+    return SegmentColumns(cols, np.full(n, t, np.int64), dict(batch.metadata))
 
 
 def append_batch(writer: DatasetWriter, batch: SegmentBatch) -> None:
-    """Append N equal-length segments at once (the column files get one write each).
+    """Append N segments at once (the column files get one write each).
 
     Equivalent to ``writer.append`` per segment (``tests/release/test_convert.py`` checks the
-    bytes); trimmed batches and frame-stacked schemas go segment by segment.
+    bytes); trimmed batches and frame-stacked schemas are joined segment by segment first.
     """
     if len(batch) == 0:
         return
-    if not fast_path(batch, writer.schema):
-        for seg in batch:
-            writer.append(seg)
-        return
-    append_columns(writer, batch_columns(batch, writer.schema))
+    if fast_path(batch, writer.schema):
+        writer.append_columns(batch_columns(batch, writer.schema))
+    else:
+        writer.extend(batch)
 
 
 # --- workers -------------------------------------------------------------------------------
@@ -216,17 +180,21 @@ def append_batch(writer: DatasetWriter, batch: SegmentBatch) -> None:
 def _shard_batches(job: _Job, path: str, columns: bool = False):
     """(batch, None)... then (None, stats) for one shard; batches fitted to the schema.
 
-    ``columns``: fast-path batches come as :class:`Columns` with image columns deflated (what a
-    reader process sends: the parent then only writes bytes).
+    ``columns``: fast-path batches come as :class:`SegmentColumns` with image columns deflated
+    (what a reader process sends: the parent then only writes bytes).
     """
-    fam = get_family(job.family)
     reader = RecordReader(path, verify=job.verify, on_error=job.on_error)
-    for raw in iter_raw(path, job.family, reader=reader, on_error=job.on_error):
-        batch = _with_meta(_fit(fam.segments(raw), job.schema, path), job.meta)
+    for segments in iter_segments(path, job.family, reader=reader, on_error=job.on_error):
+        batch = _with_meta(_fit(segments, job.schema, path), job.meta)
         if columns and fast_path(batch, job.schema):
             yield batch_columns(batch, job.schema, deflate=True), None
         else:
             yield batch, None
+    if reader.stats.records == 0 and reader.stats.skipped == 0:
+        raise FormatError(
+            f"{path}: holds no records (an empty or foreign file); a release shard holds at "
+            "least one: download it again"
+        )
     yield (
         None,
         {
@@ -261,12 +229,39 @@ def _nbytes(x: Any) -> int:
     return _nbytes(vars(x)) if hasattr(x, "__dict__") else 0
 
 
-def _worker(job: _Job, path: str, q: Any, budget: Any) -> None:
+def _die_with_parent(parent: int) -> None:
+    """End this reader when the converting process dies, ``kill -9`` included.
+
+    A reader blocked on its queue (the parent no longer takes from it) would otherwise live on
+    forever. Linux: ``prctl(PR_SET_PDEATHSIG, SIGKILL)``, then a check that the parent did not die
+    before the call; elsewhere a thread that watches the parent's id.
+    """
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.prctl(1, signal.SIGKILL) == 0:  # 1: PR_SET_PDEATHSIG
+            if os.getppid() != parent:
+                os._exit(1)
+            return
+    except (OSError, AttributeError):  # pragma: no cover - not Linux
+        pass
+
+    def watch() -> None:  # pragma: no cover - not Linux
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="rlu-parent-watch", daemon=True).start()
+
+
+def _worker(job: _Job, path: str, q: Any, budget: Any, parent: int) -> None:
     """Read one shard into ``q``, holding at most ``_QUEUE_MIB`` queued (``budget``: MiB units).
 
     The bound is in bytes, not batches, so a reader of a later shard can get far ahead (whole
     shards of windows) while the parent writes the earlier one: readers overlap each other.
     """
+    _die_with_parent(parent)
     try:
         for batch, stats in _shard_batches(job, path, columns=True):
             if stats is not None:
@@ -298,7 +293,7 @@ class _Pool:
             q, budget = self.ctx.Queue(), self.ctx.Semaphore(_QUEUE_MIB)
             p = self.ctx.Process(
                 target=_worker,
-                args=(self.job, self.files[self.next], q, budget),
+                args=(self.job, self.files[self.next], q, budget, os.getpid()),
                 daemon=True,
             )
             p.start()
@@ -409,8 +404,8 @@ def convert(
                         report.records += stats["records"]
                         report.skipped += stats["skipped"]
                         continue
-                    if isinstance(batch, Columns):
-                        append_columns(writer, batch)
+                    if isinstance(batch, SegmentColumns):
+                        writer.append_columns(batch)
                     else:
                         append_batch(writer, batch)
                 if progress:
@@ -429,7 +424,7 @@ def convert(
                 for f in report.files
             ]
             writer.provenance["skipped_records"] = report.skipped
-            report.segments = len(writer._seg["start"])
+            report.segments = writer.num_segments
             report.steps = writer.num_steps
     finally:
         if pool is not None:

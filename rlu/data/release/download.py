@@ -6,10 +6,19 @@
 - A cut connection resumes from the bytes already on disk with an HTTP ``Range`` request (a
   server that ignores Range makes the download start over); errors and 5xx answers are retried
   with exponential backoff.
-- Checks: the size against ``Content-Length`` / ``Content-Range``, and, where the bucket sends
-  them (Google Cloud Storage's ``x-goog-hash``), the object's MD5 and CRC-32C. The sha256 and size
-  of each file go into ``CACHE/release/manifest.json`` and are verified whenever the file is
-  reused.
+- Checks, all before a file is recorded as complete: the size against ``Content-Length`` /
+  ``Content-Range`` (a body longer than announced fails too, it is never cut to fit); where the
+  bucket sends them (Google Cloud Storage's ``x-goog-hash``), the object's MD5 and CRC-32C; and
+  what the catalog knows of the object: its family's framing (a gzip stream, or a plain TFRecord,
+  whose first record header carries a valid CRC), so an HTML page served with status 200 is
+  refused. The sha256 and size of each file go into ``CACHE/release/manifest.json``; a reused
+  file is verified again (size, sha256, framing) and fetched anew when it fails.
+- Redirects to another host are refused unless ``allow_redirects=True`` (``--allow-redirects``);
+  every socket operation has a ``timeout`` (``--timeout``, default 30 s), so a stalled server fails
+  in seconds, not minutes.
+- One process per cache entry: fetching an object holds :class:`rlu.locks.OutputLock` on its
+  file, so a second ``rlu download`` of the same object fails with "in use by PID N" instead of
+  writing into the same ``.part``.
 - Cache directory: the ``cache_dir`` argument (``--cache-dir``), else ``$RLU_CACHE_DIR``, else
   ``~/.cache/rlu``. ``base_url`` (``--base-url``) points at a mirror.
 """
@@ -17,24 +26,30 @@
 from __future__ import annotations
 
 import base64
+import fcntl
 import hashlib
 import http.client
 import json
 import os
+import struct
 import sys
 import threading
 import time
 import urllib.error
+import urllib.parse
 import urllib.request
+import zlib
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 from rlu.data.release.catalog import object_url
+from rlu.locks import OutputLock
 from rlu.types import RluError
 
 CHUNK = 1 << 20
 USER_AGENT = "rlu-release-downloader"
+DEFAULT_TIMEOUT = 30.0
 
 
 class DownloadError(RluError):
@@ -78,21 +93,29 @@ class _Manifest:
             return self.entries.get(obj)
 
     def put(self, obj: str, entry: dict) -> None:
-        with self._lock:
-            self.entries[obj] = entry
-            self._write()
+        self._update(obj, entry)
 
     def drop(self, obj: str) -> None:
-        with self._lock:
-            if self.entries.pop(obj, None) is not None:
-                self._write()
+        self._update(obj, None)
 
-    def _write(self) -> None:
+    def _update(self, obj: str, entry: dict | None) -> None:
+        """Change one entry of the file as it is now on disk: another process downloading other
+        objects into the same cache keeps its entries (a short blocking ``flock``)."""
         os.makedirs(os.path.dirname(self.path), exist_ok=True)
-        tmp = f"{self.path}.{os.getpid()}.{threading.get_ident()}.tmp"
-        with open(tmp, "w") as f:
-            json.dump(self.entries, f, indent=1, sort_keys=True)
-        os.replace(tmp, self.path)
+        with self._lock, open(self.path + ".lock", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            current = _read_json(self.path)
+            if entry is None:
+                if current.pop(obj, None) is None:
+                    self.entries.pop(obj, None)
+                    return
+            else:
+                current[obj] = entry
+            self.entries = current
+            tmp = f"{self.path}.{os.getpid()}.{threading.get_ident()}.tmp"
+            with open(tmp, "w") as f:
+                json.dump(current, f, indent=1, sort_keys=True)
+            os.replace(tmp, self.path)
 
 
 def sha256_file(path: str) -> str:
@@ -166,9 +189,10 @@ class Downloader:
         workers: int = 4,
         retries: int = 5,
         backoff: float = 1.0,
-        timeout: float = 60.0,
+        timeout: float = DEFAULT_TIMEOUT,
         progress: bool | None = None,
         verify_reuse: bool = True,
+        allow_redirects: bool = False,
     ):
         self.root = release_dir(cache_dir)
         self.base_url = base_url or os.environ.get("RLU_RELEASE_BASE_URL") or None
@@ -178,11 +202,16 @@ class Downloader:
         self.timeout = timeout
         self.progress = sys.stderr.isatty() if progress is None else progress
         self.verify_reuse = verify_reuse
+        self.allow_redirects = allow_redirects
         self.manifest = _Manifest(self.root)
         self.sleep: Callable[[float], None] = time.sleep
+        self._opener = urllib.request.build_opener(_Redirects(allow_redirects))
 
     def path_of(self, obj: str) -> str:
-        return os.path.join(self.root, *obj.split("/"))
+        parts = obj.split("/")
+        if not obj or obj.startswith("/") or any(p in ("", ".", "..") for p in parts):
+            raise DownloadError(f"{obj!r} is not a release object name (bucket-relative path)")
+        return os.path.join(self.root, *parts)
 
     def fetch(self, objects: Sequence[str]) -> list[Fetched]:
         """Download (or reuse) every object; returns them in order. Raises on any failure."""
@@ -220,25 +249,26 @@ class Downloader:
         if entry is None or not os.path.isfile(path):
             return None
         size = os.path.getsize(path)
-        if size != entry.get("size"):
+        bad = size != entry.get("size")
+        if not bad and self.verify_reuse:
+            # local damage since the download, or an entry an older rlu recorded unverified
+            bad = sha256_file(path) != entry.get("sha256") or bool(release_framing(path, obj))
+        if bad:
             self.manifest.drop(obj)
             os.remove(path)
             return None
-        if self.verify_reuse:
-            digest = sha256_file(path)
-            if digest != entry.get("sha256"):
-                # Local damage since the download: fetch again.
-                self.manifest.drop(obj)
-                os.remove(path)
-                return None
         return Fetched(obj, path, size, entry["sha256"], True)
 
     def _fetch_one(self, obj: str, bar: _Progress) -> Fetched:
         path = self.path_of(obj)
-        got = self._reuse(obj, path)
-        if got is not None:
-            return got
         os.makedirs(os.path.dirname(path), exist_ok=True)
+        with OutputLock(path, "cache entry"):
+            got = self._reuse(obj, path)
+            if got is not None:
+                return got
+            return self._download(obj, path, bar)
+
+    def _download(self, obj: str, path: str, bar: _Progress) -> Fetched:
         url = object_url(obj, self.base_url)
         part = path + ".part"
         meta_path = part + ".json"
@@ -248,8 +278,16 @@ class Downloader:
                 self.sleep(self.backoff * (2 ** (attempt - 1)))
             try:
                 ok, why = self._attempt(url, part, meta_path, bar)
+                if ok:
+                    why = release_framing(part, obj)
+                    ok = not why
+                    if not ok:
+                        _remove(part, meta_path)
             except (urllib.error.URLError, http.client.HTTPException, OSError, ValueError) as e:
-                ok, why = False, f"{type(e).__name__}: {e}"
+                reason = e.reason if isinstance(e, urllib.error.URLError) else e
+                ok, why = False, f"{type(e).__name__}: {reason}"
+                if isinstance(reason, TimeoutError):
+                    why = f"no answer within --timeout {self.timeout:g} s ({reason})"
             if ok:
                 digest = sha256_file(part)
                 size = os.path.getsize(part)
@@ -270,7 +308,8 @@ class Downloader:
         )
 
     def _attempt(self, url: str, part: str, meta_path: str, bar: _Progress) -> tuple[bool, str]:
-        """One request; True when ``part`` now holds the whole, verified object."""
+        """One request; True when ``part`` now holds the whole object, checked against the
+        headers (length, hashes); the caller then checks its framing."""
         have = os.path.getsize(part) if os.path.exists(part) else 0
         meta = _read_json(meta_path)
         if have and not meta:
@@ -281,8 +320,9 @@ class Downloader:
             if meta.get("etag"):
                 req.add_header("If-Range", meta["etag"])
         try:
-            resp = urllib.request.urlopen(req, timeout=self.timeout)
+            resp = self._opener.open(req, timeout=self.timeout)
         except urllib.error.HTTPError as e:
+            e.close()
             if e.code == 416:  # our part is no prefix of the object any more
                 _remove(part, meta_path)
                 return False, "HTTP 416 on resume; starting over"
@@ -294,6 +334,12 @@ class Downloader:
         with resp:
             status = resp.status
             headers = resp.headers
+            ctype = (headers.get("Content-Type") or "").split(";")[0].strip().lower()
+            if ctype in ("text/html", "application/xhtml+xml"):
+                return False, (
+                    f"the server answered {url} with a web page ({ctype}), not a release file; "
+                    "check --base-url (a login or error page?)"
+                )
             if status == 206 and have:
                 total = _content_range_total(headers.get("Content-Range"))
                 mode = "ab"
@@ -308,13 +354,11 @@ class Downloader:
             if total is None:
                 total = meta.get("size")
             with open(part, mode) as f:
-                while True:
-                    chunk = resp.read(CHUNK)
-                    if not chunk:
-                        break
-                    f.write(chunk)
-                    bar.add(len(chunk))
+                longer = _copy_body(resp, f, bar)
         size = os.path.getsize(part)
+        if longer:
+            _remove(part, meta_path)
+            return False, "the server sent more bytes than its Content-Length announced"
         if total is not None and size < total:
             return False, f"connection closed after {size} of {total} bytes"
         if total is not None and size > total:
@@ -325,6 +369,82 @@ class Downloader:
             _remove(part, meta_path)
             return False, why
         return True, ""
+
+
+class _Redirects(urllib.request.HTTPRedirectHandler):
+    """Follow redirects on the same host; to another host only when allowed (a mirror that
+    redirects to a CDN: ``--allow-redirects``)."""
+
+    def __init__(self, allow: bool):
+        self.allow = allow
+
+    def redirect_request(self, req, fp, code, msg, headers, newurl):  # noqa: ANN001
+        old = urllib.parse.urlsplit(req.full_url).hostname
+        new = urllib.parse.urlsplit(urllib.parse.urljoin(req.full_url, newurl)).hostname
+        if old != new and not self.allow:
+            raise DownloadError(
+                f"{req.full_url}: the server redirects (HTTP {code}) to another host, {new}; "
+                "rlu follows redirects to other hosts only with --allow-redirects"
+            )
+        return super().redirect_request(req, fp, code, msg, headers, newurl)
+
+
+def _copy_body(resp: http.client.HTTPResponse, f, bar: _Progress) -> bool:
+    """Copy the body to ``f``; True when the server sent more than its Content-Length.
+
+    ``http.client`` stops reading at Content-Length and drops the rest silently, so with a length
+    the body is read from the connection itself, then one more byte is asked for: the request
+    said ``Connection: close``, so an honest server has closed it (EOF) by then.
+    """
+    declared = resp.length
+    if resp.chunked or declared is None:
+        while chunk := resp.read(CHUNK):
+            f.write(chunk)
+            bar.add(len(chunk))
+        return False
+    fp = resp.fp
+    left = declared
+    while left > 0:
+        chunk = fp.read(min(CHUNK, left))
+        if not chunk:
+            return False  # cut: the size check names it
+        f.write(chunk)
+        bar.add(len(chunk))
+        left -= len(chunk)
+    try:
+        return bool(fp.read1(1))
+    except TimeoutError:
+        return False  # a server that keeps the connection open sent nothing more
+
+
+def release_framing(path: str, obj: str) -> str:
+    """Why ``path`` is not a release file of ``obj``'s family ('' when it looks like one).
+
+    The catalog knows each object's family, so its framing: a gzip stream, or (RWRL) a plain
+    TFRecord, whose first record header must carry a valid length CRC. An HTML page, a JSON
+    error or a truncated first block fails here, before the file is recorded.
+    """
+    from rlu.data.release.families import FAMILIES
+    from rlu.data.release.framing import GZIP_MAGIC, MAX_RECORD_BYTES, masked_crc32c
+
+    fam = FAMILIES.get(obj.split("/", 1)[0])
+    if fam is None:
+        return ""  # not a catalog object: nothing is known to check
+    with open(path, "rb") as f:
+        head = f.read(1 << 16)
+    if fam.compression == "gzip":
+        if head[:2] != GZIP_MAGIC:
+            return f"not a gzip file (it starts with {head[:16]!r}): not a {fam.name} shard"
+        try:
+            head = zlib.decompressobj(31).decompress(head, 12)
+        except zlib.error as e:
+            return f"a damaged gzip stream ({e})"
+    if len(head) < 12:
+        return f"no TFRecord header in the first bytes ({len(head)} bytes): not a {fam.name} shard"
+    (length,) = struct.unpack("<Q", head[:8])
+    if length > MAX_RECORD_BYTES or struct.unpack("<I", head[8:12])[0] != masked_crc32c(head[:8]):
+        return f"its first record header is not TFRecord framing: not a {fam.name} shard"
+    return ""
 
 
 def _check_hashes(path: str, meta: dict) -> str:

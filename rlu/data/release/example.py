@@ -71,6 +71,15 @@ def _varint(buf: bytes, pos: int, end: int) -> tuple[int, int]:
             raise _err("varint longer than 10 bytes", pos)
 
 
+def _tag(buf: bytes, pos: int, end: int) -> tuple[int, int]:
+    """A field's tag; field number 0 is invalid protobuf (and a flood of zero bytes is no
+    message)."""
+    tag, p = _varint(buf, pos, end)
+    if tag < 8:
+        raise _err(f"invalid tag {tag} (field number 0)", pos)
+    return tag, p
+
+
 def _skip(buf: bytes, pos: int, end: int, wire: int) -> int:
     if wire == 0:
         return _varint(buf, pos, end)[1]
@@ -121,7 +130,7 @@ def _parse_list(buf: bytes, pos: int, end: int, kind: int) -> Feature:
     if kind == BYTES:
         out: list[bytes] = []
         while pos < end:
-            tag, pos = _varint(buf, pos, end)
+            tag, pos = _tag(buf, pos, end)
             if tag == 0x0A:
                 a, pos = _len_delim(buf, pos, end)
                 out.append(buf[a:pos])
@@ -130,7 +139,7 @@ def _parse_list(buf: bytes, pos: int, end: int, kind: int) -> Feature:
         return out
     pieces: list[np.ndarray] = []
     while pos < end:
-        tag, pos = _varint(buf, pos, end)
+        tag, pos = _tag(buf, pos, end)
         if tag == 0x0A:  # packed
             a, pos = _len_delim(buf, pos, end)
             if kind == FLOAT:
@@ -160,7 +169,7 @@ def _parse_feature(buf: bytes, pos: int, end: int) -> Feature:
     value: Feature = _EMPTY_F32
     kind = 0
     while pos < end:
-        tag, pos = _varint(buf, pos, end)
+        tag, pos = _tag(buf, pos, end)
         field, wire = tag >> 3, tag & 7
         if wire == 2 and field in _KIND_NAMES:
             a, pos = _len_delim(buf, pos, end)
@@ -178,7 +187,7 @@ def _map_entry(buf: bytes, pos: int, end: int, parse_value: Any, value: Any) -> 
     (``value`` when the entry has none)."""
     key = b""
     while pos < end:
-        tag, pos = _varint(buf, pos, end)
+        tag, pos = _tag(buf, pos, end)
         if tag == 0x0A:
             a, pos = _len_delim(buf, pos, end)
             key = buf[a:pos]
@@ -204,12 +213,12 @@ def decode_example(payload: bytes) -> dict[str, Feature]:
     out: dict[str, Feature] = {}
     pos, end = 0, len(payload)
     while pos < end:
-        tag, pos = _varint(payload, pos, end)
+        tag, pos = _tag(payload, pos, end)
         if tag == 0x0A:  # Example.features
             a, pos = _len_delim(payload, pos, end)
             q = a
             while q < pos:
-                t, q = _varint(payload, q, pos)
+                t, q = _tag(payload, q, pos)
                 if t == 0x0A:  # Features.feature map entry
                     b, q = _len_delim(payload, q, pos)
                     k, v = _parse_entry(payload, b, q)
@@ -236,14 +245,14 @@ def _layout(payload: bytes) -> dict[str, list[_Span]]:
     spans: dict[str, list[_Span]] = {}
     pos, end = 0, len(payload)
     while pos < end:
-        tag, pos = _varint(payload, pos, end)
+        tag, pos = _tag(payload, pos, end)
         if tag != 0x0A:
             pos = _skip(payload, pos, end, tag & 7)
             continue
         a, pos = _len_delim(payload, pos, end)
         q = a
         while q < pos:
-            t, q = _varint(payload, q, pos)
+            t, q = _tag(payload, q, pos)
             if t != 0x0A:
                 q = _skip(payload, q, pos, t & 7)
                 continue
@@ -261,7 +270,7 @@ def _layout_feature(buf: bytes, pos: int, end: int) -> list[_Span]:
     spans: list[_Span] = []
     kind = 0
     while pos < end:
-        tag, pos = _varint(buf, pos, end)
+        tag, pos = _tag(buf, pos, end)
         field, wire = tag >> 3, tag & 7
         if not (wire == 2 and field in _KIND_NAMES):
             pos = _skip(buf, pos, end, wire)
@@ -273,7 +282,7 @@ def _layout_feature(buf: bytes, pos: int, end: int) -> list[_Span]:
             kind = field
         q = a
         while q < lend:
-            t, q = _varint(buf, q, lend)
+            t, q = _tag(buf, q, lend)
             if t == 0x0A:
                 s, q = _len_delim(buf, q, lend)
                 if field == FLOAT and (q - s) % 4:

@@ -25,7 +25,8 @@ Two views of each record (rlu_release_format.md §3, §4):
                                 discount[0]); is_first / is_last from step_type (FIRST 0, LAST 2);
                                 a LAST step with discount 0 is terminal
   *_episodes                    "RSA" files: reward_t = reward[t+1], discount_t = discount[t+1],
-                                actions unshifted; terminal when the last discount is 0 (TFDS)
+                                actions unshifted; terminal when the last discount is 0, and
+                                the final step's discount 0 then, 1 at a time limit (TFDS)
   rwrl                          index 0 of action / reward / discount is a placeholder:
                                 action_t = action[t+1] (last repeated), reward_t = reward[t+1],
                                 discount_t = discount[t+1] (``rwrl.py``)
@@ -106,6 +107,30 @@ def _need(cols: Mapping[str, Any], key: str, where: str) -> Any:
     return cols[key]
 
 
+def _field(raw: Raw, key: str, lead: tuple[int, ...], ndim: int | None = None) -> np.ndarray:
+    """``raw[key]``, which must be numeric, start with the ``lead`` dimensions (records, steps:
+    each at least 1) and have ``ndim`` dimensions (None: any beyond ``lead``)."""
+    if key not in raw:
+        raise FormatError(f"feature {key!r} is missing; found {sorted(raw)}")
+    v = np.asarray(raw[key])
+    if v.dtype.kind not in "biuf":
+        raise FormatError(f"feature {key!r} holds {v.dtype} values; a numeric list was expected")
+    want = f"{len(lead) if ndim is None else ndim} dimensions starting {lead}"
+    if v.shape[: len(lead)] != lead or (ndim is not None and v.ndim != ndim) or v.ndim < len(lead):
+        raise FormatError(f"feature {key!r} has shape {v.shape}; the family holds {want}")
+    if 0 in lead or (v.ndim > len(lead) and 0 in v.shape[len(lead) :]):
+        raise FormatError(f"feature {key!r} has shape {v.shape}: an empty list")
+    return v
+
+
+def _steps(raw: Raw, key: str) -> tuple[int, int]:
+    """(records, steps) of the time-major scalar feature ``key``, at least one of each."""
+    v = _field(raw, key, (), 2)
+    if v.shape[0] < 1 or v.shape[1] < 1:
+        raise FormatError(f"feature {key!r} has shape {v.shape}: no steps")
+    return v.shape
+
+
 def _numeric(col: Any, key: str, where: str) -> np.ndarray:
     if isinstance(col, ex.BytesColumn):
         raise FormatError(f"{where}: feature {key!r} is a bytes_list; a numeric list was expected")
@@ -114,12 +139,25 @@ def _numeric(col: Any, key: str, where: str) -> np.ndarray:
     return col
 
 
-def _scalar(cols: Mapping[str, Any], key: str, where: str, dtype=None) -> np.ndarray:
+def _scalar(
+    cols: Mapping[str, Any], key: str, where: str, dtype=None, integer: bool = False
+) -> np.ndarray:
     v = _numeric(_need(cols, key, where), key, where)
+    if integer:
+        _integers(v, key, where)
     if v.ndim != 2 or v.shape[1] != 1:
         raise FormatError(f"{where}: feature {key!r} must hold one value, it holds {v.shape[1:]}")
     v = v[:, 0]
     return v.astype(dtype) if dtype is not None else v
+
+
+def _integers(v: np.ndarray, key: str, where: str) -> np.ndarray:
+    """``v``, which the release stores as an int64_list (actions, ids, indices)."""
+    if v.dtype != np.int64:
+        raise FormatError(
+            f"{where}: feature {key!r} is a float_list; the release stores it as an int64_list"
+        )
+    return v
 
 
 def _time_major(v: np.ndarray, t: int, key: str, where: str, scalar: bool) -> np.ndarray:
@@ -147,11 +185,16 @@ def _ragged(cols: Mapping[str, Any]) -> bool:
     return any(not isinstance(c, ex.BytesColumn) and c.dtype == object for c in cols.values())
 
 
-def _png_stack(col: ex.BytesColumn, count: int | None, key: str, where: str, channels: int):
+def _png_stack(
+    col: ex.BytesColumn, count: int | None, key: str, where: str, channels: int, size: tuple
+):
     vals = col.values
     if count is not None and any(len(v) != count for v in vals):
         raise FormatError(f"{where}: {key!r} must hold {count} PNG frames per record")
-    return [[decode_png(f, channels) for f in v] for v in vals]
+    try:
+        return [[decode_png(f, channels, size) for f in v] for v in vals]
+    except FormatError as e:
+        raise FormatError(f"{where}: {key!r}: {e}") from None
 
 
 # --- control suite / locomotion windows and episodes ----------------------------------------
@@ -204,9 +247,12 @@ def window_segments(raw: Raw) -> SegmentBatch:
     is terminal when the transition into it has discount 0 (the loader's ``p_t``); the LAST
     step's own stored discount reaches no transition.
     """
-    step_type = _need(raw, "step_type", "window")
+    n, t = _steps(raw, "discount")
+    step_type = _field(raw, "step_type", (n, t), 2)
     discount = raw["discount"].astype(np.float32)
-    n, t = discount.shape
+    _field(raw, "reward", (n, t), 2)
+    _field(raw, "action", (n, t), 3)
+    obs = {k: _field(raw, f"observation/{k}", (n, t)) for k in _observation(raw)}
     is_last = step_type == LAST
     is_first = step_type == FIRST
     # cut after the first LAST, and before a FIRST that is not step 0 (a new episode)
@@ -227,7 +273,7 @@ def window_segments(raw: Raw) -> SegmentBatch:
     prev_discount[:, 1:] = discount[:, :-1]
     is_terminal = is_last & (prev_discount == 0) & (steps[None, :] > 0)
     return SegmentBatch(
-        observation=_observation(raw),
+        observation=obs,
         action=raw["action"],
         reward=raw["reward"].astype(np.float32),
         discount=discount,
@@ -240,14 +286,17 @@ def window_segments(raw: Raw) -> SegmentBatch:
 
 def episode_segments(raw: Raw) -> SegmentBatch:
     """``*_episodes`` files ("RSA"): reward and discount move one step earlier (TFDS)."""
+    n, t = _steps(raw, "reward")
     reward = raw["reward"].astype(np.float32)
-    discount = raw["discount"].astype(np.float32)
-    n, t = reward.shape
+    discount = _field(raw, "discount", (n, t), 2).astype(np.float32)
+    _field(raw, "action", (n, t), 3)
+    obs = {k: _field(raw, f"observation/{k}", (n, t)) for k in _observation(raw)}
     terminal = discount[:, -1] == 0
     r = np.zeros_like(reward)
     r[:, :-1] = reward[:, 1:]
     d = np.zeros_like(discount)
     d[:, :-1] = discount[:, 1:]
+    d[:, -1] = np.where(terminal, 0.0, 1.0)  # TFDS: 0 appended at a terminal end, else 1
     flags = np.zeros((n, t), bool)
     is_first, is_last, is_terminal = flags.copy(), flags.copy(), flags.copy()
     is_first[:, 0] = True
@@ -255,10 +304,11 @@ def episode_segments(raw: Raw) -> SegmentBatch:
     is_terminal[:, -1] = terminal
     meta = {"episode_return": r.sum(axis=1, dtype=np.float64)}
     if "episode_id" in raw:
-        meta["episode_id"] = np.asarray(raw["episode_id"]).reshape(n).view(np.uint64)
-    return SegmentBatch(
-        _observation(raw), raw["action"], r, d, is_first, is_last, is_terminal, meta
-    )
+        ids = _field(raw, "episode_id", (n,), 1)
+        if ids.dtype != np.int64:
+            raise FormatError(f"feature 'episode_id' holds {ids.dtype}; an int64 list")
+        meta["episode_id"] = ids.view(np.uint64)
+    return SegmentBatch(obs, raw["action"], r, d, is_first, is_last, is_terminal, meta)
 
 
 def encode_sequence(rec: Mapping[str, np.ndarray]) -> bytes:
@@ -290,16 +340,16 @@ def parse_atari_transitions(cols: Mapping[str, Any], where: str = "record") -> l
         col = _need(cols, k, where)
         if not isinstance(col, ex.BytesColumn):
             raise FormatError(f"{where}: {k!r} must be a bytes_list of 4 PNG frames")
-        frames = _png_stack(col, 4, k, where, channels=1)
+        frames = _png_stack(col, 4, k, where, channels=1, size=ATARI_FRAME)
         arr = np.asarray(frames, np.uint8)
         if arr.ndim != 4 or arr.shape[2:] != ATARI_FRAME:
             raise FormatError(f"{where}: {k!r} frames must be 84x84 grey, got {arr.shape[2:]}")
         out[k] = np.ascontiguousarray(arr.transpose(0, 2, 3, 1))
-    out["a_t"] = _scalar(cols, "a_t", where, np.int32)
-    out["a_tp1"] = _scalar(cols, "a_tp1", where, np.int32)
+    out["a_t"] = _scalar(cols, "a_t", where, np.int32, integer=True)
+    out["a_tp1"] = _scalar(cols, "a_tp1", where, np.int32, integer=True)
     out["r_t"] = _scalar(cols, "r_t", where, np.float32)
     out["d_t"] = _scalar(cols, "d_t", where, np.float32)
-    out["episode_id"] = _scalar(cols, "episode_id", where).view(np.uint64)
+    out["episode_id"] = _scalar(cols, "episode_id", where, integer=True).view(np.uint64)
     out["episode_return"] = _scalar(cols, "episode_return", where, np.float32)
     return [out]
 
@@ -357,17 +407,18 @@ def parse_atari_episodes(cols: Mapping[str, Any], where: str = "record") -> list
         col = _need(row, "observations", where)
         if not isinstance(col, ex.BytesColumn):
             raise FormatError(f"{where}: 'observations' must be a bytes_list of PNG frames")
-        t = _numeric(_need(row, "actions", where), "actions", where).shape[1]
+        t = _integers(_numeric(_need(row, "actions", where), "actions", where), "actions", where)
+        t = t.shape[1]
         rec: Raw = {}
         for k in _ATARI_EP_LISTS:
             v = _numeric(_need(row, k, where), k, where)
             if v.shape[1] != t:
                 raise FormatError(f"{where}: {k!r} has {v.shape[1]} steps, 'actions' has {t}")
             rec[k] = v[0]
-        frames = _png_stack(col, t, "observations", where, channels=1)[0]
+        frames = _png_stack(col, t, "observations", where, channels=1, size=ATARI_FRAME)[0]
         rec["observations"] = np.asarray(frames, np.uint8).reshape(t, *ATARI_FRAME)
         for k in _ATARI_EP_SCALARS:
-            rec[k] = _scalar(row, k, where)[0]
+            rec[k] = _scalar(row, k, where, integer=k.endswith("_idx"))[0]
         out.append({k: np.asarray(v)[None] for k, v in rec.items()})
     return out
 
@@ -456,10 +507,16 @@ def rwrl_segments(raw: Raw) -> SegmentBatch:
     }
     if not obs:
         raise FormatError(f"RWRL record has no observation:* features; found {sorted(raw)}")
-    action = raw["action"]
+    n, t = _field(raw, "reward", (), 3).shape[:2]
+    if n < 1 or t < 1:
+        raise FormatError(f"feature 'reward' has shape {raw['reward'].shape}: no steps")
+    for k in ("reward", "discount"):
+        if _field(raw, k, (n, t), 3).shape[2] != 1:
+            raise FormatError(f"feature {k!r} holds {raw[k].shape[2]} values per step; want 1")
+    obs = {k: _field({k: v}, k, (n, t)) for k, v in obs.items()}
+    action = _field(raw, "action", (n, t), 3)
     reward = raw["reward"][..., 0].astype(np.float32)
     disc = raw["discount"][..., 0].astype(np.float32)
-    n, t = reward.shape
     act = np.concatenate([action[:, 1:], action[:, -1:]], axis=1)  # index 0 is a placeholder
     r = np.zeros_like(reward)
     r[:, :-1] = reward[:, 1:]
@@ -491,12 +548,18 @@ def parse_bsuite(cols: Mapping[str, Any], where: str = "record") -> list[Raw]:
     out: Raw = {}
     for k, c in cols.items():
         c = _numeric(c, k, where)
+        if k in ("action", "step_type"):
+            _integers(c, k, where)
         out[k] = _time_major(c, t, k, where, scalar=k != "observation")
     return [out]
 
 
 def bsuite_segments(raw: Raw) -> SegmentBatch:
+    n, t = _steps(raw, "step_type")
     st = raw["step_type"]
+    for k in ("discount", "reward", "action"):
+        _field(raw, k, (n, t), 2)
+    _field(raw, "observation", (n, t), 3)
     discount = raw["discount"].astype(np.float32).copy()
     # the notebook's loader: gamma = discount[0] * (step_type[1] != LAST)
     discount[:, :-1] *= (st[:, 1:] != LAST).astype(np.float32)
@@ -528,26 +591,42 @@ def parse_dmlab(cols: Mapping[str, Any], where: str = "record") -> list[Raw]:
     n = len(next(iter(cols.values()))) if cols else 0
     out = []
     for row in _split_rows(cols, n) if n > 1 else [cols]:
-        t = _numeric(_need(row, "actions", where), "actions", where).shape[1]
+        t = _integers(_numeric(_need(row, "actions", where), "actions", where), "actions", where)
+        t = t.shape[1]
+        if t < 1:
+            raise FormatError(f"{where}: 'actions' is empty; an episode has at least one step")
         rec: Raw = {}
         for k in _DMLAB_LISTS:
             if k in row:
-                rec[k] = _numeric(row[k], k, where)[0].reshape(t)
-        rec["observations_action"] = _numeric(
+                v = _numeric(row[k], k, where)[0]
+                if v.size != t:
+                    raise FormatError(f"{where}: {k!r} holds {v.size} values, 'actions' {t}")
+                rec[k] = v.reshape(t)
+        last_action = _numeric(
             _need(row, "observations_action", where), "observations_action", where
-        )[0].reshape(t, -1)
+        )[0]
+        if last_action.size == 0 or last_action.size % t:
+            raise FormatError(
+                f"{where}: 'observations_action' holds {last_action.size} values, not a "
+                f"multiple of the {t} steps"
+            )
+        rec["observations_action"] = last_action.reshape(t, -1)
         col = _need(row, "observations_pixels", where)
-        frames = _png_stack(col, t, "observations_pixels", where, channels=3)[0]
+        if not isinstance(col, ex.BytesColumn):
+            raise FormatError(f"{where}: 'observations_pixels' must be a bytes_list of PNGs")
+        frames = _png_stack(col, t, "observations_pixels", where, 3, DMLAB_FRAME[:2])[0]
         rec["observations_pixels"] = np.asarray(frames, np.uint8).reshape(t, *DMLAB_FRAME)
         for k in ("episode_id", "start_idx", "episode_return"):
             if k in row:
-                rec[k] = _scalar(row, k, where)[0]
+                rec[k] = _scalar(row, k, where, integer=k != "episode_return")[0]
         out.append({k: np.asarray(v)[None] for k, v in rec.items()})
     return out
 
 
 def dmlab_segment(raw: Raw) -> SegmentBatch:
-    n, t = raw["actions"].shape
+    n, t = _steps(raw, "actions")
+    for k in ("discounts", "rewards", "observations_reward"):
+        _field(raw, k, (n, t), 2)
     disc = raw["discounts"].astype(np.float32)
     flags = np.zeros((n, t), bool)
     is_first, is_last, is_terminal = flags.copy(), flags.copy(), flags.copy()
@@ -639,6 +718,78 @@ def _batch_size(fam: Family) -> int:
     return 64 if fam.name in ("atari", "atari_episodes_ordered", "dmlab") else 4096
 
 
+# What a record that passed its CRC but is not what its family holds makes numpy and the parsers
+# raise (an empty list where one value is due, lists of the wrong length...); each becomes a
+# FormatError naming the record.
+_MALFORMED = (
+    FormatError,
+    ValueError,
+    IndexError,
+    TypeError,
+    KeyError,
+    AssertionError,
+    OverflowError,
+    RecursionError,
+    ZeroDivisionError,
+    AttributeError,
+)
+
+
+def _decode(fam: Family, recs: list[bytes], where: str, segments: bool) -> list[Any]:
+    out = fam.parse(ex.decode_batch(recs), where)
+    return [fam.segments(raw) for raw in out] if segments else out
+
+
+def _read(
+    fam: Family, rd: RecordReader, segments: bool, skip: bool
+) -> Iterator[Raw | SegmentBatch]:
+    """Decode, parse (and cut into segments) one shard's records in batches, in order.
+
+    A batch that fails is read again record by record, so the error names the first bad record
+    and its byte offset (``skip``: every bad record is dropped and counted instead).
+    """
+    size = _batch_size(fam)
+    index = 0
+
+    def flush(recs: list[bytes], offsets: list[int]) -> list[Any]:
+        nonlocal index
+        first = index
+        index += len(recs)
+        where = f"{rd.path} (records {first}..{index - 1}, from byte offset {offsets[0]})"
+        try:
+            return _decode(fam, recs, where, segments)
+        except _MALFORMED:
+            pass
+        out: list[Any] = []
+        for i, (rec, off) in enumerate(zip(recs, offsets, strict=True)):
+            one = f"{rd.path}: record {first + i} at byte offset {off}"
+            try:
+                out.extend(_decode(fam, [rec], one, segments))
+            except _MALFORMED as e:
+                text = str(e) if isinstance(e, FormatError) else f"{type(e).__name__}: {e}"
+                msg = (
+                    f"{one}: not a valid {fam.name} record ({text.removeprefix(one + ': ')}); "
+                    "the file is damaged: download it again, or pass --skip-corrupt to drop "
+                    "bad records"
+                )
+                if not skip:
+                    raise FormatError(msg) from None
+                rd.stats.skipped += 1
+                rd.stats.errors.append(msg)
+        return out
+
+    pending: list[bytes] = []
+    pending_at: list[int] = []
+    for batch, offsets in rd.batches_with_offsets():
+        pending.extend(batch)
+        pending_at.extend(offsets)
+        while len(pending) >= size:
+            yield from flush(pending[:size], pending_at[:size])
+            pending, pending_at = pending[size:], pending_at[size:]
+    if pending:
+        yield from flush(pending, pending_at)
+
+
 def iter_raw(
     path: str | os.PathLike,
     family: str,
@@ -650,49 +801,21 @@ def iter_raw(
     """Loader-shaped batches (dicts of arrays stacked on a record axis) of one shard, in order."""
     fam = get_family(family)
     rd = reader or RecordReader(path, verify=verify, on_error=on_error)
-    size = _batch_size(fam)
-    pending: list[bytes] = []
-    index = 0
-
-    def flush(recs: list[bytes]) -> Iterator[Raw]:
-        nonlocal index
-        where = f"{rd.path} (records {index}..{index + len(recs) - 1})"
-        try:
-            cols = ex.decode_batch(recs)
-        except FormatError as e:
-            if on_error != "skip":
-                raise FormatError(f"{where}: {e}") from None
-            cols = _decode_skipping(recs, rd)
-        index += len(recs)
-        if cols:
-            yield from fam.parse(cols, where)
-
-    for batch in rd.batches():
-        pending.extend(batch)
-        while len(pending) >= size:
-            chunk, pending = pending[:size], pending[size:]
-            yield from flush(chunk)
-    if pending:
-        yield from flush(pending)
-
-
-def _decode_skipping(recs: list[bytes], rd: RecordReader) -> dict:
-    good = []
-    for r in recs:
-        try:
-            good.append(ex.decode_example(r))
-        except FormatError as e:
-            rd.stats.skipped += 1
-            rd.stats.errors.append(str(e))
-    return ex.stack_examples(good) if good else {}
+    yield from _read(fam, rd, segments=False, skip=on_error == "skip")  # type: ignore[misc]
 
 
 def iter_segments(
-    path: str | os.PathLike, family: str, *, verify: bool = True, on_error: str = "raise"
+    path: str | os.PathLike,
+    family: str,
+    *,
+    verify: bool = True,
+    on_error: str = "raise",
+    reader: RecordReader | None = None,
 ) -> Iterator[SegmentBatch]:
+    """The shard's records as segment batches (each family's alignment rule), in order."""
     fam = get_family(family)
-    for raw in iter_raw(path, family, verify=verify, on_error=on_error):
-        yield fam.segments(raw)
+    rd = reader or RecordReader(path, verify=verify, on_error=on_error)
+    yield from _read(fam, rd, segments=True, skip=on_error == "skip")  # type: ignore[misc]
 
 
 def read_raw(path: str | os.PathLike, family: str, **kw: Any) -> Raw:

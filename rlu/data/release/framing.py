@@ -38,9 +38,10 @@ CHUNK = 1 << 22  # bytes of compressed input per read; memory stays O(CHUNK + la
 _MASK_DELTA = 0xA282EAD8
 _HEADER = struct.Struct("<QI")
 _U32 = struct.Struct("<I")
-# A length header beyond this is damage, not a record (the release's largest records, DMLab
-# episodes of 1801 PNG frames, are tens of MB).
-MAX_RECORD_BYTES = 1 << 31
+# A length header beyond this (128 MiB) is damage, not a record: the release's largest records
+# (Atari episodes of up to 27,000 PNG frames, DMLab episodes, locomotion episodes with 64x64x3
+# camera bytes per step) are tens of MB. It also bounds what one record can cost in memory.
+MAX_RECORD_BYTES = 1 << 27
 
 
 def _crc_impl():
@@ -112,21 +113,24 @@ def is_gzip(path: str | os.PathLike) -> bool:
 def _gzip_chunks(f: BinaryIO, path: str) -> Iterator[bytes]:
     """Inflate a gzip file (one or more members) chunk by chunk; cut or corrupt streams raise.
 
-    The offset in a raised error is the number of decompressed bytes produced before the damage.
+    Every call to inflate is capped at ``CHUNK`` bytes of output (input it cannot take yet waits in
+    ``unconsumed_tail``), so a bomb (gigabytes of zeros in a few MB) costs one chunk of memory at a
+    time, never the whole inflated size. The offset in a raised error is the number of
+    decompressed bytes produced before the damage.
     """
     d = zlib.decompressobj(31)
-    consumed = 0  # compressed bytes fed so far
+    consumed = 0  # compressed bytes used so far
     produced = 0
-    pending = b""
-    started = False
+    data = f.read(CHUNK)
+    if not data:
+        raise RecordError(path, 0, "empty file where a gzip stream was expected")
+    at_end = False  # the file has no more bytes
     while True:
-        data = pending or f.read(CHUNK)
-        pending = b""
         if not data:
-            break
-        started = True
+            data = f.read(CHUNK)
+            at_end = not data
         try:
-            out = d.decompress(data)
+            out = d.decompress(data, CHUNK)
         except zlib.error as e:
             raise RecordError(
                 path,
@@ -134,7 +138,7 @@ def _gzip_chunks(f: BinaryIO, path: str) -> Iterator[bytes]:
                 f"corrupt gzip stream ({e}) near compressed byte {consumed}",
                 "the download is damaged: fetch it again (rlu download re-verifies sha256)",
             ) from None
-        consumed += len(data) - len(d.unused_data)
+        consumed += len(data) - len(d.unconsumed_tail) - len(d.unused_data)
         if out:
             produced += len(out)
             yield out
@@ -144,21 +148,21 @@ def _gzip_chunks(f: BinaryIO, path: str) -> Iterator[bytes]:
                 return
             if rest[:2] == GZIP_MAGIC:  # another member (concatenated gzip files)
                 d = zlib.decompressobj(31)
-                pending = rest
+                data = rest
                 continue
             while rest and not rest.strip(b"\0"):  # zero padding after the stream is harmless
                 rest = f.read(CHUNK)
             if rest:
                 raise RecordError(path, produced, "garbage after the end of the gzip stream")
             return
-    if not started:
-        raise RecordError(path, 0, "empty file where a gzip stream was expected")
-    raise RecordError(
-        path,
-        produced,
-        f"gzip stream cut after {consumed} compressed bytes (the file is truncated)",
-        "the download is incomplete: fetch it again (rlu download resumes and verifies)",
-    )
+        data = d.unconsumed_tail
+        if at_end and not out and not data:  # inflate wants input the file no longer has
+            raise RecordError(
+                path,
+                produced,
+                f"gzip stream cut after {consumed} compressed bytes (the file is truncated)",
+                "the download is incomplete: fetch it again (rlu download resumes and verifies)",
+            )
 
 
 def _plain_chunks(f: BinaryIO) -> Iterator[bytes]:
@@ -255,17 +259,14 @@ class RecordReader:
 
     def _resync(self, buf: bytes, start: int) -> int:
         """First offset >= start where a plausible header with a valid length CRC begins."""
-        end = len(buf) - 12
-        for o in range(start, end + 1):
-            header = buf[o : o + 8]
-            (length,) = struct.unpack("<Q", header)
-            if length > MAX_RECORD_BYTES:
-                continue
-            if buf[o + 8 : o + 12] == self._header_crc(header):
-                return o
-        return -1
+        return _find_header(buf, start, len(buf) - 12)
 
     def batches(self) -> Iterator[list[bytes]]:
+        for payloads, _ in self.batches_with_offsets():
+            yield payloads
+
+    def batches_with_offsets(self) -> Iterator[tuple[list[bytes], list[int]]]:
+        """Like :meth:`batches`, with each record's byte offset in the (decompressed) stream."""
         with open(self.path, "rb") as f:
             magic = f.read(2)
             f.seek(0)
@@ -274,15 +275,22 @@ class RecordReader:
             chunks = _gzip_chunks(f, self.path) if gz else _plain_chunks(f)
             if gz and self.prefetch:
                 chunks = _prefetch(chunks)
-            yield from self._frame(chunks)
+            # a plain file's size bounds every record: a header claiming more fails at once
+            total = None if gz else os.fstat(f.fileno()).st_size
+            yield from self._frame(chunks, total)
 
-    def _frame(self, chunks: Iterable[bytes]) -> Iterator[list[bytes]]:
+    def _frame(
+        self, chunks: Iterable[bytes], total: int | None
+    ) -> Iterator[tuple[list[bytes], list[int]]]:
         buf = b""
         base = 0  # stream offset of buf[0]
         skipping = False  # resynchronising after a bad header
         cut: RecordError | None = None
         it = iter(chunks)
         final = False
+        need = 0  # bytes buf must hold before a record can be cut from it
+        parts: list[bytes] = []  # chunks held back until a long record is complete
+        held = 0
         while not final:
             try:
                 new = next(it)
@@ -290,21 +298,38 @@ class RecordReader:
                 new, final = b"", True
             except RecordError as e:  # a cut or corrupt gzip stream: frame what was inflated
                 new, final, cut = b"", True, e
-            buf = buf + new if buf else new
-            out, pos, skipping = self._cut(buf, base, skipping, final, cut)
+            if not final and len(buf) + held + len(new) < need:
+                parts.append(new)  # joined once when the record is whole: no quadratic copies
+                held += len(new)
+                continue
+            if parts:
+                buf = b"".join([buf, *parts, new])
+                parts, held = [], 0
+            else:
+                buf = buf + new if buf else new
+            out, offsets, pos, skipping, need = self._cut(buf, base, skipping, final, cut, total)
             base += pos
             buf = buf[pos:]
             self.stats.bytes_read = base
             if out:
                 self.stats.records += len(out)
-                yield out
+                yield out, offsets
 
     def _cut(
-        self, buf: bytes, base: int, skipping: bool, final: bool, cut: RecordError | None
-    ) -> tuple[list[bytes], int, bool]:
-        """Cut complete records from ``buf``; returns (payloads, bytes consumed, skipping)."""
+        self,
+        buf: bytes,
+        base: int,
+        skipping: bool,
+        final: bool,
+        cut: RecordError | None,
+        total: int | None,
+    ) -> tuple[list[bytes], list[int], int, bool, int]:
+        """Cut complete records from ``buf``: (payloads, their offsets, bytes consumed, skipping,
+        bytes the rest of ``buf`` needs before the next record is whole)."""
         out: list[bytes] = []
+        offsets: list[int] = []
         pos = 0
+        need = 0
         n = len(buf)
         crc = _crc32c_fn() if self.verify else None
         header_crc = self._header_crc
@@ -318,6 +343,7 @@ class RecordReader:
                 pos = o
                 skipping = False
             if n - pos < 12:
+                need = 12
                 break
             header = buf[pos : pos + 8]
             if crc is not None and buf[pos + 8 : pos + 12] != header_crc(header):
@@ -327,12 +353,26 @@ class RecordReader:
                 continue
             (length,) = struct.unpack("<Q", header)
             if length > MAX_RECORD_BYTES:
-                self._bad(base + pos, f"record length {length} is implausible")
+                self._bad(
+                    base + pos,
+                    f"record length {length} is implausible (the release's records are under "
+                    f"{MAX_RECORD_BYTES} bytes)",
+                )
                 skipping = True
                 pos += 1
                 continue
             stride = length + 16
+            if total is not None and base + pos + stride > total:
+                self._bad(
+                    base + pos,
+                    f"truncated record (its header says {length} payload bytes; "
+                    f"{total - base - pos - 12} bytes of payload and CRC remain)",
+                )
+                skipping = True
+                pos += 1
+                continue
             if pos + stride > n:
+                need = stride
                 break
             # Fast path: a run of records of this same length, framed as columns of a 2D view:
             # the headers are compared as a block, the payload CRCs masked and compared in numpy.
@@ -344,6 +384,7 @@ class RecordReader:
                 if run >= 8:
                     p0 = pos + 12
                     payloads = [buf[o : o + length] for o in range(p0, p0 + run * stride, stride)]
+                    starts = list(range(base + pos, base + pos + run * stride, stride))
                     if crc is not None:
                         got = np.fromiter(map(crc, payloads), np.uint32, run)
                         got = ((got >> 15) | (got << 17)) + np.uint32(_MASK_DELTA)
@@ -354,10 +395,11 @@ class RecordReader:
                         if bad.size:
                             keep = np.ones(run, bool)
                             keep[bad] = False
-                            payloads = [
-                                q for q, k in zip(payloads, keep.tolist(), strict=True) if k
-                            ]
+                            k = keep.tolist()
+                            payloads = [q for q, ok in zip(payloads, k, strict=True) if ok]
+                            starts = [o for o, ok in zip(starts, k, strict=True) if ok]
                     out.extend(payloads)
+                    offsets.extend(starts)
                     pos += run * stride
                     continue
             p = pos + 12
@@ -366,6 +408,7 @@ class RecordReader:
                 self._bad(base + pos, "payload CRC mismatch")
             else:
                 out.append(payload)
+                offsets.append(base + pos)
             pos += stride
         if final and pos < n and not skipping:
             rest = buf[pos:]
@@ -384,7 +427,63 @@ class RecordReader:
         elif final and cut is not None:
             self._bad(base + pos, cut.what)
             self.stats.skipped -= 1  # no record was lost, only the stream's end
-        return out, pos, skipping
+        return out, offsets, pos, skipping, need
+
+
+_CRC_TABLE: np.ndarray | None = None
+_SCAN = 1 << 20  # candidate offsets examined per numpy pass when resynchronising
+
+
+def _crc_table() -> np.ndarray:
+    """The byte table of reflected CRC-32C (Castagnoli polynomial 0x82F63B78)."""
+    global _CRC_TABLE
+    if _CRC_TABLE is None:
+        t = np.arange(256, dtype=np.uint32)
+        for _ in range(8):
+            t = np.where(t & 1, (t >> 1) ^ np.uint32(0x82F63B78), t >> 1).astype(np.uint32)
+        _CRC_TABLE = t
+    return _CRC_TABLE
+
+
+def _find_header(buf: bytes, start: int, last: int) -> int:
+    """First offset o in [start, last] where ``buf[o:o+8]`` is a length <= MAX_RECORD_BYTES and
+    ``buf[o+8:o+12]`` its masked CRC-32C; -1 if none.
+
+    Vectorised: the cheap necessary conditions first (a length up to 2^27 has its top four bytes
+    clear, and a header's CRC bytes are not all zero: one header in 2^32 has such a CRC, and its
+    record is then skipped), then the CRC of the few remaining 8-byte windows at once (8 table
+    steps). Resynchronising through megabytes of damage, or a bomb of zeros, is a few numpy
+    passes, not a Python loop per byte.
+    """
+    if last < start:
+        return -1
+    u = np.frombuffer(buf, np.uint8)
+    table = _crc_table()
+    top = (MAX_RECORD_BYTES.bit_length() + 7) // 8  # bytes of the length that may be non-zero
+    for a in range(start, last + 1, _SCAN):
+        n = min(_SCAN, last + 1 - a)
+        high = np.zeros(n, np.uint8)
+        for j in range(top, 8):
+            high |= u[a + j : a + j + n]
+        crc_bytes = np.zeros(n, np.uint8)
+        for j in range(8, 12):
+            crc_bytes |= u[a + j : a + j + n]
+        cand = np.flatnonzero((high == 0) & (crc_bytes != 0))
+        if not cand.size:
+            continue
+        rows = a + cand[:, None] + np.arange(12)
+        win = u[rows]  # (candidates, 12)
+        crc = np.full(len(cand), 0xFFFFFFFF, np.uint32)
+        for j in range(8):
+            crc = table[(crc ^ win[:, j]) & 0xFF] ^ (crc >> np.uint32(8))
+        crc ^= np.uint32(0xFFFFFFFF)
+        masked = ((crc >> np.uint32(15)) | (crc << np.uint32(17))) + np.uint32(_MASK_DELTA)
+        stored = np.ascontiguousarray(win[:, 8:12]).view("<u4")[:, 0]
+        length = np.ascontiguousarray(win[:, :8]).view("<u8")[:, 0]
+        hit = np.flatnonzero((masked == stored) & (length <= MAX_RECORD_BYTES))
+        if hit.size:
+            return a + int(cand[hit[0]])
+    return -1
 
 
 def read_records(

@@ -86,13 +86,25 @@ def _fast_decode(data: bytes, Image) -> np.ndarray | None:
     return arr.reshape(h, w) if channels == 1 else arr.reshape(h, w, channels)
 
 
-def decode_png(data: bytes, channels: int | None = None) -> np.ndarray:
+def decode_png(
+    data: bytes, channels: int | None = None, size: tuple[int, int] | None = None
+) -> np.ndarray:
     """One PNG -> uint8 array (H, W) for grey, (H, W, C) otherwise, as stored (no reordering).
 
     ``channels=1`` insists on a grey image (as the original loaders' ``decode_png(channels=1)``).
+    ``size`` (H, W): refuse any other size from the header, before a pixel is decoded (a PNG
+    declaring 65536x65536 costs nothing).
     """
     if not data.startswith(PNG_MAGIC):
         raise FormatError(f"not a PNG image (starts with {bytes(data[:8])!r})")
+    if size is not None:
+        if len(data) < 24 or data[12:16] != b"IHDR":
+            raise FormatError("damaged PNG image: no IHDR chunk first")
+        w, h = struct.unpack_from(">II", data, 16)
+        if (h, w) != tuple(size):
+            raise FormatError(
+                f"PNG image of {w}x{h} pixels; the release's frames are {size[1]}x{size[0]}"
+            )
     Image = _pil()
     try:
         arr = _fast_decode(data, Image)

@@ -11,22 +11,28 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
+from rlu import runs
 from rlu.evaluation.report.numbers import (
+    CHALLENGE_MARK,
     PANELS,
+    Absent,
     DomainContext,
     build_report,
     dataset_percentile,
     load_paper_results,
     paper_entry,
+    report_key,
     task_info,
 )
 from rlu.types import RluError
 
 __all__ = [
     "PANELS",
+    "Absent",
     "DomainContext",
     "build_report",
     "dataset_percentile",
@@ -38,30 +44,29 @@ __all__ = [
 
 
 def write_report(
-    sweep_dir: str | os.PathLike,
+    sweep_dir: str | os.PathLike | Sequence[str | os.PathLike],
     out: str | os.PathLike | None = None,
     random_scores: Mapping[str, float] | None = None,
     best_behaviour: Mapping[str, float] | None = None,
     figures: bool = True,
 ) -> list[Path]:
-    """Write report.md, report.html, report.json and figures/*.png; return their paths."""
+    """Write report.md, report.html, report.json and figures/*.png; return their paths.
+
+    ``sweep_dir`` is one sweep folder or several (an Atari sweep and a control suite sweep
+    run different agents, so the paper's figures come from more than one sweep); their
+    records are reported together, and ``out`` is then required."""
     from rlu.evaluation.report import render
 
-    sweep_dir = Path(sweep_dir)
-    results = sweep_dir / "results.jsonl"
-    if not results.exists():
-        raise RluError(
-            f"{results} is missing; run the sweep first (rlu sweep ... --out {sweep_dir})"
-        )
-    records = [json.loads(x) for x in results.read_text().splitlines() if x.strip()]
-    datasets = None
-    cfg = sweep_dir / "sweep.json"
-    if cfg.exists():
-        datasets = json.loads(cfg.read_text()).get("datasets")
-    fqe_path = sweep_dir / "fqe.json"
-    fqe = json.loads(fqe_path.read_text()) if fqe_path.exists() else None
+    dirs = [Path(sweep_dir)] if isinstance(sweep_dir, str | os.PathLike) else [
+        Path(d) for d in sweep_dir
+    ]  # fmt: skip
+    if not dirs:
+        raise RluError("no sweep folder given; pass one or more SWEEP_DIR")
+    if out is None and len(dirs) > 1:
+        raise RluError(f"{len(dirs)} sweep folders: pass --out for the report folder")
+    records, datasets, fqe = _read_sweeps(dirs)
     rep = build_report(records, datasets, random_scores, best_behaviour, fqe=fqe)
-    out = Path(out) if out is not None else sweep_dir / "report"
+    out = Path(out) if out is not None else dirs[0] / "report"
     out.mkdir(parents=True, exist_ok=True)
     parts = render.sections(rep, render.Figures(out) if figures else None)
     paths = [out / "report.md", out / "report.html", out / "report.json"]
@@ -70,3 +75,50 @@ def write_report(
     paths[2].write_text(json.dumps(rep, indent=2) + "\n")
     images = [b.path for s in parts for b in s.blocks if isinstance(b, render.Image)]
     return paths + [out / p for p in images]
+
+
+def _read_sweeps(
+    dirs: Sequence[Path],
+) -> tuple[list[dict[str, Any]], dict[str, str] | None, dict[str, Any] | None]:
+    """(records, datasets by task, FQE selections) of one or more sweep folders; a run of the
+    same (task, agent, config, seed) in two of them, or one task with two datasets, is an
+    error (the report would pick one silently)."""
+    records: list[dict[str, Any]] = []
+    seen: dict[tuple[str, str, str, int], Path] = {}
+    datasets: dict[str, str] = {}
+    where: dict[str, Path] = {}
+    selections: list[dict[str, Any]] = []
+    any_datasets = any_fqe = False
+    for d in dirs:
+        results = d / runs.RESULTS
+        cfg = d / runs.SWEEP_CONFIG
+        sweep_datasets = runs.load_sweep_config(d)["datasets"] if cfg.exists() else {}
+        any_datasets = any_datasets or cfg.exists()
+        for r in runs.load_results(d):
+            # RWRL results under a challenge are their own task (report_key), as in the paper
+            r = {**r, "task": report_key(r)}
+            key = (r["task"], r["agent"], r["config"], int(r["seed"]))
+            if key in seen:
+                raise RluError(
+                    f"{results}: run {key} is also in {seen[key] / runs.RESULTS}; report "
+                    "sweeps that do not overlap, or one of them"
+                )
+            seen[key] = d
+            records.append(r)
+            path = sweep_datasets.get(key[0].partition(CHALLENGE_MARK)[0])
+            if path is None:
+                continue
+            task = key[0]
+            if task in datasets and datasets[task] != path:
+                raise RluError(
+                    f"{cfg}: task {task} has dataset {path}, but "
+                    f"{where[task] / runs.SWEEP_CONFIG} has {datasets[task]}; report sweeps of "
+                    "one dataset per task"
+                )
+            datasets[task], where[task] = path, d
+        fqe_path = d / runs.FQE
+        if fqe_path.exists():
+            any_fqe = True
+            selections += json.loads(fqe_path.read_text()).get("selections", [])
+    fqe = {"selections": selections} if any_fqe else None
+    return records, datasets if any_datasets else None, fqe

@@ -16,11 +16,27 @@ one entry per *panel*:
   bootstrapped [25, 75] percentile interval, and the IQM with a 95 % stratified bootstrap
   confidence interval over seeds (Agarwal et al. 2021, rliable);
 - ``fqe``: offline policy selection by FQE estimates, when ``fqe.json`` is given;
-- ``dataset_p90``: each task's dataset 90th-percentile episode return, when datasets are named.
+- ``dataset_p90``: each task's dataset 90th-percentile episode return, when datasets are named;
+- ``task_bars`` (every domain but Atari; the paper's control suite and locomotion figures): per
+  task, the agents' scores under the task's own protocol, online policy selection on the online
+  tasks and naive offline selection on the offline ones (drawn with the ``dataset_p90`` line);
+- ``atari_median`` (the paper's Atari figure, two panels): the median normalised score with a
+  bootstrapped [25, 75] interval, online policy selection on the tuning games and naive offline
+  selection on the held-out games the sweep covers;
+- ``atari_per_game`` (the paper's appendix figure "Atari normalized performance"): per game and
+  agent, the normalised score improvement over the best behaviour snapshot (normalised - 100);
+- ``iqn_tau`` and ``bcq_threshold`` (the paper's appendix ablations): per value of IQN's
+  ``num_tau_samples`` and discrete BCQ's ``threshold``, the median normalised score over the
+  tuning games, each game's other hyper-parameters chosen online.
 
-Adding a panel is one function here, ``panel(ctx: DomainContext) -> dict | None`` registered in
-``PANELS`` (None: the panel does not apply to this domain), plus one renderer registered under
-the same name in ``rlu.evaluation.report.render.RENDERERS``.
+Beside the Atari panels stand the paper's per-game table normalised with the same reference
+scores (the paper prints those figures without numbers; its table is the nearest number).
+
+Adding a panel is one function here, ``panel(ctx: DomainContext) -> dict | Absent | None``
+registered in ``PANELS``, plus one renderer registered under the same name in
+``rlu.evaluation.report.render.RENDERERS``. None: the panel does not apply to this domain;
+``Absent(reason)``: it applies but the sweep holds no data for it (the report says why in one
+line, ``dom["absent"]``).
 
 Task metadata (domain, selection split) comes from ``rlu.tasks``; a task id that is not in the
 registry is reported under the domain ``other`` as an online-selection task.
@@ -56,17 +72,31 @@ def _key(name: str) -> str:
     return _PAPER_ALIASES.get(k, k)
 
 
+CHALLENGE_MARK = ":"
+"""An RWRL result under a challenge other than ``none`` is reported under ``<task id>:<challenge>``
+(``rwrl/walker_walk:easy``), apart from the same task's ``none`` results, as the paper's RWRL
+results are."""
+
+
+def report_key(record: Mapping[str, Any]) -> str:
+    """The task a result is reported under: its task id, with the RWRL challenge it was
+    evaluated in when that is not ``none``."""
+    challenge = record.get("env_settings", {}).get("challenge", "none")
+    return record["task"] if challenge == "none" else f"{record['task']}{CHALLENGE_MARK}{challenge}"
+
+
 def task_info(task_id: str) -> tuple[str, str, str]:
-    """(domain, selection, display name) of a task id."""
+    """(domain, selection, display name) of a task id (or of a ``report_key``)."""
     from rlu.tasks import get_task
 
+    base, _, challenge = task_id.partition(CHALLENGE_MARK)
     try:
-        t = get_task(task_id)
+        t = get_task(base)
     except RluError:
         return "other", "online", task_id
-    if t.id != task_id:  # a bare name that get_task resolved; report it under its own id
+    if t.id != base:  # a bare name that get_task resolved; report it under its own id
         return "other", "online", task_id
-    return t.domain, t.selection, t.name
+    return t.domain, t.selection, t.name + (f" ({challenge} challenge)" if challenge else "")
 
 
 def load_paper_results() -> dict[str, Any]:
@@ -98,7 +128,37 @@ def dataset_percentile(dataset: str, q: float = 90.0) -> float | None:
     return float(np.percentile(returns, q)) if len(returns) else None
 
 
+# The paper's sensitivity figures (appendix "Atari IQN Ablation Study" and "Atari BCQ Ablation
+# Study", with the grids of the baselines appendix): the grid each figure spans and the value the
+# paper found best by online policy selection. The figures print no numbers.
+PAPER_SENSITIVITY: dict[str, dict[str, Any]] = {
+    "iqn_tau": {"agent": "iqn", "field": "num_tau_samples", "grid": [8, 16, 32], "best": 16},
+    "bcq_threshold": {
+        "agent": "bcq",
+        "field": "threshold",
+        "grid": [0.25, 0.5, 0.75, 1.0],
+        "best": 0.5,
+    },
+}
+
+PAPER_FIGURE_ONLY = (
+    "the paper prints this figure without numbers; 'paper (table)' is the median of the paper's "
+    "per-game appendix table (raw scores) normalised with the reference scores used here, which "
+    "are not the paper's own (rlu/resources/atari_best_behaviour.json says where they come from)"
+)
+
+
 # --- the numbers ----------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Absent:
+    """A panel that applies to the domain but has no data in the sweep: why, in one line."""
+
+    reason: str
+
+
+Normaliser = Callable[[str, float], float]
+
+
 @dataclass(frozen=True)
 class DomainContext:
     """Everything a panel may read about one domain of a sweep."""
@@ -117,33 +177,38 @@ class DomainContext:
     datasets: Mapping[str, str]
     fqe: Mapping[str, Any] | None
     reps: int
+    normalise: Normaliser | None = None
+    """Atari: ``(task id, raw score) -> normalised score`` for any game with reference scores
+    (the paper's numbers are normalised with it too); None where the domain is not normalised."""
 
 
 def online_panel(ctx: DomainContext) -> dict[str, Any]:
     return _table(online_selection(ctx.records), ctx.tasks, ctx.agents, ctx.paper)
 
 
-def offline_naive_panel(ctx: DomainContext) -> dict[str, Any] | None:
-    if not (ctx.online_tasks and ctx.offline_tasks):
+def offline_naive_panel(ctx: DomainContext) -> dict[str, Any] | Absent | None:
+    if not ctx.offline_tasks:
         return None
-    stat = domain_statistic(ctx.domain)
-    chosen, _ = offline_selection_naive(
-        list(ctx.scored), list(ctx.online_tasks), list(ctx.offline_tasks), stat
-    )
+    if not ctx.online_tasks:
+        return Absent(_NO_ONLINE_TASK)
+    chosen, skipped = _naive_choices(ctx)
+    if not chosen:
+        return Absent("; ".join(skipped.values()))
     picked = [
         r
         for r in ctx.records
-        if r["task"] in ctx.offline_tasks and r["config"] == chosen[r["agent"]]
+        if r["task"] in ctx.offline_tasks and chosen.get(r["agent"]) == r["config"]
     ]
     return {
         "chosen": chosen,
+        "skipped": skipped,
         **_table(online_selection(picked), ctx.offline_tasks, ctx.agents, ctx.paper),
     }
 
 
-def aggregates_panel(ctx: DomainContext) -> dict[str, Any] | None:
+def aggregates_panel(ctx: DomainContext) -> dict[str, Any] | Absent:
     if ctx.domain == "atari" and not ctx.normalised:
-        return None  # Atari aggregates are over normalised scores only
+        return Absent(_NO_REFERENCE)  # Atari aggregates are over normalised scores only
     return _aggregates(online_selection(ctx.scored), ctx.tasks, ctx.agents, ctx.domain, ctx.reps)
 
 
@@ -159,6 +224,118 @@ def dataset_p90_panel(ctx: DomainContext) -> dict[str, float | None] | None:
     return {t: dataset_percentile(ctx.datasets[t]) for t in ctx.tasks if t in ctx.datasets}
 
 
+def task_bars_panel(ctx: DomainContext) -> dict[str, Any] | None:
+    """The paper's control suite and locomotion figures: each task under its own protocol."""
+    if ctx.domain == "atari":
+        return None  # the paper draws Atari normalised: atari_median and atari_per_game
+    online = _table(
+        online_selection(r for r in ctx.records if r["task"] in ctx.online_tasks),
+        ctx.online_tasks,
+        ctx.agents,
+        ctx.paper,
+    )["rows"]
+    chosen, skipped = _naive_choices(ctx)
+    picked = [
+        r
+        for r in ctx.records
+        if r["task"] in ctx.offline_tasks and chosen.get(r["agent"]) == r["config"]
+    ]
+    offline = _table(online_selection(picked), ctx.offline_tasks, ctx.agents, ctx.paper)["rows"]
+    if ctx.offline_tasks and not ctx.online_tasks:
+        skipped = {"*": _NO_ONLINE_TASK}
+    return {
+        "online": online,
+        "offline": offline if chosen else [],
+        "chosen": chosen,
+        "skipped": skipped,
+    }
+
+
+def atari_median_panel(ctx: DomainContext) -> dict[str, Any] | Absent | None:
+    """The paper's Atari figure: median normalised score, [25, 75] bootstrap interval, online
+    policy selection on the tuning games (left) and naive offline selection on the held-out
+    games (right); each half covers the games the sweep has."""
+    if ctx.domain != "atari":
+        return None
+    if ctx.normalise is None:
+        return Absent(_NO_REFERENCE)
+    from rlu.tasks import list_tasks
+
+    out: dict[str, Any] = {"statistic": "median", "note": PAPER_FIGURE_ONLY, "missing": {}}
+    all_online = [t.id for t in list_tasks("atari", "online")]
+    all_offline = [t.id for t in list_tasks("atari", "offline")]
+    if ctx.online_tasks:
+        sel = online_selection(r for r in ctx.scored if r["task"] in ctx.online_tasks)
+        out["online"] = _median_half(ctx, sel, ctx.online_tasks, all_online, {})
+    else:
+        out["missing"]["online"] = "the sweep has none of the 9 tuning games"
+    if ctx.offline_tasks and ctx.online_tasks:
+        chosen, skipped = _naive_choices(ctx)
+        sel = online_selection(
+            r
+            for r in ctx.scored
+            if r["task"] in ctx.offline_tasks and chosen.get(r["agent"]) == r["config"]
+        )
+        half = _median_half(ctx, sel, ctx.offline_tasks, all_offline, skipped)
+        out["offline"] = {**half, "chosen": chosen}
+    elif ctx.offline_tasks:
+        out["missing"]["offline"] = _NO_ONLINE_TASK
+    else:
+        out["missing"]["offline"] = "the sweep has none of the 37 held-out games"
+    if "online" not in out and "offline" not in out:
+        return Absent("; ".join(out["missing"].values()))
+    return out
+
+
+def atari_per_game_panel(ctx: DomainContext) -> dict[str, Any] | Absent | None:
+    """The paper's appendix figure "Atari normalized performance": per agent and game, the
+    normalised score improvement over the best behaviour snapshot, ``normalised - 100`` (0: as
+    good as the best snapshot of the online DQN that logged the data), each game under its own
+    protocol (online selection on tuning games, naive offline selection on held-out ones)."""
+    if ctx.domain != "atari":
+        return None
+    if ctx.normalise is None:
+        return Absent(_NO_REFERENCE)
+    online = online_selection(r for r in ctx.scored if r["task"] in ctx.online_tasks)
+    chosen, skipped = _naive_choices(ctx)
+    offline = online_selection(
+        r
+        for r in ctx.scored
+        if r["task"] in ctx.offline_tasks and chosen.get(r["agent"]) == r["config"]
+    )
+    agents: dict[str, list[dict[str, Any]]] = {}
+    for agent in ctx.agents:
+        bars = []
+        for task in ctx.tasks:
+            s = (online if task in ctx.online_tasks else offline).get((task, agent))
+            if s is None:
+                continue
+            paper = _paper_normalised(ctx, task, agent)
+            bars.append(
+                {
+                    "task": task,
+                    "selection": task_info(task)[1],
+                    "config": s.config,
+                    "normalised": s.mean,
+                    "improvement": s.mean - 100.0,
+                    "paper_improvement": None if paper is None else paper - 100.0,
+                }
+            )
+        if bars:
+            agents[agent] = sorted(bars, key=lambda b: -b["improvement"])
+    if not agents:
+        return Absent("; ".join(skipped.values()) or "no game has a result")
+    return {"agents": agents, "skipped": skipped, "note": PAPER_FIGURE_ONLY}
+
+
+def iqn_tau_panel(ctx: DomainContext) -> dict[str, Any] | Absent | None:
+    return _sensitivity(ctx, "iqn_tau")
+
+
+def bcq_threshold_panel(ctx: DomainContext) -> dict[str, Any] | Absent | None:
+    return _sensitivity(ctx, "bcq_threshold")
+
+
 Panel = Callable[[DomainContext], Any]
 PANELS: dict[str, Panel] = {
     "online": online_panel,
@@ -166,8 +343,165 @@ PANELS: dict[str, Panel] = {
     "aggregates": aggregates_panel,
     "fqe": fqe_panel,
     "dataset_p90": dataset_p90_panel,
+    "task_bars": task_bars_panel,
+    "atari_median": atari_median_panel,
+    "atari_per_game": atari_per_game_panel,
+    "iqn_tau": iqn_tau_panel,
+    "bcq_threshold": bcq_threshold_panel,
 }
 """Every panel of a domain, in report order (``rlu.evaluation.report.render`` renders them)."""
+
+_NO_REFERENCE = (
+    "Atari scores are compared normalised, and a game of the sweep has no random or "
+    "best-behaviour reference score (rlu/resources/random_scores.json, atari_best_behaviour.json)"
+)
+_NO_ONLINE_TASK = (
+    "naive offline selection chooses a configuration on the online-selection tasks, and the "
+    "sweep has none of this domain"
+)
+
+
+def _naive_choices(ctx: DomainContext) -> tuple[dict[str, str], dict[str, str]]:
+    """Per agent, the configuration naive offline selection chooses (``{agent: config}``), and
+    ``{agent: why}`` for the agents it cannot choose for (no configuration run on every online
+    task of the sweep)."""
+    if not (ctx.online_tasks and ctx.offline_tasks):
+        return {}, {}
+    stat = domain_statistic(ctx.domain)
+    chosen: dict[str, str] = {}
+    skipped: dict[str, str] = {}
+    for agent in ctx.agents:
+        recs = [r for r in ctx.scored if r["agent"] == agent]
+        if not any(r["task"] in ctx.offline_tasks for r in recs):
+            continue
+        try:
+            pick, _ = offline_selection_naive(recs, ctx.online_tasks, ctx.offline_tasks, stat)
+        except RluError as e:
+            skipped[agent] = str(e)
+            continue
+        if agent not in pick:
+            skipped[agent] = f"agent {agent!r} has no run on an online-selection task"
+            continue
+        chosen.update(pick)
+    return chosen, skipped
+
+
+def _paper_normalised(ctx: DomainContext, task: str, agent: str) -> float | None:
+    """The paper's table score of a game and agent, normalised like ours (None: no number, or
+    no reference score for the game)."""
+    entry = paper_entry(task, agent, ctx.paper)
+    if entry is None or ctx.normalise is None:
+        return None
+    try:
+        return float(ctx.normalise(task, entry["mean"]))
+    except KeyError:
+        return None
+
+
+def _paper_median(ctx: DomainContext, agent: str, tasks: Sequence[str]) -> float | None:
+    values = [_paper_normalised(ctx, t, agent) for t in tasks]
+    if not values or any(v is None for v in values):
+        return None
+    return float(np.median(values))
+
+
+def _median_half(
+    ctx: DomainContext,
+    sel: Mapping[tuple[str, str], Selection],
+    tasks: Sequence[str],
+    all_tasks: Sequence[str],
+    skipped: Mapping[str, str],
+) -> dict[str, Any]:
+    """One half of the Atari figure: per agent the median over its games with the interval,
+    the paper's table over the same games and over all the split's games."""
+    agents: dict[str, Any] = {}
+    for agent in ctx.agents:
+        cells = {t: sel[(t, agent)] for t in tasks if (t, agent) in sel}
+        if not cells:
+            continue
+        med, (lo, hi) = task_bootstrap_interval(
+            [c.mean for c in cells.values()], "median", reps=ctx.reps
+        )
+        agents[agent] = {
+            "median": med,
+            "interval_25_75": [lo, hi],
+            "games": len(cells),
+            "configs": {t: c.config for t, c in cells.items()},
+            "paper_same_games": _paper_median(ctx, agent, list(cells)),
+            "paper_all_games": _paper_median(ctx, agent, all_tasks),
+        }
+    return {
+        "games": list(tasks),
+        "of": len(all_tasks),
+        "agents": agents,
+        "skipped": dict(skipped),
+    }
+
+
+def _sensitivity(ctx: DomainContext, name: str) -> dict[str, Any] | Absent | None:
+    """Median normalised score over the sweep's tuning games per value of one hyper-parameter
+    of one agent; per game and value, the best setting of the other hyper-parameters (online
+    policy selection, as the paper's ablations evaluate)."""
+    if ctx.domain != "atari":
+        return None
+    paper = PAPER_SENSITIVITY[name]
+    agent, fld = paper["agent"], paper["field"]
+    if agent not in ctx.agents:
+        return Absent(f"the sweep has no {agent} runs")
+    if ctx.normalise is None:
+        return Absent(_NO_REFERENCE)
+    if not ctx.online_tasks:
+        return Absent(
+            f"the paper's {agent} {fld} figure is over the tuning games (online policy "
+            "selection) and the sweep has none of them"
+        )
+    by_value: dict[Any, list[Mapping[str, Any]]] = defaultdict(list)
+    for r in ctx.scored:
+        overrides = r.get("overrides") or {}
+        if r["agent"] == agent and r["task"] in ctx.online_tasks and fld in overrides:
+            by_value[overrides[fld]].append(r)
+    if len(by_value) < 2:
+        return Absent(
+            f"the sweep's {agent} runs on tuning games set {len(by_value)} value(s) of {fld} "
+            f"(a grid over {fld}, e.g. the paper's {paper['grid']}, draws the figure)"
+        )
+    values = []
+    for value in sorted(by_value, key=_order):
+        sel = online_selection(by_value[value])
+        cells = {t: sel[(t, agent)] for t in ctx.online_tasks if (t, agent) in sel}
+        med, (lo, hi) = task_bootstrap_interval(
+            [c.mean for c in cells.values()], "median", reps=ctx.reps
+        )
+        values.append(
+            {
+                "value": value,
+                "median": med,
+                "interval_25_75": [lo, hi],
+                "games": len(cells),
+                "configs": {t: c.config for t, c in cells.items()},
+            }
+        )
+    return {
+        "agent": agent,
+        "field": fld,
+        "games": list(ctx.online_tasks),
+        "of": len(_registry("atari", "online")),
+        "values": values,
+        "paper": {"grid": paper["grid"], "best": paper["best"], "numbers": None},
+    }
+
+
+def _order(value: Any) -> tuple[int, Any]:
+    # numbers in numeric order, anything else after them by its text
+    if isinstance(value, int | float) and not isinstance(value, bool):
+        return 0, float(value)
+    return 1, str(value)
+
+
+def _registry(domain: str, selection: str) -> list[str]:
+    from rlu.tasks import list_tasks
+
+    return [t.id for t in list_tasks(domain, selection)]
 
 
 def build_report(
@@ -212,14 +546,18 @@ def build_report(
             datasets=dict(datasets or {}),
             fqe=fqe,
             reps=reps,
+            normalise=norm,
         )
         dom: dict[str, Any] = {"agents": agents, "tasks": tasks, "normalised": norm is not None}
         if norm is not None:
             dom["reference_scores"] = refs
         dom["panels"] = []
+        dom["absent"] = {}
         for name, panel in PANELS.items():
             data = panel(ctx)
-            if data is not None:
+            if isinstance(data, Absent):
+                dom["absent"][name] = data.reason
+            elif data is not None:
                 dom[name] = data
                 dom["panels"].append(name)
         out["domains"][domain] = dom
@@ -227,11 +565,14 @@ def build_report(
 
 
 def _atari_normaliser(tasks, random_scores, best_behaviour):
-    """(score normaliser, the reference scores used) or (None, None) where a game lacks one.
+    """(score normaliser, the reference scores of ``tasks``) or (None, None) where a game of
+    ``tasks`` lacks one.
 
     The references are the given ones or the shipped files (``rlu/resources``); a game without
     both leaves the domain unnormalised (there is no estimate from the sweep's data: a
-    transition dataset's returns are clipped and span a whole run, not one snapshot)."""
+    transition dataset's returns are clipped and span a whole run, not one snapshot). The
+    normaliser takes any game with both references (KeyError for one without): the paper's
+    numbers of games outside the sweep are normalised with it too."""
     if random_scores is None:
         try:
             random_scores = load_reference_scores("random_scores")
@@ -240,22 +581,26 @@ def _atari_normaliser(tasks, random_scores, best_behaviour):
     if best_behaviour is None:
         best_behaviour = load_reference_scores("atari_best_behaviour")
 
-    def ref(table: Mapping[str, float], task: str) -> float | None:
+    def ref(task: str) -> dict[str, Any] | None:
         # reference files key by task id (random_scores.json) or by game name
-        for key in (task, task_info(task)[2]):
-            if key in table:
-                return table[key]
-        return None
+        found = []
+        for table in (random_scores, best_behaviour):
+            found += [next((table[k] for k in (task, task_info(task)[2]) if k in table), None)]
+        rnd, best = found
+        if rnd is None or best is None:
+            return None
+        return {"random": rnd, "best_behaviour": best, "best_behaviour_source": "given"}
 
     refs: dict[str, Any] = {}
     for t in tasks:
-        rnd, best, source = ref(random_scores, t), ref(best_behaviour, t), "given"
-        if rnd is None or best is None:
+        refs[t] = ref(t)
+        if refs[t] is None:
             return None, None
-        refs[t] = {"random": rnd, "best_behaviour": best, "best_behaviour_source": source}
 
     def norm(task: str, score: float) -> float:
-        r = refs[task]
+        r = refs.get(task) or ref(task)
+        if r is None:
+            raise KeyError(task)
         return float(normalized_score(score, r["random"], r["best_behaviour"]))
 
     return norm, refs

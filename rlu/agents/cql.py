@@ -1,0 +1,299 @@
+"""Conservative Q-Learning for continuous actions, CQL(H) (Kumar, Zhou, Tucker and Levine 2020,
+"Conservative Q-Learning for Offline Reinforcement Learning").
+
+SAC with twin critics, plus a regulariser that pushes Q down on actions the policy or a uniform
+proposal would pick and up on the data's actions. Per critic i, with N actions from each of
+three proposals (uniform on [-1, 1]^A, pi(.|s), pi(.|s')) importance-weighted by their density:
+
+    R_i = T E_s[ log sum_j exp((Q_i(s, a_j) - log mu(a_j)) / T) ] - E_(s,a)~D[ Q_i(s, a) ]
+    L_Q_i = E[(Q_i(s, a) - r - gamma d min_k Q'_k(s', a'))^2] + alpha' R_i,  a' ~ pi(s')
+
+(CQL(H) with the importance-sampled log-sum-exp, ``min_q_version=3`` in the original).
+alpha' is fixed (``cql_weight``) or, with ``lagrange_threshold`` set, a Lagrange multiplier
+trained to hold R_i near the threshold: alpha' (R_i - threshold) in the critic loss and
+-alpha' (R_1 + R_2 - 2 threshold) / 2 on alpha'. The policy is SAC's: minimise
+E[alpha log pi(a|s) - min_i Q_i(s, a)], a ~ pi(s), with the entropy weight alpha tuned
+automatically towards the target entropy -|A|; for the first ``bc_steps`` updates it clones
+the data instead, E[alpha log pi(a|s) - log pi(a_data|s)] (the original's ``policy_eval_start``).
+
+Original code: github.com/aviralkumar2907/CQL, ``d4rl/rlkit/torch/sac/cql.py`` and
+``d4rl/examples/cql_mujoco_new.py``; the ``paper`` preset is its README's command for the Gym
+MuJoCo tasks: ``--policy_lr=1e-4 --lagrange_thresh=-1.0 --min_q_weight=5.0 --min_q_version=3``
+(fixed alpha' = 5; the README names min_q_weight 5 or 10 and policy_lr 1e-4 or 3e-4, the
+``GRID``), with the script's other settings: 3 x 256 ReLU MLPs for the tanh-Gaussian policy
+and each critic, critic Adam 3e-4, the entropy weight's Adam at the policy's rate, Polyak
+targets tau = 0.005, discount 0.99, batch 256, N = 10 actions per proposal, T = 1,
+``policy_eval_start`` 40 000, ``deterministic_backup`` (no entropy term in the target), no max
+backup. As the original, every proposal and target action of an update is drawn before the
+policy's step, then alpha, the policy and the critics step; the pi(.|s') proposals are scored
+at s (the original's ``q1_next_actions`` evaluates Q(s, a'), a' ~ pi(s'), kept as is).
+
+Deviations and choices:
+- Observations go through ``networks.Encoder`` (cameras through the ResNet torso); the twin
+  critics share one encoder, the policy has its own.
+- The data's actions are clipped to +-(1 - 1e-4) before the policy's log density in the cloning
+  phase (atanh of exactly +-1 is infinite; rlkit adds 1e-6 inside its logarithm instead).
+- ``reward_scale`` (the original's, 1 for MuJoCo) multiplies every reward; RL Unplugged's control
+  suite needs no rescaling (rewards in [0, 1]).
+- ``act(greedy=True)`` returns tanh(mean), the original's deterministic evaluation policy;
+  ``greedy=False`` samples the tanh-Gaussian.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from rlu.agents import common
+from rlu.agents import networks as nets
+from rlu.agents.losses import tanh_gaussian_log_prob
+from rlu.types import BatchSpec, Transition
+
+LOG_STD_RANGE = (-20.0, 2.0)  # rlkit's TanhGaussianPolicy
+CLIP = 1.0 - 1e-4
+
+
+@dataclass(frozen=True)
+class CQLConfig:
+    policy_layers: tuple[int, ...] = (256, 256, 256)
+    """Hidden sizes of the tanh-Gaussian policy (ReLU)."""
+    critic_layers: tuple[int, ...] = (256, 256, 256)
+    """Hidden sizes of each of the twin critics (ReLU)."""
+    torso_hidden: int = 64
+    """Camera ResNet embedding size."""
+    cql_weight: float = 5.0
+    """alpha': weight of the conservative regulariser (fixed, or the multiplier's start)."""
+    lagrange_threshold: float | None = None
+    """With a value, alpha' is a Lagrange multiplier holding the regulariser near it (the
+    original's ``lagrange_thresh``: 10 for AntMaze); None keeps alpha' fixed (Gym MuJoCo)."""
+    cql_temperature: float = 1.0
+    """T of the log-sum-exp."""
+    num_samples: int = 10
+    """N: actions per proposal (uniform, pi(s), pi(s')) in the log-sum-exp."""
+    target_entropy: float | None = None
+    """Target of the entropy tuning; None means -(action dimensions), SAC's default."""
+    bc_steps: int = 40_000
+    """Updates during which the policy clones the data instead of maximising Q."""
+    gamma: float = 0.99
+    """Discount."""
+    tau: float = 0.005
+    """Polyak rate of the target critics, every update."""
+    reward_scale: float = 1.0
+    """Factor on every reward before the target."""
+    policy_lr: float = 1e-4
+    """Adam learning rate of the policy."""
+    critic_lr: float = 3e-4
+    """Adam learning rate of the critics and of the Lagrange multiplier."""
+    alpha_lr: float = 1e-4
+    """Adam learning rate of the entropy weight (the original uses the policy's rate)."""
+    batch_size: int = 256
+    """Transitions per update."""
+    num_steps: int = 1_000_000
+    """Learner steps of a full run: what ``rlu train`` runs when no --steps is given. rlu's
+    choice, as for the other continuous baselines (the README reports numbers at 500k)."""
+
+
+Config = CQLConfig
+PRESETS = {
+    "paper": CQLConfig(),
+    # Minutes on a CPU: each update scores 3N + 1 actions per state with both critics, so N = 4
+    # (52 ms per update on one core against 133 ms at N = 10); cloning for the first 5 %.
+    "small": CQLConfig(policy_layers=(256, 256), critic_layers=(256, 256), num_samples=4,
+                       bc_steps=1_000, policy_lr=3e-4, alpha_lr=3e-4, num_steps=20_000),
+}  # fmt: skip
+GRID: dict[str, list] = {"cql_weight": [5.0, 10.0], "policy_lr": [1e-4, 3e-4]}
+
+
+class TanhGaussianPolicy(nn.Module):
+    def __init__(self, observation_spec, action_dim: int, c: CQLConfig):
+        super().__init__()
+        self.encoder = nets.Encoder(observation_spec, c.torso_hidden)
+        self.net = nets.mlp(self.encoder.output_dim, c.policy_layers, 2 * action_dim)
+
+    def forward(self, obs):
+        mean, log_std = self.net(self.encoder(obs)).chunk(2, -1)
+        return mean, log_std.clamp(*LOG_STD_RANGE).exp()
+
+
+def sample_tanh_gaussian(mean, std, num: int, generator: torch.Generator):
+    """(num, B, A) reparameterised actions tanh(mean + std eps) and their (num, B) log densities."""
+    u = mean + std * torch.randn((num, *mean.shape), generator=generator)
+    return torch.tanh(u), tanh_gaussian_log_prob(mean, std, u)
+
+
+class Critics(nn.Module):
+    def __init__(self, observation_spec, action_dim: int, c: CQLConfig):
+        super().__init__()
+        self.encoder = nets.Encoder(observation_spec, c.torso_hidden)
+        f = self.encoder.output_dim + action_dim
+        self.q1 = nets.mlp(f, c.critic_layers, 1)
+        self.q2 = nets.mlp(f, c.critic_layers, 1)
+
+    def forward(self, obs, action: torch.Tensor) -> torch.Tensor:
+        """(2, ...) values of (B, A) or (N, B, A) actions at (B, ...) states."""
+        s = self.encoder(obs)
+        sa = torch.cat([s.expand(*action.shape[:-1], s.shape[-1]), action], -1)
+        return torch.stack([self.q1(sa).squeeze(-1), self.q2(sa).squeeze(-1)])
+
+
+def cql_regulariser(q_rand, q_curr, q_next, log_pi_curr, log_pi_next, q_data,
+                    action_dim: int, temperature: float):  # fmt: skip
+    """CQL(H)'s importance-sampled regulariser R_i of each critic, before its weight.
+
+    q_rand, q_curr, q_next (C, N, B): C critics at N uniform, pi(s) and pi(s') proposals;
+    log_pi_curr, log_pi_next (N, B) their log densities; q_data (C, B) at the data's actions.
+    A uniform proposal on [-1, 1]^A has log density A log(1/2). Returns (C,).
+    """
+    log_uniform = action_dim * math.log(0.5)
+    logits = torch.cat([q_rand - log_uniform, q_next - log_pi_next.detach(),
+                        q_curr - log_pi_curr.detach()], dim=1)  # fmt: skip
+    lse = temperature * torch.logsumexp(logits / temperature, dim=1).mean(-1)
+    return lse - q_data.mean(-1)
+
+
+def critic_loss(q_data, target, regulariser, cql_weight: float, alpha_prime=None,
+                threshold: float | None = None):  # fmt: skip
+    """Twin critics' TD error plus the weighted regulariser; with a ``threshold``, the
+    Lagrangian alpha' (w R_i - threshold) and alpha''s own loss -mean_i alpha' (w R_i - thr).
+
+    q_data (C, B), target (B,), regulariser (C,). Returns (critic loss, alpha' loss or None,
+    metrics).
+    """
+    td = (q_data - target.detach()).pow(2).mean(1)
+    penalty = cql_weight * regulariser
+    prime_loss = None
+    if threshold is not None:
+        prime_loss = -(alpha_prime * (penalty.detach() - threshold)).mean()
+        penalty = alpha_prime.detach() * (penalty - threshold)
+    loss = (td + penalty).sum()
+    metrics = {
+        "critic/loss": loss,
+        "critic/td_loss": td.sum(),
+        "critic/regulariser": regulariser.mean(),
+        "critic/q_mean": q_data.mean(),
+    }
+    if alpha_prime is not None:
+        metrics["critic/alpha_prime"] = alpha_prime.detach()
+    return loss, prime_loss, metrics
+
+
+def alpha_loss(log_alpha: torch.Tensor, log_pi: torch.Tensor, target_entropy: float):
+    """SAC's entropy tuning: -log_alpha (log pi + target entropy), log pi held fixed."""
+    loss = -(log_alpha * (log_pi.detach() + target_entropy)).mean()
+    return loss, {"alpha/loss": loss, "alpha/value": log_alpha.detach().exp()}
+
+
+def policy_loss(alpha: torch.Tensor, log_pi: torch.Tensor, q_pi: torch.Tensor):
+    """SAC's policy loss alpha log pi(a|s) - min_i Q_i(s, a), a ~ pi(s) reparameterised."""
+    loss = (alpha * log_pi - q_pi).mean()
+    return loss, {"actor/loss": loss, "actor/entropy": -log_pi.mean()}
+
+
+def bc_policy_loss(alpha: torch.Tensor, log_pi: torch.Tensor, log_prob_data: torch.Tensor):
+    """The cloning phase: alpha log pi(a|s) - log pi(a_data|s)."""
+    loss = (alpha * log_pi - log_prob_data).mean()
+    return loss, {"actor/loss": loss, "actor/entropy": -log_pi.mean()}
+
+
+class CQLAgent:
+    def __init__(self, observation_spec, action_spec, config: CQLConfig, seed: int = 0):
+        self.config = config
+        self.scaler = nets.ActionScaler(action_spec)
+        self.batch_spec = BatchSpec(config.batch_size, gamma=config.gamma)
+        self.pretrain_steps = 0
+        self.num_steps = config.num_steps
+        self.generator = torch.Generator().manual_seed(seed)
+        a = self.scaler.dim
+        self.target_entropy = -float(a) if config.target_entropy is None else config.target_entropy
+        with common.seeded(seed):
+            self.policy = TanhGaussianPolicy(observation_spec, a, config)
+            self.critics = Critics(observation_spec, a, config)
+        self.target_critics = common.frozen_copy(self.critics)
+        duals = {"log_alpha": nn.Parameter(torch.zeros(()))}
+        if config.lagrange_threshold is not None:
+            duals["log_alpha_prime"] = nn.Parameter(torch.zeros(()))
+        self.duals = nn.ParameterDict(duals)
+        self.optimizers = {
+            "policy": common.adam(self.policy.parameters(), config.policy_lr),
+            "critic": common.adam(self.critics.parameters(), config.critic_lr),
+            "alpha": common.adam([self.duals["log_alpha"]], config.alpha_lr),
+        }
+        if config.lagrange_threshold is not None:
+            self.optimizers["alpha_prime"] = common.adam(
+                [self.duals["log_alpha_prime"]], config.critic_lr
+            )
+        self.modules = {
+            "policy": self.policy, "critics": self.critics, "target_critics": self.target_critics,
+            "duals": self.duals,
+        }  # fmt: skip
+        self.generators = {"sample": self.generator}
+        self.step = 0
+
+    def update(self, batch: Transition) -> dict[str, float]:
+        c, g, n = self.config, self.generator, self.config.num_samples
+        obs = common.to_torch(batch.observation)
+        next_obs = common.to_torch(batch.next_observation)
+        action = self.scaler.to_unit(common.to_torch(batch.action))
+        reward = common.to_torch(batch.reward) * c.reward_scale
+        discount = common.to_torch(batch.discount)
+
+        # Every action the critics' side needs, drawn from the policy before its step.
+        mean, std = self.policy(obs)
+        with torch.no_grad():
+            next_mean, next_std = self.policy(next_obs)
+            next_a, _ = sample_tanh_gaussian(next_mean, next_std, 1, g)
+            q_next_target = self.target_critics(next_obs, next_a[0]).amin(0)
+            target = reward + self.batch_spec.bootstrap_gamma * discount * q_next_target
+            rand_a = torch.rand((n, *action.shape), generator=g) * 2.0 - 1.0
+            curr_a, log_pi_curr = sample_tanh_gaussian(mean, std, n, g)
+            next_prop_a, log_pi_next = sample_tanh_gaussian(next_mean, next_std, n, g)
+
+        # Entropy weight, then the policy (SAC), cloning the data for the first bc_steps.
+        pi_a, log_pi = sample_tanh_gaussian(mean, std, 1, g)
+        loss_alpha, metrics = alpha_loss(self.duals["log_alpha"], log_pi[0], self.target_entropy)
+        common.sgd_step(self.optimizers["alpha"], loss_alpha)
+        alpha = self.duals["log_alpha"].detach().exp()
+        if self.step < c.bc_steps:
+            u_data = torch.atanh(action.clamp(-CLIP, CLIP))
+            log_prob_data = tanh_gaussian_log_prob(mean, std, u_data)
+            loss_pi, m = bc_policy_loss(alpha, log_pi[0], log_prob_data)
+        else:
+            loss_pi, m = policy_loss(alpha, log_pi[0], self.critics(obs, pi_a[0]).amin(0))
+        metrics.update(m)
+        common.sgd_step(self.optimizers["policy"], loss_pi, inputs=list(self.policy.parameters()))
+
+        # Critics: TD error plus the conservative regulariser (alpha' Lagrangian if asked).
+        q_all = self.critics(obs, torch.cat([action[None], rand_a, curr_a, next_prop_a]))
+        q_data, q_rand, q_curr, q_next = q_all.split([1, n, n, n], dim=1)
+        reg = cql_regulariser(q_rand, q_curr, q_next, log_pi_curr, log_pi_next, q_data[:, 0],
+                              self.scaler.dim, c.cql_temperature)  # fmt: skip
+        alpha_prime = None
+        if c.lagrange_threshold is not None:
+            alpha_prime = self.duals["log_alpha_prime"].exp().clamp(0.0, 1e6)
+        loss_q, loss_prime, m = critic_loss(q_data[:, 0], target, reg, c.cql_weight,
+                                            alpha_prime, c.lagrange_threshold)  # fmt: skip
+        metrics.update(m)
+        if loss_prime is not None:
+            common.sgd_step(self.optimizers["alpha_prime"], loss_prime)
+        common.sgd_step(self.optimizers["critic"], loss_q)
+
+        common.soft_update(self.target_critics, self.critics, c.tau)
+        self.step += 1
+        return common.metrics_to_floats(metrics)
+
+    @torch.inference_mode()
+    def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+        mean, std = self.policy(common.to_torch(observation))
+        if greedy:
+            return self.scaler.from_unit(torch.tanh(mean))
+        return self.scaler.from_unit(sample_tanh_gaussian(mean, std, 1, self.generator)[0][0])
+
+    state_dict = common.state_dict
+    load_state_dict = common.load_state_dict
+
+
+Agent = CQLAgent

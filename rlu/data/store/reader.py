@@ -1,0 +1,478 @@
+"""Reading a dataset: the manifest checked field by field, columns memory-mapped on first use.
+
+A dataset folder is input like any other, and may be hostile. Before anything is mapped or
+allocated:
+
+- the manifest must be a regular JSON file of bounded size inside the folder (a FIFO, a directory
+  or a symlink out of the folder is refused, never opened), every field of the kind the writer
+  writes (:meth:`Schema.from_json`, whole-number counts, ``files`` exactly the schema's files);
+- every file resolves inside the folder, symlinks followed (a symlinked ``steps/`` or column that
+  points elsewhere is refused), is a regular file, and has the size the manifest and the counts
+  imply, computed in Python integers (no overflow);
+- the segment index is consistent (starts are the running sum of lengths >= 1, frame starts of
+  lengths + ``frame_stack`` - 1, totals equal the counts), so no view can index past a column;
+- zlib offsets start at 0, never descend, end at the stream file's size, and no frame's stream is
+  longer than zlib could make it; a frame inflates to exactly its declared size, never more (a
+  zlib bomb costs one frame's bytes).
+
+Every refusal is a :class:`~rlu.types.FormatError` naming the file, the field and the fix.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import mmap
+import os
+import stat
+import zlib
+from collections.abc import Iterator, Mapping
+from pathlib import Path, PurePosixPath
+from typing import Any
+
+import numpy as np
+
+from rlu.data.episode import METADATA_FIELDS, METADATA_MISSING, Segment
+from rlu.data.store.schema import (
+    FORMAT,
+    FORMAT_VERSION,
+    MANIFEST,
+    FieldError,
+    Schema,
+    partial_dir,
+    whole_number,
+)
+from rlu.types import ArraySpec, FormatError, RluError
+
+MAX_MANIFEST_BYTES = 64 << 20
+_RECREATE = "re-create the dataset (re-run the command that wrote it)"
+_HEX = frozenset("0123456789abcdef")
+
+
+def _fail(path: Path, what: str) -> FormatError:
+    return FormatError(f"{path}: {what}; {_RECREATE}")
+
+
+def _resolve_inside(root: Path, rel: str, mpath: Path) -> Path:
+    """``root / rel`` if it stays inside ``root`` once symlinks are followed; else FormatError."""
+    parts = PurePosixPath(rel).parts
+    if not rel or PurePosixPath(rel).is_absolute() or ".." in parts or "\\" in rel:
+        raise _fail(mpath, f"field 'files' names {rel!r}, which is not a path inside the dataset")
+    full = root / rel
+    real = os.path.realpath(full)
+    base = os.path.realpath(root)
+    if not real.startswith(base.rstrip(os.sep) + os.sep):
+        raise FormatError(
+            f"{full}: resolves to {real}, outside the dataset folder {base} (a symlink?); rlu "
+            "reads only files inside a dataset's folder: copy the data in, or re-create it"
+        )
+    return full
+
+
+def _regular_size(path: Path) -> int:
+    """Size of ``path``, which must be a regular file (a FIFO would block, a directory fail)."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        raise FormatError(f"{path}: missing; the dataset is incomplete, {_RECREATE}") from None
+    except OSError as e:
+        raise FormatError(f"{path}: cannot be read ({e.strerror}); {_RECREATE}") from None
+    if not stat.S_ISREG(st.st_mode):
+        raise FormatError(f"{path}: not a regular file (a directory, FIFO or device); {_RECREATE}")
+    return st.st_size
+
+
+def read_manifest(path: str | os.PathLike) -> dict[str, Any]:
+    """The manifest of the dataset at ``path``, every field checked (see the module docstring)."""
+    path = Path(path)
+    mpath = path / MANIFEST
+    if not os.path.lexists(mpath):
+        partial = partial_dir(path)
+        hint = f" (a partial write is at {partial})" if partial.exists() else ""
+        raise FormatError(
+            f"{mpath}: no manifest, so {path} is not a complete rlu dataset{hint}; "
+            "re-run the command that writes it"
+        )
+    _resolve_inside(path, MANIFEST, mpath)
+    size = _regular_size(mpath)
+    if size > MAX_MANIFEST_BYTES:
+        raise _fail(mpath, f"{size} bytes; a manifest is at most {MAX_MANIFEST_BYTES}")
+    try:
+        with open(mpath, "rb") as fh:
+            manifest = json.loads(fh.read(MAX_MANIFEST_BYTES + 1).decode("utf-8"))
+    except (ValueError, UnicodeDecodeError) as e:  # JSONDecodeError is a ValueError
+        raise FormatError(f"{mpath}: corrupt JSON ({e}); {_RECREATE}") from None
+    except RecursionError:
+        raise _fail(mpath, "JSON nested too deeply to be a manifest") from None
+    except OSError as e:
+        raise FormatError(f"{mpath}: cannot be read ({e.strerror}); {_RECREATE}") from None
+    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
+        raise FormatError(f"{mpath}: field 'format' is not {FORMAT!r}; not an rlu dataset")
+    if manifest.get("version") != FORMAT_VERSION:
+        raise FormatError(
+            f"{mpath}: field 'version' is {manifest.get('version')!r}; this rlu reads "
+            f"version {FORMAT_VERSION}: upgrade rlu or re-convert the data"
+        )
+    for key in ("schema", "counts", "files", "provenance"):
+        if key not in manifest:
+            raise FormatError(f"{mpath}: field {key!r} is missing; {_RECREATE}")
+    try:
+        schema = Schema.from_json(manifest["schema"])
+        _counts(manifest)
+        _files(manifest, schema)
+        if not isinstance(manifest["provenance"], dict):
+            raise FieldError("provenance", "is not an object")
+    except FieldError as e:
+        raise FormatError(f"{mpath}: {e}; {_RECREATE}") from None
+    return manifest
+
+
+def _counts(manifest: Mapping[str, Any]) -> dict[str, int]:
+    counts = manifest["counts"]
+    if not isinstance(counts, Mapping):
+        raise FieldError("counts", f"is a {type(counts).__name__}; an object was expected")
+    out = {}
+    for key in ("segments", "steps", "frames", "episodes"):
+        if key not in counts:
+            raise FieldError(f"counts.{key}", "is missing")
+        out[key] = whole_number(counts[key], f"counts.{key}")
+    return out
+
+
+def _files(manifest: Mapping[str, Any], schema: Schema) -> None:
+    files = manifest["files"]
+    if not isinstance(files, Mapping):
+        raise FieldError("files", f"is a {type(files).__name__}; an object of file entries")
+    want = set(schema.files())
+    have = set(files)
+    if have != want:
+        raise FieldError(
+            "files",
+            f"does not list the schema's files: missing {sorted(want - have)}, unexpected "
+            f"{sorted(map(str, have - want))[:5]}",
+        )
+    for rel, entry in files.items():
+        if not isinstance(entry, Mapping):
+            raise FieldError(f"files.{rel}", "is not an object with sha256 and bytes")
+        sha = entry.get("sha256")
+        if not (isinstance(sha, str) and len(sha) == 64 and set(sha) <= _HEX):
+            raise FieldError(f"files.{rel}.sha256", f"is {sha!r}; a sha256 hex digest")
+        whole_number(entry.get("bytes"), f"files.{rel}.bytes")
+
+
+class Dataset:
+    """A read-only view of a stored dataset; columns are memory-mapped on first use.
+
+    Made by :func:`open_dataset`, which checks the manifest, the files and the segment index
+    first.
+    """
+
+    def __init__(self, path: str | os.PathLike, manifest: Mapping[str, Any]):
+        self.path = Path(path)
+        self.manifest = manifest
+        self.schema = Schema.from_json(manifest["schema"])
+        counts = _counts(manifest)
+        self.num_segments = counts["segments"]
+        self.num_steps = counts["steps"]
+        self.num_frames = counts["frames"]
+        self._cache: dict[str, Any] = {}
+        self._mmaps: dict[str, np.memmap] = {}
+        self.start = self._segment_column("start", "int64")
+        self.length = self._segment_column("length", "int64")
+        self.frame_start = self._segment_column("frame_start", "int64")
+
+    def __len__(self) -> int:
+        return self.num_segments
+
+    def __repr__(self) -> str:
+        return (
+            f"Dataset({str(self.path)!r}, task={self.schema.task_id}, "
+            f"segments={self.num_segments}, steps={self.num_steps})"
+        )
+
+    # -- files ---------------------------------------------------------------------------------
+    def file(self, rel: str) -> Path:
+        """The path of ``rel`` in this dataset, refused unless it resolves inside the folder."""
+        return _resolve_inside(self.path, rel, self.path / MANIFEST)
+
+    def _check_index(self) -> None:
+        """Starts, lengths and frame starts agree with each other and with the counts."""
+        where = self.path / "segments"
+        n, steps = self.num_segments, self.num_steps
+        length = np.asarray(self.length)
+        if n == 0:
+            if steps or self.num_frames:
+                raise _fail(self.path / MANIFEST, "no segments but steps or frames are counted")
+            return
+        if (length < 1).any() or (length > steps).any():
+            i = int(np.flatnonzero((length < 1) | (length > steps))[0])
+            raise _fail(where / "length.bin", f"segment {i} has length {int(length[i])}")
+        ends = np.cumsum(length)  # each length <= steps < 2**48: a wrap would show as a descent
+        if (np.diff(ends) <= 0).any() or int(ends[-1]) != steps:
+            raise _fail(where / "length.bin", f"lengths do not add up to counts.steps={steps}")
+        bad = np.flatnonzero(np.asarray(self.start) != ends - length)
+        if bad.size:
+            raise _fail(
+                where / "start.bin",
+                f"segment {int(bad[0])} starts at step {int(self.start[bad[0]])}, not where its "
+                f"predecessor ends ({int((ends - length)[bad[0]])})",
+            )
+        if self.schema.frame_stack > 1:
+            per = length + (self.schema.frame_stack - 1)
+            fends = np.cumsum(per)
+            if int(fends[-1]) != self.num_frames:
+                raise _fail(where / "frame_start.bin", "frames do not add up to counts.frames")
+            bad = np.flatnonzero(np.asarray(self.frame_start) != fends - per)
+            if bad.size:
+                raise _fail(where / "frame_start.bin", f"segment {int(bad[0])}'s frame start")
+        elif self.num_frames:
+            raise _fail(self.path / MANIFEST, "counts.frames is not 0 without frame stacking")
+
+    # -- columns -------------------------------------------------------------------------------
+    def _segment_column(self, name: str, dtype: str) -> np.ndarray:
+        return self._map(f"segments/{name}.bin", dtype, (self.num_segments,))
+
+    def _map(self, rel: str, dtype: str, shape: tuple[int, ...]) -> np.ndarray:
+        if rel in self._cache:
+            return self._cache[rel]
+        path = self.file(rel)
+        expected = math.prod(shape) * np.dtype(dtype).itemsize  # Python ints: no overflow
+        size = _regular_size(path)
+        if size != expected:
+            raise FormatError(
+                f"{path}: {size} bytes, the manifest implies {expected}; the file is truncated or "
+                f"foreign, {_RECREATE}"
+            )
+        if expected == 0:
+            arr = np.zeros(shape, dtype)
+        else:
+            mm = np.memmap(path, dtype=np.dtype(dtype).newbyteorder("<"), mode="r", shape=shape)
+            self._mmaps[rel] = mm
+            # a plain ndarray view indexes faster than the np.memmap subclass
+            arr = mm.view(np.ndarray)
+        self._cache[rel] = arr
+        return arr
+
+    def release_pages(self, name: str, min_bytes: int = 256 << 20) -> None:
+        """Give the resident pages of a large raw column back to the OS page cache.
+
+        Sampling a dataset larger than RAM calls this after every batch, so the process's
+        resident memory stays bounded; the data stays cached by the OS for the next batch.
+        """
+        mm = self._mmaps.get(f"steps/{name}.bin")
+        if mm is not None and mm.nbytes >= min_bytes:
+            mm._mmap.madvise(mmap.MADV_DONTNEED)
+
+    def column(self, name: str) -> Any:
+        """A step (or frame) column: a read-only memmap, or a ``ZlibColumn`` (compressed images)."""
+        if name in self._cache:
+            return self._cache[name]
+        specs = self.schema.step_columns()
+        frames = self.schema.frame_columns()
+        if name in specs:
+            spec, n = specs[name], self.num_steps
+        elif name in frames:
+            spec, n = frames[name], self.num_frames
+        else:
+            raise RluError(
+                f"{self.path}: no column {name!r}; columns: {', '.join([*specs, *frames])}"
+            )
+        if self.schema.encoding(spec) == "zlib":
+            offsets = self._map(f"steps/{name}.offsets.bin", "int64", (n + 1,))
+            col: Any = ZlibColumn(self.file(f"steps/{name}.zlib"), offsets, spec)
+        else:
+            col = self._map(f"steps/{name}.bin", spec.dtype, (n, *spec.shape))
+        self._cache[name] = col
+        return col
+
+    def metadata(self, key: str) -> np.ndarray:
+        if key not in METADATA_FIELDS:
+            raise RluError(f"no metadata field {key!r}; fields: {', '.join(METADATA_FIELDS)}")
+        return self._segment_column(f"meta_{key}", METADATA_FIELDS[key])
+
+    def observation_keys(self) -> list[str]:
+        return list(self.schema.observation_columns())
+
+    # -- segments ------------------------------------------------------------------------------
+    def segment(self, i: int) -> Segment:
+        """Segment ``i`` as in-memory arrays (observations unstacked frames for Atari)."""
+        if not 0 <= i < self.num_segments:
+            raise IndexError(f"segment {i} out of range [0, {self.num_segments})")
+        s, n = int(self.start[i]), int(self.length[i])
+        sl = slice(s, s + n)
+
+        def get(name: str, rows: slice) -> np.ndarray:
+            col = self.column(name)
+            if isinstance(col, ZlibColumn):
+                return col.take(np.arange(rows.start, rows.stop))
+            return np.array(col[rows])
+
+        prefix = None
+        if self.schema.frame_stack > 1:
+            f0, k = int(self.frame_start[i]), self.schema.frame_stack - 1
+            frames = get("observation", slice(f0, f0 + k + n))
+            prefix, obs = frames[:k], frames[k:]
+        elif isinstance(self.schema.observation, ArraySpec):
+            obs = get("observation", sl)
+        else:
+            obs = {k: get(f"observation/{k}", sl) for k in self.schema.observation}
+        meta = {}
+        for k, dtype in METADATA_FIELDS.items():
+            v = self.metadata(k)[i]
+            missing = METADATA_MISSING[dtype]
+            if not (v == missing or (isinstance(missing, float) and np.isnan(v))):
+                meta[k] = v.item()
+        return Segment(
+            observation=obs,
+            action=np.array(self.column("action")[sl]),
+            reward=np.array(self.column("reward")[sl]),
+            discount=np.array(self.column("discount")[sl]),
+            is_first=np.array(self.column("is_first")[sl]),
+            is_last=np.array(self.column("is_last")[sl]),
+            is_terminal=np.array(self.column("is_terminal")[sl]),
+            metadata=meta,
+            frame_prefix=prefix,
+        )
+
+    def segments(self) -> Iterator[Segment]:
+        for i in range(self.num_segments):
+            yield self.segment(i)
+
+    def episode_returns(self) -> np.ndarray:
+        """Return of every whole episode (segments with is_first and is_last), from the rewards."""
+        reward = np.asarray(self.column("reward"), np.float64)
+        first = np.asarray(self.column("is_first"))[self.start]
+        last = np.asarray(self.column("is_last"))[self.start + self.length - 1]
+        sums = np.add.reduceat(reward, self.start) if self.num_segments else np.zeros(0)
+        return sums[first & last]
+
+    def info(self) -> dict[str, Any]:
+        returns = self.episode_returns()
+        stats = {}
+        if returns.size:
+            stats = {
+                "episodes": int(returns.size),
+                "mean": float(returns.mean()),
+                "std": float(returns.std()),
+                "min": float(returns.min()),
+                "p90": float(np.percentile(returns, 90)),
+                "max": float(returns.max()),
+            }
+        return {
+            "path": str(self.path),
+            "schema": self.manifest["schema"],
+            "counts": self.manifest["counts"],
+            "returns": stats,
+            "provenance": self.manifest["provenance"],
+        }
+
+
+def _compress_bound(n: int) -> int:
+    """The most bytes zlib's deflate can make of ``n`` bytes (zlib.h ``compressBound``)."""
+    return n + (n >> 12) + (n >> 14) + (n >> 25) + 13
+
+
+class ZlibColumn:
+    """A compressed image column: frames decoded on demand (one zlib stream per frame).
+
+    The offsets are checked when the column is opened, and each frame inflates to at most its
+    declared size: a damaged or hostile stream raises :class:`FormatError` naming the file and
+    the row, after allocating no more than one frame.
+    """
+
+    def __init__(self, path: Path, offsets: np.ndarray, spec: ArraySpec):
+        self.path, self.offsets, self.spec = path, offsets, spec
+        self.shape = (len(offsets) - 1, *spec.shape)
+        self.dtype = np.dtype(spec.dtype)
+        self.frame_bytes = spec.size * self.dtype.itemsize
+        self._fd: int | None = None
+        size = _regular_size(path)
+        offsets_file = path.with_name(path.name.removesuffix(".zlib") + ".offsets.bin")
+        if offsets[0] != 0 or int(offsets[-1]) != size:
+            raise FormatError(
+                f"{offsets_file}: offsets run from {int(offsets[0])} to {int(offsets[-1])}; the "
+                f"stream file holds {size} bytes; {_RECREATE}"
+            )
+        sizes = np.diff(offsets)
+        bad = np.flatnonzero((sizes < 8) | (sizes > _compress_bound(self.frame_bytes)))
+        if bad.size:
+            raise FormatError(
+                f"{offsets_file}: frame {int(bad[0])} has a stream of {int(sizes[bad[0]])} bytes "
+                f"(offsets descend, or no zlib stream of a {self.frame_bytes}-byte frame is that "
+                f"size); {_RECREATE}"
+            )
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def take(self, rows: np.ndarray) -> np.ndarray:
+        rows = np.asarray(rows, np.int64)
+        out = np.empty((*rows.shape, *self.spec.shape), self.dtype)
+        flat = out.reshape(-1, self.spec.size)
+        if self._fd is None:
+            self._fd = os.open(self.path, os.O_RDONLY)
+        starts, ends = self.offsets[rows.ravel()], self.offsets[rows.ravel() + 1]
+        nbytes = self.frame_bytes
+        for j, (a, b) in enumerate(zip(starts.tolist(), ends.tolist(), strict=True)):
+            d = zlib.decompressobj()
+            try:
+                raw = d.decompress(os.pread(self._fd, b - a, a), nbytes)
+                ok = len(raw) == nbytes and d.eof and not d.unconsumed_tail and not d.unused_data
+            except zlib.error as e:
+                raw, ok = str(e), False
+            if not ok:
+                raise FormatError(
+                    f"{self.path}: frame {int(rows.ravel()[j])} is not a zlib stream of one "
+                    f"{nbytes}-byte frame ({raw if isinstance(raw, str) else 'wrong size'}); "
+                    f"{_RECREATE}"
+                )
+            flat[j] = np.frombuffer(raw, self.dtype)
+        return out
+
+    def __getitem__(self, rows: Any) -> np.ndarray:
+        if isinstance(rows, slice):
+            rows = np.arange(*rows.indices(len(self)))
+        return self.take(np.asarray(rows))
+
+    def __del__(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+
+
+def open_dataset(path: str | os.PathLike, verify: bool = False) -> Dataset:
+    """Open a stored dataset. The manifest, file sizes and segment index are always checked;
+    ``verify=True`` also checks every sha256."""
+    manifest = read_manifest(path)
+    root = Path(path)
+    for rel, entry in manifest["files"].items():
+        p = _resolve_inside(root, rel, root / MANIFEST)
+        size = _regular_size(p)
+        if size != entry["bytes"]:
+            raise FormatError(f"{p}: {size} bytes, the manifest says {entry['bytes']}; {_RECREATE}")
+    ds = Dataset(root, manifest)
+    ds._check_index()
+    if verify:
+        bad = verify_checksums(path, manifest)
+        if bad:
+            raise FormatError(f"{bad[0]}: sha256 differs from the manifest; the file is corrupt")
+    return ds
+
+
+def file_sha256(path: Path, chunk: int = 1 << 22) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while block := fh.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+def verify_checksums(path: str | os.PathLike, manifest: Mapping[str, Any]) -> list[Path]:
+    """Files whose sha256 differs from the manifest (each must lie inside the folder)."""
+    root = Path(path)
+    bad = []
+    for rel, entry in manifest["files"].items():
+        p = _resolve_inside(root, rel, root / MANIFEST)
+        if not p.is_file() or file_sha256(p) != entry["sha256"]:
+            bad.append(p)
+    return bad

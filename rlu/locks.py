@@ -1,0 +1,119 @@
+"""One writer per output: an exclusive lock beside a dataset, a run folder or a cache entry.
+
+The lock of ``<dir>/<name>`` is the file ``<dir>/.<name>.lock`` holding the owner's PID, locked
+with ``flock``. The kernel drops an ``flock`` when its holder dies, so the lock of a killed
+process (``kill -9``) is simply taken over by the next writer, whatever the file still says; a
+live holder makes the next writer fail at once with "in use by PID N" instead of writing over its
+partial output. Forked children (conversion's reader processes) close their copy of the lock at
+fork, so a lock lives exactly as long as the process that took it.
+
+Standard library only (``fcntl``: POSIX).
+"""
+
+from __future__ import annotations
+
+import fcntl
+import os
+from pathlib import Path
+
+from rlu.types import RluError
+
+_HELD: set[int] = set()  # descriptors of locks this process holds (closed in forked children)
+
+
+def _close_in_child() -> None:
+    for fd in list(_HELD):
+        try:
+            os.close(fd)  # the child's copy only: the parent keeps its lock
+        except OSError:
+            pass
+    _HELD.clear()
+
+
+os.register_at_fork(after_in_child=_close_in_child)
+
+
+class LockBusy(RluError):
+    """Another live process is writing the same output."""
+
+
+def lock_path(target: str | os.PathLike) -> Path:
+    target = Path(target)
+    return target.parent / f".{target.name}.lock"
+
+
+class OutputLock:
+    """``with OutputLock(dest, "dataset"):`` -- exclusive, never waits; see the module docstring."""
+
+    def __init__(self, target: str | os.PathLike, what: str = "output"):
+        self.target = Path(target)
+        self.path = lock_path(self.target)
+        self.what = what
+        self.fd: int | None = None
+
+    def acquire(self) -> OutputLock:
+        if self.fd is not None:
+            return self
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        while True:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                pid = _read_pid(fd)
+                os.close(fd)
+                holder = f"PID {pid}" if pid else "another process"
+                raise LockBusy(
+                    f"{self.target}: this {self.what} is in use by {holder} (lock file "
+                    f"{self.path}); wait for it to finish or stop it, then run again"
+                ) from None
+            # A holder that released after we opened the file has unlinked it: lock the new one.
+            try:
+                same = os.stat(self.path).st_ino == os.fstat(fd).st_ino
+            except FileNotFoundError:
+                same = False
+            if not same:
+                os.close(fd)
+                continue
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+            self.fd = fd
+            _HELD.add(fd)
+            return self
+
+    def release(self) -> None:
+        fd, self.fd = self.fd, None
+        if fd is None:
+            return
+        try:
+            if os.stat(self.path).st_ino == os.fstat(fd).st_ino:
+                os.unlink(self.path)  # while still locked: nobody can be inside a new lock yet
+        except FileNotFoundError:
+            pass
+        finally:
+            _HELD.discard(fd)
+            os.close(fd)
+
+    @property
+    def held(self) -> bool:
+        return self.fd is not None
+
+    def __enter__(self) -> OutputLock:
+        return self.acquire()
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+    def __del__(self) -> None:
+        try:
+            self.release()
+        except Exception:  # noqa: BLE001 (interpreter shutdown: the kernel drops the lock)
+            pass
+
+
+def _read_pid(fd: int) -> int | None:
+    try:
+        text = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
+        return int(text) if text.isdigit() else None
+    except OSError:
+        return None
