@@ -12,8 +12,8 @@ samples the same steps its own way:
 
 - rlu: ``make_sampler(dataset, agent.batch_spec)`` (the memory-mapped store) and
   ``agent.update(batch)``, the training loop's two calls; the agent is built by name with
-  ``rlu.agents.make_agent`` (crr, iql and cql run once registered, and are skipped with a line
-  until then);
+  ``rlu.agents.make_agent`` (an agent of the list missing from the registry is skipped with a
+  line saying so);
 - minimal loop: the observation keys concatenated once into one in-RAM array, batches by numpy
   fancy indexing (the n-step sum in numpy where the agent asks for it), and the agent's maths
   written out straight on plain modules: same network sizes (read from the rlu agent's config),
@@ -88,7 +88,6 @@ SETTINGS: dict[str, dict] = {
     "iql": dict(),
     "cql": dict(bc_steps=0),  # time the full update, not the behaviour-cloning phase
 }
-PENDING = ("crr", "iql", "cql")  # written on another branch; run once registered
 
 
 # ----------------------------------------------------------------------------- data
@@ -481,8 +480,7 @@ def minimal_rabm(c, seed: int = 0):
     return update, nn.ModuleList([prior, policy, critic])
 
 
-# The next three mirror rlu/agents/{iql,crr,cql}.py as the agents-cont branch wrote them
-# (commit 010fd57); if their maths changes before they land, these follow.
+# The next three mirror rlu/agents/{iql,crr,cql}.py.
 
 
 def minimal_iql(c, seed: int = 0):
