@@ -1,281 +1,533 @@
-"""Updates per second of rlu's discrete agents vs d3rlpy and vs a minimal PyTorch loop (CPU).
+"""Updates per second of every discrete (Atari) rlu agent vs a minimal PyTorch loop with the same
+maths, and vs d3rlpy for the algorithms both have (CPU, one run, interleaved).
 
-    .venv-bench/bin/python bench/agents_discrete.py            # the paper's batch (256)
-    .venv-bench/bin/python bench/agents_discrete.py --batch 32 --rounds 3
+    .venv-bench/bin/python bench/agents_discrete.py                  # batch 32, every agent
+    .venv-bench/bin/python bench/agents_discrete.py --batch 256 --agents dqn double_dqn
+    .venv/bin/python bench/agents_discrete.py --no-d3rlpy            # without d3rlpy
 
-Contestants, all on the same fixed batch of random Atari frame stacks, the Nature CNN, Adam and
-the same number of torch threads, timed in interleaved rounds (the median round counts, so a
-burst of load from elsewhere on a shared machine hits every contestant alike; the order is
-shuffled every round):
+d3rlpy lives in the bench venv (bench/README.md), never in rlu's dependencies. Data: one rlu
+dataset of random 84x84 frames (Atari layout: single frames stored once, stacked by four at sample
+time, 6 actions), written with rlu's writer; every contestant samples the same steps its own way:
 
-- rlu ``dqn`` (double-Q, the paper's preset) vs d3rlpy ``DoubleDQN`` (the same maths) and
-  d3rlpy ``DQN`` (plain max target: one forward pass fewer per update);
-- rlu ``bcq`` vs d3rlpy ``DiscreteBCQ`` (threshold 0.5). rlu's BCQ follows Fujimoto et al.:
-  the imitation head has its own 512-unit layer; d3rlpy's shares the Q-function's 512 features,
-  so rlu does more arithmetic per update here;
-- a minimal PyTorch loop doing rlu's maths with no wrapper at all (tensors ready, straight-line
-  code): the no-overhead bound for rlu's DQN and BCQ.
+- rlu: ``make_sampler(dataset, agent.batch_spec)`` and ``agent.update(batch)``, the training
+  loop's two calls; agents built by name with ``rlu.agents.make_agent``, paper preset (Nature CNN
+  32-64-64, 512 units, Adam epsilon 1e-7, rewards clipped to [-1, 1]) at ``--batch``;
+- minimal loop: the frame column read into RAM, stacks gathered by numpy fancy indexing (one
+  gather of five frames per transition serves both stacks), and the agent's maths written out
+  straight on plain modules of the same sizes (read from the rlu agent's config), fused Adam;
+- d3rlpy 2.8.1: its replay buffer over the same episodes (single frames, its
+  ``FrameStackTransitionPicker(4)``) and ``algo.update``, with the same Nature CNN, learning
+  rate, Adam epsilon, discount, reward clipping and target period. Pairs: ``dqn`` (double-Q off)
+  with ``DQN``, ``double_dqn`` (rlu's dqn preset) with ``DoubleDQN``, ``bc`` with ``DiscreteBC``
+  (beta 0: no logit penalty, as rlu's), ``bcq`` with ``DiscreteBCQ`` (d3rlpy's imitation head
+  sits on the shared 512 features, rlu's has its own 512-unit layer, as Fujimoto et al.'s),
+  ``cql`` with ``DiscreteCQL`` (d3rlpy runs the Q-network on the observations twice with
+  gradients, rlu once), ``iqn`` with d3rlpy's DQN on its ``IQNQFunctionFactory`` (the same
+  quantile count and embedding; its target runs the target network twice, rlu's once). ``rem``
+  has no d3rlpy counterpart.
 
-d3rlpy is timed on ``algo.update(batch)`` with the batch already built as the float32
-``TransitionMiniBatch`` its samplers produce (its uint8 -> float32 copy is not counted), rlu on
-``agent.update(transition)`` from uint8 numpy arrays. d3rlpy lives in its own venv
-(``python -m venv .venv-bench; pip install torch==2.13.0 d3rlpy==2.8.1``) so the project's
-environment stays free of it; without d3rlpy only the minimal-loop comparison runs.
+Timing (bench/agents_timing.py): "sample + update" and "update only", updates per CPU-second of
+the process (and wall), one over the median time of an update in many short interleaved rounds,
+one torch thread unless ``--threads``.
+d3rlpy's sampler casts frames to float32 itself, so its "update only" starts from float32 arrays.
 """
 
 from __future__ import annotations
 
 import argparse
-import statistics
+import dataclasses
+import logging
+import math
 import sys
-import time
+import tempfile
 from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import nn
+from torch.nn import functional as F
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from rlu.agents import make_agent  # noqa: E402
-from rlu.types import ArraySpec, DiscreteSpec, Transition  # noqa: E402
+from agents_timing import (  # noqa: E402
+    Contestant,
+    bf16,
+    load_line,
+    report,
+    summary,
+    time_contestants,
+)
 
+from rlu.agents import AGENTS, make_agent  # noqa: E402
+from rlu.data import DatasetWriter, Schema, make_episode, make_sampler, open_dataset  # noqa: E402
+from rlu.types import ArraySpec, DiscreteSpec  # noqa: E402
+
+FRAME = ArraySpec((84, 84), "uint8")
 OBS = ArraySpec((84, 84, 4), "uint8")
 NUM_ACTIONS = 6
-LR, GAMMA, TARGET_PERIOD, EPS = 1e-4, 0.99, 2500, 1e-7
+ACTION = DiscreteSpec((), "int64", NUM_ACTIONS)
+# bench name -> (rlu agent, overrides on its paper preset)
+AGENT_SETTINGS: dict[str, tuple[str, dict]] = {
+    "bc": ("bc", {}),
+    "dqn": ("dqn", {"double_q": False}),
+    "double_dqn": ("dqn", {}),
+    "bcq": ("bcq", {}),
+    "cql": ("cql", {}),
+    "iqn": ("iqn", {}),
+    "rem": ("rem", {}),
+}
 
 
-def make_batch(size: int, seed: int = 0) -> Transition:
-    """Random frames laid out as rlu's views give them: (B, 84, 84, 4) views of frame-major
-    (B, 4, 84, 84) memory (the store gathers whole frames, then moves the stack axis last)."""
+# ----------------------------------------------------------------------------- data
+
+
+def make_data(path, episodes: int, length: int, seed: int = 0):
+    """Random frames (each episode's frames drawn once), random actions and rewards in [-2, 2]
+    (so the clip to [-1, 1] acts), an episode in four ending in a terminal state."""
     rng = np.random.default_rng(seed)
-
-    def frames():
-        return rng.integers(0, 256, (size, 4, 84, 84), dtype=np.uint8).transpose(0, 2, 3, 1)
-
-    return Transition(
-        observation=frames(),
-        action=rng.integers(0, NUM_ACTIONS, size).astype(np.int64),
-        reward=rng.uniform(-1, 1, size).astype(np.float32),
-        discount=(rng.random(size) > 0.05).astype(np.float32),
-        next_observation=frames(),
-        next_action=rng.integers(0, NUM_ACTIONS, size).astype(np.int64),
-    )
+    with DatasetWriter(path, Schema(FRAME, ACTION, frame_stack=4), {"source": "bench"}) as w:
+        for i in range(episodes):
+            frames = rng.integers(0, 256, (length + 1, 84, 84), dtype=np.uint8)
+            actions = rng.integers(0, NUM_ACTIONS, length).astype(np.int64)
+            rewards = rng.uniform(-2, 2, length).astype(np.float32)
+            w.append(make_episode(frames, actions, rewards, terminal=i % 4 == 0))
+    return open_dataset(path)
 
 
-# ----------------------------------------------------------------------------- rlu
+class MinimalSampler:
+    """Frames in RAM; one (B, 5, 84, 84) gather per batch gives both stacks (NCHW views)."""
+
+    def __init__(self, ds, batch: int, clip: float, seed: int = 0):
+        self.frames = np.array(ds.column("observation"))
+        start, length = np.asarray(ds.start), np.asarray(ds.length)
+        frame_start = np.asarray(ds.frame_start)
+        # transitions: every step but a segment's last; the stack of step t starts at frame row
+        # frame_start + (t - start) (three zero frames precede each episode)
+        self.t = np.concatenate([s + np.arange(n - 1) for s, n in zip(start, length, strict=True)])
+        seg = np.repeat(np.arange(len(start)), length - 1)
+        self.first = frame_start[seg] + (self.t - start[seg])
+        self.action = np.array(ds.column("action"))
+        self.reward = np.clip(np.array(ds.column("reward")), -clip, clip)
+        self.discount = np.array(ds.column("discount"))
+        self.rows = np.arange(5)
+        self.batch, self.rng = batch, np.random.default_rng(seed)
+
+    def sample(self):
+        i = self.rng.integers(0, len(self.t), self.batch)
+        stacks = self.frames[self.first[i][:, None] + self.rows]
+        t = self.t[i]
+        return stacks[:, :4], self.action[t], self.reward[t], self.discount[t], stacks[:, 1:]
 
 
-def rlu_step(name: str, batch: Transition):
-    agent = make_agent(
-        name,
-        OBS,
-        DiscreteSpec((), "int64", NUM_ACTIONS),
-        "paper",
-        learning_rate=LR,
-        **{"atari.batch_size": len(batch.action)},
-    )
-    return lambda: agent.update(batch)
+# ----------------------------------------------------------------------------- minimal loops
 
 
-# ----------------------------------------------------------------------------- minimal loop
+def nature_cnn(s) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    c, h = 4, 84
+    for out, k, st in zip(s.channels, s.kernel_sizes, s.strides, strict=True):
+        layers += [nn.Conv2d(c, out, k, st), nn.ReLU()]
+        c, h = out, (h - k) // st + 1
+    return nn.Sequential(*layers, nn.Flatten(), nn.Linear(c * h * h, s.hidden_size), nn.ReLU())
 
 
-def nature_cnn() -> nn.Sequential:
-    return nn.Sequential(
-        nn.Conv2d(4, 32, 8, 4), nn.ReLU(), nn.Conv2d(32, 64, 4, 2), nn.ReLU(),
-        nn.Conv2d(64, 64, 3, 1), nn.ReLU(), nn.Flatten(),
-    )  # fmt: skip
+def prepare(batch):
+    """(observation as channels-last float, action, reward, discount, next observation as NCHW
+    float): the gradient pass's convolutions run faster channels-last, the no-gradient passes
+    as fast on the plain layout, which is one cheap cast away from the gathered frames."""
+    o, a, r, d, o2 = (torch.from_numpy(x) for x in batch)
+    x = o.contiguous(memory_format=torch.channels_last).float().mul_(1 / 255)
+    return x, a, r, d, o2.float().mul_(1 / 255)
 
 
-def head() -> nn.Sequential:
-    return nn.Sequential(nn.Linear(3136, 512), nn.ReLU(), nn.Linear(512, NUM_ACTIONS))
+def huber(x, delta: float):
+    return F.huber_loss(x, torch.zeros_like(x), reduction="none", delta=delta)
 
 
-def minimal_dqn_step(batch: Transition):
-    """Double DQN with Huber loss, the same forward passes as rlu, no wrapper."""
-    torso, q_head = nature_cnn(), head()
-    net = nn.Sequential(torso, q_head)
-    target = nn.Sequential(nature_cnn(), head())
-    target.load_state_dict(net.state_dict())
-    opt = torch.optim.Adam(net.parameters(), lr=LR, eps=EPS)
-    o = torch.from_numpy(batch.observation)
-    o2 = torch.from_numpy(batch.next_observation)
-    a, r, d = (torch.from_numpy(x) for x in (batch.action, batch.reward, batch.discount))
-    steps = [0]
+class Loop:
+    """A network, its target, Adam, hard target copies: what every minimal discrete loop has."""
 
-    def frames(x):
-        x = x.permute(0, 3, 1, 2).contiguous(memory_format=torch.channels_last)
-        return x.float().mul_(1 / 255)
+    def __init__(self, net: nn.Module, c, target: bool = True):
+        self.net, self.c = net, c
+        self.target = None
+        if target:
+            import copy
 
-    def step():
-        q = net(frames(o)).gather(1, a[:, None]).squeeze(1)
-        with torch.no_grad():
-            x2 = frames(o2)
-            best = net(x2).argmax(1, keepdim=True)
-            y = r + GAMMA * d * target(x2).gather(1, best).squeeze(1)
-        loss = F.huber_loss(q, y)
-        opt.zero_grad(set_to_none=True)
+            self.target = copy.deepcopy(net).requires_grad_(False)
+        self.opt = torch.optim.Adam(net.parameters(), lr=c.learning_rate, eps=c.atari.adam_eps,
+                                    fused=True)  # fmt: skip
+        self.steps = 0
+
+    def learn(self, loss) -> float:
+        self.opt.zero_grad(set_to_none=True)
         loss.backward()
-        opt.step()
-        steps[0] += 1
-        if steps[0] % TARGET_PERIOD == 0:
-            target.load_state_dict(net.state_dict())
+        self.opt.step()
+        self.steps += 1
+        if self.target is not None and self.steps % self.c.atari.target_update_period == 0:
+            with torch.no_grad():
+                torch._foreach_copy_(list(self.target.parameters()), list(self.net.parameters()))
         return loss.item()
 
-    return step
+
+def q_net(s, out: int) -> nn.Sequential:
+    return nn.Sequential(nature_cnn(s), nn.Linear(s.hidden_size, out))
 
 
-def minimal_bcq_step(batch: Transition):
-    """Discrete BCQ as rlu computes it (shared torso, Q and imitation heads), no wrapper."""
+def minimal_q(c, kind: str):
+    """DQN (``kind`` 'dqn'), double DQN ('double') or CQL(H) on double DQN ('cql')."""
+    torch.manual_seed(0)
+    s = c.atari
+    loop = Loop(q_net(s, NUM_ACTIONS), c)
+    gamma = s.gamma**s.n_step
+
+    def update(batch):
+        x, a, r, d, x2 = prepare(batch)
+        q = loop.net(x)
+        q_taken = q.gather(1, a[:, None]).squeeze(1)
+        with torch.no_grad():
+            q_next = loop.target(x2)
+            if kind == "dqn":
+                v = q_next.max(1).values
+            else:
+                v = q_next.gather(1, loop.net(x2).argmax(1, keepdim=True)).squeeze(1)
+            y = r + gamma * d * v
+        loss = huber(y - q_taken, s.huber_delta).mean()
+        if kind == "cql":
+            loss = loss + c.alpha * (torch.logsumexp(q, 1) - q_taken).mean()
+        return loop.learn(loss)
+
+    return update, loop.net
+
+
+def minimal_bc(c):
+    torch.manual_seed(0)
+    loop = Loop(q_net(c.atari, NUM_ACTIONS), c, target=False)
+
+    def update(batch):
+        x, a, *_ = prepare(batch)
+        return loop.learn(F.cross_entropy(loop.net(x), a))
+
+    return update, loop.net
+
+
+def minimal_bcq(c):
+    torch.manual_seed(0)
+    s = c.atari
 
     class Net(nn.Module):
         def __init__(self):
             super().__init__()
-            self.torso, self.q, self.pi = nature_cnn(), head(), head()
+            self.torso = nature_cnn(s)[:-2]  # the convolutions and the flatten
+            size = self.torso(torch.zeros(1, 4, 84, 84)).shape[1]
+            self.q = nn.Sequential(nn.Linear(size, s.hidden_size), nn.ReLU(),
+                                   nn.Linear(s.hidden_size, NUM_ACTIONS))  # fmt: skip
+            self.pi = nn.Sequential(nn.Linear(size, s.hidden_size), nn.ReLU(),
+                                    nn.Linear(s.hidden_size, NUM_ACTIONS))  # fmt: skip
 
         def forward(self, x):
             f = self.torso(x)
             return self.q(f), self.pi(f)
 
-    net, target = Net(), Net()
-    target.load_state_dict(net.state_dict())
-    opt = torch.optim.Adam(net.parameters(), lr=LR, eps=EPS)
-    o = torch.from_numpy(batch.observation)
-    o2 = torch.from_numpy(batch.next_observation)
-    a, r, d = (torch.from_numpy(x) for x in (batch.action, batch.reward, batch.discount))
-    log_threshold = float(np.log(0.5))
+    loop = Loop(Net(), c)
+    gamma, log_threshold = s.gamma**s.n_step, math.log(c.threshold)
 
-    def frames(x):
-        x = x.permute(0, 3, 1, 2).contiguous(memory_format=torch.channels_last)
-        return x.float().mul_(1 / 255)
-
-    def step():
-        q_all, logits = net(frames(o))
+    def update(batch):
+        x, a, r, d, x2 = prepare(batch)
+        q_all, logits = loop.net(x)
         q = q_all.gather(1, a[:, None]).squeeze(1)
         with torch.no_grad():
-            x2 = frames(o2)
-            q2, logits2 = net(x2)
+            q2, logits2 = loop.net(x2)
             allowed = logits2 - logits2.max(1, keepdim=True).values >= log_threshold
             best = q2.masked_fill(~allowed, float("-inf")).argmax(1, keepdim=True)
-            y = r + GAMMA * d * target(x2)[0].gather(1, best).squeeze(1)
-        loss = F.huber_loss(q, y) + F.cross_entropy(logits, a) + 1e-2 * logits.pow(2).mean()
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        return loss.item()
+            y = r + gamma * d * loop.target(x2)[0].gather(1, best).squeeze(1)
+        loss = (huber(y - q, s.huber_delta).mean() + F.cross_entropy(logits, a)
+                + c.logit_penalty * logits.pow(2).mean())  # fmt: skip
+        return loop.learn(loss)
 
-    return step
+    return update, loop.net
+
+
+def minimal_iqn(c):
+    torch.manual_seed(0)
+    s, n, e = c.atari, c.num_tau_samples, c.embedding_size
+    g = torch.Generator().manual_seed(0)
+
+    class Net(nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.torso = nature_cnn(s)[:-2]
+            size = self.torso(torch.zeros(1, 4, 84, 84)).shape[1]
+            self.tau = nn.Linear(e, size)
+            self.head = nn.Sequential(nn.Linear(size, s.hidden_size), nn.ReLU(),
+                                      nn.Linear(s.hidden_size, NUM_ACTIONS))  # fmt: skip
+            self.register_buffer("i", torch.arange(e, dtype=torch.float32) * math.pi)
+
+        def forward(self, x, taus):
+            phi = F.relu(self.tau(torch.cos(taus[..., None] * self.i)))
+            return self.head(self.torso(x)[:, None, :] * phi)  # (B, N, A)
+
+    loop = Loop(Net(), c)
+    gamma = s.gamma**s.n_step
+
+    def update(batch):
+        x, a, r, d, x2 = prepare(batch)
+        b = a.shape[0]
+        taus = torch.rand(b, n, generator=g)
+        z = loop.net(x, taus).gather(2, a[:, None, None].expand(b, n, 1)).squeeze(2)
+        with torch.no_grad():
+            z2 = loop.target(x2, torch.rand(b, n, generator=g))
+            best = z2.mean(1).argmax(1)
+            y = r[:, None] + gamma * d[:, None] * z2.gather(2, best[:, None, None].expand(b, n, 1)
+                                                            ).squeeze(2)  # fmt: skip
+        u = y[:, None, :] - z[:, :, None]
+        w = (taus[:, :, None] - (u.detach() < 0).float()).abs()
+        loss = (w * huber(u, c.kappa) / c.kappa).mean(2).sum(1).mean()
+        return loop.learn(loss)
+
+    return update, loop.net
+
+
+def minimal_rem(c):
+    torch.manual_seed(0)
+    s, k = c.atari, c.num_heads
+    loop = Loop(q_net(s, NUM_ACTIONS * k), c)
+    g = torch.Generator().manual_seed(0)
+    gamma = s.gamma**s.n_step
+
+    def update(batch):
+        x, a, r, d, x2 = prepare(batch)
+        w = torch.rand(k, generator=g)
+        w = w / w.sum()
+        q = (loop.net(x).view(-1, k, NUM_ACTIONS) * w[:, None]).sum(1)
+        q_taken = q.gather(1, a[:, None]).squeeze(1)
+        with torch.no_grad():
+            q2 = (loop.target(x2).view(-1, k, NUM_ACTIONS) * w[:, None]).sum(1)
+            y = r + gamma * d * q2.max(1).values
+        return loop.learn(huber(y - q_taken, s.huber_delta).mean())
+
+    return update, loop.net
+
+
+MINIMAL = {
+    "bc": minimal_bc,
+    "dqn": lambda c: minimal_q(c, "dqn"),
+    "double_dqn": lambda c: minimal_q(c, "double"),
+    "cql": lambda c: minimal_q(c, "cql"),
+    "bcq": minimal_bcq,
+    "iqn": minimal_iqn,
+    "rem": minimal_rem,
+}
 
 
 # ----------------------------------------------------------------------------- d3rlpy
 
 
-def d3rlpy_step(kind: str, batch: Transition):
+def d3rlpy_buffer(ds):
+    """rlu's episodes as d3rlpy episodes of single frames (T, 1, 84, 84), stacked by its
+    FrameStackTransitionPicker: a terminal episode keeps its T acting rows (d3rlpy bootstraps
+    nothing after a terminal), a truncated one its final observation too."""
+    from d3rlpy.constants import ActionSpace
+    from d3rlpy.dataset import Episode, FrameStackTransitionPicker, InfiniteBuffer, ReplayBuffer
+
+    episodes = []
+    for seg in ds.segments():
+        terminated = bool(seg.is_terminal[-1])
+        rows = len(seg.action) - 1 if terminated else len(seg.action)
+        obs = seg.observation[:, None]
+        episodes.append(Episode(obs[:rows], seg.action[:rows].reshape(rows, 1),
+                                seg.reward[:rows].astype(np.float32).reshape(rows, 1),
+                                terminated))  # fmt: skip
+    return ReplayBuffer(
+        InfiniteBuffer(), episodes=episodes, transition_picker=FrameStackTransitionPicker(4),
+        action_space=ActionSpace.DISCRETE, action_size=NUM_ACTIONS,
+    )  # fmt: skip
+
+
+def d3rlpy_iqn_same_network(c):
+    """d3rlpy's DQN on an IQN with rlu's (Dopamine's, the IQN paper's) network: the tau
+    embedding multiplies the flat convolution features (3136), then the 512-unit layer and the
+    action layer run per state and quantile. d3rlpy's own IQN multiplies its encoder's 512
+    features and runs one linear layer per quantile: far less arithmetic."""
     import d3rlpy
-    from d3rlpy.dataset import TransitionMiniBatch
+    from d3rlpy.models.encoders import EncoderFactory
+    from d3rlpy.models.q_functions import IQNQFunctionFactory
+    from d3rlpy.models.torch import Encoder
 
-    common = dict(
-        batch_size=len(batch.action),
-        learning_rate=LR,
-        gamma=GAMMA,
-        target_update_interval=TARGET_PERIOD,
+    s = c.atari
+
+    class Convolutions(Encoder):
+        def __init__(self):
+            super().__init__()
+            self.net = nature_cnn(s)[:-2]
+
+        def forward(self, x):
+            return self.net(x)
+
+    @dataclasses.dataclass()
+    class ConvolutionsFactory(EncoderFactory):
+        def create(self, observation_shape):
+            return Convolutions()
+
+        @staticmethod
+        def get_type() -> str:
+            return "rlu_nature_convolutions"
+
+    @dataclasses.dataclass()
+    class DopamineIQNFactory(IQNQFunctionFactory):
+        def create_discrete(self, encoder, hidden_size, action_size):
+            q_func, forwarder = super().create_discrete(encoder, hidden_size, action_size)
+            q_func._fc = nn.Sequential(nn.Linear(hidden_size, s.hidden_size), nn.ReLU(),
+                                       nn.Linear(s.hidden_size, action_size))  # fmt: skip
+            return q_func, forwarder
+
+        @staticmethod
+        def get_type() -> str:
+            return "rlu_dopamine_iqn"
+
+    iqn = DopamineIQNFactory(n_quantiles=c.num_tau_samples,
+                             n_greedy_quantiles=c.num_quantile_samples,
+                             embed_size=c.embedding_size)  # fmt: skip
+    return d3rlpy.algos.DQNConfig(
+        batch_size=s.batch_size, learning_rate=c.learning_rate, gamma=s.gamma,
+        optim_factory=d3rlpy.optimizers.AdamFactory(eps=s.adam_eps),
+        encoder_factory=ConvolutionsFactory(), q_func_factory=iqn,
         observation_scaler=d3rlpy.preprocessing.PixelObservationScaler(),
-        optim_factory=d3rlpy.optimizers.AdamFactory(eps=EPS),
+        reward_scaler=d3rlpy.preprocessing.ClipRewardScaler(-s.reward_clip, s.reward_clip),
+        target_update_interval=s.target_update_period,
+    )  # fmt: skip
+
+
+def d3rlpy_algo(bench_name: str, c):
+    import d3rlpy
+    from d3rlpy.models.encoders import PixelEncoderFactory
+    from d3rlpy.models.q_functions import IQNQFunctionFactory
+
+    s = c.atari
+    common = dict(
+        batch_size=s.batch_size,
+        learning_rate=c.learning_rate,
+        optim_factory=d3rlpy.optimizers.AdamFactory(eps=s.adam_eps),
+        encoder_factory=PixelEncoderFactory(
+            filters=[list(f) for f in zip(s.channels, s.kernel_sizes, s.strides, strict=True)],
+            feature_size=s.hidden_size,
+        ),
+        observation_scaler=d3rlpy.preprocessing.PixelObservationScaler(),
     )
-    if kind == "DiscreteBCQ":
-        config = d3rlpy.algos.DiscreteBCQConfig(action_flexibility=0.5, **common)
-    else:
-        config = getattr(d3rlpy.algos, f"{kind}Config")(**common)
-    algo = config.create(device="cpu:0")
-    algo.create_impl((4, 84, 84), NUM_ACTIONS)
-
-    def chw(x):  # d3rlpy takes channel-first float32 (its samplers cast uint8 to float32)
-        return np.ascontiguousarray(x.transpose(0, 3, 1, 2)).astype(np.float32)
-
-    size = len(batch.action)
-    mini = TransitionMiniBatch(
-        observations=chw(batch.observation),
-        actions=batch.action.astype(np.float32)[:, None],
-        rewards=batch.reward[:, None],
-        next_observations=chw(batch.next_observation),
-        next_actions=batch.next_action.astype(np.float32)[:, None],
-        terminals=(1.0 - batch.discount)[:, None],
-        intervals=np.ones((size, 1), np.float32),
-        transitions=[],
-    )
-    return lambda: algo.update(mini)
+    if bench_name == "bc":
+        return d3rlpy.algos.DiscreteBCConfig(beta=0.0, **common)
+    q = dict(gamma=s.gamma, target_update_interval=s.target_update_period,
+             reward_scaler=d3rlpy.preprocessing.ClipRewardScaler(-s.reward_clip, s.reward_clip),
+             **common)  # fmt: skip
+    if bench_name == "dqn":
+        return d3rlpy.algos.DQNConfig(**q)
+    if bench_name == "double_dqn":
+        return d3rlpy.algos.DoubleDQNConfig(**q)
+    if bench_name == "bcq":
+        return d3rlpy.algos.DiscreteBCQConfig(action_flexibility=c.threshold,
+                                              beta=c.logit_penalty, **q)  # fmt: skip
+    if bench_name == "cql":
+        return d3rlpy.algos.DiscreteCQLConfig(alpha=c.alpha, **q)
+    if bench_name == "iqn":
+        iqn = IQNQFunctionFactory(n_quantiles=c.num_tau_samples,
+                                  n_greedy_quantiles=c.num_quantile_samples,
+                                  embed_size=c.embedding_size)  # fmt: skip
+        return d3rlpy.algos.DQNConfig(q_func_factory=iqn, **q)
+    return None
 
 
-# ----------------------------------------------------------------------------- timing
+# ----------------------------------------------------------------------------- the bench
 
 
-def time_rounds(steps: dict, rounds: int, updates: int, warmup: int) -> dict[str, float]:
-    for step in steps.values():
-        for _ in range(warmup):
-            step()
-    per_round: dict[str, list[float]] = {name: [] for name in steps}
-    order = np.random.default_rng(0)
-    for _ in range(rounds):
-        # a fresh order every round, so no contestant always runs first after a quiet spell
-        for name in order.permutation(list(steps)):
-            step = steps[name]
-            start = time.perf_counter()
-            for _ in range(updates):
-                step()
-            per_round[name].append(updates / (time.perf_counter() - start))
-    return {name: statistics.median(v) for name, v in per_round.items()}
+def param_count(module) -> int:
+    return sum(p.numel() for p in module.parameters())
+
+
+def run_agent(bench_name: str, ds, buffer, args):
+    name, overrides = AGENT_SETTINGS[bench_name]
+    overrides = {**overrides, "atari.batch_size": args.batch}
+    agent = make_agent(name, OBS, ACTION, "paper", 0, **overrides)
+    c = agent.config
+    sampler = make_sampler(ds, agent.batch_spec, seed=0)
+    contestants = {"rlu": Contestant(sampler.sample, agent.update)}
+    update, net = MINIMAL[bench_name](c)
+    mini = MinimalSampler(ds, args.batch, c.atari.reward_clip, seed=0)
+    contestants["minimal loop"] = Contestant(mini.sample, update)
+    notes = {
+        "rlu": f"{name} {dataclasses.asdict(c)}",
+        "sizes": f"rlu {param_count(agent.network):,} parameters, minimal loop "
+                 f"{param_count(net):,}",
+    }  # fmt: skip
+    if buffer is not None:
+        configs = {"d3rlpy": d3rlpy_algo(bench_name, c)}
+        if bench_name == "iqn":
+            configs["d3rlpy same net"] = d3rlpy_iqn_same_network(c)
+            notes["d3rlpy"] = "DQN + its IQNQFunctionFactory (tau embedding on 512 features)"
+            notes["d3rlpy same net"] = "DQN + IQN on rlu's network (bench's DopamineIQNFactory)"
+        for label, config in configs.items():
+            if config is None:
+                continue
+            algo = config.create(device="cpu:0")
+            algo.build_with_dataset(buffer)
+            contestants[label] = Contestant(
+                lambda: buffer.sample_transition_batch(args.batch), algo.update
+            )
+            notes.setdefault(label, type(config).__name__.removesuffix("Config"))
+            if label == "d3rlpy same net":
+                notes["sizes"] += f", d3rlpy same net {param_count(algo.impl.q_function):,}"
+    if args.bf16:
+        twin = make_agent(name, OBS, ACTION, "paper", 0, **overrides)
+        sampler2 = make_sampler(ds, twin.batch_spec, seed=0)
+        contestants["rlu bf16"] = Contestant(sampler2.sample, bf16(twin.update))
+    before = load_line()
+    rates = time_contestants(contestants, args.rounds, args.block, args.warmup)
+    notes["load"] = f"before {before}; after {load_line()}"
+    return report(f"{bench_name} (batch {args.batch})", rates, notes)
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--batch", type=int, default=256)
-    parser.add_argument("--rounds", type=int, default=5)
-    parser.add_argument("--updates", type=int, default=5, help="updates per contestant per round")
-    parser.add_argument("--warmup", type=int, default=2)
-    parser.add_argument(
-        "--threads", type=int, default=0, help="torch threads (0: torch's default, one per core)"
-    )
-    args = parser.parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
-
-    batch = make_batch(args.batch)
-    steps = {
-        "rlu dqn": rlu_step("dqn", batch),
-        "minimal dqn": minimal_dqn_step(batch),
-        "rlu bcq": rlu_step("bcq", batch),
-        "minimal bcq": minimal_bcq_step(batch),
-    }
-    try:
-        import d3rlpy  # noqa: F401
-
-        have_d3rlpy = True
-        steps["d3rlpy DoubleDQN"] = d3rlpy_step("DoubleDQN", batch)
-        steps["d3rlpy DQN"] = d3rlpy_step("DQN", batch)
-        steps["d3rlpy DiscreteBCQ"] = d3rlpy_step("DiscreteBCQ", batch)
-    except ImportError:
-        have_d3rlpy = False
-        print("d3rlpy not installed: only the minimal-loop comparison runs")
-
-    print(
-        f"batch {args.batch}, Nature CNN, {torch.get_num_threads()} torch threads, "
-        f"{args.rounds} rounds x {args.updates} updates (median round)"
-    )
-    rates = time_rounds(steps, args.rounds, args.updates, args.warmup)
-    for name, rate in rates.items():
-        print(f"  {name:20s} {rate:8.2f} updates/s")
-    print("ratios (target: >= 1.5x d3rlpy, >= 0.90 of the minimal loop):")
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    names = list(AGENT_SETTINGS)
+    p.add_argument("--agents", nargs="+", default=names, choices=names)
+    p.add_argument("--batch", type=int, default=32)
+    p.add_argument("--rounds", type=int, default=30, help="interleaved rounds")
+    p.add_argument("--block", type=float, default=0.05,
+                   help="CPU-seconds of updates per contestant per round")  # fmt: skip
+    p.add_argument("--warmup", type=int, default=4)
+    p.add_argument("--bf16", action="store_true",
+                   help="time rlu under CPU bf16 autocast too (opt-in, other numbers)")  # fmt: skip
+    p.add_argument("--threads", type=int, default=1, help="torch intra-op threads for all")
+    p.add_argument("--episodes", type=int, default=20, help="1000-step episodes of data")
+    p.add_argument("--no-d3rlpy", action="store_true", help="rlu and the minimal loops only")
+    args = p.parse_args(argv)
+    sys.stdout.reconfigure(line_buffering=True)
+    torch.set_num_threads(args.threads)
+    have_d3rlpy = not args.no_d3rlpy
     if have_d3rlpy:
-        r = rates["rlu dqn"] / rates["d3rlpy DoubleDQN"]
-        print(f"  rlu dqn / d3rlpy DoubleDQN      {r:5.2f}x")
-        r = rates["rlu dqn"] / rates["d3rlpy DQN"]
-        print(f"  rlu dqn / d3rlpy DQN            {r:5.2f}x  (d3rlpy: no double-Q forward)")
-        r = rates["rlu bcq"] / rates["d3rlpy DiscreteBCQ"]
-        print(f"  rlu bcq / d3rlpy DiscreteBCQ    {r:5.2f}x")
-    print(f"  rlu dqn / minimal dqn           {rates['rlu dqn'] / rates['minimal dqn']:5.2f}")
-    print(f"  rlu bcq / minimal bcq           {rates['rlu bcq'] / rates['minimal bcq']:5.2f}")
+        try:
+            import d3rlpy
+            import structlog
+
+            structlog.configure(
+                wrapper_class=structlog.make_filtering_bound_logger(logging.WARNING)
+            )
+            print(f"d3rlpy {d3rlpy.__version__}")
+        except ImportError:
+            have_d3rlpy = False
+            print("d3rlpy is not installed here: rlu and the minimal loops only (bench/README.md)")
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} thread(s), batch {args.batch}, "
+          f"{args.rounds} rounds x {args.block:g} CPU-s per contestant (median update); "
+          f"{load_line()}")  # fmt: skip
+    results = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        ds = make_data(f"{tmp}/data", args.episodes, 1000)
+        buffer = d3rlpy_buffer(ds) if have_d3rlpy else None
+        for bench_name in args.agents:
+            if (AGENT_SETTINGS[bench_name][0], True) not in AGENTS:
+                print(f"\nskip {bench_name}: not in rlu.agents.AGENTS")
+                continue
+            results[bench_name] = run_agent(bench_name, ds, buffer, args)
+    summary(results)
 
 
 if __name__ == "__main__":

@@ -63,7 +63,7 @@ class BCAgent:
         )  # fmt: skip
 
     def update(self, batch: Transition) -> dict[str, float]:
-        frames = dc.frames(batch.observation, device=self.device)
+        frames = dc.frames(batch.observation, channels_last=True, device=self.device)
         action = common.to_torch(batch.action, self.device, "int64")
         loss, metrics = bc_loss(self.network(frames), action)
         self.step = common.learn(self.optimizers["network"], loss, self.step)

@@ -119,6 +119,16 @@ class BCQNets(nn.Module):
         sa = torch.cat([s, a], -1)
         return self.q1(sa).squeeze(-1), self.q2(sa).squeeze(-1)
 
+    def q_first(self, s: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+        """Q1 alone: what the actor loss and acting read (Q2 would be computed for nothing)."""
+        return self.q1(torch.cat([s, a], -1)).squeeze(-1)
+
+    def target_parts(self) -> dict[str, nn.Module]:
+        """The parts a target copy is read through (the critic target); the VAE's target copy
+        is never read (the original decodes with the online VAE), so targets skip it."""
+        return {"actor_enc": self.actor_enc, "actor": self.actor, "critic_enc": self.critic_enc,
+                "q1": self.q1, "q2": self.q2}  # fmt: skip
+
 
 def clipped_double_q(q1: torch.Tensor, q2: torch.Tensor, lmbda: float) -> torch.Tensor:
     """BCQ's soft clipped double-Q: lambda min(q1, q2) + (1 - lambda) max(q1, q2)."""
@@ -186,15 +196,16 @@ class BCQAgent:
         with torch.no_grad():
             sampled = n.vae.decode(s_vae.detach(), g)
         perturbed = n.perturb(n.actor_enc(obs), sampled, c.phi)
-        loss_a = -n.q(n.critic_enc(obs), perturbed)[0].mean()
+        loss_a = -n.q_first(n.critic_enc(obs), perturbed).mean()
         metrics["actor/loss"] = loss_a
         common.sgd_step(self.optimizers["actor"], loss_a, inputs=self.actor_params)
 
         self.step += 1
+        pairs = dict(zip(t.target_parts().values(), n.target_parts().values(), strict=True))
         if c.target_update_period > 0:
-            common.periodic_update(self.step, c.target_update_period, {self.target: self.nets})
+            common.periodic_update(self.step, c.target_update_period, pairs)
         else:
-            common.soft_update(self.target, self.nets, c.tau)
+            common.soft_updates(pairs, c.tau)
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
@@ -206,7 +217,7 @@ class BCQAgent:
         sa = n.actor_enc(obs).repeat_interleave(reps, 0)
         sc = n.critic_enc(obs).repeat_interleave(reps, 0)
         a = n.perturb(sa, n.vae.decode(sv, g), self.config.phi)
-        q1 = n.q(sc, a)[0].reshape(-1, reps)
+        q1 = n.q_first(sc, a).reshape(-1, reps)
         best = q1.argmax(1) + torch.arange(q1.shape[0], device=q1.device) * reps
         return self.scaler.from_unit(a[best])
 

@@ -136,6 +136,16 @@ def soft_update(target: nn.Module, source: nn.Module, tau: float) -> None:
         torch._foreach_lerp_(list(target.parameters()), list(source.parameters()), tau)
 
 
+def soft_updates(targets: Mapping[nn.Module, nn.Module], tau: float) -> None:
+    """:func:`soft_update` of every ``{target: source}`` pair in one foreach call."""
+    with torch.no_grad():
+        torch._foreach_lerp_(
+            [p for target in targets for p in target.parameters()],
+            [p for source in targets.values() for p in source.parameters()],
+            tau,
+        )
+
+
 def periodic_update(step: int, period: int, targets: Mapping[nn.Module, nn.Module]) -> None:
     """Hard-copy each source into its target every ``period`` steps (``{target: source}``)."""
     if period > 0 and step % period == 0:
@@ -215,7 +225,12 @@ def load_state_dict(agent: Any, state: Mapping[str, Any]) -> None:
 
 
 def metrics_to_floats(metrics: Metrics) -> dict[str, float]:
-    """One synchronisation for all metrics (``.item()`` per metric stalls once each)."""
+    """The metrics as Python floats. On the CPU every tensor is ready when the update returns,
+    so ``.item()`` per metric is the cheapest read (0.25 us each; stacking them first cost 15 us
+    for five, measured); on an accelerator each ``.item()`` would wait for the device, so the
+    metrics are stacked and read in one synchronisation."""
+    if all(v.device.type == "cpu" for v in metrics.values()):
+        return {k: float(v.item()) for k, v in metrics.items()}
     keys = list(metrics)
     values = torch.stack([metrics[k].detach().float().reshape(()) for k in keys]).tolist()
     return dict(zip(keys, (float(v) for v in values), strict=True))

@@ -1,0 +1,145 @@
+"""Where one update's time goes, for rlu, its minimal loop and d3rlpy: the evidence behind the
+ratios of bench/agents_continuous.py and bench/agents_discrete.py.
+
+    .venv-bench/bin/python bench/agents_profile.py bcq double_dqn --updates 5
+    .venv-bench/bin/python bench/agents_profile.py bc --ops 12      # the 12 costliest ops too
+
+Each contestant is built exactly as in those benches (same data, sizes, batch), warmed up, then
+``--updates`` updates on pre-drawn batches run under ``torch.profiler``. The time is split into
+the dense kernels (matrix products and convolutions, forward and backward: the arithmetic both
+libraries ask of the same oneDNN / MKL), Adam and the target updates (fused or foreach kernels),
+every other aten op (elementwise, reductions, copies, layout changes) and what is left of the
+update's wall time outside aten ops (Python, dispatch, the profiler's own bookkeeping). The
+profiler clocks ops on the wall, so the shares are of wall time: on a loaded machine they stay
+meaningful as long as the load hits every op alike. It also counts aten ops per update, a figure
+the machine's load does not move. Names: a continuous agent as in agents_continuous.py
+(``bc``, ``bcq``, ``d4pg``, ...), a discrete one as in agents_discrete.py (``dqn``,
+``double_dqn``, ``iqn``, ...; ``--batch`` sets its batch).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+from torch.profiler import ProfilerActivity, profile
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import agents_continuous as cont  # noqa: E402
+import agents_discrete as disc  # noqa: E402
+from agents_timing import load_line  # noqa: E402
+
+from rlu.agents import make_agent  # noqa: E402
+from rlu.data import make_sampler  # noqa: E402
+
+DENSE = (
+    "aten::addmm", "aten::mm", "aten::bmm", "aten::baddbmm", "aten::mkldnn_convolution",
+    "aten::convolution_backward", "aten::_convolution", "aten::linear", "aten::matmul",
+)  # fmt: skip
+
+
+def contestants(name: str, ds_c, ds_d, batch: int, d3rlpy: bool):
+    """{label: (update, batch)} built as the benches build them."""
+    out = {}
+    if name in cont.SETTINGS:
+        agent = make_agent(name, cont.OBS, cont.ACTION, "paper", 0, **cont.SETTINGS[name])
+        spec, ds = agent.batch_spec, ds_c
+        out["rlu"] = (agent.update, make_sampler(ds, spec, 0).sample())
+        if name in cont.MINIMAL:
+            update, _ = cont.MINIMAL[name](agent.config)
+            mini = cont.MinimalSampler(ds, spec.batch_size, spec.n_step, spec.gamma)
+            out["minimal loop"] = (update, mini.sample())
+        if d3rlpy:
+            buffer = cont.d3rlpy_buffer(ds)
+            d3 = cont.d3rlpy_contestant(name, agent.config, buffer)
+            if d3 is not None:
+                out["d3rlpy"] = (d3.update, d3.sample())
+        return out
+    agent_name, overrides = disc.AGENT_SETTINGS[name]
+    agent = make_agent(agent_name, disc.OBS, disc.ACTION, "paper", 0,
+                       **overrides, **{"atari.batch_size": batch})  # fmt: skip
+    out["rlu"] = (agent.update, make_sampler(ds_d, agent.batch_spec, 0).sample())
+    update, _ = disc.MINIMAL[name](agent.config)
+    mini = disc.MinimalSampler(ds_d, batch, agent.config.atari.reward_clip)
+    out["minimal loop"] = (update, mini.sample())
+    if d3rlpy:
+        config = disc.d3rlpy_algo(name, agent.config)
+        if config is not None:
+            buffer = disc.d3rlpy_buffer(ds_d)
+            algo = config.create(device="cpu:0")
+            algo.build_with_dataset(buffer)
+            out["d3rlpy"] = (algo.update, buffer.sample_transition_batch(batch))
+    return out
+
+
+def breakdown(update, batch, updates: int, ops: int) -> None:
+    for _ in range(3):
+        update(batch)
+    w0, c0 = time.perf_counter(), time.process_time()
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        for _ in range(updates):
+            update(batch)
+    # the profiler times ops on the wall clock, so the shares are of the wall time
+    wall = (time.perf_counter() - w0) / updates * 1e3
+    cpu = (time.process_time() - c0) / updates * 1e3
+    aten = [e for e in prof.key_averages() if e.key.startswith("aten::")]
+    ms = {e.key: e.self_cpu_time_total / updates / 1e3 for e in aten}
+    count = sum(e.count for e in aten) / updates
+    dense = sum(v for k, v in ms.items() if k in DENSE)
+    # Adam (fused, or foreach as d3rlpy's) and foreach target updates
+    optim = sum(v for k, v in ms.items() if k.startswith(("aten::_foreach", "aten::_fused")))
+    other = sum(ms.values()) - dense - optim
+    rest = max(wall - dense - optim - other, 0.0)
+    print(
+        f"    {cpu:7.2f} ms CPU, {wall:7.2f} ms wall per update (profiled); of the wall: dense "
+        f"kernels {dense / wall:4.0%}, Adam and target updates {optim / wall:4.0%}, other aten "
+        f"ops {other / wall:4.0%}, outside aten ops {rest / wall:4.0%}; {count:.0f} aten ops"
+    )
+    for key, value in sorted(ms.items(), key=lambda kv: -kv[1])[:ops]:
+        print(f"      {key:40s} {value:8.3f} ms")
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("agents", nargs="+", choices=[*cont.SETTINGS, *disc.AGENT_SETTINGS])
+    p.add_argument("--updates", type=int, default=5, help="profiled updates per contestant")
+    p.add_argument("--batch", type=int, default=32, help="batch of the discrete agents")
+    p.add_argument("--ops", type=int, default=0, help="print the costliest aten ops too")
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--no-d3rlpy", action="store_true")
+    args = p.parse_args(argv)
+    sys.stdout.reconfigure(line_buffering=True)
+    torch.set_num_threads(args.threads)
+    have_d3rlpy = not args.no_d3rlpy
+    if have_d3rlpy:
+        try:
+            import structlog
+
+            structlog.configure(
+                wrapper_class=structlog.make_filtering_bound_logger(logging.WARNING)
+            )
+        except ImportError:
+            have_d3rlpy = False
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} thread(s); {load_line()}")
+    with tempfile.TemporaryDirectory() as tmp:
+        ds_c = cont.make_data(f"{tmp}/c", episodes=10, length=1000)
+        ds_d = disc.make_data(f"{tmp}/d", episodes=4, length=1000)
+        for name in args.agents:
+            print(f"\n{name}")
+            for label, (update, batch) in contestants(
+                name, ds_c, ds_d, args.batch, have_d3rlpy
+            ).items():
+                print(f"  {label}")
+                breakdown(update, batch, args.updates, args.ops)
+    print(f"\n{load_line()}")
+
+
+if __name__ == "__main__":
+    main()

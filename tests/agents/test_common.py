@@ -1,0 +1,93 @@
+"""The helper stack's fast paths give the numbers of the plain forms they replace: metrics read
+per item on the CPU, one foreach Polyak step over several target pairs, frames converted once
+per batch (either layout), BCQ's targets kept for the parts that are read."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from torch import nn  # noqa: E402
+
+from rlu.agents import bcq, common, make_agent  # noqa: E402
+from rlu.agents import discrete_common as dc  # noqa: E402
+from tests.fakes import CONT_ACTION, LOWDIM_OBS, fake_transition  # noqa: E402
+
+
+def test_metrics_read_per_item_equal_the_stacked_read():
+    grad = torch.tensor(0.1234567, requires_grad=True) * 3.0
+    metrics = {
+        "a/third": torch.tensor(1.0) / 3.0,
+        "a/grad": grad,
+        "a/int": torch.tensor(7),
+        "a/flag": torch.tensor(True),
+        "a/tiny": torch.tensor(1e-30),
+    }
+    values = common.metrics_to_floats(metrics)
+    stacked = torch.stack([v.detach().float() for v in metrics.values()]).tolist()
+    assert list(values) == list(metrics)
+    assert list(values.values()) == stacked  # the very same float32 values, in order
+    assert all(type(v) is float for v in values.values())
+
+
+def test_soft_updates_is_soft_update_of_every_pair():
+    torch.manual_seed(0)
+    sources = [nn.Linear(3, 4), nn.Sequential(nn.Linear(4, 2), nn.ReLU(), nn.Linear(2, 1))]
+    targets = [common.frozen_copy(nn.Linear(3, 4)), common.frozen_copy(sources[1])]
+    untouched = common.frozen_copy(nn.Linear(3, 4))
+    expected = [common.frozen_copy(t) for t in targets]
+    for t, s in zip(expected, sources, strict=True):
+        common.soft_update(t, s, 0.25)
+    before = [p.clone() for p in untouched.parameters()]
+    common.soft_updates(dict(zip(targets, sources, strict=True)), 0.25)
+    for t, e in zip(targets, expected, strict=True):
+        for p, q in zip(t.parameters(), e.parameters(), strict=True):
+            assert torch.equal(p, q)
+    assert all(torch.equal(p, q) for p, q in zip(untouched.parameters(), before, strict=True))
+
+
+def test_frames_scale_once_in_either_layout_and_the_torso_reads_both():
+    rng = np.random.default_rng(0)
+    # frame-major memory seen as (B, H, W, C), as the views give stacks
+    stacks = rng.integers(0, 256, (3, 4, 84, 84), dtype=np.uint8).transpose(0, 2, 3, 1)
+    expected = torch.from_numpy(np.ascontiguousarray(stacks.transpose(0, 3, 1, 2))) * (1 / 255)
+    plain = dc.frames(stacks)
+    last = dc.frames(stacks, channels_last=True)
+    assert plain.dtype == last.dtype == torch.float32 and plain.shape == (3, 4, 84, 84)
+    assert torch.equal(plain, expected) and torch.equal(last, expected)
+    assert last.is_contiguous(memory_format=torch.channels_last)
+    assert plain.is_contiguous()
+    torso = dc.NatureTorso((84, 84, 4), dc.SMALL)
+    with torch.no_grad():
+        from_uint8 = torso(torch.from_numpy(stacks))
+        assert torch.equal(from_uint8, torso(plain))
+        torch.testing.assert_close(torso(last), from_uint8)
+
+
+def test_frames_refuse_a_missing_batch_axis():
+    with pytest.raises(dc.SpecError, match="batch axis"):
+        dc.frames(np.zeros((84, 84, 4), np.uint8))
+
+
+def test_bcq_targets_follow_the_parts_they_are_read_through():
+    agent = make_agent(
+        "bcq", LOWDIM_OBS, CONT_ACTION, "small", seed=0,
+        actor_layers=(8,), critic_layers=(8,), vae_layers=(8,), target_update_period=0,
+    )  # fmt: skip
+    target, nets = agent.target, agent.nets
+    vae_before = [p.clone() for p in target.vae.parameters()]
+    read_before = {k: [p.clone() for p in m.parameters()]
+                   for k, m in target.target_parts().items()}  # fmt: skip
+    agent.update(fake_transition(LOWDIM_OBS, CONT_ACTION, batch=6, seed=1))
+    tau = agent.config.tau
+    for key, part in target.target_parts().items():
+        source = nets.target_parts()[key]
+        for p, b, s in zip(part.parameters(), read_before[key], source.parameters(), strict=True):
+            torch.testing.assert_close(p, torch.lerp(b, s, tau), rtol=0, atol=1e-7)
+    # the target VAE is never read (the target decodes with the online VAE): left as built
+    assert all(torch.equal(p, b) for p, b in zip(target.vae.parameters(), vae_before, strict=True))
+    s, a = torch.randn(5, 24), torch.rand(5, 3) * 2 - 1
+    assert torch.equal(nets.q_first(s, a), nets.q(s, a)[0])
+    assert set(bcq.BCQNets.target_parts(nets)) == {"actor_enc", "actor", "critic_enc", "q1", "q2"}
