@@ -1,4 +1,4 @@
-"""``rlu generate``: record datasets with the paper's recipe (rlu.generate.recipe)."""
+"""``rlu generate``: record datasets with the paper's recipe (rlu.generate)."""
 
 from __future__ import annotations
 

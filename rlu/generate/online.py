@@ -206,7 +206,7 @@ def _from_tensors(v: Any) -> Any:
 
 
 # --------------------------------------------------------------------------------- a run
-def _make_agent(task: TaskSpec, cfg: OnlineConfig, seed: int):
+def make_behaviour_agent(task: TaskSpec, cfg: OnlineConfig, seed: int):
     from rlu.agents import make_agent
 
     return make_agent(
@@ -250,7 +250,7 @@ def run_online(
     torch.set_num_threads(1)
     try:
         run_seed = derive_seed(seed, run)
-        agent = _make_agent(task, cfg, run_seed)
+        agent = make_behaviour_agent(task, cfg, run_seed)
         agent_cfg = agent.config
         n_step = int(getattr(agent, "n_step", 1))
         gamma = float(getattr(agent_cfg, "gamma", getattr(agent_cfg, "discount", 0.99)))

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rlu.generate.recipe import select_episodes
+from rlu.generate.common import select_episodes
 
 TASK = "control_suite/cartpole_swingup"
 
