@@ -1,7 +1,7 @@
 """The data-generation recipes: online behaviour agents, the episode recorder, sub-sampling.
 
     from rlu.generate import generate
-    generate("control_suite/cartpole_swingup", "data/cartpole", scale="small", seed=0)
+    generate("control_suite/cartpole_swingup", "data/cartpole", scale="laptop", seed=0)
 
 ``generate`` picks one of three peer recipes: ``recipe`` (D4PG / DQN training runs: the control
 suite and Atari), ``rwrl`` (fixed D4PG snapshots rolled out with and without challenges) and
@@ -25,7 +25,7 @@ from rlu.types import RluError
 def generate(
     task_id: str,
     out: str | Path,
-    scale: str = "small",
+    scale: str = "laptop",
     runs: int | None = None,
     seed: int = 0,
     backend: str = "local",
@@ -33,12 +33,14 @@ def generate(
     on_chunk: Callable[[int, int], None] | None = None,
     keep_work: bool = False,
     policy: str | None = None,
+    workers: int | None = None,
 ) -> Path:
     """Record a dataset for ``task_id`` into ``out``; returns its path (for RWRL, the folder of
     its ``{challenge}_{size}`` datasets). ``runs``: independent runs (default: the scale's);
     ``policy`` ('module:factory', see ``rlu.generate.policy``) records a user policy instead of
     training the behaviour agent (required for locomotion); ``on_chunk(run, chunk)`` is called
-    after every saved chunk (tests interrupt there)."""
+    after every saved chunk (tests interrupt there); ``workers``: processes for the runs (the
+    D4PG / DQN recipe; default one per run)."""
     task = get_task(task_id)
     check_scale(scale)
     out = Path(out)
@@ -61,7 +63,8 @@ def generate(
         return generate_rwrl(task, out, scale, runs, seed, progress, keep_work)
     from rlu.generate.recipe import generate_runs
 
-    return generate_runs(task, out, scale, runs, seed, backend, progress, on_chunk, keep_work)
+    return generate_runs(task, out, scale, runs, seed, backend, progress, on_chunk, keep_work,
+                         workers)  # fmt: skip
 
 
 __all__ = ["SCALES", "generate", "select_episodes", "success_rule"]

@@ -121,11 +121,20 @@ def open_work(work: Path, settings: dict[str, Any], resume_command: str) -> None
 
 def merge_runs(task: TaskSpec, work: Path, runs: int, settings: dict[str, Any],
                target: int | None, seed: int, out: Path, command: str) -> Path:  # fmt: skip
-    """Select episodes from every run's parts under ``work`` and write the final dataset."""
-    parts = []
+    """Select episodes from every run's parts under ``work`` and write the final dataset. The
+    provenance keeps every recorded episode's return and length per run (``runs``): the runs'
+    learning curves, of which the dataset keeps a sub-sample (``rlu.generate.curves``)."""
+    parts, curves = [], []
     for r in range(runs):
         run_parts = sorted((work / f"run_{r:03d}").glob("part_*"))
-        parts += [open_dataset(p) for p in run_parts if (p / "manifest.json").exists()]
+        mine = [open_dataset(p) for p in run_parts if (p / "manifest.json").exists()]
+        parts += mine
+        curves.append({
+            "run": r,
+            "episode_return": [round(float(x), 3) for p in mine
+                               for x in np.asarray(p.metadata("episode_return"))],
+            "episode_steps": [int(n) - 1 for p in mine for n in np.asarray(p.length)],
+        })  # fmt: skip
     returns = np.concatenate([np.asarray(p.metadata("episode_return")) for p in parts])
     terminal = np.concatenate(
         [np.asarray(p.column("is_terminal"))[p.start + p.length - 1] for p in parts]
@@ -139,6 +148,7 @@ def merge_runs(task: TaskSpec, work: Path, runs: int, settings: dict[str, Any],
         "settings": settings,
         "selection": counts,
         "versions": versions(task),
+        "runs": curves,
     }
     with DatasetWriter(out, schema_for(task), provenance=provenance) as w:
         for k in keep.tolist():
@@ -156,6 +166,9 @@ class Progress:
         self.tty = sys.stderr.isatty()
 
     def update(self, run: int, episode: int, seg: Segment) -> None:
+        self.report(run, episode, float(seg.metadata["episode_return"]))
+
+    def report(self, run: int, episode: int, episode_return: float) -> None:
         self.done += 1
         if not self.enabled:
             return
@@ -164,7 +177,7 @@ class Progress:
         el = time.perf_counter() - self.t0
         msg = (
             f"{self.label} [{bar:<30}] {self.done}/{self.total or '?'} episodes  run {run} "
-            f"ep {episode} return {float(seg.metadata['episode_return']):8.1f}  {el:6.0f}s"
+            f"ep {episode} return {episode_return:8.1f}  {el:6.0f}s"
         )
         if self.tty:
             print("\r" + msg, end="", file=sys.stderr, flush=True)

@@ -44,7 +44,7 @@ def policy_scale(task: TaskSpec, scale: str) -> PolicyScale:
     target = int(task.episodes.get("", 100))
     return {
         "tiny": PolicyScale(1, 2, 1),
-        "small": PolicyScale(runs, 10, 5),
+        "laptop": PolicyScale(runs, 10, 5),
         # enough episodes that the target remains after two thirds of the successes go
         "paper": PolicyScale(runs, -(-3 * target // runs), 20),
     }[scale]

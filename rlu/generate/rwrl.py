@@ -34,7 +34,7 @@ from rlu.tasks import RWRL_SIZES, TaskSpec, rwrl_observation_spec
 
 SNAPSHOT_FRACTION = 0.75
 CHALLENGES = ("none", "easy")
-SIZE_FRACTION = {"tiny": None, "small": 0.1, "paper": 1.0}
+SIZE_FRACTION = {"tiny": None, "laptop": 0.1, "paper": 1.0}
 TINY_EPISODES = {"small": 1, "medium": 1, "large": 2}
 
 
