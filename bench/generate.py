@@ -2,6 +2,7 @@
 
     MUJOCO_GL=egl .venv/bin/python bench/generate.py            # cartpole swingup + Pong
     MUJOCO_GL=egl .venv/bin/python bench/generate.py --quick    # fewer steps
+    MUJOCO_GL=egl .venv/bin/python bench/generate.py --learner  # a behaviour run's CPU per step
 
 The same pre-drawn random actions drive both loops through whole episodes (reset with the same
 seeds). "record" adds ``EpisodeRecorder.step`` on every step; "record+store" also appends every
@@ -95,10 +96,73 @@ def bench(task_id: str, steps: int, rounds: int, settings: dict) -> None:
     print(f"  recorder.step alone: {per * 1e6:.1f} us/step = {per * raw:.1%} of a raw env step")
 
 
+def learner(task_id: str, rounds: int, updates: int) -> None:
+    """``--learner``: where a laptop-scale behaviour run's CPU goes, one thread, as the run has
+    it: D4PG updates of the small preset (batch 256) and of the laptop scale's settings
+    (interleaved rounds, best of each), the act and the env step, and the per-env-step cost
+    at each scale's updates per step."""
+    import torch
+
+    from rlu.agents import make_agent
+    from rlu.generate.online import Replay
+    from rlu.generate.scales import get_scale
+
+    torch.set_num_threads(1)
+    task = get_task(task_id)
+    online = get_scale(task, "laptop").online
+    env = make_env(task_id, seed=0)
+    rec = EpisodeRecorder(task)
+    rng = np.random.default_rng(0)
+    obs, _ = env.reset(seed=0)
+    rec.begin(obs)
+    t0 = time.perf_counter()
+    while True:
+        a = rng.uniform(-1, 1, task.action_spec.shape).astype(np.float32)
+        obs, r, term, trunc, info = env.step(a)
+        seg = rec.step(a, r, obs, term, trunc, info, {})
+        if seg is not None:
+            break
+    env_ms = (time.perf_counter() - t0) / (len(seg) - 1) * 1e3
+    kinds = {"small preset": {}, "laptop": dict(online.agent_overrides)}
+    agents, replays = {}, {}
+    for k, over in kinds.items():
+        agents[k] = make_agent("d4pg", task.observation_spec, task.action_spec, "small", 0, **over)
+        replays[k] = Replay(task, 5_000, agents[k].batch_spec)
+        replays[k].add(seg)
+    best = dict.fromkeys(kinds, float("inf"))
+    for i in range(rounds):
+        for k in list(kinds)[:: 1 if i % 2 == 0 else -1]:
+            agent, bs = agents[k], agents[k].config.batch_size
+            batches = [replays[k].sample(rng, bs) for _ in range(updates)]
+            t0 = time.perf_counter()
+            for b in batches:
+                agent.update(b)
+            best[k] = min(best[k], (time.perf_counter() - t0) / updates * 1e3)
+    ob = {k: v[None] for k, v in obs.items()}
+    t0 = time.perf_counter()
+    for _ in range(200):
+        agents["laptop"].act(ob)
+    act_ms = (time.perf_counter() - t0) / 200 * 1e3
+    print(f"{task_id}: one thread, best of {rounds} rounds of {updates} updates")
+    print(f"  env step {env_ms:.3f} ms, act {act_ms:.3f} ms")
+    for k, every in (("small preset", 1), ("laptop", online.update_every)):
+        bs = agents[k].config.batch_size
+        per_step = env_ms + act_ms + best[k] / every
+        print(
+            f"  {k:<12} batch {bs}: update {best[k]:6.2f} ms; 1 update per {every} steps -> "
+            f"{per_step:5.2f} ms per env step, {per_step:.1f} s per 1000-step episode"
+        )
+    print(f"  update time laptop / small preset = {best['laptop'] / best['small preset']:.2f}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--learner", action="store_true", help="a behaviour run's CPU per env step")
     args = ap.parse_args()
+    if args.learner:
+        learner("control_suite/walker_walk", 3 if args.quick else 5, 50 if args.quick else 200)
+        return
     rounds = 2 if args.quick else 5
     bench("control_suite/cartpole_swingup", 2_000 if args.quick else 10_000, rounds, {})
     try:

@@ -1,4 +1,4 @@
-"""``rlu generate``: record datasets with the paper's recipe (rlu.generate.recipe)."""
+"""``rlu generate``: record datasets with the paper's recipe (rlu.generate)."""
 
 from __future__ import annotations
 
@@ -21,10 +21,30 @@ def register(sub: argparse._SubParsersAction) -> None:
         "(rwrl writes OUT/{none,easy}_{small,medium,large})",
     )
     p.add_argument("--out", required=True, help="new dataset directory")
-    p.add_argument("--scale", default="small", choices=["tiny", "small", "paper"])
-    p.add_argument("--seeds", type=int, default=None, help="runs (default: the scale's: 2/3/3)")
+    p.add_argument(
+        "--scale",
+        default="laptop",
+        choices=["tiny", "laptop", "paper"],
+        help="laptop (default): behaviour runs that learn in minutes of CPU; tiny: seconds, for "
+        "tests; paper: the paper's budgets (clusters)",
+    )
+    p.add_argument("--seeds", type=int, default=None, help="runs (default: the scale's)")
     p.add_argument("--seed", type=int, default=0, help="base seed of every run")
     p.add_argument("--backend", default="local", choices=["local", "ray"])
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help="local backend: processes running the runs (default: one per run); the bytes do "
+        "not depend on it",
+    )
+    p.add_argument(
+        "--curves",
+        default=None,
+        metavar="PNG",
+        help="also draw the runs' learning curves (return vs env steps, one line per run) into "
+        "PNG and print each run's level",
+    )
     p.add_argument(
         "--policy",
         default=None,
@@ -64,6 +84,7 @@ def _run(args: argparse.Namespace) -> int:
         policy=args.policy,
         device=args.device,
         gpus_per_run=args.gpus_per_run,
+        workers=args.workers,
     )
     from pathlib import Path
 
@@ -79,5 +100,18 @@ def _run(args: argparse.Namespace) -> int:
             f"{p}: {r.get('episodes', 0)} episodes{made}, {ds.num_steps} steps, return mean "
             f"{r.get('mean', float('nan')):.1f} p90 {r.get('p90', float('nan')):.1f}"
         )
-    print(f"{time.perf_counter() - t0:.0f}s")
+    seconds = time.perf_counter() - t0
+    if args.curves and paths == [path]:
+        from rlu.generate import curves
+        from rlu.generate.scales import behaviour_target
+        from rlu.tasks import get_task
+
+        runs, prov = curves.dataset_curves(path)
+        target = behaviour_target(get_task(args.task))
+        print(curves.markdown_table(curves.summarise(runs), target))
+        title = prov["command"].removeprefix("rlu generate ").removesuffix(" --out DIR")
+        print(f"curves: {curves.plot(runs, args.curves, title, target)}")
+    elif args.curves:
+        print("--curves: rwrl datasets come from fixed snapshots (no learning curve to draw)")
+    print(f"{seconds:.0f}s")
     return 0

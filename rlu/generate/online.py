@@ -215,7 +215,7 @@ def _from_tensors(v: Any) -> Any:
 
 
 # --------------------------------------------------------------------------------- a run
-def _make_agent(task: TaskSpec, cfg: OnlineConfig, seed: int, device: Any = "cpu"):
+def make_behaviour_agent(task: TaskSpec, cfg: OnlineConfig, seed: int, device: Any = "cpu"):
     from rlu.agents import make_agent
 
     return make_agent(
@@ -261,7 +261,7 @@ def run_online(
     torch.set_num_threads(1)
     try:
         run_seed = derive_seed(seed, run)
-        agent = _make_agent(task, cfg, run_seed, device)
+        agent = make_behaviour_agent(task, cfg, run_seed, device)
         batch_size = agent.batch_spec.batch_size
         env = make_env(task.id, seed=run_seed, **cfg.env_settings)
         max_steps = int(cfg.env_settings.get("max_episode_steps", task.episode_length))

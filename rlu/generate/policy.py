@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from rlu.data import DatasetWriter
+from rlu.generate.common import Progress, merge_runs, open_work, paper_count, success_rule
 from rlu.generate.online import derive_seed
 from rlu.generate.recorder import EpisodeRecorder, episode_id, schema_for
 from rlu.tasks import TaskSpec
@@ -43,7 +44,7 @@ def policy_scale(task: TaskSpec, scale: str) -> PolicyScale:
     target = int(task.episodes.get("", 100))
     return {
         "tiny": PolicyScale(1, 2, 1),
-        "small": PolicyScale(runs, 10, 5),
+        "laptop": PolicyScale(runs, 10, 5),
         # enough episodes that the target remains after two thirds of the successes go
         "paper": PolicyScale(runs, -(-3 * target // runs), 20),
     }[scale]
@@ -71,7 +72,6 @@ def generate_with_policy(task: TaskSpec, out: Path, scale: str, runs: int | None
                          policy: str, progress: bool = True, keep_work: bool = False,
                          env_settings: dict | None = None) -> Path:  # fmt: skip
     from rlu.envs import make_env
-    from rlu.generate.recipe import Progress, _merge, _paper_count, success_rule
 
     sc = policy_scale(task, scale)
     runs = sc.runs if runs is None else int(runs)
@@ -79,7 +79,7 @@ def generate_with_policy(task: TaskSpec, out: Path, scale: str, runs: int | None
     out = Path(out)
     if (out / "manifest.json").exists():
         raise RluError(f"{out} already holds a dataset; choose another --out or remove it")
-    target = _paper_count(task)
+    target = paper_count(task)
     settings = json.loads(json.dumps({
         "task": task.id, "scale": scale, "runs": runs, "seed": seed, "policy": policy,
         "episodes_per_run": sc.episodes, "chunk_episodes": sc.chunk_episodes,
@@ -87,11 +87,8 @@ def generate_with_policy(task: TaskSpec, out: Path, scale: str, runs: int | None
         "success_rule": success_rule(task),
     }))  # fmt: skip
     work = out.parent / f".{out.name}.generate"
-    sp = work / "settings.json"
-    if sp.exists() and json.loads(sp.read_text()) != settings:
-        raise RluError(f"{work} holds an interrupted generation with other settings; remove it")
-    work.mkdir(parents=True, exist_ok=True)
-    sp.write_text(json.dumps(settings, sort_keys=True))
+    cmd = f"rlu generate {task.id} --scale {scale} --seeds {runs} --seed {seed} --policy {policy}"
+    open_work(work, settings, f"{cmd} --out {out}")
     schema = schema_for(task)
     bar = Progress(runs * sc.episodes, task.id, progress)
     for r in range(runs):
@@ -122,8 +119,7 @@ def generate_with_policy(task: TaskSpec, out: Path, scale: str, runs: int | None
         if env is not None:
             env.close()
     bar.close()
-    cmd = f"rlu generate {task.id} --scale {scale} --seeds {runs} --seed {seed} --policy {policy}"
-    path = _merge(task, work, runs, settings, target, seed, out, cmd + " --out DIR")
+    path = merge_runs(task, work, runs, settings, target, seed, out, cmd + " --out DIR")
     if not keep_work:
         shutil.rmtree(work)
     return path

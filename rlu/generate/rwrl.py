@@ -26,24 +26,16 @@ from typing import Any
 import numpy as np
 
 from rlu.data import DatasetWriter, Schema
-from rlu.generate.online import OnlineConfig, derive_seed, run_online
+from rlu.generate.common import Progress, command_line, open_work, versions
+from rlu.generate.online import derive_seed, make_behaviour_agent, run_online
 from rlu.generate.recorder import EpisodeRecorder, episode_id
+from rlu.generate.scales import get_scale
 from rlu.tasks import RWRL_SIZES, TaskSpec, rwrl_observation_spec
-from rlu.types import RluError
 
 SNAPSHOT_FRACTION = 0.75
 CHALLENGES = ("none", "easy")
-SIZE_FRACTION = {"tiny": None, "small": 0.1, "paper": 1.0}
+SIZE_FRACTION = {"tiny": None, "laptop": 0.1, "paper": 1.0}
 TINY_EPISODES = {"small": 1, "medium": 1, "large": 2}
-
-
-def rwrl_online(scale: str) -> tuple[int, OnlineConfig]:
-    from rlu.generate.recipe import get_scale
-    from rlu.tasks import get_task
-
-    # the control suite's D4PG settings per scale: the same agent, the same budget
-    sc = get_scale(get_task("control_suite/cartpole_swingup"), scale)
-    return sc.runs, sc.online
 
 
 def episodes_for(task: TaskSpec, challenge: str, size: str, scale: str) -> int:
@@ -67,21 +59,17 @@ def generate_rwrl(task: TaskSpec, out: Path, scale: str, runs: int | None, seed:
     import torch
 
     from rlu.envs import make_env
-    from rlu.generate.online import _make_agent
-    from rlu.generate.recipe import Progress, _versions, command_line
 
-    default_runs, online = rwrl_online(scale)
-    runs = default_runs if runs is None else int(runs)
+    # the control suite's D4PG settings at this scale: the same agent, the same budget
+    sc = get_scale(task, scale)
+    runs, online = sc.runs if runs is None else int(runs), sc.online
     out.mkdir(parents=True, exist_ok=True)
     work = out / ".work"
-    work.mkdir(exist_ok=True)
     settings = {"task": task.id, "scale": scale, "runs": runs, "seed": seed,
                 "online": online.to_json(), "snapshot_fraction": SNAPSHOT_FRACTION}  # fmt: skip
     settings = json.loads(json.dumps(settings))
-    sp = work / "settings.json"
-    if sp.exists() and json.loads(sp.read_text()) != settings:
-        raise RluError(f"{work} holds an interrupted generation with other settings; remove it")
-    sp.write_text(json.dumps(settings, sort_keys=True))
+    command = command_line(task.id, scale, runs, seed)
+    open_work(work, settings, f"{command} --out {out}")
 
     # 1. training runs, keeping each chunk's policy and mean return
     snapshots = []
@@ -117,7 +105,7 @@ def generate_rwrl(task: TaskSpec, out: Path, scale: str, runs: int | None, seed:
     bar.close()
     agents = []
     for r, snap in enumerate(snapshots):
-        agent = _make_agent(task, online, derive_seed(seed, r), device)
+        agent = make_behaviour_agent(task, online, derive_seed(seed, r), device)
         agent.load_state_dict(snap["agent"])
         agents.append(agent)
 
@@ -140,12 +128,12 @@ def generate_rwrl(task: TaskSpec, out: Path, scale: str, runs: int | None, seed:
                 keys = list(task.observation_spec)
                 prov = {
                     "generator": "rlu generate (rwrl snapshots)",
-                    "command": command_line(task.id, scale, runs, seed) + " --out DIR",
+                    "command": command + " --out DIR",
                     "settings": settings,
                     "challenge": challenge,
                     "size": size,
                     "snapshots": [{k: v for k, v in s.items() if k != "agent"} for s in snapshots],
-                    "versions": _versions(task),
+                    "versions": versions(task),
                 }
                 with DatasetWriter(dest, schema, provenance=prov, overwrite=True) as w:
                     for e in range(n):

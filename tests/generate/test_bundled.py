@@ -21,7 +21,7 @@ def test_bundled_dataset_is_valid_and_small():
     size = sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
     assert size <= 5 * 2**20
     prov = ds.manifest["provenance"]
-    assert prov["command"].startswith(f"rlu generate {BUNDLED_TASK} --scale small")
+    assert prov["command"].startswith(f"rlu generate {BUNDLED_TASK} --scale laptop")
     assert prov["settings"]["seed"] == 0 and prov["selection"]["kept"] == 40
     runs = {ds.segment(i).metadata["run"] for i in range(len(ds))}
     assert runs == {0, 1, 2}
@@ -29,7 +29,7 @@ def test_bundled_dataset_is_valid_and_small():
 
 @pytest.mark.slow
 def test_bundled_dataset_is_reproduced_by_its_recorded_command(tmp_path):
-    """Minutes: re-runs the recorded command (3 D4PG runs of 30 episodes)."""
+    """Minutes: re-runs the recorded command (3 D4PG runs at the laptop scale)."""
     pytest.importorskip("torch")
     pytest.importorskip("dm_control")
     from rlu.cli import main

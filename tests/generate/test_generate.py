@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rlu.generate.recipe import select_episodes
+from rlu.generate.common import select_episodes
 from rlu.types import BatchSpec
 
 TASK = "control_suite/cartpole_swingup"
@@ -33,6 +33,22 @@ def test_select_keeps_a_third_of_successes_then_subsamples():
     keep, counts = select_episodes(success, 10, np.random.default_rng(0))
     assert keep.size == 10 and counts["kept"] == 10
     assert set(keep) <= set(np.flatnonzero(~success)) | set(np.flatnonzero(success))
+
+
+def test_curve_summary_by_hand():
+    from rlu.generate.curves import RunCurve, markdown_table, moving_mean, summarise
+
+    ret = np.arange(12, dtype=np.float64) * 10  # 0, 10, ..., 110
+    ret[1] = 1000.0  # windows 0-9 (mean 144) and 1-10 (154) hold it, the last (65) does not
+    steps = np.cumsum(np.full(12, 1000))
+    np.testing.assert_allclose(moving_mean(ret, 10)[:1], [(ret[:10]).sum() / 10])
+    (s,) = summarise([RunCurve(2, ret, steps)])
+    assert (s.run, s.episodes, s.env_steps) == (2, 12, 12_000)
+    assert s.best_mean == pytest.approx(154.0) and s.best_at_steps == 11_000
+    assert s.final_mean == pytest.approx(ret[2:].mean())
+    (short,) = summarise([RunCurve(0, ret[:3], steps[:3])])  # fewer than 10: the mean of all
+    assert short.best_mean == pytest.approx(ret[:3].mean()) and short.best_at_steps == 3_000
+    assert markdown_table([s], 100.0).splitlines()[-1].endswith("| yes |")
 
 
 def test_replay_n_step_targets_by_hand():
@@ -96,19 +112,33 @@ _CHILD = textwrap.dedent(
 )
 
 
-def test_tiny_generation_is_deterministic_and_resumes_after_sigkill(tmp_path):
+def test_tiny_generation_is_deterministic_and_resumes_after_sigkill(tmp_path, capsys):
     pytest.importorskip("torch")
     pytest.importorskip("dm_control")
+    from rlu.cli import main
     from rlu.data import open_dataset
     from rlu.data.validate import validate
     from rlu.generate import generate
 
-    ref = generate(TASK, tmp_path / "ref", scale="tiny", runs=1, seed=7, progress=False)
+    # the reference through the CLI, its learning curves drawn
+    ref, png = tmp_path / "ref", tmp_path / "curves" / "ref.png"
+    argv = ["generate", TASK, "--scale", "tiny", "--seeds", "1", "--seed", "7", "--out", str(ref)]
+    assert main([*argv, "--no-progress", "--curves", str(png)]) == 0
+    printed = capsys.readouterr().out
+    assert "| run | episodes | env steps | best 10-episode mean" in printed
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert validate(ref).ok
     ds = open_dataset(ref)
     assert len(ds) == 2
     assert [ds.segment(i).metadata["episode_index"] for i in range(2)] == [0, 1]
-    assert ds.manifest["provenance"]["command"].startswith(f"rlu generate {TASK} --scale tiny")
+    prov = ds.manifest["provenance"]
+    assert prov["command"].startswith(f"rlu generate {TASK} --scale tiny")
+    # every recorded episode's return and length, per run (all kept at this scale)
+    assert prov["runs"] == [{
+        "run": 0,
+        "episode_return": [round(float(r), 3) for r in ds.metadata("episode_return")],
+        "episode_steps": [1000, 1000],
+    }]  # fmt: skip
 
     out = tmp_path / "crashed"
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
@@ -142,7 +172,7 @@ def test_resume_with_other_settings_is_refused(tmp_path):
     work = tmp_path / ".d.generate"
     work.mkdir()
     (work / "settings.json").write_text(
-        '{"task": "control_suite/cartpole_swingup", "scale": "small", "runs": 3, "seed": 1}'
+        '{"task": "control_suite/cartpole_swingup", "scale": "laptop", "runs": 3, "seed": 1}'
     )
     with pytest.raises(RluError, match="other settings"):
         generate(TASK, tmp_path / "d", scale="tiny", runs=1, seed=7, progress=False)
@@ -246,6 +276,17 @@ def test_rwrl_snapshot_rollouts_at_tiny_scale(tmp_path):
     snap = none.manifest["provenance"]["snapshots"][0]
     assert snap["return"] >= 0.75 * snap["converged"]
     assert not (out / ".work").exists()
+
+
+def test_runs_in_worker_processes_give_the_one_process_bytes(tmp_path):
+    pytest.importorskip("torch")
+    pytest.importorskip("dm_control")
+    from rlu.generate import generate
+
+    kw = dict(scale="tiny", runs=2, seed=3, progress=False)
+    one = generate(TASK, tmp_path / "one", workers=1, **kw)
+    two = generate(TASK, tmp_path / "two", workers=2, **kw)
+    assert _files(two) == _files(one)
 
 
 @pytest.mark.slow  # a local Ray instance: ~30 s idle, minutes on a loaded machine

@@ -28,14 +28,16 @@ def test_device_reaches_the_behaviour_agents(tmp_path, monkeypatch):
     from rlu.generate import generate
 
     asked = []
-    make = online._make_agent
+    make = online.make_behaviour_agent
 
     def recording(task, cfg, seed, device="cpu"):  # builds on the CPU: no GPU here
         asked.append(device)
         return make(task, cfg, seed, "cpu")
 
-    monkeypatch.setattr(online, "_make_agent", recording)
-    generate(TASK, tmp_path / "d", scale="tiny", runs=2, seed=1, progress=False, device="cuda:1")
+    monkeypatch.setattr(online, "make_behaviour_agent", recording)
+    # workers=1: the runs play in this process, where the patch is
+    generate(TASK, tmp_path / "d", scale="tiny", runs=2, seed=1, progress=False, workers=1,
+             device="cuda:1")  # fmt: skip
     assert asked == ["cuda:1", "cuda:1"]
 
 
