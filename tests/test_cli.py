@@ -14,11 +14,16 @@ def test_quickstart_end_to_end_at_tiny_cost(tmp_path, capsys):
     pytest.importorskip("dm_control")
     out = tmp_path / "qs"
     argv = ["quickstart", "--out", str(out), "--steps", "5", "--eval-episodes", "1"]
-    assert main([*argv, "--agents", "bc"]) == 0
+    assert main([*argv, "--agents", "bc", "d4pg"]) == 0
     text = capsys.readouterr().out
     assert "validate: valid" in text and "| bc |" in text and "| random |" in text
     result = json.loads((out / "results.json").read_text())
-    assert [r["policy"] for r in result["policies"]] == ["random", "bc"]
+    assert [r["policy"] for r in result["policies"]] == ["random", "bc", "d4pg"]
+    bc, d4pg = (r["mean"] for r in result["policies"][1:])
+    data = result["dataset_returns"]["mean"]
+    row = next(line for line in text.splitlines() if line.startswith("| d4pg |"))
+    assert row.endswith("| yes |" if d4pg > data else "| no |")
+    assert f"Best offline RL agent: d4pg, {d4pg / bc:.2f} times BC's return" in text
     assert result["dataset_returns"]["episodes"] == 40
     assert (out / "bc" / "result.json").exists() and (out / "report.md").exists()
     if __import__("importlib").util.find_spec("matplotlib") is not None:
