@@ -4,11 +4,14 @@ Checks: manifest fields, files inside the folder and their sizes, the segment in
 :func:`~rlu.data.store.open_dataset`), sha256 of every file, schema against the task registry, step
 flags (RLDS; stored as bytes 0 or 1), discounts, actions inside the action space, stored episode
 returns against the rewards, NaN / inf in float columns, and every compressed frame inflating to
-exactly one frame. Whatever sampling could trip on, validate reports first.
+exactly one frame; attachments (the behaviour policies under ``policies/``) by size and sha256 and,
+for each policy's ``.npz``, that numpy opens it without pickle and finds its ``.json`` beside it.
+Whatever sampling could trip on, validate reports first.
 """
 
 from __future__ import annotations
 
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -18,6 +21,7 @@ from rlu.data.store import (
     FLAG_COLUMNS,
     Dataset,
     ZlibColumn,
+    is_attachment,
     open_dataset,
     read_manifest,
     verify_checksums,
@@ -64,7 +68,30 @@ def validate(path: str | Path, checksums: bool = True) -> Report:
         except RluError as e:
             report.add(str(e))
     _check_frames(ds, report)
+    _check_attachments(ds, manifest, report)
     return report
+
+
+def _check_attachments(ds: Dataset, manifest: dict, report: Report) -> None:
+    """Behaviour policies (``policies/**.npz`` + ``.json``): each array loads without pickle."""
+    rels = sorted(r for r in manifest["files"] if is_attachment(r))
+    if not rels:
+        return
+    bad = len(report.problems)
+    for rel in rels:
+        if not rel.endswith(".npz"):
+            continue
+        if rel.removesuffix(".npz") + ".json" not in manifest["files"]:
+            report.add(f"{ds.path / rel}: no {Path(rel).stem}.json beside it (the policy's config)")
+        try:
+            with np.load(ds.path / rel, allow_pickle=False) as z:
+                for key in z.files:
+                    z[key]
+        except (ValueError, OSError, EOFError, KeyError, zipfile.BadZipFile) as e:
+            report.add(f"{ds.path / rel}: not a numpy .npz of plain arrays ({e})")
+    if len(report.problems) == bad:
+        report.checked.append(f"{len(rels)} attached file(s) under policies/ (arrays load "
+                              "without pickle)")
 
 
 def _check_task(ds: Dataset, report: Report) -> None:

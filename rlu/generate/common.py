@@ -120,10 +120,13 @@ def open_work(work: Path, settings: dict[str, Any], resume_command: str) -> None
 
 
 def merge_runs(task: TaskSpec, work: Path, runs: int, settings: dict[str, Any],
-               target: int | None, seed: int, out: Path, command: str) -> Path:  # fmt: skip
+               target: int | None, seed: int, out: Path, command: str,
+               policies: str | None = None) -> Path:  # fmt: skip
     """Select episodes from every run's parts under ``work`` and write the final dataset. The
     provenance keeps every recorded episode's return and length per run (``runs``): the runs'
-    learning curves, of which the dataset keeps a sub-sample (``rlu.generate.curves``)."""
+    learning curves, of which the dataset keeps a sub-sample (``rlu.generate.curves``).
+    ``policies`` (the weights' dtype; None: the recipe keeps none): attach the behaviour policy
+    of every (run, checkpoint) the kept episodes name, from ``work/run_*/policies/``."""
     parts, curves = [], []
     for r in range(runs):
         run_parts = sorted((work / f"run_{r:03d}").glob("part_*"))
@@ -150,10 +153,27 @@ def merge_runs(task: TaskSpec, work: Path, runs: int, settings: dict[str, Any],
         "versions": versions(task),
         "runs": curves,
     }
+    attach: dict[str, Path] = {}
+    if policies is not None:
+        from rlu.generate.policies import snapshot_files
+
+        run_of = np.concatenate([np.asarray(p.metadata("run")) for p in parts])
+        checkpoint_of = np.concatenate([np.asarray(p.metadata("checkpoint")) for p in parts])
+        attach = snapshot_files(work, list(zip(run_of[keep].tolist(),
+                                               checkpoint_of[keep].tolist())))  # fmt: skip
+        provenance["policies"] = {
+            "kept": "the behaviour policy of every (run, checkpoint) the episodes name, taken "
+            "before the checkpoint's first episode: policies/run_RRR/checkpoint_CCCCC.npz "
+            "(acting network weights, no pickle) + .json (agent config); rlu.generate.policies",
+            "dtype": policies,
+            "count": len(attach) // 2,
+        }
     with DatasetWriter(out, schema_for(task), provenance=provenance) as w:
         for k in keep.tolist():
             i, j = where[k]
             w.append(parts[i].segment(j))
+        for rel, src in attach.items():
+            w.attach(rel, src)
     return out
 
 

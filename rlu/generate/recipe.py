@@ -9,7 +9,9 @@
    (``rlu.generate.common``: the success rule and the selection);
 3. writes one dataset whose manifest holds the command, the seed, the resolved settings, the
    behaviour agent's config, the success rule and the selection counts (no clock time, so the same
-   seed gives the same bytes).
+   seed gives the same bytes), with the behaviour policy of every (run, checkpoint) its episodes
+   name under ``policies/`` (``rlu.generate.policies``: kept at the first episode of each
+   checkpoint id, weights only, loaded without pickle).
 
 Resumption: the work goes to ``.<out>.generate/`` next to ``out``: one store part per chunk of
 episodes per run, written atomically, and a per-run ``state.pt`` (agent, replay, random
@@ -40,6 +42,7 @@ from rlu.generate.common import (
     success_rule,
 )
 from rlu.generate.online import OnlineConfig, run_online
+from rlu.generate.policies import save_snapshot
 from rlu.generate.recorder import schema_for
 from rlu.generate.scales import get_scale
 from rlu.tasks import TaskSpec, get_task
@@ -61,8 +64,13 @@ def _run_one(task_id: str, online: OnlineConfig, seed: int, run: int, work: str,
                 w.append(s)
 
     run_dir = Path(work) / f"run_{run:03d}"
+
+    def keep_policy(checkpoint: int, env_steps: int, episode: int, agent: Any) -> None:
+        save_snapshot(run_dir / "policies", agent, task, online, seed, run, checkpoint,
+                      env_steps, episode)  # fmt: skip
+
     run_online(task, online, seed, run, run_dir, write_chunk, on_episode, on_chunk,
-               device=device)  # fmt: skip
+               device=device, on_checkpoint=keep_policy)  # fmt: skip
 
 
 _QUEUE: Any = None  # a worker process's channel to the parent's progress bar
@@ -173,7 +181,8 @@ def generate_runs(
     else:
         _run_ray(task.id, sc.online, seed, runs, str(work), device, gpus_per_run)
     bar.close()
-    path = merge_runs(task, work, runs, settings, target, seed, out, command + " --out DIR")
+    path = merge_runs(task, work, runs, settings, target, seed, out, command + " --out DIR",
+                      policies=sc.online.policy_dtype)  # fmt: skip
     if not keep_work:
         shutil.rmtree(work)
     return path

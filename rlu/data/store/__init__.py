@@ -14,6 +14,7 @@ from rlu.data.store.reader import (
     verify_checksums,
 )
 from rlu.data.store.schema import (
+    ATTACHMENT_DIRS,
     DTYPES,
     ENCODINGS,
     FLAG_COLUMNS,
@@ -21,12 +22,14 @@ from rlu.data.store.schema import (
     FORMAT_VERSION,
     MANIFEST,
     Schema,
+    is_attachment,
     partial_dir,
     segment_columns,
 )
 from rlu.data.store.writer import DatasetWriter, Deflated, SegmentColumns
 
 __all__ = [
+    "ATTACHMENT_DIRS",
     "DTYPES",
     "ENCODINGS",
     "FLAG_COLUMNS",
@@ -40,6 +43,7 @@ __all__ = [
     "Schema",
     "ZlibColumn",
     "file_sha256",
+    "is_attachment",
     "open_dataset",
     "partial_dir",
     "read_manifest",

@@ -5,7 +5,8 @@ allocated:
 
 - the manifest must be a regular JSON file of bounded size inside the folder (a FIFO, a directory
   or a symlink out of the folder is refused, never opened), every field of the kind the writer
-  writes (:meth:`Schema.from_json`, whole-number counts, ``files`` exactly the schema's files);
+  writes (:meth:`Schema.from_json`, whole-number counts, ``files`` exactly the schema's files
+  plus any attachments under ``policies/``);
 - every file resolves inside the folder, symlinks followed (a symlinked ``steps/`` or column that
   points elsewhere is refused), is a regular file, and has the size the manifest and the counts
   imply, computed in Python integers (no overflow);
@@ -40,6 +41,7 @@ from rlu.data.store.schema import (
     MANIFEST,
     FieldError,
     Schema,
+    is_attachment,
     partial_dir,
     whole_number,
 )
@@ -146,11 +148,12 @@ def _files(manifest: Mapping[str, Any], schema: Schema) -> None:
         raise FieldError("files", f"is a {type(files).__name__}; an object of file entries")
     want = set(schema.files())
     have = set(files)
-    if have != want:
+    unexpected = {r for r in have - want if not (isinstance(r, str) and is_attachment(r))}
+    if want - have or unexpected:
         raise FieldError(
             "files",
             f"does not list the schema's files: missing {sorted(want - have)}, unexpected "
-            f"{sorted(map(str, have - want))[:5]}",
+            f"{sorted(map(str, unexpected))[:5]}",
         )
     for rel, entry in files.items():
         if not isinstance(entry, Mapping):

@@ -8,6 +8,8 @@ Layout of a dataset directory::
     steps/observation/<key>.zlib  compressed image columns: one zlib stream per frame,
     steps/observation/<key>.offsets.bin   with int64 offsets (n + 1) into the stream file
     segments/<field>.bin          per-segment index (start, length, frame_start) and metadata
+    policies/...                  attachments (optional): files that are not columns, e.g. the
+                                  behaviour policies ``rlu generate`` keeps (rlu.generate.policies)
 
 Step columns: ``action``, ``reward``, ``discount``, ``is_first``, ``is_last``, ``is_terminal``
 and one per observation key. With ``frame_stack > 1`` (Atari) the single observation column holds
@@ -49,6 +51,15 @@ MANIFEST = "manifest.json"
 FLAG_COLUMNS = ("is_first", "is_last", "is_terminal")
 ENCODINGS = ("raw", "zlib")
 SEGMENT_INDEX = ("start", "length", "frame_start")
+ATTACHMENT_DIRS = ("policies",)
+"""Top-level folders that may hold attachments: files listed in the manifest (sha256 and size,
+checked like the columns) besides the schema's own files."""
+
+
+def is_attachment(rel: str) -> bool:
+    """Whether manifest path ``rel`` names an attachment (a file under ``ATTACHMENT_DIRS``)."""
+    head, sep, rest = rel.partition("/")
+    return bool(sep) and head in ATTACHMENT_DIRS and bool(rest)
 DTYPES = (
     "bool",
     "uint8",

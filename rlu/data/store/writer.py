@@ -24,12 +24,14 @@ import numpy as np
 
 from rlu.data.episode import METADATA_FIELDS, METADATA_MISSING, Segment
 from rlu.data.store.schema import (
+    ATTACHMENT_DIRS,
     FORMAT,
     FORMAT_VERSION,
     MANIFEST,
     SEGMENT_INDEX,
     Schema,
     check_cast,
+    is_attachment,
     partial_dir,
     segment_columns,
 )
@@ -270,6 +272,7 @@ class DatasetWriter:
         self.tmp = partial_dir(self.dest)
         self._cols: dict[str, _ColumnFile] = {}
         self._index: dict[str, _RawFile] = {}  # segments/*.bin, streamed like the columns
+        self._attached: dict[Path, dict[str, Any]] = {}  # policies/...: attach()
         self._frame_names = set(schema.frame_columns())
         self.num_segments = 0
         self.num_steps = 0
@@ -367,6 +370,28 @@ class DatasetWriter:
         self.num_frames += frames
         self.num_episodes += int((first & last).sum())
 
+    def attach(self, rel: str, src: str | os.PathLike) -> None:
+        """Copy file ``src`` into the dataset at ``rel`` (under one of ``ATTACHMENT_DIRS``, e.g.
+        ``policies/run_000/checkpoint_00003.npz``); the manifest lists it with its sha256 and
+        size, so ``open_dataset`` and ``rlu validate`` check it like a column."""
+        if self._closed:
+            raise RluError(f"{self.dest}: the writer is closed; open a new DatasetWriter")
+        parts = Path(rel).parts
+        if not is_attachment(rel) or ".." in parts or Path(rel).is_absolute() or "\\" in rel:
+            raise RluError(
+                f"attachment {rel!r}: name a file under {', '.join(ATTACHMENT_DIRS)}/ "
+                "(e.g. policies/run_000/checkpoint_00000.npz)"
+            )
+        dest = self.tmp / rel
+        if dest in self._attached:
+            raise RluError(f"{self.dest}: attachment {rel} was already added")
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        out = _RawFile(dest)
+        with open(src, "rb") as fh:
+            while block := fh.read(1 << 20):
+                out.write(block)
+        self._attached.update(out.close())
+
     def close(self) -> Path:
         if self._closed:
             return self.dest
@@ -383,6 +408,7 @@ class DatasetWriter:
         files: dict[Path, dict[str, Any]] = {}
         for f in (*self._cols.values(), *self._index.values()):
             files.update(f.close())
+        files.update(self._attached)
         manifest = {
             "format": FORMAT,
             "version": FORMAT_VERSION,
