@@ -159,8 +159,8 @@ def merge_runs(task: TaskSpec, work: Path, runs: int, settings: dict[str, Any],
 
         run_of = np.concatenate([np.asarray(p.metadata("run")) for p in parts])
         checkpoint_of = np.concatenate([np.asarray(p.metadata("checkpoint")) for p in parts])
-        attach = snapshot_files(work, list(zip(run_of[keep].tolist(),
-                                               checkpoint_of[keep].tolist())))  # fmt: skip
+        named = np.stack([run_of[keep], checkpoint_of[keep]], axis=1).tolist()
+        attach = snapshot_files(work, [(r, c) for r, c in named])
         provenance["policies"] = {
             "kept": "the behaviour policy of every (run, checkpoint) the episodes name, taken "
             "before the checkpoint's first episode: policies/run_RRR/checkpoint_CCCCC.npz "
