@@ -248,3 +248,30 @@ def test_fqe_values_behaviour_policies_against_their_rollouts(tiny, capsys):
     assert json.loads(capsys.readouterr().out)[0]["returns"] == rows[1]["returns"]
     assert main(["evaluate-behaviour", str(tiny), "--run", "1"]) == 2
     assert "--run and --checkpoint together" in capsys.readouterr().err
+
+
+def test_dqn_keeps_its_q_network_and_rolls_out_under_its_env_settings(tmp_path):
+    """Atari's recipe: DQN's Q network is the policy; the roll-out uses the recorded env settings
+    (the tiny scale's 100-step episodes)."""
+    pytest.importorskip("ale_py")
+    from rlu.data import open_dataset
+    from rlu.data.validate import validate
+    from rlu.generate import generate
+    from rlu.generate.policies import list_policies, load_behaviour_policy, rollout_behaviour
+
+    out = generate("atari/Pong", tmp_path / "pong", scale="tiny", seed=1, progress=False)
+    assert validate(out).ok
+    rows = list_policies(out)
+    assert rows and rows[0].run == 0 and rows[0].checkpoint == 0
+    meta = json.loads((out / "policies/run_000/checkpoint_00000.json").read_text())
+    assert meta["agent"] == "dqn" and meta["module"] == "network"
+    assert meta["exploration"] == {"epsilon": 1.0}  # the schedule's start
+    assert meta["env_settings"] == {"max_episode_steps": 100}
+    ds = open_dataset(out)
+    from rlu.data.views import DatasetView
+
+    obs = DatasetView(ds).observation(np.zeros(3, np.int64), np.arange(3))
+    actions = load_behaviour_policy(out, 0, 0)(obs, np.ones(3, bool))
+    assert actions.shape == (3,) and actions.dtype.kind == "i" and (actions < 6).all()
+    res = rollout_behaviour(out, 0, 0, episodes=1, num_envs=1)
+    assert res.lengths == (100,)
