@@ -63,7 +63,9 @@ def _list(args: argparse.Namespace) -> int:
 
     rows = list_policies(args.dataset)
     if args.json:
-        print(json.dumps([asdict(r) for r in rows]))
+        # NaN (no recorded episodes) is not JSON: null
+        print(json.dumps([{k: None if isinstance(v, float) and math.isnan(v) else v
+                           for k, v in asdict(r).items()} for r in rows]))  # fmt: skip
         return 0
     if not rows:
         print(f"{args.dataset}: no behaviour policies (made before rlu kept them, or by "
@@ -104,7 +106,8 @@ def _evaluate(args: argparse.Namespace) -> int:
         res = behaviour_ope(ds, which, args.episodes, FQEConfig(steps=args.fqe_steps),
                             args.seed, args.envs, device)  # fmt: skip
         if args.json:
-            print(json.dumps(res))
+            rho = res["spearman"]
+            print(json.dumps({**res, "spearman": None if math.isnan(rho) else rho}))
             return 0
         print("| run | checkpoint | env steps | FQE estimate | return (rolled out) "
               "| recorded mean return |")  # fmt: skip
