@@ -247,7 +247,8 @@ def test_fqe_values_behaviour_policies_against_their_rollouts(tiny, capsys):
                  "--episodes", "1", "--json"]) == 0  # fmt: skip
     assert json.loads(capsys.readouterr().out)[0]["returns"] == rows[1]["returns"]
     assert main(["evaluate-behaviour", str(tiny), "--run", "1", "--checkpoint", "1",
-                 "--episodes", "1", "--fqe", "--fqe-steps", "50"]) == 0  # fmt: skip
+                 "--episodes", "1", "--fqe", "--fqe-steps", "50",
+                 "--fqe-target-period", "100"]) == 0  # fmt: skip
     out = capsys.readouterr().out
     assert f"| 1 | 1 | 1,000 | {rows[1]['fqe_estimate']:.2f} |" in out  # same FQE seed, same value
     assert "Spearman rank correlation: undefined" in out
