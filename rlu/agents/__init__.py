@@ -46,6 +46,8 @@ AGENTS: dict[tuple[str, bool], str] = {
     ("bcq", True): "rlu.agents.bcq_discrete",
     ("rem", True): "rlu.agents.rem",
     ("cql", True): "rlu.agents.cql_discrete",
+    # discrete, online: Dopamine's DQN, the Atari data's behaviour agent (rlu generate)
+    ("dopamine_dqn", True): "rlu.agents.dqn_online",
 }
 
 CONTINUOUS_AGENTS: tuple[str, ...] = tuple(n for n, d in AGENTS if not d)

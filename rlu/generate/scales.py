@@ -3,7 +3,9 @@
 ``tiny`` is for tests and smoke runs (seconds); ``laptop``, the default, makes the control suite's
 behaviour runs reach the paper's behaviour level in minutes of CPU (``LAPTOP``, measured: the
 README's generation section); ``paper`` is the paper's budgets (clusters). One ``Scale`` per task
-and scale name; the RWRL recipe trains the control suite's D4PG at the same scale.
+and scale name; the RWRL recipe trains the control suite's D4PG at the same scale. Atari's
+behaviour agent is Dopamine's online DQN (``dopamine_dqn``) at every scale, with Dopamine's
+online settings at ``laptop`` and ``paper`` (``_DOPAMINE_ONLINE``).
 """
 
 from __future__ import annotations
@@ -18,6 +20,21 @@ SCALES = ("tiny", "laptop", "paper")
 
 _TINY_D4PG = {"policy_layers": (32, 32), "critic_layers": (32, 32), "batch_size": 32}
 _TINY_DQN = {"atari.channels": (8, 16, 16), "atari.hidden_size": 32, "atari.batch_size": 16}
+
+# Atari's behaviour agent is Dopamine's online DQN (``dopamine_dqn``: its learner settings are the
+# agent's presets, with their sources; Agarwal et al. 2020 generated the DQN Replay data with it).
+# The online loop's settings below come from Dopamine's ``dqn.gin`` (google/dopamine,
+# dopamine/agents/dqn/configs/dqn.gin), in agent steps:
+_DOPAMINE_ONLINE = dict(
+    min_replay=20_000,  # DQNAgent.min_replay_history = 20000
+    update_every=4,  # DQNAgent.update_period = 4
+    epsilon_decay_steps=250_000,  # DQNAgent.epsilon_decay_period = 250000
+    # The loop's epsilon decays 1 -> 0 and, when it does not explore, calls act(greedy=False),
+    # which adds the agent's own epsilon_train (DQNAgent.epsilon_train = 0.01): a uniform action
+    # with probability (1 - f) + f * 0.01 = 1 - 0.99 f after a fraction f of the decay, Dopamine's
+    # linear 1 -> 0.01 exactly (the loop's default 0.01 would end at 0.0199).
+    epsilon_end=0.0,
+)
 
 
 @dataclass(frozen=True)
@@ -114,21 +131,28 @@ def _scales(task: TaskSpec) -> dict[str, Scale]:
         }  # fmt: skip
     if domain == "atari":
         return {
-            "tiny": Scale(1, OnlineConfig("dqn", episodes=2, agent_overrides=_TINY_DQN,
+            # seconds: Dopamine's DQN with tiny networks, 2 episodes of 100 steps, learning at once
+            "tiny": Scale(1, OnlineConfig("dopamine_dqn", episodes=2, agent_overrides=_TINY_DQN,
                                           replay_capacity=2_000, min_replay=50, update_every=4,
-                                          epsilon_decay_steps=1_000, checkpoint_steps=100,
-                                          chunk_episodes=1,
+                                          epsilon_end=0.0, epsilon_decay_steps=1_000,
+                                          checkpoint_steps=100, chunk_episodes=1,
                                           env_settings={"max_episode_steps": 100}), None),
-            # about an hour on a laptop: 2 runs of 50K agent steps (far from DQN's level)
-            "laptop": Scale(2, OnlineConfig("dqn", episodes=10_000, env_steps=50_000,
-                                            replay_capacity=50_000, min_replay=5_000,
-                                            update_every=4, epsilon_decay_steps=25_000,
-                                            checkpoint_steps=10_000, chunk_episodes=5), None),
-            # Dopamine's DQN: 50M agent steps per run, 1M replay, 1M-step checkpoints
-            "paper": Scale(5, OnlineConfig("dqn", episodes=10**9, env_steps=50_000_000,
-                                           preset="paper", replay_capacity=1_000_000,
-                                           min_replay=20_000, update_every=4,
-                                           epsilon_decay_steps=250_000,
+            # Dopamine's DQN and online settings for 2 of its 250k-step iterations per run: the
+            # epsilon decay ends at 250k, the second half acts at 0.01 (far from DQN's level,
+            # which takes millions of steps). Measured: 38 ms of one core per update (Nature CNN,
+            # batch 32), 0.6 ms per action, 0.4 ms per env step: ~10.6 ms per agent step, ~1.5 h
+            # per run, the 2 runs in parallel on 2 cores.
+            "laptop": Scale(2, OnlineConfig("dopamine_dqn", episodes=10**6, env_steps=500_000,
+                                            preset="paper", **_DOPAMINE_ONLINE,
+                                            # a tenth of Dopamine's 1M: 0.7 GB of frames per run,
+                                            # saved with each chunk
+                                            replay_capacity=100_000,
+                                            checkpoint_steps=50_000, chunk_episodes=20), None),
+            # Agarwal et al.'s DQN Replay runs: 5 runs x 50M agent steps (dqn.gin's 200 iterations
+            # of 250k), Dopamine's 1M replay, a checkpoint per 1M steps as in the release
+            "paper": Scale(5, OnlineConfig("dopamine_dqn", episodes=10**9, env_steps=50_000_000,
+                                           preset="paper", **_DOPAMINE_ONLINE,
+                                           replay_capacity=1_000_000,
                                            checkpoint_steps=1_000_000, chunk_episodes=50), None),
         }  # fmt: skip
     raise RluError(

@@ -352,3 +352,34 @@ def test_locomotion_records_a_user_policy_with_its_camera(tmp_path):
         and sel["kept"] == sel["recorded"] - sel["successful"] + (sel["successful"] + 2) // 3
     )
     assert ds.segment(0).observation["walker/egocentric_camera"].shape[1:] == (64, 64, 3)
+
+
+def test_atari_tiny_generation_trains_dopamines_dqn_deterministically_and_resumes(tmp_path):
+    pytest.importorskip("torch")
+    pytest.importorskip("ale_py")
+    import json
+
+    from rlu.data import open_dataset
+    from rlu.generate import generate
+
+    task = "atari/Pong"
+    kw = dict(scale="tiny", runs=1, seed=5, progress=False)
+    ref = generate(task, tmp_path / "ref", **kw)
+    settings = json.loads((ref / "manifest.json").read_text())["provenance"]["settings"]
+    assert settings["online"]["agent"] == "dopamine_dqn"
+    assert settings["agent_config"]["rmsprop_epsilon"] == 1e-5  # Dopamine's optimiser
+    assert [open_dataset(ref).segment(i).metadata["episode_index"] for i in range(2)] == [0, 1]
+
+    class Interrupted(Exception):
+        pass
+
+    def stop(run: int, chunk: int) -> None:
+        raise Interrupted  # after run 0's first chunk and its state are on disk
+
+    with pytest.raises(Interrupted):
+        generate(task, tmp_path / "again", on_chunk=stop, **kw)
+    assert (tmp_path / ".again.generate" / "run_000" / "state.pt").exists()
+    resumed: list[tuple[int, int]] = []
+    again = generate(task, tmp_path / "again", on_chunk=lambda r, c: resumed.append((r, c)), **kw)
+    assert resumed == [(0, 1)]  # chunk 0 was not played again; the agent and replay resumed
+    assert _files(again) == _files(ref)
