@@ -8,7 +8,8 @@ metadata: ``env_steps // checkpoint_steps`` when the episode starts). The datase
 every (run, checkpoint) that its kept episodes name::
 
     policies/run_000/checkpoint_00003.npz   the acting network's weights: D4PG's policy network,
-                                            DQN's Q network; one plain array per state-dict entry
+                                            (Dopamine's) DQN's Q network; one plain array per
+                                            state-dict entry
     policies/run_000/checkpoint_00003.json  agent, preset, overrides, resolved config, task, env
                                             steps, the behaviour noise: enough to rebuild it
 
@@ -45,7 +46,7 @@ from rlu.types import Policy, RluError
 
 FORMAT = "rlu-behaviour-policy"
 VERSION = 1
-ACTING_MODULE = {"d4pg": "policy", "dqn": "network"}
+ACTING_MODULE = {"d4pg": "policy", "dqn": "network", "dopamine_dqn": "network"}
 """The agent's module that acts (``agent.modules[name]``): what a behaviour policy keeps."""
 POLICY_DTYPES = ("float16", "float32")
 _ZIP_DATE = (1980, 1, 1, 0, 0, 0)  # the zip format's earliest date: no clock in the bytes
@@ -120,7 +121,7 @@ def save_snapshot(
     state = agent.modules[module].state_dict()
     arrays = {k: _stored(v.detach().cpu().numpy(), online.policy_dtype) for k, v in state.items()}
     config = make_config(online.agent, task.discrete, online.preset, **online.agent_overrides)
-    if online.agent == "dqn":
+    if task.discrete:  # DQN's linearly decayed epsilon (rlu.generate.online)
         frac = min(1.0, env_steps / max(1, online.epsilon_decay_steps))
         exploration = {"epsilon": 1.0 + frac * (online.epsilon_end - 1.0)}
     else:

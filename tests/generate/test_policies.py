@@ -270,7 +270,11 @@ def test_dqn_keeps_its_q_network_and_rolls_out_under_its_env_settings(tmp_path):
     rows = list_policies(out)
     assert rows and rows[0].run == 0 and rows[0].checkpoint == 0
     meta = json.loads((out / "policies/run_000/checkpoint_00000.json").read_text())
-    assert meta["agent"] == "dqn" and meta["module"] == "network"
+    from rlu.generate.scales import get_scale
+    from rlu.tasks import get_task
+
+    assert meta["agent"] == get_scale(get_task("atari/Pong"), "tiny").online.agent
+    assert meta["module"] == "network"
     assert meta["exploration"] == {"epsilon": 1.0}  # the schedule's start
     assert meta["env_settings"] == {"max_episode_steps": 100}
     ds = open_dataset(out)
