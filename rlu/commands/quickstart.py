@@ -2,8 +2,9 @@
 
 On the bundled ``control_suite/cartpole_swingup`` dataset (40 episodes made by ``rlu generate``,
 shipped in the package): validate it, evaluate the uniform random policy, train BC and two
-offline RL agents (D4PG run offline, BCQ) with their ``small`` presets, evaluate each greedy
-policy in the env, and print the results beside the dataset's return statistics. Writes
+offline RL agents (D4PG run offline, the paper's; IQL, a newer one) with their ``small``
+presets, one process per core, evaluate each greedy policy in the env, and print the results
+beside the dataset's return statistics and BC's return. Writes
 ``OUT/report.md``, ``OUT/results.json`` and ``OUT/quickstart.png`` (each policy's mean return
 beside the dataset's episode-return distribution; needs matplotlib, the ``report`` extra); each
 agent's run folder (config, metrics, evaluations, checkpoints) is ``OUT/<agent>``.
@@ -15,10 +16,11 @@ import argparse
 
 from rlu.commands.train import add_device_option
 
-DEFAULT_AGENTS = ("bc", "d4pg", "bcq")
-# Enough for offline RL to pull away from BC on the bundled data (the README's table), within
-# the quick start's 10 minutes on 2 cores.
-DEFAULT_STEPS = 10_000
+DEFAULT_AGENTS = ("bc", "d4pg", "iql")
+# Enough for offline RL to pull away from BC on the bundled data (D4PG: 195 at 10,000 steps,
+# 761 at 20,000; BC 176 and 218), within the quick start's 10 minutes on 2 cores (BCQ, 33 ms
+# per update there, would not fit: IQL stands beside D4PG).
+DEFAULT_STEPS = 20_000
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -29,7 +31,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--eval-episodes", type=int, default=5, help="env episodes per policy")
     p.add_argument("--dataset", default=None, help="another rlu dataset of the same task")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=int, default=1, help="torch threads")
+    p.add_argument("--threads", type=int, default=1, help="torch threads per agent")
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help="agents trained at once, one process each (default: one per core); the numbers "
+        "do not depend on it",
+    )
     add_device_option(p)
     p.set_defaults(func=_run)
 
@@ -39,6 +48,37 @@ def _row(name: str, returns) -> dict:
 
     r = np.asarray(returns, np.float64)
     return {"policy": name, "mean": float(r.mean()), "std": float(r.std()), "returns": r.tolist()}
+
+
+def _train_all(configs: dict, out, workers: int, t0: float) -> dict[str, dict]:
+    """Train every agent (one run folder each under ``out``); ``workers`` > 1 trains them at
+    once in spawned processes. Each run is a function of its config alone, so the results do
+    not depend on ``workers``."""
+    import time
+
+    from rlu.train import train
+
+    def done(agent: str, result: dict) -> None:
+        print(f"  {agent} ({result['steps']} steps, small preset): "
+              f"{result['final_eval']['mean']:.1f}  ({time.perf_counter() - t0:.0f}s)")  # fmt: skip
+
+    results = {}
+    if workers <= 1:
+        for agent, cfg in configs.items():
+            results[agent] = train(cfg, out / agent, progress=True)
+            done(agent, results[agent])
+        return results
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    print(f"  training {', '.join(configs)} in {workers} processes")
+    # spawn: a fresh interpreter per worker (torch and fork do not mix)
+    with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as pool:
+        futures = {pool.submit(train, cfg, out / agent): agent for agent, cfg in configs.items()}
+        for f in as_completed(futures):
+            results[futures[f]] = f.result()
+            done(futures[f], results[futures[f]])
+    return results
 
 
 def _against_bc(rows: list[dict]) -> list[str]:
@@ -77,6 +117,7 @@ def _figure(rows, dataset_returns, task_id: str, path):
 def _run(args: argparse.Namespace) -> int:
     import importlib.util
     import json
+    import os
     import shutil
     import time
     from pathlib import Path
@@ -96,7 +137,7 @@ def _run(args: argparse.Namespace) -> int:
     from rlu.devices import Runtime
     from rlu.evaluation.rollout import evaluate, task_env_factory
     from rlu.generate.recipe import bundled_dataset
-    from rlu.train import TrainConfig, train
+    from rlu.train import TrainConfig
 
     t0 = time.perf_counter()
     path = Path(args.dataset) if args.dataset else bundled_dataset()
@@ -132,8 +173,8 @@ def _run(args: argparse.Namespace) -> int:
     eval_seed = derive_seed(args.seed, args.steps)
     rows = [_row("random", evaluate(random_policy, env_fn, args.eval_episodes, eval_seed).returns)]
     print(f"  random policy: {rows[0]['mean']:.1f}  ({time.perf_counter() - t0:.0f}s)")
-    for agent in args.agents:
-        cfg = TrainConfig(
+    configs = {
+        agent: TrainConfig(
             task=task_id,
             agent=agent,
             dataset=str(path),
@@ -147,10 +188,12 @@ def _run(args: argparse.Namespace) -> int:
             torch_threads=args.threads,
             runtime=runtime,
         )
-        result = train(cfg, out / agent, progress=True)
-        rows.append(_row(agent, result["final_eval"]["returns"]))
-        print(f"  {agent} ({args.steps} steps, small preset): {rows[-1]['mean']:.1f}  "
-              f"({time.perf_counter() - t0:.0f}s)")  # fmt: skip
+        for agent in args.agents
+    }
+    workers = min(len(configs), args.workers or os.cpu_count() or 1)
+    results = _train_all(configs, out, workers, t0)
+    for agent in args.agents:
+        rows.append(_row(agent, results[agent]["final_eval"]["returns"]))
 
     lines = [
         f"# rlu quickstart: {task_id}",

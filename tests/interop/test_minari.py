@@ -439,8 +439,8 @@ def test_recover_environment_of_the_bundled_export_is_rlus_env(tmp_path, minari_
     assert mds.env_spec.id == "rlu/control_suite-cartpole_swingup-v0"
     assert mds.env_spec.kwargs == {"task_id": "control_suite/cartpole_swingup"}
     desc = mds.storage.metadata["description"]
-    assert "rlu generate control_suite/cartpole_swingup --scale small" in desc
-    assert "40 of 90 recorded episodes kept" in desc and "unknown" not in desc
+    assert "rlu generate control_suite/cartpole_swingup --scale laptop" in desc
+    assert "40 of 180 recorded episodes kept" in desc and "unknown" not in desc
     assert json.loads(mds.storage.metadata["rlu_provenance"]) == ds.manifest["provenance"]
     env = mds.recover_environment()
     obs, _ = env.reset(seed=0)
