@@ -139,8 +139,10 @@ def _evaluate(args: argparse.Namespace) -> int:
                                 args.envs, device)  # fmt: skip
         out.append({"run": run, "checkpoint": checkpoint, **res.to_json()})
         if not args.json:
-            print(f"run {run} checkpoint {checkpoint}: {len(res.returns)} episodes, mean return "
-                  f"{res.mean:.1f} (" + ", ".join(f"{x:.1f}" for x in res.returns) + ")")
+            print(
+                f"run {run} checkpoint {checkpoint}: {len(res.returns)} episodes, mean return "
+                f"{res.mean:.1f} (" + ", ".join(f"{x:.1f}" for x in res.returns) + ")"
+            )
     if args.json:
         print(json.dumps(out))
     return 0

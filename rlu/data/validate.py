@@ -90,8 +90,9 @@ def _check_attachments(ds: Dataset, manifest: dict, report: Report) -> None:
         except (ValueError, OSError, EOFError, KeyError, zipfile.BadZipFile) as e:
             report.add(f"{ds.path / rel}: not a numpy .npz of plain arrays ({e})")
     if len(report.problems) == bad:
-        report.checked.append(f"{len(rels)} attached file(s) under policies/ (arrays load "
-                              "without pickle)")
+        report.checked.append(
+            f"{len(rels)} attached file(s) under policies/ (arrays load without pickle)"
+        )
 
 
 def _check_task(ds: Dataset, report: Report) -> None:

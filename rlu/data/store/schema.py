@@ -60,6 +60,8 @@ def is_attachment(rel: str) -> bool:
     """Whether manifest path ``rel`` names an attachment (a file under ``ATTACHMENT_DIRS``)."""
     head, sep, rest = rel.partition("/")
     return bool(sep) and head in ATTACHMENT_DIRS and bool(rest)
+
+
 DTYPES = (
     "bool",
     "uint8",
