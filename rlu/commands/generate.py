@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from rlu.commands.train import add_device_option
+from rlu.commands.train import add_device_option, add_gpus_per_run_option
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -54,13 +54,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     p.add_argument("--keep-work", action="store_true", help="keep the per-run parts afterwards")
-    p.add_argument(
-        "--gpus-per-run",
-        type=float,
-        default=0.0,
-        metavar="F",
-        help="Ray: GPUs each run asks for; a fraction shares one (0.25: four runs per GPU)",
-    )
+    add_gpus_per_run_option(p)
     add_device_option(p)
     p.set_defaults(func=_run)
 

@@ -33,6 +33,17 @@ def add_device_option(p: argparse.ArgumentParser) -> None:
     )
 
 
+def add_gpus_per_run_option(p: argparse.ArgumentParser) -> None:
+    """``--gpus-per-run``, shared by the commands that spread runs over Ray (sweep, generate)."""
+    p.add_argument(
+        "--gpus-per-run",
+        type=float,
+        default=0.0,
+        metavar="F",
+        help="Ray: GPUs each run asks for; a fraction shares one (0.25: four runs per GPU)",
+    )
+
+
 def add_runtime_options(p: argparse.ArgumentParser) -> None:
     """How training computes (``rlu.devices.Runtime``): device, precision, TF32, compile and
     the data path."""
@@ -187,13 +198,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--backend", default="local", choices=["local", "ray"])
     p.add_argument("--workers", type=int, default=2, help="local pool size")
     p.add_argument("--ray-address", default=None, help="Ray cluster address (default: local)")
-    p.add_argument(
-        "--gpus-per-run",
-        type=float,
-        default=0.0,
-        metavar="F",
-        help="Ray: GPUs each run asks for; a fraction shares one (0.25: four runs per GPU)",
-    )
+    add_gpus_per_run_option(p)
     p.add_argument("--out", required=True)
     _add_run_options(p)
     add_runtime_options(p)
