@@ -32,6 +32,15 @@ def test_quickstart_end_to_end_at_tiny_cost(tmp_path, capsys):
         assert "![policies beside the dataset's returns](quickstart.png)" in text
 
 
+def test_quickstart_refuses_zero_workers_before_touching_out(tmp_path, capsys):
+    pytest.importorskip("torch")
+    pytest.importorskip("dm_control")
+    out = tmp_path / "qs"
+    assert main(["quickstart", "--out", str(out), "--workers", "0"]) == 2
+    assert "--workers 0: give at least 1 process" in capsys.readouterr().err
+    assert not out.exists()
+
+
 def test_info_json_lists_every_episode_return(capsys):
     import numpy as np
 

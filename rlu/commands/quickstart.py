@@ -81,7 +81,10 @@ def _train_all(configs: dict, out, workers: int, t0: float) -> dict[str, dict]:
     return results
 
 
-def _against_bc(rows: list[dict]) -> list[str]:
+PAPER_CARTPOLE = "the paper on this task: D4PG 856, BRAC 869, RABM 798 against BC 386"
+
+
+def _against_bc(rows: list[dict], task_id: str) -> list[str]:
     """The paper's first control-suite comparison: offline RL against BC (none without BC)."""
     bc = next((r for r in rows if r["policy"] == "bc"), None)
     others = [r for r in rows if r["policy"] not in ("random", "bc")]
@@ -90,7 +93,8 @@ def _against_bc(rows: list[dict]) -> list[str]:
     best = max(others, key=lambda r: r["mean"])
     return [
         f"Best offline RL agent: {best['policy']}, {best['mean'] / bc['mean']:.2f} times BC's "
-        f"return (the paper on this task: D4PG 856, BRAC 869, RABM 798 against BC 386).",
+        "return"
+        + (f" ({PAPER_CARTPOLE})." if task_id == "control_suite/cartpole_swingup" else "."),
         "",
     ]
 
@@ -132,6 +136,8 @@ def _run(args: argparse.Namespace) -> int:
             f"rlu quickstart trains agents (torch) in the control suite (dm_control); "
             f"{', '.join(missing)} missing: {install_hint('control', 'agents')}"
         )
+    if args.workers is not None and args.workers < 1:
+        raise RluError(f"--workers {args.workers}: give at least 1 process")
     from rlu.data import open_dataset
     from rlu.data.validate import validate
     from rlu.devices import Runtime
@@ -212,7 +218,7 @@ def _run(args: argparse.Namespace) -> int:
     lines += [
         f"| *dataset* | {stats['mean']:.1f} | {stats['std']:.1f} | 1.00 | |",
         "",
-        *_against_bc(rows),
+        *_against_bc(rows, task_id),
         f"Dataset returns: mean {stats['mean']:.1f}, p90 {stats['p90']:.1f}, "
         f"min {stats['min']:.1f}, max {stats['max']:.1f}.",
         "",
