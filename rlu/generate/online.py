@@ -42,7 +42,8 @@ class OnlineConfig:
     """One behaviour agent's run (see the module docstring)."""
 
     agent: str
-    """'d4pg' (continuous control) or 'dqn' (Atari)."""
+    """The behaviour agent: 'd4pg' (continuous control) or 'dopamine_dqn' (Atari); any registered
+    agent whose batch spec samples transitions can play."""
     episodes: int
     """Episodes played (and recorded) per run, at most."""
     env_steps: int | None = None
