@@ -32,7 +32,7 @@ import tempfile
 import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-KEYS = {  # key -> values per step (cartpole_swingup, rlu_release_format.md §3.3)
+KEYS = {  # key -> values per step (cartpole_swingup, docs/release_format.md §3.3)
     "observation/position": 3,
     "observation/velocity": 2,
     "action": 1,

@@ -26,7 +26,7 @@ def _window(rng, task, t, step_type, discount=None, extra=True):
             rec[f"observation/{k}"] = rng.integers(0, 256, (t, *spec.shape), dtype=np.uint8)
         else:
             rec[f"observation/{k}"] = rng.standard_normal((t, *spec.shape)).astype(np.float32)
-    if extra:  # files hold keys no loader names (rlu_release_format.md §3.3)
+    if extra:  # files hold keys no loader names (docs/release_format.md §3.3)
         rec["observation/walker/sensors_torque"] = np.zeros((t, 6), np.float32)
     rec["action"] = rng.uniform(-1, 1, (t, task.action_dim)).astype(np.float32)
     rec["reward"] = rng.random(t).astype(np.float32)

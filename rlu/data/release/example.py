@@ -1,6 +1,6 @@
 """``tf.train.Example`` to numpy and back, without protobuf or TensorFlow.
 
-Wire layout (tensorflow/core/example/{example,feature}.proto; rlu_release_format.md §1.3)::
+Wire layout (tensorflow/core/example/{example,feature}.proto; docs/release_format.md §1.3)::
 
     Example  { 1: Features }
     Features { 1: repeated MapEntry { 1: string key, 2: Feature } }

@@ -1,6 +1,6 @@
 """Per-family decoding of the release into loader-shaped arrays and into Segments, and back.
 
-Two views of each record (rlu_release_format.md §3, §4):
+Two views of each record (docs/release_format.md §3, §4):
 
 - ``parse``: the arrays the original loaders return (``dm_control_suite.py``'s parsed sequences,
   ``atari.py``'s tuple, ...): time-first float32 arrays, PNGs decoded, ids bitcast. ``encode`` is

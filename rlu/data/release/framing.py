@@ -2,7 +2,7 @@
 
 A TFRecord file is a concatenation of records, each ``uint64 length (LE)``,
 ``uint32 masked_crc32c(length bytes)``, ``length`` bytes of payload, ``uint32
-masked_crc32c(payload)`` (rlu_release_format.md §1.1). The release gzips whole files (every family
+masked_crc32c(payload)`` (docs/release_format.md §1.1). The release gzips whole files (every family
 but RWRL); the reader sniffs the gzip magic ``1F 8B`` rather than trusting a file name.
 
 Reading streams in constant memory: the file is inflated in chunks of ``CHUNK`` bytes and records
