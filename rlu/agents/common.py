@@ -30,7 +30,7 @@ from __future__ import annotations
 import contextlib
 import copy
 import hashlib
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from typing import Any
 
 import numpy as np
@@ -123,6 +123,36 @@ def sgd_step(
 def frozen_copy(module: nn.Module) -> nn.Module:
     """A target network: a deep copy that takes no gradients."""
     return copy.deepcopy(module).requires_grad_(False)
+
+
+def actor_critic(
+    agent: Any,
+    seed: int,
+    make_policy: Callable[[], nn.Module],
+    make_critic: Callable[[], nn.Module],
+    policy_lr: float,
+    critic_lr: float,
+) -> None:
+    """The parts of a deterministic-target actor-critic agent (D4PG, CRR): the policy and the
+    critic built under ``seed`` on ``agent.device``, a frozen target copy of each, Adam for each,
+    one sampling generator; sets ``policy``, ``critic``, ``target_policy``, ``target_critic``,
+    ``modules``, ``optimizers``, ``generator``, ``generators`` and ``step`` on ``agent``."""
+    agent.generator = generator(seed, agent.device)
+    with seeded(seed):
+        agent.policy = make_policy().to(agent.device)
+        agent.critic = make_critic().to(agent.device)
+    agent.target_policy = frozen_copy(agent.policy)
+    agent.target_critic = frozen_copy(agent.critic)
+    agent.modules = {
+        "policy": agent.policy, "critic": agent.critic,
+        "target_policy": agent.target_policy, "target_critic": agent.target_critic,
+    }  # fmt: skip
+    agent.optimizers = {
+        "policy": adam(agent.policy.parameters(), policy_lr),
+        "critic": adam(agent.critic.parameters(), critic_lr),
+    }
+    agent.generators = {"sample": agent.generator}
+    agent.step = 0
 
 
 def hard_update(target: nn.Module, source: nn.Module) -> None:

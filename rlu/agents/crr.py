@@ -204,22 +204,13 @@ class CRRAgent:
         self.batch_spec = BatchSpec(config.batch_size, gamma=config.gamma)
         self.pretrain_steps = 0
         self.num_steps = config.num_steps
-        self.generator = common.generator(seed, self.device)
-        with common.seeded(seed):
-            self.policy = Policy(observation_spec, self.scaler.dim, config).to(self.device)
-            self.critic = Critic(observation_spec, self.scaler.dim, config).to(self.device)
-        self.target_policy = common.frozen_copy(self.policy)
-        self.target_critic = common.frozen_copy(self.critic)
-        self.modules = {
-            "policy": self.policy, "critic": self.critic,
-            "target_policy": self.target_policy, "target_critic": self.target_critic,
-        }  # fmt: skip
-        self.optimizers = {
-            "policy": common.adam(self.policy.parameters(), config.policy_lr),
-            "critic": common.adam(self.critic.parameters(), config.critic_lr),
-        }
-        self.generators = {"sample": self.generator}
-        self.step = 0
+        a = self.scaler.dim
+        common.actor_critic(
+            self, seed,
+            lambda: Policy(observation_spec, a, config),
+            lambda: Critic(observation_spec, a, config),
+            config.policy_lr, config.critic_lr,
+        )  # fmt: skip
 
     def update(self, batch: Transition) -> dict[str, float]:
         c, g, d = self.config, self.generator, self.device
