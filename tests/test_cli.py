@@ -36,7 +36,8 @@ def test_quickstart_refuses_zero_workers_before_touching_out(tmp_path, capsys):
     pytest.importorskip("torch")
     pytest.importorskip("dm_control")
     out = tmp_path / "qs"
-    assert main(["quickstart", "--out", str(out), "--workers", "0"]) == 2
+    argv = ["--steps", "5", "--eval-episodes", "1", "--agents", "bc"]  # cheap if not refused
+    assert main(["quickstart", "--out", str(out), "--workers", "0", *argv]) == 2
     assert "--workers 0: give at least 1 process" in capsys.readouterr().err
     assert not out.exists()
 
