@@ -15,7 +15,8 @@ Data and evaluation:
   small`` makes a larger one), evaluated in dm_control's cartpole swingup through
   ``rlu.evaluation.evaluate`` for both libraries. d3rlpy sees the observation dict concatenated
   in sorted key order, a vector encoder of the widths rlu's config names, and rlu's learning
-  rates, batch size, discount and algorithm constants (the mapping is ``d3rlpy_continuous``).
+  rates, batch size, discount and algorithm constants (the mapping: ``agents_continuous.py``
+  ``d3rlpy_config``).
   Where rlu's agent has a part d3rlpy's lacks (the per-key observation torso, a distributional
   critic, a behaviour-cloning warm-up), d3rlpy runs without it: the returns compare the
   algorithms as each library ships them, at equal widths; the rlu config is printed.
@@ -62,6 +63,10 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+# d3rlpy's config of the same algorithm with rlu's widths and constants: one mapping for benches
+from agents_continuous import d3rlpy_config as d3rlpy_continuous  # noqa: E402
 
 from rlu.agents import AGENTS, make_agent  # noqa: E402
 from rlu.data import open_dataset  # noqa: E402
@@ -127,48 +132,6 @@ def corridor(tmp: str, episodes: int):
 
 
 # ----------------------------------------------------------------------------- d3rlpy configs
-
-
-def d3rlpy_continuous(name: str, c):
-    """d3rlpy's config of the same algorithm with rlu's widths and constants (reads rlu's config
-    fields by name: a renamed field is reported, and the agent skipped)."""
-    import d3rlpy
-    from d3rlpy.models.encoders import VectorEncoderFactory
-
-    def mlp(widths):
-        return VectorEncoderFactory(hidden_units=list(widths))
-
-    if name == "iql":
-        return d3rlpy.algos.IQLConfig(
-            actor_learning_rate=c.actor_lr, critic_learning_rate=c.critic_lr,
-            batch_size=c.batch_size, gamma=c.gamma, tau=c.tau, n_critics=2,
-            expectile=c.expectile, weight_temp=c.beta, max_weight=c.max_weight,
-            actor_encoder_factory=mlp(c.hidden_layers),
-            critic_encoder_factory=mlp(c.hidden_layers),
-            value_encoder_factory=mlp(c.hidden_layers),
-        )  # fmt: skip
-    if name == "crr":
-        widths = [c.hidden_size] * c.num_layers
-        return d3rlpy.algos.CRRConfig(
-            actor_learning_rate=c.policy_lr, critic_learning_rate=c.critic_lr,
-            batch_size=c.batch_size, gamma=c.gamma, beta=c.beta,
-            n_action_samples=c.num_advantage_samples, advantage_type=c.baseline,
-            weight_type=c.advantage_weight, max_weight=c.ratio_upper_bound,
-            target_update_type="hard", target_update_interval=c.target_update_period,
-            actor_encoder_factory=mlp(widths), critic_encoder_factory=mlp(widths),
-        )  # fmt: skip
-    if name == "cql":
-        lagrange = c.lagrange_threshold is not None
-        return d3rlpy.algos.CQLConfig(
-            actor_learning_rate=c.policy_lr, critic_learning_rate=c.critic_lr,
-            temp_learning_rate=c.alpha_lr, alpha_learning_rate=c.alpha_lr if lagrange else 0.0,
-            alpha_threshold=c.lagrange_threshold if lagrange else 10.0,
-            batch_size=c.batch_size, gamma=c.gamma, tau=c.tau, n_critics=2,
-            conservative_weight=c.cql_weight, n_action_samples=c.num_samples,
-            actor_encoder_factory=mlp(c.policy_layers),
-            critic_encoder_factory=mlp(c.critic_layers),
-        )  # fmt: skip
-    raise ValueError(name)
 
 
 def d3rlpy_discrete_cql(c, seed: int):
@@ -340,7 +303,7 @@ def bench_continuous(name: str, args) -> None:
         pairs = [continuous_pair(name, ds, seed, args.preset) for seed in range(args.seeds)]
     except AttributeError as e:
         print(f"  skip {name}: the d3rlpy mapping reads a field rlu's config lacks ({e}); update "
-              "d3rlpy_continuous in bench/new_agents.py")  # fmt: skip
+              "d3rlpy_config in bench/agents_continuous.py")  # fmt: skip
         return
     print(f"  rlu config: {dataclasses.asdict(pairs[0][1].config)}")
     env_fn = task_env_factory(CONTROL_TASK)
