@@ -199,8 +199,9 @@ class IQLAgent:
 
     def update(self, batch: Transition) -> dict[str, float]:
         c, d = self.config, self.device
-        obs = common.to_torch(batch.observation, d)
-        next_obs = common.to_torch(batch.next_observation, d)
+        # every network here encodes the same spec: the keys are concatenated once per batch
+        obs = self.value.encoder.flatten(common.to_torch(batch.observation, d))
+        next_obs = self.value.encoder.flatten(common.to_torch(batch.next_observation, d))
         action = self.scaler.to_unit(common.to_torch(batch.action, d))
         reward = common.to_torch(batch.reward, d) * c.reward_scale
         discount = common.to_torch(batch.discount, d)

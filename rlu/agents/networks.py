@@ -85,6 +85,14 @@ class _ResBlock(nn.Module):
         return x + self.net(x)
 
 
+def _flat_float(x: torch.Tensor, batch_dims: int, lead: torch.Size) -> torch.Tensor:
+    """``x.reshape(*lead, -1).float()``, skipping the two ops where they change nothing (most
+    state features arrive flat and float32: the update calls the encoder several times)."""
+    if x.dim() != batch_dims + 1:
+        x = x.reshape(*lead, -1)
+    return x if x.dtype == torch.float32 else x.float()
+
+
 class Encoder(nn.Module):
     """Dict observation -> feature vector; features in sorted-key order, then image embeddings."""
 
@@ -111,12 +119,22 @@ class Encoder(nn.Module):
         if self.output_dim == 0:
             raise SpecError("observation spec has no entries; pass at least one ArraySpec")
 
+    def flatten(
+        self, obs: Mapping[str, torch.Tensor], batch_dims: int = 1
+    ) -> Mapping[str, torch.Tensor] | torch.Tensor:
+        """The feature vector ``forward`` would build, for an encoder without image keys (other
+        encoders get ``obs`` back): an update that feeds one batch to several networks of the
+        same observation spec concatenates its keys once and passes the tensor on."""
+        return obs if self.image_keys else self(obs, batch_dims)
+
     def forward(self, obs: Mapping[str, torch.Tensor] | torch.Tensor, batch_dims: int = 1):
         if not isinstance(obs, Mapping):
+            if not self.image_keys:  # the features already (a flat spec's observation, or flatten's)
+                return _flat_float(obs, batch_dims, obs.shape[:batch_dims])
             obs = {"": obs}
         first = obs[(self.feature_keys or self.image_keys)[0]]
         lead = first.shape[:batch_dims]
-        parts = [obs[k].reshape(*lead, -1).float() for k in self.feature_keys]
+        parts = [_flat_float(obs[k], batch_dims, lead) for k in self.feature_keys]
         for key, torso in zip(self.image_keys, self.torsos, strict=True):
             img = obs[key]
             parts.append(torso(img.reshape(-1, *img.shape[batch_dims:])).reshape(*lead, -1))

@@ -91,3 +91,26 @@ def test_bcq_targets_follow_the_parts_they_are_read_through():
     s, a = torch.randn(5, 24), torch.rand(5, 3) * 2 - 1
     assert torch.equal(nets.q_first(s, a), nets.q(s, a)[0])
     assert set(bcq.BCQNets.target_parts(nets)) == {"actor_enc", "actor", "critic_enc", "q1", "q2"}
+
+
+def test_encoder_flatten_once_gives_the_features_of_every_dict_pass():
+    from rlu.agents import networks as nets
+    from rlu.types import ArraySpec
+
+    spec = {"b": ArraySpec((3,), np.float32), "a": ArraySpec((2, 2), np.float32),
+            "c": ArraySpec((), np.float64)}  # fmt: skip
+    enc = nets.Encoder(spec)
+    rng = np.random.default_rng(0)
+    obs = {"b": torch.from_numpy(rng.standard_normal((5, 3)).astype(np.float32)),
+           "a": torch.from_numpy(rng.standard_normal((5, 2, 2)).astype(np.float32)),
+           "c": torch.from_numpy(rng.standard_normal(5))}  # fmt: skip
+    flat = enc.flatten(obs)
+    expected = torch.cat([obs["a"].reshape(5, 4), obs["b"], obs["c"].reshape(5, 1).float()], -1)
+    assert flat.dtype == torch.float32 and torch.equal(flat, expected)  # sorted keys, float32
+    assert torch.equal(enc(flat), enc(obs))
+    seq = {k: v.unsqueeze(0).expand(2, *v.shape) for k, v in obs.items()}  # (T, B, ...) windows
+    assert torch.equal(enc(enc.flatten(seq, batch_dims=2), batch_dims=2), enc(seq, batch_dims=2))
+    frames = {"pixels": ArraySpec((8, 8, 3), np.uint8), "b": ArraySpec((3,), np.float32)}
+    with_images = nets.Encoder(frames)
+    batch = {"pixels": torch.zeros(5, 8, 8, 3, dtype=torch.uint8), "b": obs["b"]}
+    assert with_images.flatten(batch) is batch  # the torso needs the frames: nothing to fold
