@@ -9,7 +9,9 @@ Each contestant is built exactly as in those benches (same data, sizes, batch), 
 the dense kernels (matrix products and convolutions, forward and backward: the arithmetic both
 libraries ask of the same oneDNN / MKL), Adam and the target updates (fused or foreach kernels),
 every other aten op (elementwise, reductions, copies, layout changes) and what is left of the
-update's wall time outside aten ops (Python, dispatch, the profiler's own bookkeeping). The
+update's wall time outside aten ops (Python, dispatch, the profiler's own bookkeeping). Where
+d3rlpy has the algorithm, a last line gives the ratio's ceiling: d3rlpy's update time over rlu's
+dense kernels and optimizer alone, the most any loop doing rlu's arithmetic could reach. The
 profiler clocks ops on the wall, so the shares are of wall time: on a loaded machine they stay
 meaningful as long as the load hits every op alike. It also counts aten ops per update, a figure
 the machine's load does not move. Names: a continuous agent as in agents_continuous.py
@@ -79,7 +81,8 @@ def contestants(name: str, ds_c, ds_d, batch: int, d3rlpy: bool):
     return out
 
 
-def breakdown(update, batch, updates: int, ops: int) -> None:
+def breakdown(update, batch, updates: int, ops: int) -> tuple[float, float]:
+    """Print where one update's wall time goes; return (wall, dense kernels + optimizer) in ms."""
     for _ in range(3):
         update(batch)
     w0, c0 = time.perf_counter(), time.process_time()
@@ -104,6 +107,7 @@ def breakdown(update, batch, updates: int, ops: int) -> None:
     )
     for key, value in sorted(ms.items(), key=lambda kv: -kv[1])[:ops]:
         print(f"      {key:40s} {value:8.3f} ms")
+    return wall, dense + optim
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -133,11 +137,20 @@ def main(argv: list[str] | None = None) -> None:
         ds_d = disc.make_data(f"{tmp}/d", episodes=4, length=1000)
         for name in args.agents:
             print(f"\n{name}")
+            times = {}
             for label, (update, batch) in contestants(
                 name, ds_c, ds_d, args.batch, have_d3rlpy
             ).items():
                 print(f"  {label}")
-                breakdown(update, batch, args.updates, args.ops)
+                times[label] = breakdown(update, batch, args.updates, args.ops)
+            if "d3rlpy" in times:
+                # the same arithmetic can go no faster than its dense kernels and optimizer
+                wall, floor = times["rlu"][0], times["rlu"][1]
+                print(
+                    f"  rlu / d3rlpy {times['d3rlpy'][0] / wall:.2f}x profiled; ceiling "
+                    f"{times['d3rlpy'][0] / floor:.2f}x (d3rlpy's update over rlu's dense kernels "
+                    f"and optimizer alone: the ratio if rlu spent nothing else)"
+                )
     print(f"\n{load_line()}")
 
 
