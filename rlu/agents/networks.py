@@ -129,7 +129,7 @@ class Encoder(nn.Module):
 
     def forward(self, obs: Mapping[str, torch.Tensor] | torch.Tensor, batch_dims: int = 1):
         if not isinstance(obs, Mapping):
-            if not self.image_keys:  # the features already (a flat spec's observation, or flatten's)
+            if not self.image_keys:  # already the features: a flat spec, or flatten()
                 return _flat_float(obs, batch_dims, obs.shape[:batch_dims])
             obs = {"": obs}
         first = obs[(self.feature_keys or self.image_keys)[0]]
