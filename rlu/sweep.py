@@ -5,7 +5,8 @@ skipped, so running a sweep again finishes only what is missing (an interrupted 
 its last checkpoint). Backends: a local process pool (default) or a Ray cluster
 (``backend="ray"``; ``ray.init`` on ``ray_address``, or a local instance). Every run sets its own
 seeds and torch thread count, so both backends give the same numbers. ``OUT/results.jsonl``
-holds one record per run (task, agent, config, overrides, seed, score, run folder), sorted.
+holds one record per finished run (task, agent, config, overrides, seed, score, run folder),
+sorted, rewritten as each run finishes: ``rlu report`` reads a sweep in progress or interrupted.
 
 Every run computes on ``SweepConfig.runtime`` (device, precision, data path). On Ray a run asks
 for one CPU and ``gpus_per_run`` GPUs: a fraction packs several small runs onto one GPU (0.25:
@@ -206,15 +207,14 @@ def sweep(
     runs.write_json(cfg_path, config.to_json())
     specs = expand(config, out)
     paths = [p for p in sys.path if p and Path(p).is_dir()]
+    finished = _Finished(out, len(specs), progress)
     if backend == "local":
-        records = _run_local(specs, config, workers, paths, progress)
+        _run_local(specs, config, workers, paths, finished)
     elif backend == "ray":
-        records = _run_ray(specs, config, ray_address, paths, progress)
+        _run_ray(specs, config, ray_address, paths, finished)
     else:
         raise RluError(f"backend={backend!r}; use 'local' or 'ray'")
-    records.sort(key=lambda r: (r["task"], r["agent"], r["config"], r["seed"]))
-    runs.write_results(out, records)
-    return records
+    return finished.records
 
 
 def _what(sweep_json: Mapping[str, Any]) -> dict[str, Any]:
@@ -226,36 +226,43 @@ def _what(sweep_json: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
-def _note(progress: bool, done: int, total: int, rec: dict[str, Any]) -> None:
-    if progress:
-        print(
-            f"[{done}/{total}] {rec['task']} {rec['agent']} {rec['config']} seed {rec['seed']}: "
-            f"{rec['score']}",
-            file=sys.stderr,
-        )
+class _Finished:
+    """The records of the finished runs, sorted; ``OUT/results.jsonl`` is rewritten after each
+    one, so ``rlu report`` reads a sweep that is still running or was interrupted (its finished
+    runs so far)."""
+
+    def __init__(self, out: Path, total: int, progress: bool):
+        self.out, self.total, self.progress = out, total, progress
+        self.records: list[dict[str, Any]] = []
+
+    def add(self, rec: dict[str, Any]) -> None:
+        self.records.append(rec)
+        self.records.sort(key=lambda r: (r["task"], r["agent"], r["config"], r["seed"]))
+        runs.write_results(self.out, self.records)
+        if self.progress:
+            print(
+                f"[{len(self.records)}/{self.total}] {rec['task']} {rec['agent']} {rec['config']} "
+                f"seed {rec['seed']}: {rec['score']}",
+                file=sys.stderr,
+            )
 
 
-def _run_local(specs, config, workers, paths, progress) -> list[dict[str, Any]]:
+def _run_local(specs, config, workers, paths, finished: _Finished) -> None:
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
     if workers <= 1:
-        out = []
-        for i, r in enumerate(specs):
-            out.append(run_one(r, config, paths))
-            _note(progress, i + 1, len(specs), out[-1])
-        return out
+        for r in specs:
+            finished.add(run_one(r, config, paths))
+        return
     # spawn: a fresh interpreter per worker (torch and fork do not mix)
     with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
         futures = [pool.submit(run_one, r, config, paths) for r in specs]
-        records = []
-        for i, f in enumerate(as_completed(futures)):
-            records.append(f.result())
-            _note(progress, i + 1, len(specs), records[-1])
-    return records
+        for f in as_completed(futures):
+            finished.add(f.result())
 
 
-def _run_ray(specs, config, address, paths, progress) -> list[dict[str, Any]]:
+def _run_ray(specs, config, address, paths, finished: _Finished) -> None:
     try:
         import ray
     except ImportError:
@@ -273,14 +280,11 @@ def _run_ray(specs, config, address, paths, progress) -> list[dict[str, Any]]:
         check_ray_gpus(ray, config.gpus_per_run, config.runtime.device)
         remote = ray.remote(**ray_options(config.gpus_per_run))(run_one)
         pending = {remote.remote(r, config, paths): r for r in specs}
-        records = []
         while pending:
             done, _ = ray.wait(list(pending), num_returns=1)
             for ref in done:
                 pending.pop(ref)
-                records.append(ray.get(ref))
-                _note(progress, len(records), len(specs), records[-1])
-        return records
+                finished.add(ray.get(ref))
     finally:
         if started:
             ray.shutdown()

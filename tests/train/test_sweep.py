@@ -86,3 +86,30 @@ def test_cli_sweep_and_report(pendulum_datasets, tmp_path):
     assert res.returncode == 0, res.stderr
     assert (out / "report" / "report.html").exists()
     assert (out / "report" / "figures" / "other_tasks.png").exists()
+
+
+def test_an_interrupted_sweep_keeps_the_results_of_its_finished_runs(
+    local_sweep, pendulum_datasets, tmp_path, monkeypatch
+):
+    import shutil
+
+    import rlu.sweep as sweep_module
+
+    out, records = local_sweep
+    shutil.copytree(out, tmp_path / "again")
+    (tmp_path / "again" / "results.jsonl").unlink()
+    real, done = sweep_module.run_one, []
+
+    def interrupted_after_three(spec, config, paths=()):
+        if len(done) == 3:
+            raise KeyboardInterrupt  # Ctrl-C during the fourth run
+        done.append((spec.task, spec.agent, spec.config, spec.seed))
+        return real(spec, config, paths)
+
+    monkeypatch.setattr(sweep_module, "run_one", interrupted_after_three)
+    with pytest.raises(KeyboardInterrupt):
+        sweep(_config(pendulum_datasets), tmp_path / "again", backend="local", workers=1)
+    kept = load_results(tmp_path / "again")  # what rlu report reads
+    assert [(r["task"], r["agent"], r["config"], r["seed"]) for r in kept] == sorted(done)
+    by_key = {(r["task"], r["agent"], r["config"], r["seed"]): r["score"] for r in records}
+    assert [r["score"] for r in kept] == [by_key[k] for k in sorted(done)]
