@@ -28,6 +28,7 @@ from typing import Any
 from rlu import runs
 from rlu.devices import Runtime, check_gpus_per_run, check_ray_gpus, ray_options
 from rlu.types import DiscreteSpec, RluError, install_hint
+from rlu.workers import die_with_parent
 
 
 @dataclass(frozen=True)
@@ -214,6 +215,7 @@ def sweep(
         _run_ray(specs, config, ray_address, paths, finished)
     else:
         raise RluError(f"backend={backend!r}; use 'local' or 'ray'")
+    finished.check()
     return finished.records
 
 
@@ -235,6 +237,23 @@ class _Finished:
         self.out, self.total, self.progress = out, total, progress
         self.records: list[dict[str, Any]] = []
 
+        self.failed: list[str] = []
+
+    def fail(self, spec: RunSpec, error: BaseException) -> None:
+        """A run that raised: the others go on; ``check`` names it at the end."""
+        self.failed.append(f"{spec.run_dir}: {type(error).__name__}: {error}")
+        if self.progress:
+            print(f"[failed] {spec.task} {spec.agent} {spec.config} seed {spec.seed}: {error}",
+                  file=sys.stderr)  # fmt: skip
+
+    def check(self) -> None:
+        if self.failed:
+            raise RluError(
+                f"{len(self.failed)} of {self.total} runs failed; the {len(self.records)} "
+                f"finished are in {self.out / runs.RESULTS}; fix the cause and run the sweep "
+                "again to retry only those:\n  " + "\n  ".join(self.failed)
+            )
+
     def add(self, rec: dict[str, Any]) -> None:
         self.records.append(rec)
         self.records.sort(key=lambda r: (r["task"], r["agent"], r["config"], r["seed"]))
@@ -253,13 +272,25 @@ def _run_local(specs, config, workers, paths, finished: _Finished) -> None:
 
     if workers <= 1:
         for r in specs:
-            finished.add(run_one(r, config, paths))
+            try:
+                finished.add(run_one(r, config, paths))
+            except Exception as e:  # one run's failure: the others still run
+                finished.fail(r, e)
         return
-    # spawn: a fresh interpreter per worker (torch and fork do not mix)
-    with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
-        futures = [pool.submit(run_one, r, config, paths) for r in specs]
-        for f in as_completed(futures):
-            finished.add(f.result())
+    # spawn: a fresh interpreter per worker (torch and fork do not mix); workers die with the
+    # driver, so a killed sweep leaves no run training on and holding its folder's lock
+    ctx = mp.get_context("spawn")
+    with ProcessPoolExecutor(workers, ctx, die_with_parent, (os.getpid(),)) as pool:
+        futures = {pool.submit(run_one, r, config, paths): r for r in specs}
+        try:
+            for f in as_completed(futures):
+                try:
+                    finished.add(f.result())
+                except Exception as e:
+                    finished.fail(futures[f], e)
+        except BaseException:  # Ctrl-C: start no further run
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise
 
 
 def _run_ray(specs, config, address, paths, finished: _Finished) -> None:
@@ -283,8 +314,11 @@ def _run_ray(specs, config, address, paths, finished: _Finished) -> None:
         while pending:
             done, _ = ray.wait(list(pending), num_returns=1)
             for ref in done:
-                pending.pop(ref)
-                finished.add(ray.get(ref))
+                spec = pending.pop(ref)
+                try:
+                    finished.add(ray.get(ref))
+                except Exception as e:
+                    finished.fail(spec, e)
     finally:
         if started:
             ray.shutdown()
@@ -299,7 +333,12 @@ def results_table(records: Sequence[Mapping[str, Any]]) -> str:
         groups[(r["task"], r["agent"], r["config"])][int(r["seed"])] = r["score"]
     lines = ["| task | agent | config | scores by seed | mean |", "|---|---|---|---|---|"]
     for (task, agent, cfg), by_seed in sorted(groups.items()):
-        vals = [by_seed[s] for s in sorted(by_seed)]
-        scores = ", ".join(f"{s}: {by_seed[s]:.6g}" for s in sorted(by_seed))
-        lines.append(f"| {task} | {agent} | {cfg} | {scores} | {sum(vals) / len(vals):.6g} |")
+        # a run trained with --eval-every -1 has no score
+        vals = [by_seed[s] for s in sorted(by_seed) if by_seed[s] is not None]
+        scores = ", ".join(
+            f"{s}: {'not evaluated' if v is None else format(v, '.6g')}"
+            for s, v in sorted(by_seed.items())
+        )
+        mean = format(sum(vals) / len(vals), ".6g") if vals else "-"
+        lines.append(f"| {task} | {agent} | {cfg} | {scores} | {mean} |")
     return "\n".join(lines) + "\n"

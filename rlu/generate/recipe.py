@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -47,6 +48,7 @@ from rlu.generate.recorder import schema_for
 from rlu.generate.scales import get_scale
 from rlu.tasks import TaskSpec, get_task
 from rlu.types import RluError
+from rlu.workers import die_with_parent
 
 
 def _part_path(work: Path, run: int, chunk: int) -> Path:
@@ -76,8 +78,9 @@ def _run_one(task_id: str, online: OnlineConfig, seed: int, run: int, work: str,
 _QUEUE: Any = None  # a worker process's channel to the parent's progress bar
 
 
-def _init_worker(queue: Any) -> None:
+def _init_worker(queue: Any, parent: int) -> None:
     global _QUEUE
+    die_with_parent(parent)  # a killed generate leaves no run playing on, holding its lock
     _QUEUE = queue
 
 
@@ -101,7 +104,7 @@ def _run_processes(task_id: str, online: OnlineConfig, seed: int, runs: int, wor
 
     ctx = mp.get_context("spawn")
     channel = ctx.Queue()
-    with ProcessPoolExecutor(workers, ctx, _init_worker, (channel,)) as pool:
+    with ProcessPoolExecutor(workers, ctx, _init_worker, (channel, os.getpid())) as pool:
         pending = {pool.submit(_run_in_worker, task_id, online, seed, r, work, device)
                    for r in range(runs)}  # fmt: skip
         try:

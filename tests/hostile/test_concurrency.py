@@ -19,6 +19,7 @@ from rlu.data import open_dataset
 from rlu.data.release import families as Fm
 from rlu.data.validate import validate
 from rlu.locks import LockBusy, OutputLock, lock_path
+from rlu.runs import load_results
 from tests.release.test_families import window_record
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -240,3 +241,42 @@ def test_a_train_failing_before_its_first_step_blocks_no_rerun(pendulum, tmp_pat
     assert not (out / "config.json").exists()
     rerun = _cli(_train_args(pendulum, out))
     assert rerun.returncode == 0, rerun.stderr
+
+
+def test_a_killed_sweeps_workers_die_with_it(pendulum, tmp_path):
+    fifo = tmp_path / "held"
+    os.mkfifo(fifo)
+    args = [
+        "-m", "rlu", "sweep", "--tasks", "test/pendulum", "--agents", "tests.train.fake_agent",
+        "--grid", "learning_rate=0.01", "--dataset", f"test/pendulum={pendulum}", "--seeds", "0",
+        "1", "--workers", "2", "--steps", "6", "--eval-every", "-1",
+        "--env", "tests.train.pendulum:make_env", "--out", str(tmp_path / "sweep"),
+    ]  # fmt: skip
+    env = {**os.environ, "RLU_TEST_HOLD_FIFO": str(fifo)}  # each worker hangs in its first update
+    driver = subprocess.Popen([sys.executable, *args], cwd=ROOT, env=env, text=True,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)  # fmt: skip
+    fd = os.open(fifo, os.O_RDWR)  # a writer of our own: no end-of-file between the workers'
+    pids: list[int] = []
+    try:
+        text = ""
+        while text.count("\n") < 2:
+            assert select.select([fd], [], [], 300)[0], "the workers did not start"
+            text += os.read(fd, 64).decode()
+        pids = [int(p) for p in text.split()]
+        os.kill(driver.pid, signal.SIGKILL)  # kill -9: no handler of the driver's runs
+        driver.wait(timeout=60)
+        alive = [pid for pid in pids if not _exited_within(pid, 30)]
+        assert not alive, f"sweep workers {alive} outlived their killed driver"
+        # nothing holds the runs' folders: the same sweep runs to the end
+        rerun = _cli(args[2:])
+        assert rerun.returncode == 0, rerun.stderr
+        assert len(load_results(tmp_path / "sweep")) == 2
+        assert "0: not evaluated, 1: not evaluated" in rerun.stdout  # --eval-every -1: no score
+    finally:
+        os.close(fd)
+        driver.kill()
+        for pid in pids:
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass

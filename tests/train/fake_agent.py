@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import signal
+import threading
 from collections.abc import Mapping
 
 import numpy as np
@@ -80,6 +81,11 @@ class Agent:
         self._updates = getattr(self, "_updates", 0) + 1
         if self._updates == int(os.environ.get("RLU_TEST_SIGKILL_AT_UPDATE", "0")):
             os.kill(os.getpid(), signal.SIGKILL)
+        # test hook: the process writes its pid into this FIFO at its first update, then hangs
+        if self._updates == 1 and os.environ.get("RLU_TEST_HOLD_FIFO"):
+            with open(os.environ["RLU_TEST_HOLD_FIFO"], "w") as fifo:
+                fifo.write(f"{os.getpid()}\n")
+            threading.Event().wait()
         x = _flat(batch.observation, self.device)
         x = x + self.config.input_noise * torch.randn(x.shape, generator=self.gen).to(x.device)
         target = torch.from_numpy(_numpy(batch.action).reshape(len(x), -1)).to(self.device)

@@ -113,3 +113,24 @@ def test_an_interrupted_sweep_keeps_the_results_of_its_finished_runs(
     assert [(r["task"], r["agent"], r["config"], r["seed"]) for r in kept] == sorted(done)
     by_key = {(r["task"], r["agent"], r["config"], r["seed"]): r["score"] for r in records}
     assert [r["score"] for r in kept] == [by_key[k] for k in sorted(done)]
+
+
+def test_a_failing_run_leaves_the_others_running_and_is_named_at_the_end(
+    local_sweep, pendulum_datasets, tmp_path
+):
+    import shutil
+
+    from rlu.locks import OutputLock
+
+    out, records = local_sweep
+    again = tmp_path / "again"
+    shutil.copytree(out, again)
+    (again / "results.jsonl").unlink()
+    spec = expand(_config(pendulum_datasets), again)[5]
+    (Path(spec.run_dir) / "result.json").unlink()  # this run must train again...
+    with OutputLock(spec.run_dir, "run folder"):  # ...but another process holds its folder
+        with pytest.raises(RluError, match=r"1 of 16 runs failed") as err:
+            sweep(_config(pendulum_datasets), again, backend="local", workers=2)
+    assert f"{spec.run_dir}: LockBusy" in str(err.value) and "run the sweep again" in str(err.value)
+    kept = load_results(again)  # the 15 others finished and were recorded
+    assert len(kept) == 15 and spec.run_dir not in {r["run"] for r in kept}

@@ -16,9 +16,7 @@ import multiprocessing as mp
 import os
 import queue
 import re
-import signal
 import sys
-import threading
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -33,6 +31,7 @@ from rlu.data.release.framing import RecordReader
 from rlu.data.store import DatasetWriter, Deflated, Schema, SegmentColumns, segment_columns
 from rlu.tasks import TaskSpec, get_task, rwrl_observation_spec
 from rlu.types import ArraySpec, FormatError, RluError, SpecError, available_cores
+from rlu.workers import die_with_parent
 
 _RUN_RE = re.compile(r"run_(\d+)")
 # What the stored reward of each Atari family is, written into the dataset's manifest.
@@ -229,39 +228,13 @@ def _nbytes(x: Any) -> int:
     return _nbytes(vars(x)) if hasattr(x, "__dict__") else 0
 
 
-def _die_with_parent(parent: int) -> None:
-    """End this reader when the converting process dies, ``kill -9`` included.
-
-    A reader blocked on its queue (the parent no longer takes from it) would otherwise live on
-    forever. Linux: ``prctl(PR_SET_PDEATHSIG, SIGKILL)``, then a check that the parent did not die
-    before the call; elsewhere a thread that watches the parent's id.
-    """
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL(None, use_errno=True)
-        if libc.prctl(1, signal.SIGKILL) == 0:  # 1: PR_SET_PDEATHSIG
-            if os.getppid() != parent:
-                os._exit(1)
-            return
-    except (OSError, AttributeError):  # pragma: no cover - not Linux
-        pass
-
-    def watch() -> None:  # pragma: no cover - not Linux
-        while os.getppid() == parent:
-            time.sleep(0.5)
-        os._exit(1)
-
-    threading.Thread(target=watch, name="rlu-parent-watch", daemon=True).start()
-
-
 def _worker(job: _Job, path: str, q: Any, budget: Any, parent: int) -> None:
     """Read one shard into ``q``, holding at most ``_QUEUE_MIB`` queued (``budget``: MiB units).
 
     The bound is in bytes, not batches, so a reader of a later shard can get far ahead (whole
     shards of windows) while the parent writes the earlier one: readers overlap each other.
     """
-    _die_with_parent(parent)
+    die_with_parent(parent)
     try:
         for batch, stats in _shard_batches(job, path, columns=True):
             if stats is not None:
