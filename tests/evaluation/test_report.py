@@ -226,3 +226,18 @@ def test_a_new_panel_is_one_function_and_one_renderer(tmp_path, monkeypatch):
         '<td class="label">crr</td><td class="num">3</td>'
         in (tmp_path / "r" / "report.html").read_text()
     )
+
+
+def test_cells_of_fewer_seeds_say_how_many(tmp_path):
+    pytest.importorskip("jinja2")
+    recs = records(CONTROL[:1], ["bc", "d4pg"])  # three seeds each...
+    recs = [r for r in recs if not (r["agent"] == "d4pg" and r["seed"] > 0)]  # ...d4pg one
+    recs += [{**r, "agent": "brac"} for r in recs if r["agent"] == "bc" and r["seed"] < 2]
+    write_report(write_sweep(tmp_path / "s", recs), tmp_path / "r", figures=False)
+    cells = json.loads((tmp_path / "r" / "report.json").read_text())["domains"]["control_suite"]
+    cells = cells["online"]["rows"][0]["cells"]
+    md = (tmp_path / "r" / "report.md").read_text().replace("**", "")  # bold or not
+    bc, brac, d4pg = cells["bc"], cells["brac"], cells["d4pg"]
+    assert f"{bc['mean']:.1f} ± {bc['std']:.1f} |" in md  # all the seeds: as before
+    assert f"{brac['mean']:.1f} ± {brac['std']:.1f} (2 seeds)" in md
+    assert f"{d4pg['mean']:.1f} (1 seed)" in md and f"{d4pg['mean']:.1f} ± " not in md

@@ -351,13 +351,20 @@ def _score_table(table: Mapping[str, Any], agents: Sequence[str], with_paper: bo
     for a in agents:
         head += [a, f"{a} (paper)"] if with_paper else [a]
     rows = []
+    # a sweep still running (or cut short) has cells of fewer seeds: those say how many
+    most = max((len(c["seeds"]) for r in table["rows"] for c in r["cells"].values()), default=0)
     for row in table["rows"]:
         cells = [Cell(row["task"], numeric=False)]
         for a in agents:
             c = row["cells"].get(a)
-            cells.append(
-                Cell("", False) if c is None else Cell(_fmt(c["mean"], c["std"]), c["bold"])
-            )
+            if c is None:
+                cells.append(Cell("", False))
+                continue
+            n = len(c["seeds"])
+            text = _fmt(c["mean"], c["std"]) if n > 1 else f"{c['mean']:.1f}"
+            if n < most:
+                text += f" ({n} seed{'s' if n > 1 else ''})"
+            cells.append(Cell(text, c["bold"]))
             if with_paper:
                 p = c.get("paper") if c else None
                 cells.append(Cell("" if not p else _fmt(p["mean"], p["std"])))
