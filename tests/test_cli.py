@@ -95,3 +95,17 @@ def test_evaluate_sets_its_threads(tmp_path, capsys):
         assert "--threads 0; use 1 or more" in capsys.readouterr().err
     finally:
         torch.set_num_threads(before)
+
+
+def test_info_of_a_missing_path_or_a_file_says_so_not_unknown_task(tmp_path, capsys):
+    (tmp_path / "notes.txt").write_text("x")
+    for target, says in [
+        (str(tmp_path / "nope"), "is neither a task id nor a dataset directory"),
+        ("./runs/nope", "is neither a task id nor a dataset directory"),
+        (str(tmp_path / "notes.txt"), "is a file, not a dataset directory"),
+    ]:
+        assert main(["info", target]) == 2
+        err = capsys.readouterr().err
+        assert f"{target} {says}" in err and "unknown task id" not in err, err
+    assert main(["info", "control_suite/walker_wlak"]) == 2  # an id's typo: the closest ids
+    assert "Closest: control_suite/walker_walk" in capsys.readouterr().err

@@ -6,6 +6,8 @@ import argparse
 import json
 import os
 
+from rlu.types import RluError
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("list", help="list every task of the suite")
@@ -51,9 +53,19 @@ def _info(args: argparse.Namespace) -> int:
         if args.json:  # every whole episode's return, in order (too long for the tree print)
             info["returns"]["per_episode"] = ds.episode_returns().tolist()
     else:
-        from rlu.tasks import get_task
+        from rlu.tasks import DOMAINS, get_task
 
-        info = get_task(args.target).to_json()
+        target = args.target
+        looks_like_path = target.startswith((".", "~", os.sep)) or (
+            os.sep in target and target.split(os.sep)[0] not in DOMAINS
+        )
+        if os.path.exists(target) or looks_like_path:  # bare names ("walker_walk") are ids
+            what = "is a file, not" if os.path.exists(target) else "is neither a task id nor"
+            raise RluError(
+                f"{target} {what} a dataset directory; pass a dataset folder (the one holding "
+                "manifest.json) or a task id such as control_suite/cartpole_swingup (rlu list)"
+            )
+        info = get_task(target).to_json()
     if args.json:
         print(json.dumps(info, indent=1))
     else:
