@@ -233,7 +233,13 @@ def test_cells_of_fewer_seeds_say_how_many(tmp_path):
     recs = records(CONTROL[:1], ["bc", "d4pg"])  # three seeds each...
     recs = [r for r in recs if not (r["agent"] == "d4pg" and r["seed"] > 0)]  # ...d4pg one
     recs += [{**r, "agent": "brac"} for r in recs if r["agent"] == "bc" and r["seed"] < 2]
+    # a second task without brac: its row keeps every column in place
+    recs += [{**r, "task": CONTROL[1]} for r in recs if r["agent"] != "brac"]
     write_report(write_sweep(tmp_path / "s", recs), tmp_path / "r", figures=False)
+    table = [line for line in (tmp_path / "r" / "report.md").read_text().splitlines()
+             if line.startswith("| control_suite/")][:2]  # fmt: skip
+    assert [line.count(" | ") for line in table] == [6, 6]  # task, 3 x (ours, the paper's)
+    assert "| 380.0 ± 32.0 |  |  |" in table[1]  # walker walk: bc's paper cell, then no brac
     cells = json.loads((tmp_path / "r" / "report.json").read_text())["domains"]["control_suite"]
     cells = cells["online"]["rows"][0]["cells"]
     md = (tmp_path / "r" / "report.md").read_text().replace("**", "")  # bold or not

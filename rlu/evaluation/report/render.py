@@ -74,6 +74,13 @@ def _fmt(mean: float, std: float) -> str:
     return f"{mean:.1f} ± {std:.1f}"
 
 
+def _cell_text(cell: Mapping[str, Any], most: int) -> str:
+    """mean ± std; a cell of fewer seeds than the table's most says how many (one: no std)."""
+    n = len(cell["seeds"])
+    text = _fmt(cell["mean"], cell["std"]) if n > 1 else f"{cell['mean']:.1f}"
+    return text + (f" ({n} seed{'s' if n > 1 else ''})" if n < most else "")
+
+
 # --- figures --------------------------------------------------------------------------------
 class Figures:
     """Draws with matplotlib (Agg) and saves PNGs under ``out/figures``."""
@@ -357,14 +364,7 @@ def _score_table(table: Mapping[str, Any], agents: Sequence[str], with_paper: bo
         cells = [Cell(row["task"], numeric=False)]
         for a in agents:
             c = row["cells"].get(a)
-            if c is None:
-                cells.append(Cell("", False))
-                continue
-            n = len(c["seeds"])
-            text = _fmt(c["mean"], c["std"]) if n > 1 else f"{c['mean']:.1f}"
-            if n < most:
-                text += f" ({n} seed{'s' if n > 1 else ''})"
-            cells.append(Cell(text, c["bold"]))
+            cells.append(Cell("", False) if c is None else Cell(_cell_text(c, most), c["bold"]))
             if with_paper:
                 p = c.get("paper") if c else None
                 cells.append(Cell("" if not p else _fmt(p["mean"], p["std"])))
