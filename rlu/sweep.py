@@ -236,7 +236,6 @@ class _Finished:
     def __init__(self, out: Path, total: int, progress: bool):
         self.out, self.total, self.progress = out, total, progress
         self.records: list[dict[str, Any]] = []
-
         self.failed: list[str] = []
 
     def fail(self, spec: RunSpec, error: BaseException) -> None:
