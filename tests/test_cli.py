@@ -109,3 +109,6 @@ def test_info_of_a_missing_path_or_a_file_says_so_not_unknown_task(tmp_path, cap
         assert f"{target} {says}" in err and "unknown task id" not in err, err
     assert main(["info", "control_suite/walker_wlak"]) == 2  # an id's typo: the closest ids
     assert "Closest: control_suite/walker_walk" in capsys.readouterr().err
+    assert main(["info", "runs/nope"]) == 2  # an id or a relative path: both are said
+    err = capsys.readouterr().err
+    assert "unknown task id 'runs/nope'" in err and "Nor is runs/nope a dataset directory" in err

@@ -56,16 +56,20 @@ def _info(args: argparse.Namespace) -> int:
         from rlu.tasks import DOMAINS, get_task
 
         target = args.target
-        looks_like_path = target.startswith((".", "~", os.sep)) or (
-            os.sep in target and target.split(os.sep)[0] not in DOMAINS
-        )
-        if os.path.exists(target) or looks_like_path:  # bare names ("walker_walk") are ids
+        if os.path.exists(target) or target.startswith((".", "~", os.sep)):  # a path
             what = "is a file, not" if os.path.exists(target) else "is neither a task id nor"
             raise RluError(
                 f"{target} {what} a dataset directory; pass a dataset folder (the one holding "
                 "manifest.json) or a task id such as control_suite/cartpole_swingup (rlu list)"
             )
-        info = get_task(target).to_json()
+        try:
+            info = get_task(target).to_json()
+        except RluError as e:
+            if os.sep in target and target.split(os.sep)[0] not in DOMAINS:  # maybe a path
+                raise RluError(
+                    f"{e} Nor is {target} a dataset directory (no such folder)."
+                ) from None
+            raise
     if args.json:
         print(json.dumps(info, indent=1))
     else:
