@@ -237,9 +237,10 @@ def test_task_bars_put_each_task_under_its_own_protocol():
     assert [r["task"] for r in bars["offline"]] == [offline]
     assert bars["online"][0]["cells"]["bc"]["config"] == "a"
     assert bars["chosen"] == {"bc": "a"}
-    cell = bars["offline"][0]["cells"]["bc"]
+    row = bars["offline"][0]
+    cell = row["cells"]["bc"]
     assert (cell["config"], cell["mean"], cell["std"]) == ("a", 305.0, 5.0)
-    assert cell["paper"] == load_paper_results()["control_suite"]["Walker walk"]["BC"]
+    assert row["paper"]["bc"] == load_paper_results()["control_suite"]["Walker walk"]["BC"]
     # the online table keeps online selection on every task (the oracle) as before
     assert dom["online"]["rows"][1]["cells"]["bc"]["mean"] == 905.0
     # no Atari figure panels outside Atari, no per-task bars in Atari

@@ -95,8 +95,30 @@ def test_paper_numbers_beside_ours():
         ],  # fmt: skip
         reps=200,
     )
-    cell = rep["domains"]["control_suite"]["online"]["rows"][0]["cells"]["bc"]
-    assert cell["paper"]["mean"] == 386.0 and cell["mean"] == 305.0
+    row = rep["domains"]["control_suite"]["online"]["rows"][0]
+    assert row["paper"]["bc"]["mean"] == 386.0 and row["cells"]["bc"]["mean"] == 305.0
+
+
+def test_paper_number_stays_where_rlu_has_no_cell():
+    """A sweep still running, or an agent not run on every task: the paper's column keeps its
+    number, and the figure its diamond."""
+    from rlu.evaluation.report import render
+
+    recs = [
+        {"task": t, "agent": a, "config": "c", "seed": 0, "score": v}
+        for t, a, v in [("control_suite/cartpole_swingup", "bc", 300.0),
+                        ("control_suite/walker_stand", "bc", 200.0),
+                        ("control_suite/walker_stand", "d4pg", 800.0)]
+    ]  # fmt: skip
+    rep = build_report(recs, reps=50)
+    row = rep["domains"]["control_suite"]["online"]["rows"][0]
+    assert row["task"] == "control_suite/cartpole_swingup" and sorted(row["cells"]) == ["bc"]
+    assert row["paper"]["d4pg"] == paper_entry("control_suite/cartpole_swingup", "d4pg")
+    md = render.render("report.md.j2", "t", render.sections(rep, None))
+    line = next(x for x in md.splitlines() if x.startswith("| control_suite/cartpole_swingup"))
+    cols = [c.strip() for c in line.strip("|").split("|")]
+    # task, bc, bc (paper), d4pg (empty: not run), d4pg (paper)
+    assert cols[1:] == ["**300.0**", "386.0 ± 6.0", "", "856.0 ± 13.0"], cols
 
 
 def test_atari_normalised_median_and_naive_offline_selection():

@@ -6,9 +6,9 @@ one entry per *panel*:
 
 - ``online``: task x agent, mean ± std over seeds of the final evaluation score of the
   configuration chosen by online policy selection (best per task), ``bold`` on the best mean of a
-  row and on every mean ± std that overlaps it (the paper's convention), with the paper's number
-  beside ours where the task and agent match (``rlu/resources/paper_results.json``, a copy of the
-  appendix tables of Gulcehre et al. 2020);
+  row and on every mean ± std that overlaps it (the paper's convention), and per row the paper's
+  number of every agent it has one for, whether rlu has that cell or not (``paper``;
+  ``rlu/resources/paper_results.json``, a copy of the appendix tables of Gulcehre et al. 2020);
 - ``offline_naive``: when a domain's sweep holds both online- and offline-selection tasks, the
   naive offline policy selection (the configuration with the best mean, median for Atari, over
   the online tasks, applied unchanged to the offline ones);
@@ -626,14 +626,16 @@ def _table(
                 "seeds": list(s.seeds),
                 "scores": list(s.scores),
             }
-            if paper is not None:
-                cell["paper"] = paper_entry(task, agent, paper)
             cells[agent] = cell
         # the paper's bold: the best mean, and every cell whose mean ± std overlaps the best's
         best = max(cells.values(), key=lambda c: c["mean"], default=None)
         for c in cells.values():
             c["bold"] = c["mean"] + c["std"] >= best["mean"] - best["std"]
-        rows.append({"task": task, "cells": cells})
+        # the paper's number of every agent it has one for, rlu's cell or not (a sweep still
+        # running, or an agent not run on this task, leaves the paper's column filled)
+        beside = {} if paper is None else {a: paper_entry(task, a, paper) for a in agents}
+        rows.append({"task": task, "cells": cells,
+                     "paper": {a: e for a, e in beside.items() if e is not None}})  # fmt: skip
     return {"rows": rows}
 
 

@@ -165,7 +165,7 @@ def tasks_figure(dom: Mapping[str, Any], domain: str, plt: Any) -> Any:
             means = [row["cells"].get(a, {}).get("mean", np.nan) for a in agents]
             stds = [row["cells"].get(a, {}).get("std", 0.0) for a in agents]
             ax.bar(x, means, 0.6, yerr=stds, color=[color[a] for a in agents], capsize=3)
-            paper = [((row["cells"].get(a) or {}).get("paper") or {}).get("mean") for a in agents]
+            paper = [row["paper"].get(a, {}).get("mean") for a in agents]
             px = [i for i, m in enumerate(paper) if m is not None]
             if px:
                 ax.scatter(px, [paper[i] for i in px], marker="D", color="k", s=18, zorder=3,
@@ -366,14 +366,14 @@ def _score_table(table: Mapping[str, Any], agents: Sequence[str], with_paper: bo
             c = row["cells"].get(a)
             cells.append(Cell("", False) if c is None else Cell(_cell_text(c, most), c["bold"]))
             if with_paper:
-                p = c.get("paper") if c else None
-                cells.append(Cell("" if not p else _fmt(p["mean"], p["std"])))
+                p = row["paper"].get(a)
+                cells.append(Cell("" if p is None else _fmt(p["mean"], p["std"])))
         rows.append(tuple(cells))
     return Table(tuple(head), tuple(rows))
 
 
 def _with_paper(dom: Mapping[str, Any]) -> bool:
-    return any(c.get("paper") for row in dom["online"]["rows"] for c in row["cells"].values())
+    return any(row["paper"] for row in dom["online"]["rows"])
 
 
 def render_online(dom: Mapping[str, Any], domain: str, figures: Figures | None) -> list[Block]:
