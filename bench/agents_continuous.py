@@ -504,8 +504,9 @@ def minimal_iql(c, seed: int = 0):
         weight = torch.where(u > 0, c.expectile, 1.0 - c.expectile)
         step(opt_v, (weight * u.pow(2)).mean())
         with torch.no_grad():
-            adv = q_min - value(x).squeeze(-1)
-            y = r * c.reward_scale + c.gamma * d * value(nx).squeeze(-1)
+            v, v_next = value(torch.cat([x, nx])).squeeze(-1).split(len(r))
+            adv = q_min - v
+            y = r * c.reward_scale + c.gamma * d * v_next
         if c.cosine_decay:
             frac = min(steps[0], c.num_steps) / c.num_steps
             opt_p.param_groups[0]["lr"] = c.actor_lr * 0.5 * (1.0 + math.cos(math.pi * frac))
@@ -638,12 +639,12 @@ def minimal_cql(c, seed: int = 0):
         step(opt_alpha, -(log_alpha * (log_pi[0].detach() + target_entropy)).mean())
         alpha = log_alpha.detach().exp()
         step(opt_p, (alpha * log_pi[0] - q_both(critics, x, pi_a[0]).amin(0)).mean(), p_params)
-        q_all = q_both(critics, x, torch.cat([a[None], rand_a, curr_a, next_a]))
-        q_data, q_rand, q_curr, q_next = q_all.split([1, n, n, n], dim=1)
+        q_data = q_both(critics, x, a)
+        q_rand, q_curr, q_next = (q_both(critics, x, p) for p in (rand_a, curr_a, next_a))
         logits = torch.cat([q_rand - log_uniform, q_next - lp_next, q_curr - lp_curr], 1)
         t = c.cql_temperature
-        reg = t * torch.logsumexp(logits / t, 1).mean(-1) - q_data[:, 0].mean(-1)
-        td = (q_data[:, 0] - y).pow(2).mean(1)
+        reg = t * torch.logsumexp(logits / t, 1).mean(-1) - q_data.mean(-1)
+        td = (q_data - y).pow(2).mean(1)
         loss = (td + c.cql_weight * reg).sum()
         step(opt_c, loss)
         lerp_into(t_critics, critics, c.tau)

@@ -212,8 +212,9 @@ class IQLAgent:
         common.sgd_step(self.optimizers["value"], loss_v)
 
         with torch.no_grad():  # the policy and the critics both see the updated V
-            adv = q_min - self.value(obs)
-            target = reward + self.batch_spec.bootstrap_gamma * discount * self.value(next_obs)
+            v, v_next = self.value(nets.cat_batches(obs, next_obs)).split(len(reward))  # one pass
+            adv = q_min - v
+            target = reward + self.batch_spec.bootstrap_gamma * discount * v_next
         if c.cosine_decay:
             lr = cosine_lr(c.actor_lr, self.step, c.num_steps)
             for group in self.optimizers["policy"].param_groups:

@@ -141,6 +141,15 @@ class Encoder(nn.Module):
         return parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1)
 
 
+def cat_batches(*batches: Mapping[str, torch.Tensor] | torch.Tensor):
+    """Batches of one spec joined along the batch dimension, so one network pass serves them all:
+    tensors (``Encoder.flatten``'s features) or dicts of tensors with the same keys."""
+    first = batches[0]
+    if isinstance(first, Mapping):
+        return {k: torch.cat([b[k] for b in batches]) for k in first}
+    return torch.cat(batches)
+
+
 class ResidualMLP(nn.Module):
     """Linear projection, then ``num_layers // 2`` blocks h <- norm(h + W2 act(W1 act(h)))."""
 
