@@ -183,13 +183,18 @@ class Progress:
     def __init__(self, total: int, label: str, enabled: bool = True):
         self.total, self.label, self.enabled = total, label, enabled
         self.done, self.t0 = 0, time.perf_counter()
+        self.latest: dict[int, int] = {}  # run -> its last episode number (1-based)
         self.tty = sys.stderr.isatty()
 
     def update(self, run: int, episode: int, seg: Segment) -> None:
         self.report(run, episode, float(seg.metadata["episode_return"]))
 
     def report(self, run: int, episode: int, episode_return: float) -> None:
-        self.done += 1
+        # episodes played, counted from each run's episode number: a resumed run's first report
+        # counts the episodes it played before the interruption too
+        first = run not in self.latest  # this run's first episode here, fresh or resumed
+        self.latest[run] = episode
+        self.done = sum(self.latest.values())
         if not self.enabled:
             return
         frac = self.done / self.total if self.total else 0.0  # 0: a budget in env steps
@@ -201,7 +206,7 @@ class Progress:
         )
         if self.tty:
             print("\r" + msg, end="", file=sys.stderr, flush=True)
-        elif episode == 1 or self.done == self.total or self.done % 10 == 0:
+        elif first or self.done == self.total or self.done % 10 == 0:
             print(msg, file=sys.stderr, flush=True)
 
     def close(self) -> None:

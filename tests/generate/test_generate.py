@@ -51,6 +51,22 @@ def test_curve_summary_by_hand():
     assert markdown_table([s], 100.0).splitlines()[-1].endswith("| yes |")
 
 
+def test_progress_counts_a_resumed_runs_earlier_episodes(capsys):
+    """A resumed generate's bar starts where the runs stopped, not at 0."""
+    from rlu.generate.common import Progress
+
+    bar = Progress(2 * 400, "t")
+    bar.report(0, 1, 0.0)  # a fresh run's first episode
+    bar.report(1, 210, 5.0)  # run 1 resumed after 209 episodes
+    for ep in range(211, 220):
+        bar.report(1, ep, 5.0)
+    lines = capsys.readouterr().err.splitlines()
+    assert lines[0].startswith("t [") and " 1/800 episodes  run 0 ep 1 " in lines[0]
+    assert " 211/800 episodes  run 1 ep 210 " in lines[1]  # every report is 1-based per run
+    assert " 220/800 episodes  run 1 ep 219 " in lines[-1]
+    assert len(lines) == 3  # a non-terminal stderr: each run's first episode here, every tenth
+
+
 def test_replay_n_step_targets_by_hand():
     pytest.importorskip("torch")
     from rlu.data import make_episode
