@@ -39,6 +39,8 @@ AGENTS: dict[tuple[str, bool], str] = {
     ("crr", False): "rlu.agents.crr",
     ("iql", False): "rlu.agents.iql",
     ("cql", False): "rlu.agents.cql",
+    # continuous, online: distributional MPO, the RWRL data's behaviour agent (rlu generate)
+    ("dmpo", False): "rlu.agents.dmpo",
     # discrete (Atari): paper appendix A.2
     ("bc", True): "rlu.agents.bc_discrete",
     ("dqn", True): "rlu.agents.dqn",

@@ -6,7 +6,8 @@ recorded with its run, seed, checkpoint and episode index, whatever the agent's 
 datasets are whole training runs.
 
 Acting: D4PG's ``act`` is deterministic, so the behaviour policy adds Gaussian noise
-(``sigma``, Acme's default 0.3) and clips to the action bounds; DQN acts epsilon-greedy with
+(``sigma``, Acme's default 0.3) and clips to the action bounds; DMPO (``sigma=None``) samples its
+own Gaussian policy, clipped the same way; DQN acts epsilon-greedy with
 Dopamine's linearly decayed epsilon (1.0 -> ``epsilon_end`` over ``epsilon_decay_steps``), the
 agent's own ``act(greedy=False)`` taking the non-random steps. Learning: after ``min_replay``
 stored steps, one ``agent.update`` every ``update_every`` env steps on a batch sampled uniformly
@@ -59,8 +60,10 @@ class OnlineConfig:
     """Stored steps before the first update."""
     update_every: int = 8
     """Env steps per learner update (Acme's D4PG: samples_per_insert 32 at batch 256)."""
-    sigma: float = 0.3
-    """D4PG behaviour noise: standard deviation of the Gaussian added to the action."""
+    sigma: float | None = 0.3
+    """D4PG behaviour noise: standard deviation of the Gaussian added to the action. None: the
+    agent's own ``act(greedy=False)`` explores (DMPO samples its Gaussian policy, as Acme's
+    behaviour network); either way the action is clipped to the bounds."""
     epsilon_end: float = 0.01
     """DQN: final exploration epsilon (Dopamine)."""
     epsilon_decay_steps: int = 250_000
@@ -323,6 +326,9 @@ def run_online(
                         action = np.int64(rng.integers(num_actions))
                     else:
                         action = agent.act(obs[None], greedy=False)[0]
+                elif cfg.sigma is None:  # a stochastic policy explores by itself
+                    batch_obs = {k: v[None] for k, v in obs.items()}
+                    action = np.clip(agent.act(batch_obs, greedy=False)[0], lo, hi)
                 else:
                     batch_obs = {k: v[None] for k, v in obs.items()}
                     action = agent.act(batch_obs)[0]

@@ -23,9 +23,10 @@ carry a fixed date and no compression, so the same seed gives the same files.
 A checkpoint's policy is the agent at the first episode of that checkpoint id; the recorded
 episodes of the checkpoint come from it and from the updates that follow within the checkpoint,
 so their mean return is near, not equal to, the snapshot's. With ``exploration=True`` the policy
-acts as the behaviour did (D4PG: Gaussian noise ``sigma``, clipped to the bounds; DQN: epsilon-
-greedy with the schedule's epsilon at the snapshot); by default it acts deterministically (D4PG's
-``pi(s)``, DQN's evaluation epsilon), the policy an off-policy evaluation study values.
+acts as the behaviour did (D4PG: Gaussian noise ``sigma``, clipped to the bounds; DMPO: a sample
+of its Gaussian, clipped; DQN: epsilon-greedy with the schedule's epsilon at the snapshot); by
+default it acts deterministically (D4PG's ``pi(s)``, DMPO's mean, DQN's evaluation epsilon), the
+policy an off-policy evaluation study values.
 """
 
 from __future__ import annotations
@@ -46,7 +47,7 @@ from rlu.types import Policy, RluError
 
 FORMAT = "rlu-behaviour-policy"
 VERSION = 1
-ACTING_MODULE = {"d4pg": "policy", "dqn": "network", "dopamine_dqn": "network"}
+ACTING_MODULE = {"d4pg": "policy", "dmpo": "policy", "dqn": "network", "dopamine_dqn": "network"}
 """The agent's module that acts (``agent.modules[name]``): what a behaviour policy keeps."""
 POLICY_DTYPES = ("float16", "float32")
 _ZIP_DATE = (1980, 1, 1, 0, 0, 0)  # the zip format's earliest date: no clock in the bytes
@@ -124,6 +125,8 @@ def save_snapshot(
     if task.discrete:  # DQN's linearly decayed epsilon (rlu.generate.online)
         frac = min(1.0, env_steps / max(1, online.epsilon_decay_steps))
         exploration = {"epsilon": 1.0 + frac * (online.epsilon_end - 1.0)}
+    elif online.sigma is None:  # a stochastic policy (DMPO) explores by sampling itself
+        exploration = {"sample": True}
     else:
         exploration = {"sigma": float(online.sigma)}
     meta = {
@@ -371,10 +374,13 @@ def load_behaviour_policy(
 
         return discrete_policy
     sigma = float(noise.get("sigma", 0.0))
+    sample = bool(noise.get("sample", False))  # DMPO: its own Gaussian, not added noise
     lo = np.asarray(task.action_spec.minimum, np.float32)  # type: ignore[union-attr]
     hi = np.asarray(task.action_spec.maximum, np.float32)  # type: ignore[union-attr]
 
     def continuous_policy(observation: Any, is_first: np.ndarray | None = None) -> np.ndarray:
+        if exploration and sample:
+            return np.clip(np.asarray(agent.act(observation, greedy=False), np.float32), lo, hi)
         a = np.asarray(agent.act(observation), np.float32)
         if exploration:
             a = np.clip(a + sigma * rng.standard_normal(a.shape).astype(np.float32), lo, hi)

@@ -1,13 +1,16 @@
-"""RWRL datasets: fixed sub-optimal D4PG snapshots rolled out with and without challenges.
+"""RWRL datasets: fixed sub-optimal behaviour snapshots rolled out with and without challenges.
 
 The paper's RWRL data came from "fixed sub-optimal snapshots (≈75 % of converged return,
-3 seeds)". Here, per run (seed), D4PG trains on the task without challenge exactly as
+3 seeds)" of a distributional MPO agent. Here, per run (seed), the scale's behaviour agent (DMPO
+at the ``paper`` scale, as the paper; D4PG at ``laptop`` and ``tiny``: the control suite's laptop
+runs) trains on the task without challenge exactly as
 ``rlu.generate.online`` does; after every chunk of episodes the policy is kept with the chunk's
 mean return. The run's *converged return* is the best chunk mean; its snapshot is the first one
 whose chunk mean reaches ``SNAPSHOT_FRACTION`` (75 %) of it. Each dataset
 (``{challenge}/{size}``: ``none`` and ``easy``, sizes small / medium / large) is then rolled out
-from the runs' snapshots in turn (episode i from run i mod runs), acting with the snapshot's
-policy plus the behaviour noise ``sigma``, and written to ``OUT/{challenge}_{size}``.
+from the runs' snapshots in turn (episode i from run i mod runs), acting as the behaviour did
+(D4PG: the snapshot's policy plus the noise ``sigma``; DMPO: a sample of its Gaussian), and
+written to ``OUT/{challenge}_{size}``.
 
 Under the easy challenge the env adds ten ``dummy-i`` observation keys (as released); the
 snapshot policy sees only the task's own keys. Episode counts: the paper's (TaskSpec.episodes,
@@ -143,8 +146,13 @@ def generate_rwrl(task: TaskSpec, out: Path, scale: str, runs: int | None, seed:
                         obs, _ = env.reset(seed=derive_seed(seed, 5, e))
                         rec.begin(obs)
                         while True:
-                            a = agents[r].act({k: obs[k][None] for k in keys})[0]
-                            a = a + online.sigma * rng.standard_normal(a.shape).astype(np.float32)
+                            o = {k: obs[k][None] for k in keys}
+                            if online.sigma is None:  # DMPO: a sample of its own Gaussian
+                                a = agents[r].act(o, greedy=False)[0]
+                            else:
+                                a = agents[r].act(o)[0]
+                                noise = rng.standard_normal(a.shape).astype(np.float32)
+                                a = a + online.sigma * noise
                             a = np.clip(a, -1.0, 1.0)
                             obs, rew, term, trunc, info = env.step(a)
                             seg = rec.step(a, rew, obs, term, trunc, info, meta)

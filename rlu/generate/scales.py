@@ -3,7 +3,9 @@
 ``tiny`` is for tests and smoke runs (seconds); ``laptop``, the default, makes the control suite's
 behaviour runs reach the paper's behaviour level in minutes of CPU (``LAPTOP``, measured: the
 README's generation section); ``paper`` is the paper's budgets (clusters). One ``Scale`` per task
-and scale name; the RWRL recipe trains the control suite's D4PG at the same scale. Atari's
+and scale name; the RWRL recipe trains the control suite's D4PG at the same scale, except at
+``paper``, where it trains the paper's RWRL behaviour agent, distributional MPO (``dmpo``, Acme's
+settings: ``_PAPER_DMPO``). Atari's
 behaviour agent is Dopamine's online DQN (``dopamine_dqn``) at every scale, with Dopamine's
 online settings at ``laptop`` and ``paper`` (``_DOPAMINE_ONLINE``).
 """
@@ -116,10 +118,19 @@ def behaviour_target(task: TaskSpec) -> float | None:
     return LAPTOP.get(task.id.split("/", 1)[1], LAPTOP_DEFAULT).target
 
 
+# The paper's RWRL behaviour agent: distributional MPO with Acme's TF DMPO defaults (the agent's
+# ``paper`` preset; acme/agents/tf/dmpo/agent.py: min_replay_size 1000, max_replay_size 1M,
+# samples_per_insert 32 at batch 256, i.e. one update per 8 env steps), sampling its own Gaussian
+# policy to explore (sigma=None), 3 runs of 1M steps as D4PG's.
+_PAPER_DMPO = OnlineConfig("dmpo", episodes=1_000, preset="paper", replay_capacity=1_000_000,
+                           min_replay=1_000, update_every=8, sigma=None,
+                           checkpoint_steps=100_000, chunk_episodes=20)  # fmt: skip
+
+
 def _scales(task: TaskSpec) -> dict[str, Scale]:
     domain = task.domain
     if domain in ("control_suite", "rwrl"):
-        return {
+        scales = {
             # seconds: for tests and smoke runs; tiny networks, learning barely starts
             "tiny": Scale(2, OnlineConfig("d4pg", episodes=2, agent_overrides=_TINY_D4PG,
                                           replay_capacity=5_000, min_replay=500, update_every=16,
@@ -132,6 +143,9 @@ def _scales(task: TaskSpec) -> dict[str, Scale]:
                                            update_every=8, checkpoint_steps=100_000,
                                            chunk_episodes=20), None),
         }  # fmt: skip
+        if domain == "rwrl":  # the paper's own RWRL behaviour agent at the paper's scale
+            scales["paper"] = Scale(3, _PAPER_DMPO, None)
+        return scales
     if domain == "atari":
         return {
             # seconds: Dopamine's DQN with tiny networks, 2 episodes of 100 steps, learning at once
