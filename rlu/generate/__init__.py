@@ -4,7 +4,8 @@
     generate("control_suite/cartpole_swingup", "data/cartpole", scale="laptop", seed=0)
 
 ``generate`` picks one of three peer recipes: ``recipe`` (D4PG / DQN training runs: the control
-suite and Atari), ``rwrl`` (fixed D4PG snapshots rolled out with and without challenges) and
+suite and Atari), ``rwrl`` (fixed behaviour snapshots, D4PG or at the paper scale DMPO, rolled
+out with and without challenges) and
 ``policy`` (a policy the user supplies: locomotion). They share ``common`` (success rule,
 selection, merge, progress) and ``scales``; ``online`` is the actor-learner loop and
 ``recorder`` turns env steps into store segments. Heavy dependencies (torch, the simulators)
