@@ -287,8 +287,9 @@ class DMPOAgent:
         (loss_c + loss_p).backward()
         if c.max_grad_norm > 0:
             for name in ("policy", "critic"):
+                # foreach=None: the fused kernel where the device has one (not on meta)
                 nn.utils.clip_grad_norm_(self.modules[name].parameters(), c.max_grad_norm,
-                                         foreach=True)  # fmt: skip
+                                         foreach=None)  # fmt: skip
         for opt in self.optimizers.values():
             opt.step()
 

@@ -1,9 +1,9 @@
 """The online actor-learner loop that produces the recorded training runs.
 
 One run = one env, one behaviour agent (D4PG for the control suite and RWRL, distributional MPO
-for RWRL at the paper scale, DQN with sticky actions for Atari), a replay of whole episodes and a recorder. Every episode the actor plays is
-recorded with its run, seed, checkpoint and episode index, whatever the agent's quality: the
-datasets are whole training runs.
+for RWRL at the paper scale, DQN with sticky actions for Atari), a replay of whole episodes and
+a recorder. Every episode the actor plays is recorded with its run, seed, checkpoint and episode
+index, whatever the agent's quality: the datasets are whole training runs.
 
 Acting: D4PG's ``act`` is deterministic, so the behaviour policy adds Gaussian noise
 (``sigma``, Acme's default 0.3) and clips to the action bounds; DMPO (``sigma=None``) samples its
