@@ -5,11 +5,10 @@
 
 ``generate`` picks one of three peer recipes: ``recipe`` (D4PG / DQN training runs: the control
 suite and Atari), ``rwrl`` (fixed behaviour snapshots, D4PG or at the paper scale DMPO, rolled
-out with and without challenges) and
-``policy`` (a policy the user supplies: locomotion). They share ``common`` (success rule,
-selection, merge, progress) and ``scales``; ``online`` is the actor-learner loop and
-``recorder`` turns env steps into store segments. Heavy dependencies (torch, the simulators)
-load only when a run starts.
+out with and without challenges) and ``policy`` (a policy the user supplies: locomotion). They
+share ``common`` (success rule, selection, merge, progress) and ``scales``; ``online`` is the
+actor-learner loop and ``recorder`` turns env steps into store segments. Heavy dependencies
+(torch, the simulators) load only when a run starts.
 """
 
 from __future__ import annotations

@@ -7,9 +7,9 @@ index, whatever the agent's quality: the datasets are whole training runs.
 
 Acting: D4PG's ``act`` is deterministic, so the behaviour policy adds Gaussian noise
 (``sigma``, Acme's default 0.3) and clips to the action bounds; DMPO (``sigma=None``) samples its
-own Gaussian policy, clipped the same way; DQN acts epsilon-greedy with
-Dopamine's linearly decayed epsilon (1.0 -> ``epsilon_end`` over ``epsilon_decay_steps``), the
-agent's own ``act(greedy=False)`` taking the non-random steps. Learning: after ``min_replay``
+own Gaussian policy, clipped the same way; DQN acts epsilon-greedy with Dopamine's linearly
+decayed epsilon (1.0 -> ``epsilon_end`` over ``epsilon_decay_steps``), the agent's own
+``act(greedy=False)`` taking the non-random steps. Learning: after ``min_replay``
 stored steps, one ``agent.update`` every ``update_every`` env steps on a batch sampled uniformly
 from the replay (n-step transitions for D4PG, as Acme's adder; 1-step for DQN, as Dopamine).
 

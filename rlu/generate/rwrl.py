@@ -1,16 +1,15 @@
 """RWRL datasets: fixed sub-optimal behaviour snapshots rolled out with and without challenges.
 
 The paper's RWRL data came from "fixed sub-optimal snapshots (≈75 % of converged return,
-3 seeds)" of a distributional MPO agent. Here, per run (seed), the scale's behaviour agent (DMPO
-at the ``paper`` scale, as the paper; D4PG at ``laptop`` and ``tiny``: the control suite's laptop
-runs) trains on the task without challenge exactly as
-``rlu.generate.online`` does; after every chunk of episodes the policy is kept with the chunk's
-mean return. The run's *converged return* is the best chunk mean; its snapshot is the first one
-whose chunk mean reaches ``SNAPSHOT_FRACTION`` (75 %) of it. Each dataset
-(``{challenge}/{size}``: ``none`` and ``easy``, sizes small / medium / large) is then rolled out
-from the runs' snapshots in turn (episode i from run i mod runs), acting as the behaviour did
-(D4PG: the snapshot's policy plus the noise ``sigma``; DMPO: a sample of its Gaussian), and
-written to ``OUT/{challenge}_{size}``.
+3 seeds)" of a distributional MPO agent. Here, per run (seed), the scale's behaviour agent
+(DMPO at the ``paper`` scale, as the paper; D4PG at ``laptop`` and ``tiny``, the control suite's
+laptop runs) trains on the task without challenge exactly as ``rlu.generate.online`` does; after
+every chunk of episodes the policy is kept with the chunk's mean return. The run's *converged
+return* is the best chunk mean; its snapshot is the first one whose chunk mean reaches
+``SNAPSHOT_FRACTION`` (75 %) of it. Each dataset (``{challenge}/{size}``: ``none`` and ``easy``,
+sizes small / medium / large) is then rolled out from the runs' snapshots in turn (episode i from
+run i mod runs), acting as the behaviour did (D4PG: the snapshot's policy plus the noise
+``sigma``; DMPO: a sample of its Gaussian), and written to ``OUT/{challenge}_{size}``.
 
 Under the easy challenge the env adds ten ``dummy-i`` observation keys (as released); the
 snapshot policy sees only the task's own keys. Episode counts: the paper's (TaskSpec.episodes,

@@ -4,10 +4,10 @@
 behaviour runs reach the paper's behaviour level in minutes of CPU (``LAPTOP``, measured: the
 README's generation section); ``paper`` is the paper's budgets (clusters). One ``Scale`` per task
 and scale name; the RWRL recipe trains the control suite's D4PG at the same scale, except at
-``paper``, where it trains the paper's RWRL behaviour agent, distributional MPO (``dmpo``, Acme's
-settings: ``_PAPER_DMPO``). Atari's
-behaviour agent is Dopamine's online DQN (``dopamine_dqn``) at every scale, with Dopamine's
-online settings at ``laptop`` and ``paper`` (``_DOPAMINE_ONLINE``).
+``paper``, where it trains the paper's RWRL behaviour agent, distributional MPO (``dmpo``, with
+Acme's settings: ``_PAPER_DMPO``). Atari's behaviour agent is Dopamine's online DQN
+(``dopamine_dqn``) at every scale, with Dopamine's online settings at ``laptop`` and ``paper``
+(``_DOPAMINE_ONLINE``).
 """
 
 from __future__ import annotations
