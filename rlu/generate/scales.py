@@ -75,6 +75,7 @@ LAPTOP = {
     "cheetah_run": LaptopTask(400, 600.0),
     # seed 0's three runs: past 700 at episodes 164, 239 and 301; 55 min on 2 cores (load 4-6)
     "finger_turn_hard": LaptopTask(400, 700.0),
+    # seed 0's three runs: past 600 at episodes 275, 248 and 174; 58 min on 2 cores (load 4-6)
     "fish_swim": LaptopTask(400, 600.0),
 }
 LAPTOP_DEFAULT = LaptopTask(100, None)
