@@ -326,14 +326,14 @@ def run_online(
                         action = np.int64(rng.integers(num_actions))
                     else:
                         action = agent.act(obs[None], greedy=False)[0]
-                elif cfg.sigma is None:  # a stochastic policy explores by itself
-                    batch_obs = {k: v[None] for k, v in obs.items()}
-                    action = np.clip(agent.act(batch_obs, greedy=False)[0], lo, hi)
                 else:
                     batch_obs = {k: v[None] for k, v in obs.items()}
-                    action = agent.act(batch_obs)[0]
-                    noise = rng.standard_normal(a_shape).astype(np.float32)
-                    action = np.clip(action + cfg.sigma * noise, lo, hi)
+                    if cfg.sigma is None:  # a stochastic policy explores by itself
+                        action = np.clip(agent.act(batch_obs, greedy=False)[0], lo, hi)
+                    else:
+                        action = agent.act(batch_obs)[0]
+                        noise = rng.standard_normal(a_shape).astype(np.float32)
+                        action = np.clip(action + cfg.sigma * noise, lo, hi)
                 obs, reward, terminated, truncated, info = env.step(action)
                 env_steps += 1
                 if replay.size >= cfg.min_replay and env_steps % cfg.update_every == 0:
