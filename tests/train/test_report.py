@@ -121,6 +121,30 @@ def test_paper_number_stays_where_rlu_has_no_cell():
     assert cols[1:] == ["**300.0**", "386.0 ± 6.0", "", "856.0 ± 13.0"], cols
 
 
+def test_iqm_says_how_many_seeds_and_claims_no_interval_from_one():
+    """A partial sweep: the IQM is over the seeds every task has; with one seed in common the
+    bootstrap has nothing to resample, so no interval is printed (it would be [x, x])."""
+    from rlu.evaluation.report import render
+
+    cp, ws = "control_suite/cartpole_swingup", "control_suite/walker_stand"
+    scores = {(cp, 0): 400.0, (cp, 1): 500.0, (ws, 0): 800.0}
+    recs = [{"task": t, "agent": "bcq", "config": "c", "seed": s, "score": v}
+            for (t, s), v in scores.items()]  # fmt: skip
+    agg = build_report(recs, reps=50)["domains"]["control_suite"]["aggregates"]["bcq"]
+    assert agg["iqm_seeds"] == 1 and agg["iqm_ci95"] is None
+    assert agg["iqm"] == pytest.approx(600.0)  # seed 0 on both tasks, nothing trimmed
+    rep = build_report(recs, reps=50)
+    md = render.render("report.md.j2", "t", render.sections(rep, None))
+    line = next(x for x in md.splitlines() if x.startswith("| bcq"))
+    assert [c.strip() for c in line.strip("|").split("|")][4:] == ["600.0 (1 seed)", ""]
+    # with the second seed on walker stand, both seeds count and the interval is real
+    recs.append({"task": ws, "agent": "bcq", "config": "c", "seed": 1, "score": 900.0})
+    agg = build_report(recs, reps=200)["domains"]["control_suite"]["aggregates"]["bcq"]
+    assert agg["iqm_seeds"] == 2
+    lo, hi = agg["iqm_ci95"]
+    assert lo < agg["iqm"] < hi
+
+
 def test_atari_normalised_median_and_naive_offline_selection():
     random = {"Pong": -20.0, "Breakout": 0.0, "Zaxxon": 0.0}
     best = {"Pong": 20.0, "Breakout": 100.0, "Zaxxon": 1000.0}

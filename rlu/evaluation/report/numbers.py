@@ -655,6 +655,9 @@ def _aggregates(sel, tasks, agents, domain, reps) -> dict[str, Any]:
                 [[dict(zip(c.seeds, c.scores, strict=True))[s] for c in cells] for s in common]
             )
             iqm, (ilo, ihi) = stratified_bootstrap_ci(matrix, "iqm", reps=reps)
-            entry.update({"iqm": iqm, "iqm_ci95": [ilo, ihi]})
+            # over the seeds every task has (a sweep still running may have fewer on some):
+            # with one seed in common the bootstrap has nothing to resample, so no interval
+            ci = [ilo, ihi] if len(common) > 1 else None
+            entry.update({"iqm": iqm, "iqm_ci95": ci, "iqm_seeds": len(common)})
         out[agent] = entry
     return out

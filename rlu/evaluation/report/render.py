@@ -416,14 +416,18 @@ def render_aggregates(dom: Mapping[str, Any], domain: str, figures: Figures | No
         if not e:
             continue
         lo, hi = e["interval_25_75"]
-        iqm = f"{e['iqm']:.1f}" if "iqm" in e else ""
-        ci = f"[{e['iqm_ci95'][0]:.1f}, {e['iqm_ci95'][1]:.1f}]" if "iqm" in e else ""
+        iqm = ci = ""
+        if "iqm" in e:
+            iqm = f"{e['iqm']:.1f} ({e['iqm_seeds']} seed{'s' * (e['iqm_seeds'] > 1)})"
+            if e["iqm_ci95"] is not None:
+                ci = f"[{e['iqm_ci95'][0]:.1f}, {e['iqm_ci95'][1]:.1f}]"
         texts = [str(e["tasks"]), f"{e[stat]:.1f}", f"[{lo:.1f}, {hi:.1f}]", iqm, ci]
         rows.append((Cell(a, numeric=False), *(Cell(t) for t in texts)))
     blocks: list[Block] = [
         Text(
             f"Aggregate of {what} over tasks: {stat} with bootstrapped [25, 75] interval; IQM "
-            "with 95 % stratified bootstrap CI over seeds."
+            "over the seeds every task has, with 95 % stratified bootstrap CI over those seeds "
+            "(none with one seed)."
         ),
         Table(("agent", "tasks", stat, "[25, 75]", "IQM", "IQM 95 % CI"), tuple(rows)),
     ]
