@@ -1,0 +1,76 @@
+"""What a trained D4PG critic says about the data's actions, its policy's and random ones.
+
+    python scripts/d4pg_critic_probe.py RUN_DIR DATASET_DIR [--episodes 30]
+
+RUN_DIR is an ``rlu train`` run (or one run of a sweep) of the ``d4pg`` agent; DATASET_DIR the
+data it learned from. On steps 0, 10, ..., 490 of ``--episodes`` episodes drawn with seed 0 it
+prints the mean of the critic's expected value for the data's action, the policy's action and a
+uniform random action, next to the data's discounted return from that step (gamma 0.99; the
+1,000-step cut-off weighs at most 0.99^500 = 0.7 % there). docs/fidelity.md has its figures
+for the six control-suite tasks of the fidelity study.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+import torch
+
+from rlu.data import open_dataset
+from rlu.runs import load_agent
+
+
+def discounted_returns(reward: np.ndarray, gamma: float) -> np.ndarray:
+    out = np.zeros(len(reward) + 1)
+    for t in range(len(reward) - 1, -1, -1):
+        out[t] = reward[t] + gamma * out[t + 1]
+    return out[:-1]
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("run")
+    p.add_argument("dataset")
+    p.add_argument("--episodes", type=int, default=30)
+    args = p.parse_args()
+    torch.set_num_threads(1)
+    agent, _ = load_agent(args.run)
+    ds = open_dataset(args.dataset)
+    returns = ds.episode_returns()
+    rng = np.random.default_rng(0)
+    atoms = agent.critic.head.atoms
+    gamma = agent.config.gamma
+
+    def q(obs, action):
+        return (torch.softmax(agent.critic(obs, action), -1) * atoms).sum(-1).numpy()
+
+    rows = {"mc": [], "data": [], "policy": [], "random": [], "gap": []}
+    n = min(args.episodes, ds.num_segments)
+    for i in rng.choice(ds.num_segments, n, replace=False):
+        seg = ds.segment(int(i))
+        idx = np.arange(0, min(500, len(seg.reward)), 10)
+        obs = {k: torch.as_tensor(v[idx]) for k, v in seg.observation.items()}
+        action = agent.scaler.to_unit(torch.as_tensor(seg.action[idx]))
+        with torch.no_grad():
+            pi = agent.policy(obs)
+            rand = torch.as_tensor(rng.uniform(-1, 1, action.shape), dtype=torch.float32)
+            rows["data"].append(q(obs, action))
+            rows["policy"].append(q(obs, pi))
+            rows["random"].append(q(obs, rand))
+            rows["gap"].append((pi - action).abs().mean(-1).numpy())
+        rows["mc"].append(discounted_returns(seg.reward.astype(np.float64), gamma)[idx])
+    r = {k: np.concatenate(v) for k, v in rows.items()}
+    p10, p50, p90 = np.percentile(returns, [10, 50, 90])
+    print(f"data: {len(returns)} episodes, return mean {returns.mean():.1f} "
+          f"(p10 {p10:.1f}, median {p50:.1f}, p90 {p90:.1f})")  # fmt: skip
+    print(f"data's discounted return from the probed steps: {r['mc'].mean():.1f}")
+    corr = np.corrcoef(r["data"], r["mc"])[0, 1]
+    print(f"Q(s, data action):    {r['data'].mean():.1f} (correlation with it {corr:.2f})")
+    print(f"Q(s, policy action):  {r['policy'].mean():.1f}")
+    print(f"Q(s, random action):  {r['random'].mean():.1f}")
+    print(f"|policy - data action| per dimension (actions in [-1, 1]): {r['gap'].mean():.2f}")
+
+
+if __name__ == "__main__":
+    main()
