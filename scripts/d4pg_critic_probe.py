@@ -18,7 +18,8 @@ import numpy as np
 import torch
 
 from rlu.data import open_dataset
-from rlu.runs import load_agent
+from rlu.runs import load_agent, load_run
+from rlu.types import RluError, observation_spec_to_json
 
 
 def discounted_returns(reward: np.ndarray, gamma: float) -> np.ndarray:
@@ -35,8 +36,22 @@ def main() -> None:
     p.add_argument("--episodes", type=int, default=30)
     args = p.parse_args()
     torch.set_num_threads(1)
-    agent, _ = load_agent(args.run)
-    ds = open_dataset(args.dataset)
+    try:
+        resolved, _ = load_run(args.run)
+        if resolved["train"]["agent"] != "d4pg":
+            raise RluError(
+                f"{args.run} is a run of {resolved['train']['agent']!r}; this probe reads the "
+                "categorical critic of a 'd4pg' run"
+            )
+        ds = open_dataset(args.dataset)
+        agent, _ = load_agent(args.run)
+    except RluError as e:
+        raise SystemExit(f"error: {e}") from None
+    if observation_spec_to_json(ds.schema.observation) != resolved["observation_spec"]:
+        raise SystemExit(
+            f"error: {args.dataset}'s observations are not those {args.run} trained on "
+            f"({resolved['dataset']['path']}); pass the run's own dataset"
+        )
     returns = ds.episode_returns()
     rng = np.random.default_rng(0)
     atoms = agent.critic.head.atoms
