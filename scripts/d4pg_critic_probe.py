@@ -35,6 +35,8 @@ def main() -> None:
     p.add_argument("dataset")
     p.add_argument("--episodes", type=int, default=30)
     args = p.parse_args()
+    if args.episodes < 1:
+        raise SystemExit(f"error: --episodes {args.episodes}; use 1 or more")
     torch.set_num_threads(1)
     try:
         resolved, _ = load_run(args.run)
