@@ -29,6 +29,27 @@ def discounted_returns(reward: np.ndarray, gamma: float) -> np.ndarray:
     return out[:-1]
 
 
+def measure(agent, ds, episodes: int) -> dict[str, np.ndarray]:
+    """Per probed step: the data's discounted return ``mc``, the critic's expected value of the
+    data's action, the policy's and a uniform random one, and the policy-data action gap."""
+    rng = np.random.default_rng(0)
+    rows = {"mc": [], "data": [], "policy": [], "random": [], "gap": []}
+    for i in rng.choice(ds.num_segments, min(episodes, ds.num_segments), replace=False):
+        seg = ds.segment(int(i))
+        idx = np.arange(0, min(500, len(seg.reward)), 10)
+        obs = {k: torch.as_tensor(v[idx]) for k, v in seg.observation.items()}
+        action = agent.scaler.to_unit(torch.as_tensor(seg.action[idx]))
+        rand = torch.as_tensor(rng.uniform(-1, 1, action.shape), dtype=torch.float32)
+        with torch.no_grad():
+            pi = agent.policy(obs)
+            for name, a in (("data", action), ("policy", pi), ("random", rand)):
+                rows[name].append(agent.critic.head.mean(agent.critic(obs, a)).numpy())
+            rows["gap"].append((pi - action).abs().mean(-1).numpy())
+        rewards = seg.reward.astype(np.float64)
+        rows["mc"].append(discounted_returns(rewards, agent.config.gamma)[idx])
+    return {k: np.concatenate(v) for k, v in rows.items()}
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("run")
@@ -54,30 +75,8 @@ def main() -> None:
             f"error: {args.dataset}'s observations are not those {args.run} trained on "
             f"({resolved['dataset']['path']}); pass the run's own dataset"
         )
+    r = measure(agent, ds, args.episodes)
     returns = ds.episode_returns()
-    rng = np.random.default_rng(0)
-    atoms = agent.critic.head.atoms
-    gamma = agent.config.gamma
-
-    def q(obs, action):
-        return (torch.softmax(agent.critic(obs, action), -1) * atoms).sum(-1).numpy()
-
-    rows = {"mc": [], "data": [], "policy": [], "random": [], "gap": []}
-    n = min(args.episodes, ds.num_segments)
-    for i in rng.choice(ds.num_segments, n, replace=False):
-        seg = ds.segment(int(i))
-        idx = np.arange(0, min(500, len(seg.reward)), 10)
-        obs = {k: torch.as_tensor(v[idx]) for k, v in seg.observation.items()}
-        action = agent.scaler.to_unit(torch.as_tensor(seg.action[idx]))
-        with torch.no_grad():
-            pi = agent.policy(obs)
-            rand = torch.as_tensor(rng.uniform(-1, 1, action.shape), dtype=torch.float32)
-            rows["data"].append(q(obs, action))
-            rows["policy"].append(q(obs, pi))
-            rows["random"].append(q(obs, rand))
-            rows["gap"].append((pi - action).abs().mean(-1).numpy())
-        rows["mc"].append(discounted_returns(seg.reward.astype(np.float64), gamma)[idx])
-    r = {k: np.concatenate(v) for k, v in rows.items()}
     p10, p50, p90 = np.percentile(returns, [10, 50, 90])
     print(f"data: {len(returns)} episodes, return mean {returns.mean():.1f} "
           f"(p10 {p10:.1f}, median {p50:.1f}, p90 {p90:.1f})")  # fmt: skip

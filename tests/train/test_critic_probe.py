@@ -31,17 +31,22 @@ def short_run(tmp_path: Path, agent: str, data: Path) -> Path:
     return tmp_path / agent.split(".")[-1]
 
 
-def test_discounted_returns_match_the_closed_form():
+def load_script():
     spec = importlib.util.spec_from_file_location("d4pg_critic_probe", SCRIPT)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
+    return mod
+
+
+def test_discounted_returns_match_the_closed_form():
+    mod = load_script()
     g, n = 0.99, 50
     expected = (1 - g ** (n - np.arange(n))) / (1 - g)  # reward 1 on every one of n steps
     np.testing.assert_allclose(mod.discounted_returns(np.ones(n), g), expected, rtol=1e-12)
 
 
 def test_probe_reads_a_d4pg_run_and_refuses_other_runs_and_data(tmp_path):
-    pytest.importorskip("torch")
+    torch = pytest.importorskip("torch")
     pytest.importorskip("gymnasium")
     from tests.train.pendulum import write_dataset
 
@@ -49,12 +54,31 @@ def test_probe_reads_a_d4pg_run_and_refuses_other_runs_and_data(tmp_path):
     run = short_run(tmp_path, "d4pg", data)
     out = probe(str(run), str(data), "--episodes", "3")
     assert out.returncode == 0, out.stderr[-2000:]
-    values = {
-        name: float(re.search(rf"{re.escape(name)}:\s+(-?[\d.]+)", out.stdout).group(1))
-        for name in ("Q(s, data action)", "Q(s, policy action)", "Q(s, random action)")
-    }
-    # the small preset's critic: 51 atoms on [-100, 100], so every expected value lies inside
-    assert all(-100 <= v <= 100 for v in values.values()), out.stdout
+    assert re.search(r"Q\(s, random action\):\s+-?[\d.]+", out.stdout), out.stdout
+
+    # A critic whose logits put all mass on atom 40 values every action at exactly that atom; over
+    # all 4 episodes the discounted returns are those of every episode's steps 0, 10, 20, ...
+    from rlu.data import open_dataset
+    from rlu.runs import load_agent
+
+    agent, _ = load_agent(run)
+    head = agent.critic.head
+    with torch.no_grad():
+        head.linear.weight.zero_()
+        head.linear.bias.fill_(-50.0)
+        head.linear.bias[40] = 50.0
+    ds = open_dataset(str(data))
+    r = load_script().measure(agent, ds, episodes=10)
+    for name in ("data", "policy", "random"):
+        np.testing.assert_allclose(r[name], float(head.atoms[40]), rtol=1e-5)
+    g = agent.config.gamma
+    expected = []
+    for seg in ds.segments():
+        n = len(seg.reward)
+        per_step = [sum(seg.reward[t:] * g ** np.arange(n - t)) for t in range(0, n, 10)]
+        expected.extend(per_step)
+    assert len(r["mc"]) == len(expected)
+    np.testing.assert_allclose(r["mc"].mean(), np.mean(expected), rtol=1e-6)
     assert "data: 4 episodes" in out.stdout
 
     other = short_run(tmp_path, "tests.train.fake_agent", data)
