@@ -130,7 +130,9 @@ def bf16(update):
     import torch
 
     def run(batch):
-        with torch.autocast("cpu", dtype=torch.bfloat16):
+        # cache off, as ``rlu.devices.numerics`` runs an update: with the cache, forwards after
+        # an optimiser step in the same update read the weights from before it
+        with torch.autocast("cpu", dtype=torch.bfloat16, cache_enabled=False):
             return update(batch)
 
     return run

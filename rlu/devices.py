@@ -110,7 +110,12 @@ def numerics(runtime: Runtime) -> Iterator[Callable[[], Any]]:
         torch.backends.cudnn.allow_tf32 = runtime.tf32
     try:
         if runtime.precision == "bf16":
-            yield lambda: torch.autocast(device.type, dtype=torch.bfloat16)
+            # cache_enabled=False: autocast's cache keeps the bf16 copy of each parameter for the
+            # whole context, and an update's optimiser steps change the parameters in place, so
+            # with the cache every forward after a step (IQL's Q target from the V it just
+            # stepped, BCQ's and CRR's actor losses on the stepped critic) read the weights from
+            # before it. Recasting each time cost nothing measurable (bench/README.md).
+            yield lambda: torch.autocast(device.type, dtype=torch.bfloat16, cache_enabled=False)
         else:
             yield contextlib.nullcontext
     finally:

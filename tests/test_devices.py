@@ -98,6 +98,28 @@ def test_bf16_autocast_applies_to_updates_only():
         assert (a @ a).dtype == torch.float32
 
 
+def test_bf16_forwards_after_an_optimiser_step_read_the_stepped_weights():
+    """An update steps one network, then reads it again (IQL's V, BCQ's critic): under the
+    update context that second forward must see the new weights, not a bf16 copy cached
+    before the step (autocast's weight cache, which lasts the whole context)."""
+    from torch import nn
+
+    from rlu.agents import common
+
+    torch.manual_seed(0)
+    net = nn.Linear(8, 4)
+    x = torch.randn(16, 8)
+    opt = common.adam(net.parameters(), lr=0.1)
+    with numerics(Runtime(precision="bf16").resolve()) as update_context, update_context():
+        before = net(x)
+        common.sgd_step(opt, before.float().square().mean())
+        after = net(x)
+    with torch.no_grad():
+        expected = nn.functional.linear(x, net.weight, net.bias)  # fp32, the stepped weights
+    assert not torch.equal(after, before)
+    torch.testing.assert_close(after.float(), expected, rtol=2e-2, atol=2e-2)
+
+
 @pytest.mark.parametrize("gpus", [0, 0.25, 0.5, 1, 2, 4.0])
 def test_gpu_requests_fractions_and_whole_gpus(gpus):
     assert check_gpus_per_run(gpus) == gpus
