@@ -43,6 +43,9 @@ def test_markdown_and_html_hold_every_number_of_the_json(tmp_path):
     dom = rep["domains"]["control_suite"]
     assert dom["panels"] == ["online", "offline_naive", "aggregates", "task_bars"]
     assert html.count("<table>") == 3 and html.count("<section") == 1
+    # each table scrolls in its own box: a wide one (five agents and the paper's columns) does
+    # not push the page past the window
+    assert html.count('<div class="table"><table>') == 3 and "overflow-x: auto" in html
     for row in dom["online"]["rows"]:
         for agent, c in row["cells"].items():
             text = f"{c['mean']:.1f} ± {c['std']:.1f}"
