@@ -204,14 +204,24 @@ def agent_state(
     generators: Mapping[str, torch.Generator],
     step: int,
 ) -> dict[str, Any]:
-    """Everything an agent needs to resume (the checkpoint format in the module docstring)."""
+    """Everything an agent needs to resume (the checkpoint format in the module docstring), as
+    a snapshot: copies, not the live tensors that ``nn.Module.state_dict`` and
+    ``Optimizer.state_dict`` hand out, so the agent's later updates leave it as it was (RWRL
+    keeps one per chunk in memory and loads the best one at the end)."""
     return {
-        "modules": {k: m.state_dict() for k, m in modules.items()},
-        "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
+        "modules": {k: _copied(m.state_dict()) for k, m in modules.items()},
+        "optimizers": {k: copy.deepcopy(o.state_dict()) for k, o in optimizers.items()},
         "generators": {k: g.get_state() for k, g in generators.items()},
         "generator_devices": {k: g.device.type for k, g in generators.items()},
         "step": int(step),
     }
+
+
+def _copied(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """A module's ``state_dict`` with every tensor copied (the same dict type and metadata)."""
+    for key, value in state.items():
+        state[key] = value.clone()
+    return state
 
 
 def load_agent_state(
@@ -231,7 +241,10 @@ def load_agent_state(
     for k, m in modules.items():
         m.load_state_dict(state["modules"][k])
     for k, o in optimizers.items():
-        o.load_state_dict(state["optimizers"][k])
+        # a copy: ``Optimizer.load_state_dict`` keeps the very tensors it is given (on the same
+        # device and dtype), so two agents loaded from one in-memory state would step on each
+        # other's Adam moments (and on the state's)
+        o.load_state_dict(copy.deepcopy(state["optimizers"][k]))
     saved_on = state.get("generator_devices", {})
     for k, g in generators.items():
         saved = state["generators"][k]

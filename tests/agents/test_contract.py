@@ -196,6 +196,42 @@ def test_state_round_trip_resumes_identically(name, discrete, kind):
     )
 
 
+def _flat(state, prefix=""):
+    """Every tensor of a nested state, by its path."""
+    if isinstance(state, torch.Tensor):
+        return {prefix: state}
+    if isinstance(state, dict):
+        items = state.items()
+    elif isinstance(state, (list, tuple)):
+        items = enumerate(state)
+    else:
+        return {}
+    return {k: v for key, sub in items for k, v in _flat(sub, f"{prefix}/{key}").items()}
+
+
+@pytest.mark.parametrize(("name", "discrete", "kind"), CASES, ids=IDS)
+def test_state_dict_is_a_snapshot_and_loaded_copies_share_nothing(name, discrete, kind):
+    """In memory, without a file between: the state taken before an update stays as it was, and
+    two agents loaded from it train exactly as the source did from there (each on its own
+    optimiser moments)."""
+    agent = build(name, discrete, kind, seed=0)
+    data = batches(agent, kind)
+    agent.update(data[0])  # Adam has moments now
+    state = agent.state_dict()
+    frozen = {k: v.clone() for k, v in _flat(state).items()}
+    copies = [build(name, discrete, kind, seed=s) for s in (1, 2)]
+    for other in copies:
+        other.load_state_dict(state)
+    expected = agent.update(data[1])
+    flat = _flat(state)
+    assert flat.keys() == frozen.keys()
+    assert all(torch.equal(flat[k], frozen[k]) for k in flat), "the update moved the state"
+    for other in copies:
+        assert other.update(data[1]) == expected
+    a, b, c = everything(agent), *(everything(o) for o in copies)
+    assert all(torch.equal(a[k], b[k]) and torch.equal(a[k], c[k]) for k in a)
+
+
 @pytest.mark.parametrize(("name", "discrete", "kind"), CASES, ids=IDS)
 def test_same_seed_same_numbers_other_seed_other_numbers_global_rng_untouched(name, discrete, kind):
     results = []
