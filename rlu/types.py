@@ -224,7 +224,9 @@ class Agent(Protocol):
     behaviour model; 0 for most agents) that the loop runs before, and on top of, them.
     ``modules`` names every torch module the agent owns (targets included) and ``state_dict()``
     holds everything needed to resume bit for bit (plain tensors, numbers and
-    dicts: checkpoints load with ``weights_only=True``).
+    dicts: checkpoints load with ``weights_only=True``), as a snapshot that later updates leave
+    alone; ``load_state_dict`` copies what it is given, so agents loaded from one state in
+    memory share no tensor.
     """
 
     config: Any
