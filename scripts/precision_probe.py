@@ -15,7 +15,11 @@ the gradients each copy's update left on its parameters are compared:
   minibatch changes, the noise every SGD step already has.
 
 A bf16 error well under the batch noise perturbs each step by less than sampling does; one
-near it or above is a change to what the agent learns. docs/devices.md has the figures.
+near it or above is a change to what the agent learns. Rounding that pushes every step the same
+way would add up where sampling noise averages out, so each kind of difference also gets its
+coherence over the pairs: ||mean of the differences|| / mean of their norms, about
+1 / sqrt(pairs) for differences in unrelated directions and 1 for the same one every time.
+docs/devices.md has the figures.
 """
 
 from __future__ import annotations
@@ -55,9 +59,17 @@ def compare(reference: torch.Tensor, other: torch.Tensor) -> tuple[float, float]
     return rel, cos
 
 
+def coherence(differences: list[torch.Tensor]) -> float:
+    """||mean of the vectors|| / mean of their norms: 1 when they all point the same way, about
+    1 / sqrt(n) for n vectors of similar size in unrelated directions."""
+    mean_norm = float(np.mean([d.norm().item() for d in differences]))
+    return torch.stack(differences).mean(0).norm().item() / mean_norm if mean_norm else math.nan
+
+
 def probe(agent_name, ds, preset, at, pairs, seed) -> list[dict]:
-    """Rows of {step, optimizer, bf16_rel, bf16_cos, batch_rel, batch_cos}, each the median
-    over ``pairs`` batch pairs at one step of fp32 training."""
+    """Rows of {step, optimizer, bf16_rel, bf16_cos, batch_rel, batch_cos} (each the median over
+    ``pairs`` batch pairs at one step of fp32 training) and {bf16_coherence,
+    batch_coherence} (of the differences over the pairs)."""
     spec = ds.schema
     agent = make_agent(agent_name, spec.observation, spec.action, preset, seed)
     copy_ = lambda: make_agent(agent_name, spec.observation, spec.action, preset, seed)  # noqa: E731
@@ -70,6 +82,7 @@ def probe(agent_name, ds, preset, at, pairs, seed) -> list[dict]:
             agent.update(train.sample())
         state = agent.state_dict()
         cells: dict[str, list[tuple[float, float, float, float]]] = {}
+        diffs: dict[str, tuple[list[torch.Tensor], list[torch.Tensor]]] = {}
         for i in range(pairs):
             b, b2 = probes.sample(), probes.sample()
             runs = []
@@ -97,10 +110,15 @@ def probe(agent_name, ds, preset, at, pairs, seed) -> list[dict]:
                     cells.setdefault(name, []).append(
                         compare(ref[name], low[name]) + compare(ref[name], other[name])
                     )
+                    low_diffs, batch_diffs = diffs.setdefault(name, ([], []))
+                    low_diffs.append(low[name] - ref[name])
+                    batch_diffs.append(other[name] - ref[name])
         for name, values in cells.items():
             med = np.median(np.array(values), axis=0)
             rows.append({"step": agent.step, "optimizer": name, "bf16_rel": med[0],
-                         "bf16_cos": med[1], "batch_rel": med[2], "batch_cos": med[3]})  # fmt: skip
+                         "bf16_cos": med[1], "batch_rel": med[2], "batch_cos": med[3],
+                         "bf16_coherence": coherence(diffs[name][0]),
+                         "batch_coherence": coherence(diffs[name][1])})  # fmt: skip
     return rows
 
 
@@ -121,14 +139,17 @@ def main() -> None:
         rows = probe(args.agent, ds, args.preset, args.at, args.pairs, args.seed)
     except RluError as e:
         raise SystemExit(f"error: {e}") from None
-    print(f"{args.agent} ({args.preset}) on {args.dataset}; median of {args.pairs} batch pairs")
+    print(f"{args.agent} ({args.preset}) on {args.dataset}; median of {args.pairs} batch pairs; "
+          f"coherence of unrelated differences ~ {1 / math.sqrt(args.pairs):.2f}")  # fmt: skip
     print("| step | optimiser | bf16: rel. error | bf16: cosine | other batch: rel. change "
-          "| other batch: cosine | bf16 / batch |")  # fmt: skip
-    print("|---:|---|---:|---:|---:|---:|---:|")
+          "| other batch: cosine | bf16 / batch | coherence: bf16 "
+          "| coherence: batch |")  # fmt: skip
+    print("|---:|---|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
         print(f"| {r['step']} | {r['optimizer']} | {r['bf16_rel']:.4f} | {r['bf16_cos']:.4f} "
               f"| {r['batch_rel']:.4f} | {r['batch_cos']:.4f} "
-              f"| {r['bf16_rel'] / r['batch_rel']:.3f} |")  # fmt: skip
+              f"| {r['bf16_rel'] / r['batch_rel']:.3f} | {r['bf16_coherence']:.2f} "
+              f"| {r['batch_coherence']:.2f} |")  # fmt: skip
 
 
 if __name__ == "__main__":

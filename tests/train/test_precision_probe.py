@@ -38,6 +38,15 @@ def test_compare_is_the_relative_distance_and_the_cosine():
     assert all(math.isnan(v) for v in mod.compare(torch.zeros(2), x))
 
 
+def test_coherence_is_one_for_one_direction_and_small_for_unrelated_ones():
+    mod = load_script()
+    x = torch.tensor([3.0, 4.0, 0.0, 0.0], dtype=torch.float64)
+    assert mod.coherence([x, 2 * x, 0.5 * x]) == pytest.approx(1.0)
+    assert mod.coherence([x, -x]) == pytest.approx(0.0)
+    basis = list(torch.eye(4, dtype=torch.float64))  # orthogonal, equal norms: 1 / sqrt(4)
+    assert mod.coherence(basis) == pytest.approx(0.5)
+
+
 def test_iql_bf16_gradients_are_close_to_fp32_and_under_the_batch_noise():
     from rlu.data import open_dataset
 
@@ -49,6 +58,7 @@ def test_iql_bf16_gradients_are_close_to_fp32_and_under_the_batch_noise():
         assert r["step"] == 0
         assert 0.0 < r["bf16_rel"] < 0.1 and r["bf16_cos"] > 0.99, r
         assert r["bf16_rel"] < r["batch_rel"], r
+        assert 0.0 < r["bf16_coherence"] <= 1.0 and 0.0 < r["batch_coherence"] <= 1.0, r
 
 
 @pytest.mark.parametrize(
