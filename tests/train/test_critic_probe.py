@@ -3,7 +3,6 @@ run of another agent or data with other observations."""
 
 from __future__ import annotations
 
-import importlib.util
 import re
 import subprocess
 import sys
@@ -11,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from tests.scripts import load_script
 
 ROOT = Path(__file__).resolve().parents[2]
 SCRIPT = ROOT / "scripts" / "d4pg_critic_probe.py"
@@ -31,15 +32,8 @@ def short_run(tmp_path: Path, agent: str, data: Path) -> Path:
     return tmp_path / agent.split(".")[-1]
 
 
-def load_script():
-    spec = importlib.util.spec_from_file_location("d4pg_critic_probe", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 def test_discounted_returns_match_the_closed_form():
-    mod = load_script()
+    mod = load_script("d4pg_critic_probe")
     g, n = 0.99, 50
     expected = (1 - g ** (n - np.arange(n))) / (1 - g)  # reward 1 on every one of n steps
     np.testing.assert_allclose(mod.discounted_returns(np.ones(n), g), expected, rtol=1e-12)
@@ -68,7 +62,7 @@ def test_probe_reads_a_d4pg_run_and_refuses_other_runs_and_data(tmp_path):
         head.linear.bias.fill_(-50.0)
         head.linear.bias[40] = 50.0
     ds = open_dataset(str(data))
-    r = load_script().measure(agent, ds, episodes=10)
+    r = load_script("d4pg_critic_probe").measure(agent, ds, episodes=10)
     for name in ("data", "policy", "random"):
         np.testing.assert_allclose(r[name], float(head.atoms[40]), rtol=1e-5)
     g = agent.config.gamma

@@ -4,13 +4,14 @@ away from fp32's; the same arithmetic without it is about 1 % away)."""
 
 from __future__ import annotations
 
-import importlib.util
 import math
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+
+from tests.scripts import load_script
 
 torch = pytest.importorskip("torch")
 
@@ -19,15 +20,8 @@ SCRIPT = ROOT / "scripts" / "precision_probe.py"
 DATA = ROOT / "rlu" / "resources" / "datasets" / "control_suite" / "cartpole_swingup"
 
 
-def load_script():
-    spec = importlib.util.spec_from_file_location("precision_probe", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 def test_compare_is_the_relative_distance_and_the_cosine():
-    mod = load_script()
+    mod = load_script("precision_probe")
     x = torch.tensor([3.0, 4.0], dtype=torch.float64)
     assert mod.compare(x, x) == pytest.approx((0.0, 1.0))
     assert mod.compare(x, 2 * x) == pytest.approx((1.0, 1.0))
@@ -39,7 +33,7 @@ def test_compare_is_the_relative_distance_and_the_cosine():
 
 
 def test_coherence_is_one_for_one_direction_and_small_for_unrelated_ones():
-    mod = load_script()
+    mod = load_script("precision_probe")
     x = torch.tensor([3.0, 4.0, 0.0, 0.0], dtype=torch.float64)
     assert mod.coherence([x, 2 * x, 0.5 * x]) == pytest.approx(1.0)
     assert mod.coherence([x, -x]) == pytest.approx(0.0)
@@ -50,7 +44,7 @@ def test_coherence_is_one_for_one_direction_and_small_for_unrelated_ones():
 def test_iql_bf16_gradients_are_close_to_fp32_and_under_the_batch_noise():
     from rlu.data import open_dataset
 
-    mod = load_script()
+    mod = load_script("precision_probe")
     torch.set_num_threads(1)
     rows = mod.probe("iql", open_dataset(DATA), "small", [0], pairs=2, seed=0)
     assert {r["optimizer"] for r in rows} == {"value", "critic", "policy"}
