@@ -113,8 +113,9 @@ def numerics(runtime: Runtime) -> Iterator[Callable[[], Any]]:
             # cache_enabled=False: autocast's cache keeps the bf16 copy of each parameter for the
             # whole context, and an update's optimiser steps change the parameters in place, so
             # with the cache every forward after a step (IQL's Q target from the V it just
-            # stepped, BCQ's and CRR's actor losses on the stepped critic) read the weights from
-            # before it. Recasting each time cost nothing measurable (bench/README.md).
+            # stepped, BCQ's actor loss on its stepped critic and VAE, D4PG's and BRAC's policy
+            # losses on the stepped critic) read the weights from before it. Recasting at each
+            # use ran at 0.99-1.07x the cached speed (docs/devices.md).
             yield lambda: torch.autocast(device.type, dtype=torch.bfloat16, cache_enabled=False)
         else:
             yield contextlib.nullcontext
