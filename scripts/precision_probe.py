@@ -25,6 +25,7 @@ docs/devices.md has the figures.
 from __future__ import annotations
 
 import argparse
+import functools
 import math
 
 import numpy as np
@@ -71,8 +72,8 @@ def probe(agent_name, ds, preset, at, pairs, seed) -> list[dict]:
     ``pairs`` batch pairs at one step of fp32 training) and {bf16_coherence,
     batch_coherence} (of the differences over the pairs)."""
     spec = ds.schema
-    agent = make_agent(agent_name, spec.observation, spec.action, preset, seed)
-    copy_ = lambda: make_agent(agent_name, spec.observation, spec.action, preset, seed)  # noqa: E731
+    build = functools.partial(make_agent, agent_name, spec.observation, spec.action, preset, seed)
+    agent = build()
     train = make_sampler(ds, agent.batch_spec, seed=seed)
     probes = make_sampler(ds, agent.batch_spec, seed=seed + 1)
     bf16 = Runtime(precision="bf16").resolve()
@@ -90,7 +91,7 @@ def probe(agent_name, ds, preset, at, pairs, seed) -> list[dict]:
             # mean anything (same weights, optimiser states and generators)
             plan = ((b, False), (b, True), (b2, False)) + (((b, False),) if i == 0 else ())
             for batch, low in plan:
-                twin = copy_()
+                twin = build()
                 twin.load_state_dict(state)
                 if low:
                     with numerics(bf16) as context, context():
