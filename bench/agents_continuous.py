@@ -242,6 +242,7 @@ def minimal_bcq(c, seed: int = 0):
     opt_v = adam([*enc.parameters(), *dec.parameters()], c.vae_lr)
     actor_params = list(actor.parameters())
     steps = [0]
+    rows = c.cpu_slice_rows or c.num_samples * c.batch_size
 
     def decode(x):
         z = torch.randn((x.shape[0], lat), generator=g).clamp(-0.5, 0.5)
@@ -258,12 +259,18 @@ def minimal_bcq(c, seed: int = 0):
                                          -1)))  # fmt: skip
         kl = -0.5 * (1 + torch.log(std.pow(2)) - mean.pow(2) - std.pow(2)).mean()
         step(opt_v, F.mse_loss(recon, a) + 0.5 * kl)
-        with torch.no_grad():
+        with torch.no_grad():  # in slices of c.cpu_slice_rows rows, as rlu's BCQ on a CPU
             nxr = nx.repeat_interleave(c.num_samples, 0)
-            na = perturb(t_actor, nxr, decode(nxr))
-            nsa = torch.cat([nxr, na], -1)
-            v1, v2 = t_q1(nsa).squeeze(-1), t_q2(nsa).squeeze(-1)
-            v = c.lmbda * torch.minimum(v1, v2) + (1 - c.lmbda) * torch.maximum(v1, v2)
+            z = torch.randn((nxr.shape[0], lat), generator=g).clamp(-0.5, 0.5)
+            values = []
+            for nx_i, z_i in zip(nxr.split(rows), z.split(rows), strict=True):
+                na = perturb(t_actor, nx_i, torch.tanh(dec(torch.cat([nx_i, z_i], -1))))
+                nsa = torch.cat([nx_i, na], -1)
+                v1, v2 = t_q1(nsa).squeeze(-1), t_q2(nsa).squeeze(-1)
+                values.append(
+                    c.lmbda * torch.minimum(v1, v2) + (1 - c.lmbda) * torch.maximum(v1, v2)
+                )
+            v = torch.cat(values)
             y = r + c.gamma * d * v.reshape(-1, c.num_samples).amax(1)
         xa = torch.cat([x, a], -1)
         loss_c = (q1(xa).squeeze(-1) - y).pow(2).mean() + (q2(xa).squeeze(-1) - y).pow(2).mean()

@@ -29,7 +29,7 @@ from torch import nn
 from rlu.agents import common
 from rlu.agents import networks as nets
 from rlu.agents.losses import vae_loss
-from rlu.types import BatchSpec, Transition
+from rlu.types import BatchSpec, RluError, Transition
 
 
 @dataclass(frozen=True)
@@ -48,6 +48,12 @@ class BCQConfig:
     """Weight of the min in the soft clipped double-Q target."""
     num_samples: int = 10
     """VAE actions sampled per next state (target) and per state (acting)."""
+    cpu_slice_rows: int = 640
+    """On a CPU, the target pass (``num_samples`` x batch rows through the VAE decoder, the
+    perturbation network and both target critics, no gradients) runs in slices of this many
+    rows, so that one slice's activations stay in the core's cache: the same values up to float
+    rounding, the whole update 1.16x faster at the paper's sizes (docs/agents.md). 0, or a GPU:
+    one pass over all rows."""
     gamma: float = 0.99
     """Discount."""
     target_update_period: int = 100
@@ -66,6 +72,14 @@ class BCQConfig:
     num_steps: int = 1_000_000
     """Learner steps of a full run: what ``rlu train`` runs when no --steps is given. The paper
     states no budget for the continuous baselines; 1M is rlu's choice."""
+
+    def __post_init__(self) -> None:
+        rows = self.cpu_slice_rows
+        if isinstance(rows, bool) or not isinstance(rows, int | np.integer) or rows < 0:
+            raise RluError(
+                f"BCQ config cpu_slice_rows={rows!r}: use a whole number of rows >= 1, or 0 for "
+                "one pass over all rows"
+            )
 
 
 Config = BCQConfig
@@ -93,9 +107,13 @@ class VAE(nn.Module):
 
     def decode(self, s, generator: torch.Generator | None = None, z=None) -> torch.Tensor:
         if z is None:
-            z = torch.randn((s.shape[0], self.latent_dim), generator=generator, device=s.device)
-            z = z.clamp(-0.5, 0.5)
+            z = self.prior_latent(s.shape[0], generator, s.device)
         return torch.tanh(self.decoder(torch.cat([s, z], -1)))
+
+    def prior_latent(self, rows: int, generator: torch.Generator, device) -> torch.Tensor:
+        """Latents for decoding without an action: N(0, 1) clipped to [-0.5, 0.5] (BCQ's)."""
+        z = torch.randn((rows, self.latent_dim), generator=generator, device=device)
+        return z.clamp(-0.5, 0.5)
 
 
 class BCQNets(nn.Module):
@@ -180,13 +198,7 @@ class BCQAgent:
         common.sgd_step(self.optimizers["vae"], loss_v)
 
         with torch.no_grad():
-            reps = c.num_samples
-            sv = n.vae_enc(next_obs).repeat_interleave(reps, 0)  # the online VAE, as the original
-            sa = t.actor_enc(next_obs).repeat_interleave(reps, 0)
-            sc = t.critic_enc(next_obs).repeat_interleave(reps, 0)
-            next_a = t.perturb(sa, n.vae.decode(sv, g), c.phi)
-            q1_t, q2_t = t.q(sc, next_a)
-            q_t = clipped_double_q(q1_t, q2_t, c.lmbda).reshape(batch_size, reps).amax(1)
+            q_t = self.next_value(next_obs).reshape(batch_size, c.num_samples).amax(1)
             target_q = reward + c.gamma * discount * q_t
         s_c = n.critic_enc(obs)
         loss_c, m = critic_loss(*n.q(s_c, action), target_q)
@@ -207,6 +219,24 @@ class BCQAgent:
         else:
             common.soft_updates(pairs, c.tau)
         return common.metrics_to_floats(metrics)
+
+    def next_value(self, next_obs) -> torch.Tensor:
+        """Soft clipped double-Q of ``num_samples`` perturbed VAE actions per next state, as
+        (batch * num_samples,) rows; on a CPU in slices of ``cpu_slice_rows`` rows. The latents
+        are drawn for all rows at once, so slicing leaves the random stream as it is."""
+        c, n, t, reps = self.config, self.nets, self.target, self.config.num_samples
+        sv = n.vae_enc(next_obs).repeat_interleave(reps, 0)  # the online VAE, as the original
+        sa = t.actor_enc(next_obs).repeat_interleave(reps, 0)
+        sc = t.critic_enc(next_obs).repeat_interleave(reps, 0)
+        z = n.vae.prior_latent(sv.shape[0], self.generator, sv.device)
+        rows = c.cpu_slice_rows if self.device.type == "cpu" and c.cpu_slice_rows else len(sv)
+        values = []
+        for sv_i, sa_i, sc_i, z_i in zip(
+            sv.split(rows), sa.split(rows), sc.split(rows), z.split(rows), strict=True
+        ):
+            next_a = t.perturb(sa_i, n.vae.decode(sv_i, z=z_i), c.phi)
+            values.append(clipped_double_q(*t.q(sc_i, next_a), c.lmbda))
+        return torch.cat(values)
 
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:

@@ -13,6 +13,7 @@ from torch import nn  # noqa: E402
 
 from rlu.agents import bcq, common, make_agent  # noqa: E402
 from rlu.agents import discrete_common as dc  # noqa: E402
+from rlu.types import RluError  # noqa: E402
 from tests.fakes import CONT_ACTION, LOWDIM_OBS, fake_transition  # noqa: E402
 
 
@@ -91,6 +92,33 @@ def test_bcq_targets_follow_the_parts_they_are_read_through():
     s, a = torch.randn(5, 24), torch.rand(5, 3) * 2 - 1
     assert torch.equal(nets.q_first(s, a), nets.q(s, a)[0])
     assert set(bcq.BCQNets.target_parts(nets)) == {"actor_enc", "actor", "critic_enc", "q1", "q2"}
+
+
+def test_bcq_target_pass_in_slices_gives_the_one_pass_values_and_random_stream():
+    sizes = dict(actor_layers=(16,), critic_layers=(16,), vae_layers=(16,), num_samples=10)
+    whole = make_agent("bcq", LOWDIM_OBS, CONT_ACTION, "small", cpu_slice_rows=0, **sizes)
+    sliced = make_agent("bcq", LOWDIM_OBS, CONT_ACTION, "small", cpu_slice_rows=7, **sizes)
+    sliced.load_state_dict(whole.state_dict())
+    batch = fake_transition(LOWDIM_OBS, CONT_ACTION, batch=6, seed=2)
+    calls = {"whole": 0, "sliced": 0}
+    for key, agent in (("whole", whole), ("sliced", sliced)):
+        agent.target.q1.register_forward_hook(lambda *_, k=key: calls.__setitem__(k, calls[k] + 1))
+    with torch.no_grad():
+        values = [a.next_value(common.to_torch(batch.next_observation)) for a in (whole, sliced)]
+    assert calls == {"whole": 1, "sliced": 9}  # 60 rows: 8 slices of 7 and one of 4
+    assert values[0].shape == (60,)
+    torch.testing.assert_close(values[1], values[0], rtol=1e-6, atol=1e-6)
+    # the latents are drawn for all rows at once: the generators stay in step
+    assert torch.equal(whole.generator.get_state(), sliced.generator.get_state())
+    whole.update(batch), sliced.update(batch)
+    for p, q in zip(whole.nets.parameters(), sliced.nets.parameters(), strict=True):
+        torch.testing.assert_close(q, p, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("rows", [-1, 2.5, True])
+def test_bcq_refuses_a_slice_that_is_not_a_row_count(rows):
+    with pytest.raises(RluError, match="cpu_slice_rows"):
+        make_agent("bcq", LOWDIM_OBS, CONT_ACTION, "small", cpu_slice_rows=rows)
 
 
 def test_encoder_flatten_once_gives_the_features_of_every_dict_pass():
