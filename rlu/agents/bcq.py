@@ -52,8 +52,8 @@ class BCQConfig:
     """On a CPU, the target pass (``num_samples`` x batch rows through the VAE decoder, the
     perturbation network and both target critics, no gradients) runs in slices of this many
     rows, so that one slice's activations stay in the core's cache: the same values up to float
-    rounding, the whole update 1.16x faster at the paper's sizes (docs/agents.md). 0, or a GPU:
-    one pass over all rows."""
+    rounding, the whole update 1.16x faster at the paper's widths and batch 256 (docs/agents.md).
+    0, or a GPU: one pass over all rows."""
     gamma: float = 0.99
     """Discount."""
     target_update_period: int = 100

@@ -1,6 +1,7 @@
 """The helper stack's fast paths give the numbers of the plain forms they replace: metrics read
 per item on the CPU, one foreach Polyak step over several target pairs, frames converted once
-per batch (either layout), BCQ's targets kept for the parts that are read."""
+per batch (either layout), BCQ's targets kept for the parts that are read, BCQ's target pass
+in slices."""
 
 from __future__ import annotations
 
@@ -110,7 +111,8 @@ def test_bcq_target_pass_in_slices_gives_the_one_pass_values_and_random_stream()
     torch.testing.assert_close(values[1], values[0], rtol=1e-6, atol=1e-6)
     # the latents are drawn for all rows at once: the generators stay in step
     assert torch.equal(whole.generator.get_state(), sliced.generator.get_state())
-    whole.update(batch), sliced.update(batch)
+    whole.update(batch)
+    sliced.update(batch)
     for p, q in zip(whole.nets.parameters(), sliced.nets.parameters(), strict=True):
         torch.testing.assert_close(q, p, rtol=1e-5, atol=1e-6)
 
