@@ -27,8 +27,8 @@ comparisons: "bc (preset)" (rlu's mixture on the residual MLP against d3rlpy's d
 MLP) and "bc (same network)" (rlu with one mixture component, d3rlpy with rlu's residual MLP as
 its encoder: the same layers, a Gaussian head each; the losses still differ: rlu maximises the
 log-likelihood, d3rlpy's stochastic BC regresses a sampled action onto the data's). BCQ, IQL,
-CQL and CRR run with d3rlpy's vector encoders at rlu's widths. d4pg, brac and rabm have no d3rlpy
-counterpart: rlu and its minimal loop only.
+CQL and CRR run with d3rlpy's vector encoders at rlu's widths. d4pg, brac, rabm and dmpo (the
+RWRL data's behaviour agent) have no d3rlpy counterpart: rlu and its minimal loop only.
 
 Timing (bench/agents_timing.py): "sample + update" and "update only", updates per CPU-second of
 the process (and wall), one over the median time of an update in many short interleaved rounds,
@@ -87,6 +87,7 @@ SETTINGS: dict[str, dict] = {
     "crr": dict(hidden_size=256, num_layers=2),  # the paper's 8 x 1024 as BC's: 256 x 2 here
     "iql": dict(),
     "cql": dict(bc_steps=0),  # time the full update, not the behaviour-cloning phase
+    "dmpo": dict(),  # the RWRL data's behaviour agent (online in rlu generate): its learner step
 }
 
 
@@ -334,6 +335,94 @@ def minimal_d4pg(c, seed: int = 0):
         return loss_c.item()
 
     return update, nn.ModuleList([policy, critic])
+
+
+def minimal_dmpo(c, seed: int = 0):
+    """DMPO: the target critic on N target-policy actions per next state (whole samples of
+    c.cpu_slice_rows rows at a time, as rlu on a CPU), the projected critic loss on their mean
+    distribution, MPO's E-step and action-penalty E-step, the decoupled M-step with per-dimension
+    KL multipliers, one backward, global-norm clipping, hard target copies."""
+    torch.manual_seed(seed)
+    g = torch.Generator().manual_seed(seed)
+    width = c.policy_layers[-1]
+    policy = nn.ModuleList([layer_norm_mlp(OBS_DIM, c.policy_layers), nn.Linear(width, ACT_DIM),
+                            nn.Linear(width, ACT_DIM)])  # fmt: skip
+    with torch.no_grad():
+        for layer in policy[1:]:
+            layer.weight.mul_(1e-4)
+            layer.bias.zero_()
+    critic = nn.Sequential(layer_norm_mlp(OBS_DIM + ACT_DIM, c.critic_layers),
+                           nn.Linear(c.critic_layers[-1], c.num_atoms))  # fmt: skip
+    t_policy, t_critic = frozen(policy), frozen(critic)
+    duals = nn.ParameterList([
+        nn.Parameter(torch.tensor(c.init_log_temperature)),
+        nn.Parameter(torch.tensor(c.init_log_temperature)),
+        nn.Parameter(torch.full((ACT_DIM,), c.init_log_alpha_mean)),
+        nn.Parameter(torch.full((ACT_DIM,), c.init_log_alpha_stddev)),
+    ])  # fmt: skip
+    opts = (adam(policy.parameters(), c.policy_lr), adam(critic.parameters(), c.critic_lr),
+            adam(duals.parameters(), c.dual_lr))  # fmt: skip
+    atoms = torch.linspace(c.vmin, c.vmax, c.num_atoms)
+    scale, n, bootstrap = c.init_scale / math.log(2.0), c.num_samples, c.gamma**c.n_step
+    per = max(1, (c.cpu_slice_rows or n * c.batch_size) // c.batch_size)
+    steps = [0]
+
+    def pi(net, x):
+        h = net[0](x)
+        return net[1](h), F.softplus(net[2](h)) * scale + c.min_scale
+
+    def e_step(q, temperature, epsilon):
+        dual = temperature * (epsilon + (torch.logsumexp(q / temperature, 0) - math.log(n)).mean())
+        return torch.softmax(q / temperature, 0).detach(), dual
+
+    def kl(mean_p, std_p, mean_q, std_q):  # per dimension
+        return (
+            (std_q / std_p).log()
+            + (std_p.pow(2) + (mean_p - mean_q).pow(2)) / (2 * std_q.pow(2))
+            - 0.5
+        )
+
+    def update(batch):
+        x, a, r, d, nx = tensors(batch)
+        with torch.no_grad():
+            for p in duals:
+                p.clamp_(min=-18.0)
+            t_mean, t_std = pi(t_policy, nx)
+            sampled = t_mean + t_std * torch.randn((n, *t_mean.shape), generator=g)
+            logits = torch.cat([t_critic(torch.cat([nx.expand(k.shape[0], -1, -1),
+                                                    k.clamp(-1, 1)], -1))
+                                for k in sampled.split(per)])  # fmt: skip
+            probs = torch.softmax(logits, -1)
+            q = (probs * atoms).sum(-1)
+            target = project(r[:, None] + bootstrap * d[:, None] * atoms, probs.mean(0), atoms)
+        loss_c = -(target * F.log_softmax(critic(torch.cat([x, a.clamp(-1, 1)], -1)), -1)).sum(-1)
+        mean, std = pi(policy, nx)
+        temperature, penalty, alpha_mean, alpha_std = (F.softplus(p) + 1e-8 for p in duals)
+        w, loss_t = e_step(q, temperature, c.epsilon)
+        cost = -torch.linalg.vector_norm(sampled - sampled.clamp(-1, 1), dim=-1)
+        pw, loss_pen = e_step(cost, penalty, c.epsilon_penalty)
+        log_p = gaussian_log_prob(mean, t_std, sampled) + gaussian_log_prob(t_mean, std, sampled)
+        loss_pi = -((w + pw) * log_p).sum(0).mean()
+        kl_mean = kl(t_mean, t_std, mean, t_std).mean(0)
+        kl_std = kl(t_mean, t_std, t_mean, std).mean(0)
+        loss_kl = (alpha_mean.detach() * kl_mean).sum() + (alpha_std.detach() * kl_std).sum()
+        loss_alpha = (alpha_mean * (c.epsilon_mean - kl_mean.detach())).sum() + (
+            alpha_std * (c.epsilon_stddev - kl_std.detach())
+        ).sum()
+        for opt in opts:
+            opt.zero_grad(set_to_none=True)
+        (loss_c.mean() + loss_pi + loss_kl + loss_alpha + loss_t + loss_pen).backward()
+        nn.utils.clip_grad_norm_(policy.parameters(), c.max_grad_norm, foreach=True)
+        nn.utils.clip_grad_norm_(critic.parameters(), c.max_grad_norm, foreach=True)
+        for opt in opts:
+            opt.step()
+        steps[0] += 1
+        if steps[0] % c.target_update_period == 0:
+            copy_into(t_policy, policy)
+            copy_into(t_critic, critic)
+        return loss_pi.item()
+
+    return update, nn.ModuleList([policy, critic, duals])
 
 
 def minimal_brac(c, seed: int = 0):
@@ -669,6 +758,7 @@ MINIMAL = {
     "d4pg": minimal_d4pg,
     "brac": minimal_brac,
     "rabm": minimal_rabm,
+    "dmpo": minimal_dmpo,
 }
 
 

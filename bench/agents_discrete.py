@@ -24,7 +24,8 @@ time, 6 actions), written with rlu's writer; every contestant samples the same s
   ``cql`` with ``DiscreteCQL`` (d3rlpy runs the Q-network on the observations twice with
   gradients, rlu once), ``iqn`` with d3rlpy's DQN on its ``IQNQFunctionFactory`` (the same
   quantile count and embedding; its target runs the target network twice, rlu's once). ``rem``
-  has no d3rlpy counterpart.
+  and ``dopamine_dqn`` (the Atari data's behaviour agent: TF1's centered RMSProp, whose epsilon
+  sits inside the square root, unlike torch's and d3rlpy's RMSprop) have no d3rlpy counterpart.
 
 Timing (bench/agents_timing.py): "sample + update" and "update only", updates per CPU-second of
 the process (and wall), one over the median time of an update in many short interleaved rounds,
@@ -35,6 +36,7 @@ d3rlpy's sampler casts frames to float32 itself, so its "update only" starts fro
 from __future__ import annotations
 
 import argparse
+import copy
 import dataclasses
 import logging
 import math
@@ -76,6 +78,7 @@ AGENT_SETTINGS: dict[str, tuple[str, dict]] = {
     "cql": ("cql", {}),
     "iqn": ("iqn", {}),
     "rem": ("rem", {}),
+    "dopamine_dqn": ("dopamine_dqn", {}),
 }
 
 
@@ -152,8 +155,6 @@ class Loop:
         self.net, self.c = net, c
         self.target = None
         if target:
-            import copy
-
             self.target = copy.deepcopy(net).requires_grad_(False)
         self.opt = torch.optim.Adam(net.parameters(), lr=c.learning_rate, eps=c.atari.adam_eps,
                                     fused=True)  # fmt: skip
@@ -309,6 +310,47 @@ def minimal_rem(c):
     return update, loop.net
 
 
+def minimal_dopamine_dqn(c):
+    """Dopamine's DQN (the Atari data's behaviour agent): DQN's loss without double Q, stepped by
+    TF1's centered RMSProp written out with foreach ops (the mean square started at 1, epsilon
+    inside the square root, plain momentum), hard target copies."""
+    torch.manual_seed(0)
+    s = c.atari
+    net = q_net(s, NUM_ACTIONS)
+    target = copy.deepcopy(net).requires_grad_(False)
+    params = list(net.parameters())
+    ms = [torch.ones_like(p) for p in params]
+    mg, mom = [torch.zeros_like(p) for p in params], [torch.zeros_like(p) for p in params]
+    rate, gamma, steps = 1.0 - c.rmsprop_decay, s.gamma**s.n_step, [0]
+
+    def update(batch):
+        x, a, r, d, x2 = prepare(batch)
+        q_taken = net(x).gather(1, a[:, None]).squeeze(1)
+        with torch.no_grad():
+            y = r + gamma * d * target(x2).max(1).values
+        loss = huber(y - q_taken, s.huber_delta).mean()
+        for p in params:
+            p.grad = None
+        loss.backward()
+        with torch.no_grad():
+            grads = [p.grad for p in params]
+            torch._foreach_lerp_(ms, torch._foreach_mul(grads, grads), rate)
+            torch._foreach_lerp_(mg, grads, rate)
+            root = torch._foreach_addcmul(ms, mg, mg, value=-1.0)
+            torch._foreach_add_(root, c.rmsprop_epsilon)
+            torch._foreach_sqrt_(root)
+            torch._foreach_mul_(mom, c.rmsprop_momentum)
+            torch._foreach_addcdiv_(mom, grads, root, value=c.learning_rate)
+            torch._foreach_sub_(params, mom)
+        steps[0] += 1
+        if steps[0] % s.target_update_period == 0:
+            with torch.no_grad():
+                torch._foreach_copy_(list(target.parameters()), params)
+        return loss.item()
+
+    return update, net
+
+
 MINIMAL = {
     "bc": minimal_bc,
     "dqn": lambda c: minimal_q(c, "dqn"),
@@ -317,6 +359,7 @@ MINIMAL = {
     "bcq": minimal_bcq,
     "iqn": minimal_iqn,
     "rem": minimal_rem,
+    "dopamine_dqn": minimal_dopamine_dqn,
 }
 
 

@@ -29,7 +29,7 @@ from torch import nn
 from rlu.agents import common
 from rlu.agents import networks as nets
 from rlu.agents.losses import vae_loss
-from rlu.types import BatchSpec, RluError, Transition
+from rlu.types import BatchSpec, Transition
 
 
 @dataclass(frozen=True)
@@ -74,12 +74,7 @@ class BCQConfig:
     states no budget for the continuous baselines; 1M is rlu's choice."""
 
     def __post_init__(self) -> None:
-        rows = self.cpu_slice_rows
-        if isinstance(rows, bool) or not isinstance(rows, int | np.integer) or rows < 0:
-            raise RluError(
-                f"BCQ config cpu_slice_rows={rows!r}: use a whole number of rows >= 1, or 0 for "
-                "one pass over all rows"
-            )
+        common.slice_rows("BCQ", self.cpu_slice_rows)
 
 
 Config = BCQConfig
@@ -229,7 +224,7 @@ class BCQAgent:
         sa = t.actor_enc(next_obs).repeat_interleave(reps, 0)
         sc = t.critic_enc(next_obs).repeat_interleave(reps, 0)
         z = n.vae.prior_latent(sv.shape[0], self.generator, sv.device)
-        rows = c.cpu_slice_rows if self.device.type == "cpu" and c.cpu_slice_rows else len(sv)
+        rows = common.cpu_slices(self.device, c.cpu_slice_rows, len(sv))
         values = []
         for sv_i, sa_i, sc_i, z_i in zip(
             sv.split(rows), sa.split(rows), sc.split(rows), z.split(rows), strict=True

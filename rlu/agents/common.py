@@ -37,7 +37,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from rlu.types import resolve_device
+from rlu.types import RluError, resolve_device
 
 Metrics = dict[str, torch.Tensor]
 
@@ -118,6 +118,23 @@ def sgd_step(
         return
     loss.backward(inputs=inputs)
     optimizer.step()
+
+
+def slice_rows(agent: str, rows: Any) -> int:
+    """A config's ``cpu_slice_rows`` checked: a whole number >= 0 (0: one pass over all rows)."""
+    if isinstance(rows, bool) or not isinstance(rows, int | np.integer) or rows < 0:
+        raise RluError(
+            f"{agent} config cpu_slice_rows={rows!r}: use a whole number of rows >= 1, or 0 for "
+            "one pass over all rows"
+        )
+    return int(rows)
+
+
+def cpu_slices(device: torch.device, rows: int, total: int) -> int:
+    """Rows per slice of a no-gradient pass over ``total`` rows: ``rows`` on a CPU (so that one
+    slice's activations stay in the core's cache, docs/agents.md), all of them on other devices
+    or when ``rows`` is 0."""
+    return rows if device.type == "cpu" and rows else max(total, 1)
 
 
 def frozen_copy(module: nn.Module) -> nn.Module:

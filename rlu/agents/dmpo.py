@@ -84,6 +84,10 @@ class DMPOConfig:
     """Steps of the n-step return."""
     num_samples: int = 20
     """Actions sampled from the target policy per state (critic target, E-step, M-step)."""
+    cpu_slice_rows: int = 512
+    """On a CPU, the target critic's pass over the ``num_samples`` x batch sampled actions (no
+    gradients) runs in slices of whole samples, max(1, this // batch) samples a slice, so that
+    one slice's activations stay in the core's cache (docs/agents.md). 0, or a GPU: one pass."""
     epsilon: float = 0.1
     """KL bound of the E-step (temperature dual)."""
     epsilon_penalty: float = 1e-3
@@ -112,6 +116,9 @@ class DMPOConfig:
     """Transitions per update."""
     num_steps: int = 1_000_000
     """Learner steps of a full run (what ``rlu train`` runs when no --steps is given)."""
+
+    def __post_init__(self) -> None:
+        common.slice_rows("DMPO", self.cpu_slice_rows)
 
 
 Config = DMPOConfig
@@ -157,7 +164,10 @@ class Critic(nn.Module):
     def forward(self, obs, action: torch.Tensor) -> torch.Tensor:
         """Logits of (B, A) or (N, B, A) actions at (B, ...) states; actions clipped to
         [-1, 1] first (Acme's ClipToSpec)."""
-        s = self.encoder(obs)
+        return self.logits(self.encoder(obs), action)
+
+    def logits(self, s: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """``forward`` from the encoded states ``s`` (B, F)."""
         sa = torch.cat([s.expand(*action.shape[:-1], s.shape[-1]), action.clamp(-1.0, 1.0)], -1)
         return self.head(self.mlp(sa))
 
@@ -272,7 +282,7 @@ class DMPOAgent:
             target_mean, target_std = self.target_policy(next_obs)
             noise = torch.randn((n, *target_mean.shape), generator=self.generator, device=d)
             sampled = target_mean + target_std * noise  # (N, B, A), not clipped
-            sampled_logits = self.target_critic(next_obs, sampled)  # (N, B, K)
+            sampled_logits = self.sampled_logits(next_obs, sampled)  # (N, B, K)
             q_values = (torch.softmax(sampled_logits, -1) * atoms).sum(-1)  # (N, B)
 
         loss_c, metrics = critic_loss(self.critic(obs, action), sampled_logits, reward, discount,
@@ -299,6 +309,14 @@ class DMPOAgent:
             {self.target_policy: self.policy, self.target_critic: self.critic},
         )  # fmt: skip
         return common.metrics_to_floats(metrics)
+
+    def sampled_logits(self, next_obs, sampled: torch.Tensor) -> torch.Tensor:
+        """The target critic's logits (N, B, K) of the (N, B, A) sampled actions: the states
+        encoded once, then on a CPU whole samples at a time, about ``cpu_slice_rows`` rows."""
+        critic, (n, b) = self.target_critic, sampled.shape[:2]
+        s = critic.encoder(next_obs)
+        per = max(1, common.cpu_slices(self.device, self.config.cpu_slice_rows, n * b) // b)
+        return torch.cat([critic.logits(s, a) for a in sampled.split(per)])
 
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:

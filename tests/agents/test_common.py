@@ -1,7 +1,7 @@
 """The helper stack's fast paths give the numbers of the plain forms they replace: metrics read
 per item on the CPU, one foreach Polyak step over several target pairs, frames converted once
-per batch (either layout), BCQ's targets kept for the parts that are read, BCQ's target pass
-in slices."""
+per batch (either layout), BCQ's targets kept for the parts that are read, BCQ's and DMPO's
+target passes in slices."""
 
 from __future__ import annotations
 
@@ -117,10 +117,38 @@ def test_bcq_target_pass_in_slices_gives_the_one_pass_values_and_random_stream()
         torch.testing.assert_close(q, p, rtol=1e-5, atol=1e-6)
 
 
+def test_dmpo_target_critic_in_slices_of_whole_samples_gives_the_one_pass_logits():
+    sizes = dict(policy_layers=(16,), critic_layers=(16,), num_samples=10)
+    whole = make_agent("dmpo", LOWDIM_OBS, CONT_ACTION, "small", cpu_slice_rows=0, **sizes)
+    sliced = make_agent("dmpo", LOWDIM_OBS, CONT_ACTION, "small", cpu_slice_rows=13, **sizes)
+    sliced.load_state_dict(whole.state_dict())
+    batch = fake_transition(LOWDIM_OBS, CONT_ACTION, batch=6, seed=3)
+    calls = {"whole": [], "sliced": []}
+    for key, agent in (("whole", whole), ("sliced", sliced)):
+        agent.target_critic.head.register_forward_hook(
+            lambda _m, args, _out, k=key: calls[k].append(tuple(args[0].shape))
+        )
+    next_obs = common.to_torch(batch.next_observation)
+    actions = torch.randn(10, 6, 3)
+    with torch.no_grad():
+        logits = [a.sampled_logits(next_obs, actions) for a in (whole, sliced)]
+    # 13 rows of 6 states: 2 whole samples a slice, 5 slices
+    assert calls == {"whole": [(10, 6, 16)], "sliced": [(2, 6, 16)] * 5}
+    assert logits[0].shape == (10, 6, whole.config.num_atoms)
+    torch.testing.assert_close(logits[1], logits[0], rtol=1e-6, atol=1e-6)
+    whole.update(batch)
+    sliced.update(batch)
+    for p, q in zip(whole.policy.parameters(), sliced.policy.parameters(), strict=True):
+        torch.testing.assert_close(q, p, rtol=1e-5, atol=1e-6)
+    for p, q in zip(whole.critic.parameters(), sliced.critic.parameters(), strict=True):
+        torch.testing.assert_close(q, p, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("agent", ["bcq", "dmpo"])
 @pytest.mark.parametrize("rows", [-1, 2.5, True])
-def test_bcq_refuses_a_slice_that_is_not_a_row_count(rows):
+def test_a_slice_that_is_not_a_row_count_is_refused(agent, rows):
     with pytest.raises(RluError, match="cpu_slice_rows"):
-        make_agent("bcq", LOWDIM_OBS, CONT_ACTION, "small", cpu_slice_rows=rows)
+        make_agent(agent, LOWDIM_OBS, CONT_ACTION, "small", cpu_slice_rows=rows)
 
 
 def test_encoder_flatten_once_gives_the_features_of_every_dict_pass():
