@@ -163,6 +163,26 @@ def lerp_into(target: nn.Module, source: nn.Module, tau: float) -> None:
         torch._foreach_lerp_(list(target.parameters()), list(source.parameters()), tau)
 
 
+def step_together(opts, loss, clipped=(), max_norm: float = 0.0) -> None:
+    """One backward for several optimisers (each loss reaches only its own parameters), the
+    parameter groups in ``clipped`` clipped to global norm ``max_norm``, then every step."""
+    for opt in opts:
+        opt.zero_grad(set_to_none=True)
+    loss.backward()
+    for params in clipped:
+        nn.utils.clip_grad_norm_(params, max_norm, foreach=True)
+    for opt in opts:
+        opt.step()
+
+
+def copy_every(steps: list[int], period: int, pairs: dict) -> None:
+    """Count the update; hard-copy each source into its target every ``period`` updates."""
+    steps[0] += 1
+    if steps[0] % period == 0:
+        for target, source in pairs.items():
+            copy_into(target, source)
+
+
 def frozen(module: nn.Module) -> nn.Module:
     import copy
 
@@ -409,17 +429,9 @@ def minimal_dmpo(c, seed: int = 0):
         loss_alpha = (alpha_mean * (c.epsilon_mean - kl_mean.detach())).sum() + (
             alpha_std * (c.epsilon_stddev - kl_std.detach())
         ).sum()
-        for opt in opts:
-            opt.zero_grad(set_to_none=True)
-        (loss_c.mean() + loss_pi + loss_kl + loss_alpha + loss_t + loss_pen).backward()
-        nn.utils.clip_grad_norm_(policy.parameters(), c.max_grad_norm, foreach=True)
-        nn.utils.clip_grad_norm_(critic.parameters(), c.max_grad_norm, foreach=True)
-        for opt in opts:
-            opt.step()
-        steps[0] += 1
-        if steps[0] % c.target_update_period == 0:
-            copy_into(t_policy, policy)
-            copy_into(t_critic, critic)
+        loss = loss_c.mean() + loss_pi + loss_kl + loss_alpha + loss_t + loss_pen
+        step_together(opts, loss, [policy.parameters(), critic.parameters()], c.max_grad_norm)
+        copy_every(steps, c.target_update_period, {t_policy: policy, t_critic: critic})
         return loss_pi.item()
 
     return update, nn.ModuleList([policy, critic, duals])
@@ -562,15 +574,8 @@ def minimal_rabm(c, seed: int = 0):
         loss_pol = (loss_fit + a_mean.detach() * kl_mean + a_std.detach() * kl_std
                     + a_mean * (c.epsilon_mean - kl_mean.detach())
                     + a_std * (c.epsilon_std - kl_std.detach()))  # fmt: skip
-        for o in opts:
-            o.zero_grad(set_to_none=True)
-        (loss_critic + loss_prior + loss_pol + loss_temp).backward()
-        for o in opts:
-            o.step()
-        steps[0] += 1
-        if steps[0] % c.target_update_period == 0:
-            copy_into(t_policy, policy)
-            copy_into(t_critic, critic)
+        step_together(opts, loss_critic + loss_prior + loss_pol + loss_temp)
+        copy_every(steps, c.target_update_period, {t_policy: policy, t_critic: critic})
         return loss_critic.item()
 
     return update, nn.ModuleList([prior, policy, critic])
