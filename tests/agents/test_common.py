@@ -144,6 +144,13 @@ def test_dmpo_target_critic_in_slices_of_whole_samples_gives_the_one_pass_logits
         torch.testing.assert_close(q, p, rtol=1e-5, atol=1e-6)
 
 
+def test_passes_are_sliced_on_a_cpu_only():
+    assert common.cpu_slices(torch.device("cpu"), 7, 60) == 7
+    assert common.cpu_slices(torch.device("cpu"), 0, 60) == 60  # 0: one pass
+    assert common.cpu_slices(torch.device("meta"), 7, 60) == 60  # any other device: one pass
+    assert common.cpu_slices(torch.device("meta"), 7, 0) == 1  # an empty pass splits evenly
+
+
 @pytest.mark.parametrize("agent", ["bcq", "dmpo"])
 @pytest.mark.parametrize("rows", [-1, 2.5, True])
 def test_a_slice_that_is_not_a_row_count_is_refused(agent, rows):
