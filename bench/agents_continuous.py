@@ -56,6 +56,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from agents_timing import (  # noqa: E402
     Contestant,
     bf16,
+    cpu_line,
     load_line,
     report,
     summary,
@@ -961,7 +962,8 @@ def main(argv: list[str] | None = None) -> None:
             have_d3rlpy = False
             print("d3rlpy is not installed here: rlu and the minimal loops only (bench/README.md)")
     print(f"torch {torch.__version__}, {torch.get_num_threads()} thread(s), {args.rounds} rounds "
-          f"x {args.block:g} CPU-s per contestant (median update); {load_line()}")  # fmt: skip
+          f"x {args.block:g} CPU-s per contestant (median update); {load_line()}; "
+          f"{cpu_line()}")  # fmt: skip
     results = {}
     with tempfile.TemporaryDirectory() as tmp:
         ds = make_data(f"{tmp}/data", episodes=50, length=1000)

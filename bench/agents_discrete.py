@@ -55,6 +55,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from agents_timing import (  # noqa: E402
     Contestant,
     bf16,
+    cpu_line,
     load_line,
     report,
     summary,
@@ -560,7 +561,7 @@ def main(argv: list[str] | None = None) -> None:
             print("d3rlpy is not installed here: rlu and the minimal loops only (bench/README.md)")
     print(f"torch {torch.__version__}, {torch.get_num_threads()} thread(s), batch {args.batch}, "
           f"{args.rounds} rounds x {args.block:g} CPU-s per contestant (median update); "
-          f"{load_line()}")  # fmt: skip
+          f"{load_line()}; {cpu_line()}")  # fmt: skip
     results = {}
     with tempfile.TemporaryDirectory() as tmp:
         ds = make_data(f"{tmp}/data", args.episodes, 1000)

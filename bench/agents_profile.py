@@ -14,7 +14,17 @@ d3rlpy has the algorithm, a last line gives the ratio's ceiling: d3rlpy's update
 dense kernels and optimizer alone, the most any loop doing rlu's arithmetic could reach. The
 profiler clocks ops on the wall, so the shares are of wall time: on a loaded machine they stay
 meaningful as long as the load hits every op alike. It also counts aten ops per update, a figure
-the machine's load does not move. Names: a continuous agent as in agents_continuous.py
+the machine's load does not move, and each contestant's floating-point operations per update
+(``torch.utils.flop_counter``: matrix products and convolutions, forward and backward), which
+shows whether two libraries ask for the same arithmetic.
+
+The profiled ceiling is a ratio of two profiled runs taken one after the other, which a shared
+machine's load can move a lot (a neighbour that saturates memory slows the elementwise ops of
+whichever contestant runs then). ``--replay`` measures it interleaved instead: one rlu update
+is recorded below autograd (a ``TorchDispatchMode``) and its dense kernels and optimizer ops
+are replayed on copies of their real arguments, the same shapes, strides and values; that
+replay and d3rlpy's update are timed in alternation (bench/agents_timing.py), and the ceiling
+is d3rlpy's update over the replay. Names: a continuous agent as in agents_continuous.py
 (``bc``, ``bcq``, ``d4pg``, ...), a discrete one as in agents_discrete.py (``dqn``,
 ``double_dqn``, ``iqn``, ...; ``--batch`` sets its batch).
 """
@@ -30,13 +40,16 @@ from pathlib import Path
 
 import torch
 from torch.profiler import ProfilerActivity, profile
+from torch.utils._python_dispatch import TorchDispatchMode
+from torch.utils._pytree import tree_map
+from torch.utils.flop_counter import FlopCounterMode
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import agents_continuous as cont  # noqa: E402
 import agents_discrete as disc  # noqa: E402
-from agents_timing import load_line  # noqa: E402
+from agents_timing import Contestant, cpu_line, load_line, time_contestants  # noqa: E402
 
 from rlu.agents import make_agent  # noqa: E402
 from rlu.data import make_sampler  # noqa: E402
@@ -45,13 +58,21 @@ DENSE = (
     "aten::addmm", "aten::mm", "aten::bmm", "aten::baddbmm", "aten::mkldnn_convolution",
     "aten::convolution_backward", "aten::_convolution", "aten::linear", "aten::matmul",
 )  # fmt: skip
+# what the replay keeps, as seen below autograd: the dense kernels, Adam, the target updates
+REPLAYED = {"addmm", "mm", "bmm", "baddbmm", "convolution", "convolution_backward"}
+OPTIMIZER = ("_fused_adam", "_foreach_")
 
 
-def contestants(name: str, ds_c, ds_d, batch: int, d3rlpy: bool):
-    """{label: (update, batch)} built as the benches build them."""
+def contestants(name: str, ds_c, ds_d, batch: int, d3rlpy: bool, same_network: bool = False):
+    """{label: (update, batch)} built as the benches build them; ``same_network``: the benches'
+    same-network rows (BC and CRR with one Gaussian, d3rlpy on rlu's networks; IQN in d3rlpy
+    on rlu's network)."""
     out = {}
     if name in cont.SETTINGS:
-        agent = make_agent(name, cont.OBS, cont.ACTION, "paper", 0, **cont.SETTINGS[name])
+        one = {"mixture_components": 1} if same_network else {}
+        agent = make_agent(
+            name, cont.OBS, cont.ACTION, "paper", 0, **{**cont.SETTINGS[name], **one}
+        )
         spec, ds = agent.batch_spec, ds_c
         out["rlu"] = (agent.update, make_sampler(ds, spec, 0).sample())
         if name in cont.MINIMAL:
@@ -60,7 +81,7 @@ def contestants(name: str, ds_c, ds_d, batch: int, d3rlpy: bool):
             out["minimal loop"] = (update, mini.sample())
         if d3rlpy:
             buffer = cont.d3rlpy_buffer(ds)
-            d3 = cont.d3rlpy_contestant(name, agent.config, buffer)
+            d3 = cont.d3rlpy_contestant(name, agent.config, buffer, same_network)
             if d3 is not None:
                 out["d3rlpy"] = (d3.update, d3.sample())
         return out
@@ -72,7 +93,10 @@ def contestants(name: str, ds_c, ds_d, batch: int, d3rlpy: bool):
     mini = disc.MinimalSampler(ds_d, batch, agent.config.atari.reward_clip)
     out["minimal loop"] = (update, mini.sample())
     if d3rlpy:
-        config = disc.d3rlpy_algo(name, agent.config)
+        if same_network and name == "iqn":
+            config = disc.d3rlpy_iqn_same_network(agent.config)
+        else:
+            config = disc.d3rlpy_algo(name, agent.config)
         if config is not None:
             buffer = disc.d3rlpy_buffer(ds_d)
             algo = config.create(device="cpu:0")
@@ -110,6 +134,67 @@ def breakdown(update, batch, updates: int, ops: int) -> tuple[float, float]:
     return wall, dense + optim
 
 
+def gflop(update, batch) -> float:
+    """Floating-point operations of one update (products and convolutions), in GFLOP."""
+    with FlopCounterMode(display=False) as counter:
+        update(batch)
+    return counter.get_total_flops() / 1e9
+
+
+class Recorder(TorchDispatchMode):
+    """Keeps every dense kernel and optimizer op that one update dispatches, each with a copy
+    of its arguments taken before it runs (strides kept: ``clone`` preserves a dense layout)."""
+
+    def __init__(self):
+        super().__init__()
+        self.calls: list = []
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        name = func.overloadpacket.__name__
+        if name in REPLAYED or name.startswith(OPTIMIZER):
+
+            def copy(x):
+                return x.detach().clone() if isinstance(x, torch.Tensor) else x
+
+            self.calls.append((func, tree_map(copy, args), tree_map(copy, kwargs)))
+        return func(*args, **kwargs)
+
+
+def dense_replay(update, batch):
+    """(replay, kernels): a function running one update's dense kernels and optimizer ops alone,
+    on copies of their recorded arguments, and how many there are."""
+    with Recorder() as recorder:
+        update(batch)
+    calls = recorder.calls
+
+    def replay(_batch):
+        for func, args, kwargs in calls:
+            func(*args, **kwargs)
+
+    return replay, len(calls)
+
+
+def replay_ceiling(update, batch, d3_update, d3_batch, rounds: int) -> None:
+    """rlu's update, d3rlpy's and the replay of rlu's dense kernels, timed in alternation."""
+    replay, kernels = dense_replay(update, batch)
+    timed = {
+        "rlu": Contestant(lambda: batch, update),
+        "d3rlpy": Contestant(lambda: d3_batch, d3_update),
+        "rlu dense replay": Contestant(lambda: batch, replay),
+    }
+    rates = time_contestants(timed, rounds, block=0.25, warmup=2, pool=1)
+    ms = {k: 1e3 / v["update only"][1] for k, v in rates.items()}
+    print(
+        f"  interleaved ({rounds} rounds, CPU time, median update): rlu {ms['rlu']:.2f} ms, "
+        f"d3rlpy {ms['d3rlpy']:.2f} ms, replay of rlu's {kernels} dense kernels and optimizer "
+        f"ops {ms['rlu dense replay']:.2f} ms\n"
+        f"  rlu / d3rlpy {ms['d3rlpy'] / ms['rlu']:.2f}x; ceiling "
+        f"{ms['d3rlpy'] / ms['rlu dense replay']:.2f}x (d3rlpy's update over the replay); "
+        f"the dense kernels are {ms['rlu dense replay'] / ms['rlu']:.0%} of rlu's update"
+    )
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("agents", nargs="+", choices=[*cont.SETTINGS, *disc.AGENT_SETTINGS])
@@ -118,6 +203,18 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--ops", type=int, default=0, help="print the costliest aten ops too")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--no-d3rlpy", action="store_true")
+    p.add_argument(
+        "--same-network",
+        action="store_true",
+        help="the same-network rows of bc, crr (one Gaussian) and iqn (d3rlpy on rlu's network)",
+    )
+    p.add_argument(
+        "--replay",
+        type=int,
+        default=0,
+        metavar="ROUNDS",
+        help="measure the ceiling interleaved, over this many rounds (bench/README)",
+    )
     args = p.parse_args(argv)
     sys.stdout.reconfigure(line_buffering=True)
     torch.set_num_threads(args.threads)
@@ -131,18 +228,19 @@ def main(argv: list[str] | None = None) -> None:
             )
         except ImportError:
             have_d3rlpy = False
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} thread(s); {load_line()}")
+    threads = torch.get_num_threads()
+    print(f"torch {torch.__version__}, {threads} thread(s); {load_line()}; {cpu_line()}")
     with tempfile.TemporaryDirectory() as tmp:
         ds_c = cont.make_data(f"{tmp}/c", episodes=10, length=1000)
         ds_d = disc.make_data(f"{tmp}/d", episodes=4, length=1000)
         for name in args.agents:
             print(f"\n{name}")
             times = {}
-            for label, (update, batch) in contestants(
-                name, ds_c, ds_d, args.batch, have_d3rlpy
-            ).items():
+            built = contestants(name, ds_c, ds_d, args.batch, have_d3rlpy, args.same_network)
+            for label, (update, batch) in built.items():
                 print(f"  {label}")
                 times[label] = breakdown(update, batch, args.updates, args.ops)
+                print(f"    {gflop(update, batch):.3f} GFLOP per update")
             if "d3rlpy" in times:
                 # the same arithmetic can go no faster than its dense kernels and optimizer
                 wall, floor = times["rlu"][0], times["rlu"][1]
@@ -151,6 +249,8 @@ def main(argv: list[str] | None = None) -> None:
                     f"{times['d3rlpy'][0] / floor:.2f}x (d3rlpy's update over rlu's dense kernels "
                     f"and optimizer alone: the ratio if rlu spent nothing else)"
                 )
+                if args.replay:
+                    replay_ceiling(*built["rlu"], *built["d3rlpy"], args.replay)
     print(f"\n{load_line()}")
 
 

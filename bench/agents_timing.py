@@ -46,6 +46,21 @@ def load_line() -> str:
     return f"load average {one:.2f} (1 min), {five:.2f} (5 min) on {cores} cores"
 
 
+def cpu_line() -> str:
+    """The CPU the figures come from: ratios between libraries move with it (the same bench
+    gave BCQ 1.39x on one machine of this workplace and 1.30x on another, 2026-12-01)."""
+    import torch
+
+    model = "unknown CPU"
+    try:
+        with open("/proc/cpuinfo") as f:
+            model = next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")),
+                         model)  # fmt: skip
+    except OSError:
+        pass
+    return f"{model}, torch CPU capability {torch.backends.cpu.get_cpu_capability()}"
+
+
 def time_contestants(
     contestants: dict[str, Contestant], rounds: int, block: float, warmup: int, pool: int = 4
 ) -> dict[str, dict[str, tuple[float, float]]]:
