@@ -47,8 +47,8 @@ def load_line() -> str:
 
 
 def cpu_line() -> str:
-    """The CPU the figures come from: ratios between libraries move with it (the same bench
-    gave BCQ 1.39x on one machine of this workplace and 1.30x on another, 2026-12-01)."""
+    """The CPU the figures come from: ratios between libraries move with its vector units and
+    caches, so each run names it."""
     import torch
 
     model = "unknown CPU"
