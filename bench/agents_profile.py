@@ -19,14 +19,15 @@ the machine's load does not move, and each contestant's floating-point operation
 shows whether two libraries ask for the same arithmetic.
 
 The profiled ceiling is a ratio of two profiled runs taken one after the other, which a shared
-machine's load can move a lot (a neighbour that saturates memory slows the elementwise ops of
-whichever contestant runs then). ``--replay`` measures it interleaved instead: one rlu update
-is recorded below autograd (a ``TorchDispatchMode``) and its dense kernels and optimizer ops
-are replayed on copies of their real arguments, the same shapes, strides and values; that
-replay and d3rlpy's update are timed in alternation (bench/agents_timing.py), and the ceiling
-is d3rlpy's update over the replay. Names: a continuous agent as in agents_continuous.py
-(``bc``, ``bcq``, ``d4pg``, ...), a discrete one as in agents_discrete.py (``dqn``,
-``double_dqn``, ``iqn``, ...; ``--batch`` sets its batch).
+machine's load can move a lot (on 2026-12-01 one contestant's elementwise ops ran up to 10x
+slower in one run and not in the next, most likely a neighbour's memory traffic). ``--replay``
+measures it interleaved instead: one rlu update is recorded below autograd (a
+``TorchDispatchMode``) and its dense kernels and optimizer ops are replayed on copies of their
+real arguments, the same shapes, strides and values; that replay and d3rlpy's update are timed
+in alternation (bench/agents_timing.py), and the ceiling is d3rlpy's update over the replay.
+Names: a continuous agent as in agents_continuous.py (``bc``, ``bcq``, ``d4pg``, ...), a
+discrete one as in agents_discrete.py (``dqn``, ``double_dqn``, ``iqn``, ...; ``--batch`` sets
+its batch).
 """
 
 from __future__ import annotations
