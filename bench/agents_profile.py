@@ -154,12 +154,12 @@ class Recorder(TorchDispatchMode):
         kwargs = kwargs or {}
         name = func.overloadpacket.__name__
         if name in REPLAYED or name.startswith(OPTIMIZER):
-
-            def copy(x):
-                return x.detach().clone() if isinstance(x, torch.Tensor) else x
-
-            self.calls.append((func, tree_map(copy, args), tree_map(copy, kwargs)))
+            self.calls.append((func, tree_map(_copy, args), tree_map(_copy, kwargs)))
         return func(*args, **kwargs)
+
+
+def _copy(x):
+    return x.detach().clone() if isinstance(x, torch.Tensor) else x
 
 
 def dense_replay(update, batch):
