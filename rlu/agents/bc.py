@@ -79,12 +79,11 @@ class BCAgent:
     def __init__(
         self, observation_spec, action_spec, config: BCConfig, seed: int = 0, device="cpu"
     ):
-        self.config, self.device = config, common.device(device)
+        self.config, self.device, self.step = config, common.device(device), 0
         self.scaler = nets.ActionScaler(action_spec)
         kind = "sequence" if config.recurrent else "transition"
         self.batch_spec = BatchSpec(config.batch_size, kind, sequence_length=config.sequence_length)
-        self.pretrain_steps = 0
-        self.num_steps = config.num_steps
+        self.num_steps, self.pretrain_steps = config.num_steps, 0
         act_seed = common.split_seed(seed, 1)[0]
         with common.seeded(seed):
             torso = nets.Torso(
@@ -97,7 +96,6 @@ class BCAgent:
         self.modules = {"policy": self.policy}
         self.optimizers = {"policy": common.adam(self.policy.parameters(), config.learning_rate)}
         self.generators = {"act": common.generator(act_seed, self.device)}
-        self.step = 0
         self._rollout_state = None
 
     def update(self, batch: Transition | Sequence) -> dict[str, float]:
@@ -107,12 +105,13 @@ class BCAgent:
         weight = common.to_torch(batch.mask & ~batch.is_last, self.device).float() if seq else None
         h, _ = self.policy["torso"](obs, sequence=seq)
         loss, metrics = bc_loss(*self.policy["head"](h), action, weight)
-        common.sgd_step(self.optimizers["policy"], loss)
-        self.step += 1
+        self.step = common.learn(self.optimizers["policy"], loss, self.step)
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+        """A sample of the mixture with every component's variance ``eval_variance`` (the
+        paper's evaluation) with ``greedy=True``; the learnt mixture as is with ``greedy=False``."""
         obs = common.to_torch(observation, self.device)
         state = nets.carried_state(self._rollout_state, is_first, obs)
         h, self._rollout_state = self.policy["torso"](obs, state=state)
@@ -121,10 +120,11 @@ class BCAgent:
         action = nets.mixture_sample(logits, mean, std, self.generators["act"], std_override=sd)
         return self.scaler.from_unit(action)
 
-    state_dict = common.state_dict
+    def state_dict(self) -> dict:
+        return common.agent_state(self.modules, self.optimizers, self.generators, self.step)
 
     def load_state_dict(self, state: dict) -> None:
-        common.load_state_dict(self, state)
+        self.step = common.load_agent_state(state, self.modules, self.optimizers, self.generators)
         self._rollout_state = None  # acting restarts after a restore
 
 

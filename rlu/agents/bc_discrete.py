@@ -55,12 +55,20 @@ class BCAgent:
     def __init__(
         self, observation_spec, action_spec, config: BCConfig, seed: int = 0, device="cpu"
     ) -> None:
-        dc.setup(
-            self, "bc", observation_spec, action_spec, config, seed,
-            lambda shape, n: dc.QNetwork(shape, n, config.atari),
+        self.config, self.device, self.step = config, common.device(device), 0
+        self.batch_spec, self.num_steps = config.atari.batch_spec(), config.atari.num_steps
+        self.pretrain_steps = 0
+        self.network, self.target_network, self.optimizers, self.generators = dc.build(
+            "bc",
+            observation_spec,
+            action_spec,
+            config,
+            seed,
+            self.device,
+            dc.QNetwork,
             target=False,
-            device=device,
-        )  # fmt: skip
+        )
+        self.modules = {"network": self.network}
 
     def update(self, batch: Transition) -> dict[str, float]:
         frames = dc.frames(batch.observation, channels_last=True, device=self.device)
@@ -71,14 +79,19 @@ class BCAgent:
 
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+        """The max action of the logits, epsilon-greedy with ``atari.eval_epsilon`` (greedy), or
+        a sample of the softmax policy (``greedy=False``)."""
         logits = self.network(dc.frames(observation, device=self.device))
         if greedy:
             return dc.epsilon_greedy(logits, self.config.atari.eval_epsilon, self.generators["act"])
         sample = torch.multinomial(logits.softmax(-1), 1, generator=self.generators["act"])
         return sample.squeeze(-1).cpu().numpy().astype(np.int64)
 
-    state_dict = common.state_dict
-    load_state_dict = common.load_state_dict
+    def state_dict(self) -> dict:
+        return common.agent_state(self.modules, self.optimizers, self.generators, self.step)
+
+    def load_state_dict(self, state: dict) -> None:
+        self.step = common.load_agent_state(state, self.modules, self.optimizers, self.generators)
 
 
 Agent = BCAgent

@@ -157,11 +157,10 @@ class BCQAgent:
     def __init__(
         self, observation_spec, action_spec, config: BCQConfig, seed: int = 0, device="cpu"
     ):
-        self.config, self.device = config, common.device(device)
+        self.config, self.device, self.step = config, common.device(device), 0
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, gamma=config.gamma)
-        self.pretrain_steps = 0
-        self.num_steps = config.num_steps
+        self.num_steps, self.pretrain_steps = config.num_steps, 0
         self.generator = common.generator(seed, self.device)
         with common.seeded(seed):
             self.nets = BCQNets(observation_spec, self.scaler.dim, config).to(self.device)
@@ -177,15 +176,15 @@ class BCQAgent:
         }
         self.modules = {"nets": self.nets, "target": self.target}
         self.generators = {"sample": self.generator}
-        self.step = 0
+        # the parts the critic target reads, each copied into (or averaged onto) its target
+        self.targets = dict(
+            zip(self.target.target_parts().values(), self.nets.target_parts().values(), strict=True)
+        )
 
     def update(self, batch: Transition) -> dict[str, float]:
-        c, n, t, g, d = self.config, self.nets, self.target, self.generator, self.device
-        obs = common.to_torch(batch.observation, d)
-        next_obs = common.to_torch(batch.next_observation, d)
-        action = self.scaler.to_unit(common.to_torch(batch.action, d))
-        reward, discount = common.to_torch(batch.reward, d), common.to_torch(batch.discount, d)
-        batch_size = action.shape[0]
+        c, n, g = self.config, self.nets, self.generator
+        b = common.transition(batch, self.scaler, self.device)
+        obs, action, batch_size = b.observation, b.action, b.action.shape[0]
 
         s_vae = n.vae_enc(obs)
         recon, mean, std = n.vae(s_vae, action, g)
@@ -193,8 +192,8 @@ class BCQAgent:
         common.sgd_step(self.optimizers["vae"], loss_v)
 
         with torch.no_grad():
-            q_t = self.next_value(next_obs).reshape(batch_size, c.num_samples).amax(1)
-            target_q = reward + c.gamma * discount * q_t
+            q_t = self.next_value(b.next_observation).reshape(batch_size, c.num_samples).amax(1)
+            target_q = b.reward + c.gamma * b.discount * q_t
         s_c = n.critic_enc(obs)
         loss_c, m = critic_loss(*n.q(s_c, action), target_q)
         metrics.update(m)
@@ -207,12 +206,7 @@ class BCQAgent:
         metrics["actor/loss"] = loss_a
         common.sgd_step(self.optimizers["actor"], loss_a, inputs=self.actor_params)
 
-        self.step += 1
-        pairs = dict(zip(t.target_parts().values(), n.target_parts().values(), strict=True))
-        if c.target_update_period > 0:
-            common.periodic_update(self.step, c.target_update_period, pairs)
-        else:
-            common.soft_updates(pairs, c.tau)
+        self.step = common.advance(self.step, c.target_update_period, self.targets, c.tau)
         return common.metrics_to_floats(metrics)
 
     def next_value(self, next_obs) -> torch.Tensor:
@@ -235,6 +229,8 @@ class BCQAgent:
 
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+        """Scores ``num_samples`` perturbed VAE actions with Q1 and returns the best (the
+        original's ``select_action``); latents from a generator seeded with 0 when greedy."""
         n, reps = self.nets, self.config.num_samples
         g = common.generator(0, self.device) if greedy else self.generator
         obs = common.to_torch(observation, self.device)
@@ -246,8 +242,11 @@ class BCQAgent:
         best = q1.argmax(1) + torch.arange(q1.shape[0], device=q1.device) * reps
         return self.scaler.from_unit(a[best])
 
-    state_dict = common.state_dict
-    load_state_dict = common.load_state_dict
+    def state_dict(self) -> dict:
+        return common.agent_state(self.modules, self.optimizers, self.generators, self.step)
+
+    def load_state_dict(self, state: dict) -> None:
+        self.step = common.load_agent_state(state, self.modules, self.optimizers, self.generators)
 
 
 Agent = BCQAgent

@@ -115,11 +115,14 @@ class BCQAgent:
     def __init__(
         self, observation_spec, action_spec, config: BCQConfig, seed: int = 0, device="cpu"
     ) -> None:
-        dc.setup(
-            self, "bcq", observation_spec, action_spec, config, seed,
-            lambda shape, n: QAndPolicyNetwork(shape, n, config.atari),
-            device=device,
-        )  # fmt: skip
+        self.config, self.device, self.step = config, common.device(device), 0
+        self.batch_spec, self.num_steps = config.atari.batch_spec(), config.atari.num_steps
+        self.pretrain_steps = 0
+        self.network, self.target_network, self.optimizers, self.generators = dc.build(
+            "bcq", observation_spec, action_spec, config, seed, self.device, QAndPolicyNetwork
+        )
+        self.modules = {"network": self.network, "target_network": self.target_network}
+        self.targets = {self.target_network: self.network}  # copied every target_update_period
 
     def update(self, batch: Transition) -> dict[str, float]:
         c = self.config
@@ -127,17 +130,22 @@ class BCQAgent:
             self.network, self.target_network, dc.to_torch(batch, self.device),
             self.batch_spec.bootstrap_gamma, c.threshold, c.atari.huber_delta, c.logit_penalty,
         )  # fmt: skip
-        self.step = dc.learn(self, loss)
+        self.step = dc.learn(self.optimizers["network"], loss, self.step, c.atari, self.targets)
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+        """argmax_a Q(s, a) over the actions the imitation head allows on the same observation,
+        epsilon-greedy; the uniform draw ignores the mask, as in the authors' code."""
         q, logits = self.network(dc.frames(observation, device=self.device))
         q = q.masked_fill(~bcq_action_mask(logits, self.config.threshold), float("-inf"))
         return dc.epsilon_greedy(q, dc.epsilon(self.config.atari, greedy), self.generators["act"])
 
-    state_dict = common.state_dict
-    load_state_dict = common.load_state_dict
+    def state_dict(self) -> dict:
+        return common.agent_state(self.modules, self.optimizers, self.generators, self.step)
+
+    def load_state_dict(self, state: dict) -> None:
+        self.step = common.load_agent_state(state, self.modules, self.optimizers, self.generators)
 
 
 Agent = BCQAgent

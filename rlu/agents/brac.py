@@ -29,11 +29,10 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from torch import nn
 
 from rlu.agents import common
 from rlu.agents import networks as nets
-from rlu.agents.losses import sample_kl, tanh_gaussian_log_prob
+from rlu.agents.losses import sample_kl
 from rlu.types import BatchSpec, Transition
 
 
@@ -84,48 +83,7 @@ PRESETS = {
 GRID: dict[str, list] = {"policy_lr": [1e-5, 1e-4, 3e-5], "alpha": [0.1, 0.3, 1.0]}
 
 CLIP = 1.0 - 1e-3
-
-
-class TanhGaussian(nn.Module):
-    def __init__(self, observation_spec, action_dim: int, layers, torso_hidden: int):
-        super().__init__()
-        self.encoder = nets.Encoder(observation_spec, torso_hidden)
-        self.net = nets.mlp(self.encoder.output_dim, layers, 2 * action_dim)
-
-    def forward(self, obs):
-        return self.dist(self.encoder(obs))
-
-    def dist(self, features: torch.Tensor):
-        mean, log_std = self.net(features).chunk(2, -1)
-        return mean, log_std.clamp(-5.0, 2.0).exp()
-
-    def log_prob(self, obs, action, features=None):
-        """log b(action | s); ``action`` (B, A) or (S, B, A) against (B, ...) states."""
-        f = self.encoder(obs) if features is None else features
-        mean, std = self.dist(f)
-        u = torch.atanh(action.clamp(-CLIP, CLIP))
-        return tanh_gaussian_log_prob(mean, std, u)
-
-    def sample(self, obs, num: int, generator: torch.Generator):
-        """(num, B, A) actions and their log densities (reparameterised)."""
-        mean, std = self(obs)
-        u = mean + std * torch.randn((num, *mean.shape), generator=generator, device=mean.device)
-        return torch.tanh(u), tanh_gaussian_log_prob(mean, std, u)
-
-
-class Critics(nn.Module):
-    def __init__(self, observation_spec, action_dim: int, layers, torso_hidden: int):
-        super().__init__()
-        self.encoder = nets.Encoder(observation_spec, torso_hidden)
-        f = self.encoder.output_dim + action_dim
-        self.q1, self.q2 = nets.mlp(f, layers, 1), nets.mlp(f, layers, 1)
-
-    def forward(self, obs, action: torch.Tensor) -> torch.Tensor:
-        """Q of (B, ...) states and (S, B, A) or (B, A) actions: the min of the two critics."""
-        s = self.encoder(obs)
-        s = s.expand(*action.shape[:-1], s.shape[-1])
-        sa = torch.cat([s, action], -1)
-        return torch.stack([self.q1(sa).squeeze(-1), self.q2(sa).squeeze(-1)])
+LOG_STD_RANGE = (-5.0, 2.0)
 
 
 def behaviour_loss(log_prob):
@@ -149,17 +107,20 @@ class BRACAgent:
     def __init__(
         self, observation_spec, action_spec, config: BRACConfig, seed: int = 0, device="cpu"
     ):
-        self.config, self.device = config, common.device(device)
+        self.config, self.device, self.step = config, common.device(device), 0
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, gamma=config.gamma)
-        self.pretrain_steps = config.behaviour_steps
-        self.num_steps = config.num_steps
+        self.num_steps, self.pretrain_steps = config.num_steps, config.behaviour_steps
         self.generator = common.generator(seed, self.device)
         a, th, d = self.scaler.dim, config.torso_hidden, self.device
         with common.seeded(seed):
-            self.policy = TanhGaussian(observation_spec, a, config.policy_layers, th).to(d)
-            self.behaviour = TanhGaussian(observation_spec, a, config.behaviour_layers, th).to(d)
-            self.critics = Critics(observation_spec, a, config.critic_layers, th).to(d)
+            self.policy = nets.TanhGaussianPolicy(
+                observation_spec, a, config.policy_layers, th, LOG_STD_RANGE
+            ).to(d)
+            self.behaviour = nets.TanhGaussianPolicy(
+                observation_spec, a, config.behaviour_layers, th, LOG_STD_RANGE
+            ).to(d)
+            self.critics = nets.TwinCritic(observation_spec, a, config.critic_layers, th).to(d)
         self.target_critics = common.frozen_copy(self.critics)
         self.optimizers = {
             "policy": common.adam(self.policy.parameters(), config.policy_lr),
@@ -171,30 +132,29 @@ class BRACAgent:
             "policy": self.policy, "behaviour": self.behaviour,
             "critics": self.critics, "target_critics": self.target_critics,
         }  # fmt: skip
-        self.step = 0
 
     def _kl(self, obs, samples, log_pi):
         """KL(pi || b)(s) from (S, B, A) samples a ~ pi and their log pi (b is frozen here)."""
-        return sample_kl(log_pi, self.behaviour.log_prob(obs, samples))
+        return sample_kl(log_pi, self.behaviour.log_prob(obs, samples, CLIP))
 
     def update(self, batch: Transition) -> dict[str, float]:
         c, g, d = self.config, self.generator, self.device
-        obs = common.to_torch(batch.observation, d)
-        action = self.scaler.to_unit(common.to_torch(batch.action, d))
         if self.step < c.behaviour_steps:
-            loss, metrics = behaviour_loss(self.behaviour.log_prob(obs, action))
+            obs = common.to_torch(batch.observation, d)
+            action = self.scaler.to_unit(common.to_torch(batch.action, d))
+            loss, metrics = behaviour_loss(self.behaviour.log_prob(obs, action, CLIP))
             common.sgd_step(self.optimizers["behaviour"], loss)
             self.step += 1
             return common.metrics_to_floats(metrics)
 
-        next_obs = common.to_torch(batch.next_observation, d)
-        reward, discount = common.to_torch(batch.reward, d), common.to_torch(batch.discount, d)
+        b = common.transition(batch, self.scaler, d)
+        obs, next_obs = b.observation, b.next_observation
         with torch.no_grad():
             next_a, next_logp = self.policy.sample(next_obs, c.num_kl_samples, g)
             kl_next = self._kl(next_obs, next_a, next_logp)
             q_next = self.target_critics(next_obs, next_a[0]).amin(0)
-            target = reward + c.gamma * discount * (q_next - c.alpha * kl_next)
-        loss_c, metrics = critic_loss(self.critics(obs, action), target)
+            target = b.reward + c.gamma * b.discount * (q_next - c.alpha * kl_next)
+        loss_c, metrics = critic_loss(self.critics(obs, b.action), target)
         common.sgd_step(self.optimizers["critic"], loss_c)
 
         samples, logp = self.policy.sample(obs, c.num_kl_samples, g)
@@ -204,23 +164,24 @@ class BRACAgent:
         metrics.update(m)
         common.sgd_step(self.optimizers["policy"], loss_a, inputs=list(self.policy.parameters()))
 
-        self.step += 1
-        if c.target_update_period > 0:
-            targets = {self.target_critics: self.critics}
-            common.periodic_update(self.step, c.target_update_period, targets)
-        else:
-            common.soft_update(self.target_critics, self.critics, c.tau)
+        targets = {self.target_critics: self.critics}
+        self.step = common.advance(self.step, c.target_update_period, targets, c.tau)
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+        """tanh(mean) of the tanh-Gaussian policy with ``greedy=True`` (the original's
+        ``DeterministicSoftPolicy``); with ``greedy=False`` one of its samples."""
         obs = common.to_torch(observation, self.device)
         if greedy:
             return self.scaler.from_unit(torch.tanh(self.policy(obs)[0]))
         return self.scaler.from_unit(self.policy.sample(obs, 1, self.generator)[0][0])
 
-    state_dict = common.state_dict
-    load_state_dict = common.load_state_dict
+    def state_dict(self) -> dict:
+        return common.agent_state(self.modules, self.optimizers, self.generators, self.step)
+
+    def load_state_dict(self, state: dict) -> None:
+        self.step = common.load_agent_state(state, self.modules, self.optimizers, self.generators)
 
 
 Agent = BRACAgent

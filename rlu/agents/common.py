@@ -30,8 +30,8 @@ from __future__ import annotations
 import contextlib
 import copy
 import hashlib
-from collections.abc import Callable, Iterable, Iterator, Mapping
-from typing import Any
+from collections.abc import Iterable, Iterator, Mapping
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -93,6 +93,28 @@ def to_torch(x: Any, device: torch.device | None = None, dtype: str | None = Non
     return t if device is None or device.type == "cpu" else t.to(device)
 
 
+class TorchTransition(NamedTuple):
+    """A continuous agent's :class:`rlu.types.Transition` as tensors on its device, the action
+    mapped into [-1, 1] by its ``networks.ActionScaler``."""
+
+    observation: Any
+    action: torch.Tensor
+    reward: torch.Tensor
+    discount: torch.Tensor
+    next_observation: Any
+
+
+def transition(batch: Any, scaler: Any, device: torch.device) -> TorchTransition:
+    """A Transition batch as :class:`TorchTransition` (:func:`to_torch` on every field)."""
+    return TorchTransition(
+        observation=to_torch(batch.observation, device),
+        action=scaler.to_unit(to_torch(batch.action, device)),
+        reward=to_torch(batch.reward, device),
+        discount=to_torch(batch.discount, device),
+        next_observation=to_torch(batch.next_observation, device),
+    )
+
+
 def adam(params: Iterable[torch.Tensor], lr: float, eps: float = 1e-8) -> torch.optim.Adam:
     # fused Adam: one kernel per step instead of one per tensor (measured in the bench, CPU);
     # devices without the fused kernel (meta, the placement tests') take the plain one
@@ -105,19 +127,50 @@ def sgd_step(
     optimizer: torch.optim.Optimizer,
     loss: torch.Tensor,
     inputs: list[torch.Tensor] | None = None,
+    max_norm: float = 0.0,
 ) -> None:
     """One gradient step on ``loss``; ``inputs`` limits the backward pass to those parameters
-    (an actor loss that reads a critic leaves the critic's gradients alone)."""
+    (an actor loss that reads a critic leaves the critic's gradients alone). ``max_norm`` > 0
+    first clips the gradient of the optimiser's parameters to that global norm (Acme's
+    ``tf.clip_by_global_norm``)."""
     optimizer.zero_grad(set_to_none=True)
     kind = loss.device.type
     if torch.amp.is_autocast_available(kind) and torch.is_autocast_enabled(kind):
         # the loop's bf16 autocast covers forward passes only
         with torch.autocast(kind, enabled=False):
-            loss.backward(inputs=inputs)
-            optimizer.step()
+            _backward_step(optimizer, loss, inputs, max_norm)
         return
+    _backward_step(optimizer, loss, inputs, max_norm)
+
+
+def _backward_step(optimizer, loss, inputs, max_norm: float) -> None:
     loss.backward(inputs=inputs)
+    if max_norm > 0:
+        params = inputs or [p for group in optimizer.param_groups for p in group["params"]]
+        # foreach where the device has it (the CPU and CUDA: one kernel), per tensor elsewhere
+        nn.utils.clip_grad_norm_(params, max_norm, foreach=None)
     optimizer.step()
+
+
+def joint_step(
+    optimizers: Iterable[torch.optim.Optimizer],
+    loss: torch.Tensor,
+    clip: Iterable[Iterable[torch.Tensor]] = (),
+    max_norm: float = 0.0,
+) -> None:
+    """One backward pass of a sum of losses that each reach only their own optimiser's
+    parameters, then a step of every optimiser; ``max_norm`` > 0 clips each parameter group of
+    ``clip`` to that global norm first (one norm per group, as Acme clips each network)."""
+    optimizers = list(optimizers)
+    for optimizer in optimizers:
+        optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    if max_norm > 0:
+        for params in clip:
+            # foreach=None: the fused kernel where the device has one (not on meta)
+            nn.utils.clip_grad_norm_(params, max_norm, foreach=None)
+    for optimizer in optimizers:
+        optimizer.step()
 
 
 def slice_rows(agent: str, rows: Any) -> int:
@@ -140,36 +193,6 @@ def cpu_slices(device: torch.device, rows: int, total: int) -> int:
 def frozen_copy(module: nn.Module) -> nn.Module:
     """A target network: a deep copy that takes no gradients."""
     return copy.deepcopy(module).requires_grad_(False)
-
-
-def actor_critic(
-    agent: Any,
-    seed: int,
-    make_policy: Callable[[], nn.Module],
-    make_critic: Callable[[], nn.Module],
-    policy_lr: float,
-    critic_lr: float,
-) -> None:
-    """The parts of a deterministic-target actor-critic agent (D4PG, CRR): the policy and the
-    critic built under ``seed`` on ``agent.device``, a frozen target copy of each, Adam for each,
-    one sampling generator; sets ``policy``, ``critic``, ``target_policy``, ``target_critic``,
-    ``modules``, ``optimizers``, ``generator``, ``generators`` and ``step`` on ``agent``."""
-    agent.generator = generator(seed, agent.device)
-    with seeded(seed):
-        agent.policy = make_policy().to(agent.device)
-        agent.critic = make_critic().to(agent.device)
-    agent.target_policy = frozen_copy(agent.policy)
-    agent.target_critic = frozen_copy(agent.critic)
-    agent.modules = {
-        "policy": agent.policy, "critic": agent.critic,
-        "target_policy": agent.target_policy, "target_critic": agent.target_critic,
-    }  # fmt: skip
-    agent.optimizers = {
-        "policy": adam(agent.policy.parameters(), policy_lr),
-        "critic": adam(agent.critic.parameters(), critic_lr),
-    }
-    agent.generators = {"sample": agent.generator}
-    agent.step = 0
 
 
 def hard_update(target: nn.Module, source: nn.Module) -> None:
@@ -200,6 +223,23 @@ def periodic_update(step: int, period: int, targets: Mapping[nn.Module, nn.Modul
             hard_update(target, source)
 
 
+def advance(
+    step: int,
+    period: int = 0,
+    targets: Mapping[nn.Module, nn.Module] | None = None,
+    tau: float = 0.0,
+) -> int:
+    """The step count after one more update, once that update's target updates are made
+    (``{target: source}``): a hard copy every ``period`` steps, or with ``period`` 0 Polyak
+    averaging at rate ``tau`` every step (none if ``tau`` is 0 too)."""
+    step += 1
+    if period > 0:
+        periodic_update(step, period, targets or {})
+    elif tau > 0:
+        soft_updates(targets or {}, tau)
+    return step
+
+
 def learn(
     optimizer: torch.optim.Optimizer,
     loss: torch.Tensor,
@@ -207,12 +247,9 @@ def learn(
     period: int = 0,
     targets: Mapping[nn.Module, nn.Module] | None = None,
 ) -> int:
-    """One gradient step, then the hard target copies that fall due at the new step (every
-    ``period`` steps, ``{target: source}``); returns the new step count."""
+    """One gradient step, then :func:`advance`: returns the new step count."""
     sgd_step(optimizer, loss)
-    step += 1
-    periodic_update(step, period, targets or {})
-    return step
+    return advance(step, period, targets)
 
 
 def agent_state(
@@ -271,17 +308,6 @@ def load_agent_state(
             digest = hashlib.sha256(saved.cpu().numpy().tobytes()).digest()
             g.manual_seed(int.from_bytes(digest[:8], "little") >> 1)
     return int(state["step"])
-
-
-def state_dict(agent: Any) -> dict[str, Any]:
-    """An agent's ``state_dict``, shared as a function (``state_dict = common.state_dict`` in the
-    class body): the checkpoint of its ``modules``, ``optimizers``, ``generators`` and ``step``."""
-    return agent_state(agent.modules, agent.optimizers, agent.generators, agent.step)
-
-
-def load_state_dict(agent: Any, state: Mapping[str, Any]) -> None:
-    """An agent's ``load_state_dict`` (``load_state_dict = common.load_state_dict``)."""
-    agent.step = load_agent_state(state, agent.modules, agent.optimizers, agent.generators)
 
 
 def metrics_to_floats(metrics: Metrics) -> dict[str, float]:

@@ -30,7 +30,8 @@ at s (the original's ``q1_next_actions`` evaluates Q(s, a'), a' ~ pi(s'), kept a
 
 Deviations and choices:
 - Observations go through ``networks.Encoder`` (cameras through the ResNet torso); the twin
-  critics share one encoder, the policy has its own.
+  critics (``networks.TwinCritic``) share one encoder, the tanh-Gaussian policy
+  (``networks.TanhGaussianPolicy``, log std clipped to rlkit's [-20, 2]) has its own.
 - The data's actions are clipped to +-(1 - 1e-4) before the policy's log density in the cloning
   phase (atanh of exactly +-1 is infinite; rlkit adds 1e-6 inside its logarithm instead).
 - ``reward_scale`` (the original's, 1 for MuJoCo) multiplies every reward; RL Unplugged's control
@@ -108,38 +109,6 @@ PRESETS = {
 GRID: dict[str, list] = {"cql_weight": [5.0, 10.0], "policy_lr": [1e-4, 3e-4]}
 
 
-class TanhGaussianPolicy(nn.Module):
-    def __init__(self, observation_spec, action_dim: int, c: CQLConfig):
-        super().__init__()
-        self.encoder = nets.Encoder(observation_spec, c.torso_hidden)
-        self.net = nets.mlp(self.encoder.output_dim, c.policy_layers, 2 * action_dim)
-
-    def forward(self, obs):
-        mean, log_std = self.net(self.encoder(obs)).chunk(2, -1)
-        return mean, log_std.clamp(*LOG_STD_RANGE).exp()
-
-
-def sample_tanh_gaussian(mean, std, num: int, generator: torch.Generator):
-    """(num, B, A) reparameterised actions tanh(mean + std eps) and their (num, B) log densities."""
-    u = mean + std * torch.randn((num, *mean.shape), generator=generator, device=mean.device)
-    return torch.tanh(u), tanh_gaussian_log_prob(mean, std, u)
-
-
-class Critics(nn.Module):
-    def __init__(self, observation_spec, action_dim: int, c: CQLConfig):
-        super().__init__()
-        self.encoder = nets.Encoder(observation_spec, c.torso_hidden)
-        f = self.encoder.output_dim + action_dim
-        self.q1 = nets.mlp(f, c.critic_layers, 1)
-        self.q2 = nets.mlp(f, c.critic_layers, 1)
-
-    def forward(self, obs, action: torch.Tensor) -> torch.Tensor:
-        """(2, ...) values of (B, A) or (N, B, A) actions at (B, ...) states."""
-        s = self.encoder(obs)
-        sa = torch.cat([s.expand(*action.shape[:-1], s.shape[-1]), action], -1)
-        return torch.stack([self.q1(sa).squeeze(-1), self.q2(sa).squeeze(-1)])
-
-
 def cql_regulariser(q_rand, q_curr, q_next, log_pi_curr, log_pi_next, q_data,
                     action_dim: int, temperature: float):  # fmt: skip
     """CQL(H)'s importance-sampled regulariser R_i of each critic, before its weight.
@@ -203,17 +172,18 @@ class CQLAgent:
     def __init__(
         self, observation_spec, action_spec, config: CQLConfig, seed: int = 0, device="cpu"
     ):
-        self.config, self.device = config, common.device(device)
+        self.config, self.device, self.step = config, common.device(device), 0
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, gamma=config.gamma)
-        self.pretrain_steps = 0
-        self.num_steps = config.num_steps
+        self.num_steps, self.pretrain_steps = config.num_steps, 0
         self.generator = common.generator(seed, self.device)
-        a, d = self.scaler.dim, self.device
+        a, d, th = self.scaler.dim, self.device, config.torso_hidden
         self.target_entropy = -float(a) if config.target_entropy is None else config.target_entropy
         with common.seeded(seed):
-            self.policy = TanhGaussianPolicy(observation_spec, a, config).to(d)
-            self.critics = Critics(observation_spec, a, config).to(d)
+            self.policy = nets.TanhGaussianPolicy(
+                observation_spec, a, config.policy_layers, th, LOG_STD_RANGE
+            ).to(d)
+            self.critics = nets.TwinCritic(observation_spec, a, config.critic_layers, th).to(d)
         self.target_critics = common.frozen_copy(self.critics)
         duals = {"log_alpha": nn.Parameter(torch.zeros(()))}
         if config.lagrange_threshold is not None:
@@ -233,30 +203,28 @@ class CQLAgent:
             "duals": self.duals,
         }  # fmt: skip
         self.generators = {"sample": self.generator}
-        self.step = 0
 
     def update(self, batch: Transition) -> dict[str, float]:
         c, g, n, d = self.config, self.generator, self.config.num_samples, self.device
+        b = common.transition(batch, self.scaler, d)
         # the policy and the critics encode the same spec: the keys are concatenated once
-        obs = self.policy.encoder.flatten(common.to_torch(batch.observation, d))
-        next_obs = self.policy.encoder.flatten(common.to_torch(batch.next_observation, d))
-        action = self.scaler.to_unit(common.to_torch(batch.action, d))
-        reward = common.to_torch(batch.reward, d) * c.reward_scale
-        discount = common.to_torch(batch.discount, d)
+        flatten = self.policy.encoder.flatten
+        obs, next_obs = flatten(b.observation), flatten(b.next_observation)
+        action, reward = b.action, b.reward * c.reward_scale
 
         # Every action the critics' side needs, drawn from the policy before its step.
         mean, std = self.policy(obs)
         with torch.no_grad():
             next_mean, next_std = self.policy(next_obs)
-            next_a, _ = sample_tanh_gaussian(next_mean, next_std, 1, g)
+            next_a, _ = nets.sample_tanh_gaussian(next_mean, next_std, 1, g)
             q_next_target = self.target_critics(next_obs, next_a[0]).amin(0)
-            target = reward + self.batch_spec.bootstrap_gamma * discount * q_next_target
+            target = reward + self.batch_spec.bootstrap_gamma * b.discount * q_next_target
             rand_a = torch.rand((n, *action.shape), generator=g, device=d) * 2.0 - 1.0
-            curr_a, log_pi_curr = sample_tanh_gaussian(mean, std, n, g)
-            next_prop_a, log_pi_next = sample_tanh_gaussian(next_mean, next_std, n, g)
+            curr_a, log_pi_curr = nets.sample_tanh_gaussian(mean, std, n, g)
+            next_prop_a, log_pi_next = nets.sample_tanh_gaussian(next_mean, next_std, n, g)
 
         # Entropy weight, then the policy (SAC), cloning the data for the first bc_steps.
-        pi_a, log_pi = sample_tanh_gaussian(mean, std, 1, g)
+        pi_a, log_pi = nets.sample_tanh_gaussian(mean, std, 1, g)
         loss_alpha, metrics = alpha_loss(self.duals["log_alpha"], log_pi[0], self.target_entropy)
         common.sgd_step(self.optimizers["alpha"], loss_alpha)
         alpha = self.duals["log_alpha"].detach().exp()
@@ -285,20 +253,23 @@ class CQLAgent:
         if loss_prime is not None:
             common.sgd_step(self.optimizers["alpha_prime"], loss_prime)
         common.sgd_step(self.optimizers["critic"], loss_q)
-
-        common.soft_update(self.target_critics, self.critics, c.tau)
-        self.step += 1
+        self.step = common.advance(self.step, 0, {self.target_critics: self.critics}, c.tau)
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+        """tanh(mean), the original's deterministic evaluation policy, with ``greedy=True``;
+        with ``greedy=False`` a sample of the tanh-Gaussian from the agent's generator."""
         mean, std = self.policy(common.to_torch(observation, self.device))
         if greedy:
             return self.scaler.from_unit(torch.tanh(mean))
-        return self.scaler.from_unit(sample_tanh_gaussian(mean, std, 1, self.generator)[0][0])
+        return self.scaler.from_unit(nets.sample_tanh_gaussian(mean, std, 1, self.generator)[0][0])
 
-    state_dict = common.state_dict
-    load_state_dict = common.load_state_dict
+    def state_dict(self) -> dict:
+        return common.agent_state(self.modules, self.optimizers, self.generators, self.step)
+
+    def load_state_dict(self, state: dict) -> None:
+        self.step = common.load_agent_state(state, self.modules, self.optimizers, self.generators)
 
 
 Agent = CQLAgent

@@ -180,15 +180,6 @@ def policy_loss(log_prob: torch.Tensor, weights: torch.Tensor, adv: torch.Tensor
                   "actor/advantage_mean": adv.mean()}  # fmt: skip
 
 
-def _step(optimizer: torch.optim.Optimizer, loss: torch.Tensor, params: list, max_norm: float):
-    optimizer.zero_grad(set_to_none=True)
-    loss.backward(inputs=params)
-    if max_norm > 0:
-        # foreach where the device has it (the CPU and CUDA: one kernel), per tensor elsewhere
-        nn.utils.clip_grad_norm_(params, max_norm, foreach=None)
-    optimizer.step()
-
-
 class CRRAgent:
     def __init__(
         self, observation_spec, action_spec, config: CRRConfig, seed: int = 0, device="cpu"
@@ -199,33 +190,40 @@ class CRRAgent:
         if config.baseline not in BASELINES:
             raise RluError(f"CRRConfig.baseline={config.baseline!r}; "
                            f"use one of {', '.join(BASELINES)}")  # fmt: skip
-        self.config, self.device = config, common.device(device)
+        self.config, self.device, self.step = config, common.device(device), 0
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, gamma=config.gamma)
-        self.pretrain_steps = 0
-        self.num_steps = config.num_steps
-        a = self.scaler.dim
-        common.actor_critic(
-            self, seed,
-            lambda: Policy(observation_spec, a, config),
-            lambda: Critic(observation_spec, a, config),
-            config.policy_lr, config.critic_lr,
-        )  # fmt: skip
+        self.num_steps, self.pretrain_steps = config.num_steps, 0
+        self.generator = common.generator(seed, self.device)
+        a, d = self.scaler.dim, self.device
+        with common.seeded(seed):
+            self.policy = Policy(observation_spec, a, config).to(d)
+            self.critic = Critic(observation_spec, a, config).to(d)
+        self.target_policy = common.frozen_copy(self.policy)
+        self.target_critic = common.frozen_copy(self.critic)
+        self.modules = {
+            "policy": self.policy, "critic": self.critic,
+            "target_policy": self.target_policy, "target_critic": self.target_critic,
+        }  # fmt: skip
+        self.optimizers = {
+            "policy": common.adam(self.policy.parameters(), config.policy_lr),
+            "critic": common.adam(self.critic.parameters(), config.critic_lr),
+        }
+        self.generators = {"sample": self.generator}
+        # copied into their targets every target_update_period updates
+        self.targets = {self.target_policy: self.policy, self.target_critic: self.critic}
 
     def update(self, batch: Transition) -> dict[str, float]:
-        c, g, d = self.config, self.generator, self.device
-        obs = common.to_torch(batch.observation, d)
-        next_obs = common.to_torch(batch.next_observation, d)
-        action = self.scaler.to_unit(common.to_torch(batch.action, d))
-        reward, discount = common.to_torch(batch.reward, d), common.to_torch(batch.discount, d)
-        atoms = self.critic.head.atoms
+        c, g = self.config, self.generator
+        b, atoms = common.transition(batch, self.scaler, self.device), self.critic.head.atoms
+        obs, action = b.observation, b.action
 
         with torch.no_grad():
-            next_a = sample_actions(self.target_policy(next_obs), c.num_target_samples, g)
-            target_probs = torch.softmax(self.target_critic(next_obs, next_a), -1).mean(0)
+            next_a = sample_actions(self.target_policy(b.next_observation), c.num_target_samples, g)
+            target_probs = torch.softmax(self.target_critic(b.next_observation, next_a), -1).mean(0)
         logits = self.critic(obs, action)
         loss_c, metrics = critic_loss(
-            logits, target_probs, reward, discount, atoms, self.batch_spec.bootstrap_gamma
+            logits, target_probs, b.reward, b.discount, atoms, self.batch_spec.bootstrap_gamma
         )
 
         mix = self.policy(obs)
@@ -237,24 +235,27 @@ class CRRAgent:
         loss_p, m = policy_loss(mixture_log_prob(*mix, action), weights, adv)
         metrics.update(m)
 
-        _step(self.optimizers["critic"], loss_c, list(self.critic.parameters()), c.max_grad_norm)
-        _step(self.optimizers["policy"], loss_p, list(self.policy.parameters()), c.max_grad_norm)
-        self.step += 1
-        common.periodic_update(
-            self.step, c.target_update_period,
-            {self.target_policy: self.policy, self.target_critic: self.critic},
-        )  # fmt: skip
+        common.sgd_step(self.optimizers["critic"], loss_c, list(self.critic.parameters()),
+                        c.max_grad_norm)  # fmt: skip
+        common.sgd_step(self.optimizers["policy"], loss_p, list(self.policy.parameters()),
+                        c.max_grad_norm)  # fmt: skip
+        self.step = common.advance(self.step, c.target_update_period, self.targets)
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+        """The mean of the mixture's most probable component with ``greedy=True``; with
+        ``greedy=False`` a sample of the Gaussian mixture from the agent's generator."""
         logits, mean, std = self.policy(common.to_torch(observation, self.device))
         if greedy:
             return self.scaler.from_unit(nets.mixture_mode(logits, mean))
         return self.scaler.from_unit(nets.mixture_sample(logits, mean, std, self.generator))
 
-    state_dict = common.state_dict
-    load_state_dict = common.load_state_dict
+    def state_dict(self) -> dict:
+        return common.agent_state(self.modules, self.optimizers, self.generators, self.step)
+
+    def load_state_dict(self, state: dict) -> None:
+        self.step = common.load_agent_state(state, self.modules, self.optimizers, self.generators)
 
 
 Agent = CRRAgent

@@ -119,52 +119,57 @@ class D4PGAgent:
     def __init__(
         self, observation_spec, action_spec, config: D4PGConfig, seed: int = 0, device="cpu"
     ):
-        self.config, self.device = config, common.device(device)
+        self.config, self.device, self.step = config, common.device(device), 0
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, n_step=config.n_step, gamma=config.gamma)
-        self.pretrain_steps = 0
-        self.num_steps = config.num_steps
-        a = self.scaler.dim
-        common.actor_critic(
-            self, seed,
-            lambda: Policy(observation_spec, a, config),
-            lambda: Critic(observation_spec, a, config),
-            config.policy_lr, config.critic_lr,
-        )  # fmt: skip
+        self.num_steps, self.pretrain_steps = config.num_steps, 0
+        self.generator = common.generator(seed, self.device)
+        a, d = self.scaler.dim, self.device
+        with common.seeded(seed):
+            self.policy = Policy(observation_spec, a, config).to(d)
+            self.critic = Critic(observation_spec, a, config).to(d)
+        self.target_policy = common.frozen_copy(self.policy)
+        self.target_critic = common.frozen_copy(self.critic)
+        self.modules = {
+            "policy": self.policy, "critic": self.critic,
+            "target_policy": self.target_policy, "target_critic": self.target_critic,
+        }  # fmt: skip
+        self.optimizers = {
+            "policy": common.adam(self.policy.parameters(), config.policy_lr),
+            "critic": common.adam(self.critic.parameters(), config.critic_lr),
+        }
+        self.generators = {"sample": self.generator}
+        # copied into their targets every target_update_period updates
+        self.targets = {self.target_policy: self.policy, self.target_critic: self.critic}
 
     def update(self, batch: Transition) -> dict[str, float]:
-        d = self.device
-        obs = common.to_torch(batch.observation, d)
-        next_obs = common.to_torch(batch.next_observation, d)
-        action = self.scaler.to_unit(common.to_torch(batch.action, d))
-        reward, discount = common.to_torch(batch.reward, d), common.to_torch(batch.discount, d)
-        atoms = self.critic.head.atoms
+        b, atoms = common.transition(batch, self.scaler, self.device), self.critic.head.atoms
         with torch.no_grad():
-            target_logits = self.target_critic(next_obs, self.target_policy(next_obs))
+            next_a = self.target_policy(b.next_observation)
+            target_logits = self.target_critic(b.next_observation, next_a)
         loss_c, metrics = critic_loss(
-            self.critic(obs, action), target_logits, reward, discount, atoms,
+            self.critic(b.observation, b.action), target_logits, b.reward, b.discount, atoms,
             self.batch_spec.bootstrap_gamma,
         )  # fmt: skip
         common.sgd_step(self.optimizers["critic"], loss_c)
 
-        loss_p, m = policy_loss(self.critic(obs, self.policy(obs)), atoms)
+        loss_p, m = policy_loss(self.critic(b.observation, self.policy(b.observation)), atoms)
         common.sgd_step(self.optimizers["policy"], loss_p, inputs=list(self.policy.parameters()))
         metrics.update(m)
-
-        self.step += 1
-        common.periodic_update(
-            self.step, self.config.target_update_period,
-            {self.target_policy: self.policy, self.target_critic: self.critic},
-        )  # fmt: skip
+        self.step = common.advance(self.step, self.config.target_update_period, self.targets)
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
-        # Deterministic policy: greedy or not, the action is pi(s) (offline, no exploration).
+        """pi(s), greedy or not: the policy is deterministic and, offline, acts without the
+        online agent's exploration noise."""
         return self.scaler.from_unit(self.policy(common.to_torch(observation, self.device)))
 
-    state_dict = common.state_dict
-    load_state_dict = common.load_state_dict
+    def state_dict(self) -> dict:
+        return common.agent_state(self.modules, self.optimizers, self.generators, self.step)
+
+    def load_state_dict(self, state: dict) -> None:
+        self.step = common.load_agent_state(state, self.modules, self.optimizers, self.generators)
 
 
 Agent = D4PGAgent

@@ -235,43 +235,65 @@ class QNetwork(nn.Module):
         return out.view(-1, self.num_heads, self.num_actions)
 
 
-def setup(
-    agent: Any,
+class DiscreteParts(NamedTuple):
+    """What :func:`build` makes for a discrete agent; the agent's file names where it keeps each."""
+
+    network: nn.Module
+    target_network: nn.Module | None
+    optimizers: dict[str, torch.optim.Optimizer]
+    generators: dict[str, torch.Generator]
+
+
+def build(
     name: str,
     observation_spec: Any,
     action_spec: Any,
     config: Any,
     seed: int,
-    build: Callable[[tuple[int, ...], int], nn.Module],
+    device: torch.device,
+    make: Callable[[tuple[int, ...], int, AtariSettings], nn.Module],
     target: bool = True,
-    device: Any = "cpu",
-) -> None:
-    """Give a discrete agent what every discrete agent owns, as attributes: ``config``,
-    ``batch_spec`` (from ``config.atari``), ``num_steps``, ``pretrain_steps`` (0), ``step`` (0),
-    ``device`` (``common.device(device)``), ``network`` = ``build(frame shape, number of
-    actions)`` made on the CPU under the agent's initialisation seed and moved to ``device``,
-    ``target_network`` (its frozen copy, or None with ``target=False``), ``modules``,
-    ``optimizers`` (one Adam with TF2's epsilon, ``config.learning_rate``) and ``generators``
-    on the device ('learner' for the loss's draws, 'act' for acting). Seeds are split from
-    ``seed`` as (init, learner, act). The agent's own file holds its loss, update and act."""
+    optimizer: Callable[[list[nn.Parameter]], torch.optim.Optimizer] | None = None,
+) -> DiscreteParts:
+    """What every discrete agent owns, built the same way for each (specs checked first): the
+    network ``make(frame shape, number of actions, config.atari)``, made on the CPU under the
+    agent's initialisation seed and moved to ``device``; its frozen target copy (None with
+    ``target=False``); ``{"network": optimizer(parameters)}``, by default Adam with TF2's
+    epsilon at ``config.learning_rate``;
+    ``{"learner": ..., "act": ...}`` generators on ``device`` (the loss's draws, acting). Seeds
+    are split from ``seed`` as (init, learner, act)."""
     shape, num_actions = check_specs(name, observation_spec, action_spec)
-    settings: AtariSettings = config.atari
     init_seed, learner_seed, act_seed = common.split_seed(seed, 3)
-    agent.device = common.device(device)
     with common.seeded(init_seed):
-        network = build(shape, num_actions).to(agent.device)
-    agent.config, agent.batch_spec = config, settings.batch_spec()
-    agent.num_steps, agent.pretrain_steps, agent.step = settings.num_steps, 0, 0
-    agent.network, agent.modules = network, {"network": network}
-    agent.target_network = None
-    if target:
-        agent.target_network = agent.modules["target_network"] = common.frozen_copy(network)
-    optimizer = common.adam(network.parameters(), config.learning_rate, settings.adam_eps)
-    agent.optimizers = {"network": optimizer}
-    agent.generators = {
-        "learner": common.generator(learner_seed, agent.device),
-        "act": common.generator(act_seed, agent.device),
+        network = make(shape, num_actions, config.atari).to(device)
+    target_network = common.frozen_copy(network) if target else None
+    params = list(network.parameters())
+    if optimizer is None:
+        opt = common.adam(params, config.learning_rate, config.atari.adam_eps)
+    else:
+        opt = optimizer(params)
+    generators = {
+        "learner": common.generator(learner_seed, device),
+        "act": common.generator(act_seed, device),
     }
+    return DiscreteParts(network, target_network, {"network": opt}, generators)
+
+
+def dqn_target(
+    network: nn.Module,
+    target_network: nn.Module,
+    batch: TorchTransition,
+    gamma: float,
+    double_q: bool = True,
+) -> torch.Tensor:
+    """The (double-)Q TD target of a batch, without gradients: :func:`double_q_target` with
+    the online network's argmax, or :func:`q_learning_target` with the target's own max."""
+    with torch.no_grad():
+        q_next_target = target_network(batch.next_observation)
+        if not double_q:
+            return q_learning_target(batch.reward, batch.discount, gamma, q_next_target)
+        q_next_online = network(batch.next_observation)
+        return double_q_target(batch.reward, batch.discount, gamma, q_next_online, q_next_target)
 
 
 # ----------------------------------------------------------------------------- pure maths
@@ -316,16 +338,31 @@ def epsilon_greedy(scores: torch.Tensor, epsilon: float, generator: torch.Genera
     return torch.where(explore, uniform, scores.argmax(-1)).cpu().numpy().astype(np.int64)
 
 
-def learn(agent: Any, loss: torch.Tensor) -> int:
-    """A discrete agent's gradient step: Adam on ``agent.network``, then the hard copy into
-    ``agent.target_network`` that falls due (``atari.target_update_period``); the new step."""
-    return common.learn(
-        agent.optimizers["network"],
-        loss,
-        agent.step,
-        agent.config.atari.target_update_period,
-        {agent.target_network: agent.network},
-    )
+def learn(
+    optimizer: torch.optim.Optimizer,
+    loss: torch.Tensor,
+    step: int,
+    settings: AtariSettings,
+    targets: dict[nn.Module, nn.Module],
+) -> int:
+    """A discrete agent's gradient step (``common.learn``) with the hard copies into its target
+    networks (``{target: source}``) every ``settings.target_update_period`` updates."""
+    return common.learn(optimizer, loss, step, settings.target_update_period, targets)
+
+
+def act(
+    network: nn.Module,
+    observation: Any,
+    settings: AtariSettings,
+    greedy: bool,
+    generator: torch.Generator,
+) -> np.ndarray:
+    """Acting on a Q-network whose output is (B, A): :func:`epsilon_greedy` on Q(s, .) of the
+    frame stacks ``observation`` (moved to the network's device), with :func:`epsilon`'s
+    probability."""
+    device = next(network.parameters()).device
+    q = network(frames(observation, device=device))
+    return epsilon_greedy(q, epsilon(settings, greedy), generator)
 
 
 def epsilon(settings: AtariSettings, greedy: bool) -> float:

@@ -236,11 +236,10 @@ class DMPOAgent:
     def __init__(
         self, observation_spec, action_spec, config: DMPOConfig, seed: int = 0, device="cpu"
     ):
-        self.config, self.device = config, common.device(device)
+        self.config, self.device, self.step = config, common.device(device), 0
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, n_step=config.n_step, gamma=config.gamma)
-        self.pretrain_steps = 0
-        self.num_steps = config.num_steps
+        self.num_steps, self.pretrain_steps = config.num_steps, 0
         a, d = self.scaler.dim, self.device
         self.generator = common.generator(seed, d)
         with common.seeded(seed):
@@ -266,16 +265,15 @@ class DMPOAgent:
             "policy": self.policy, "critic": self.critic, "duals": self.duals,
             "target_policy": self.target_policy, "target_critic": self.target_critic,
         }  # fmt: skip
-        self.step = 0
+        # copied into their targets every target_update_period updates
+        self.targets = {self.target_policy: self.policy, self.target_critic: self.critic}
 
     def update(self, batch: Transition) -> dict[str, float]:
         c, d, n = self.config, self.device, self.config.num_samples
+        b, atoms = common.transition(batch, self.scaler, d), self.critic.head.atoms
         # the policy and the critic encode the same spec: the keys are concatenated once
-        obs = self.policy.encoder.flatten(common.to_torch(batch.observation, d))
-        next_obs = self.policy.encoder.flatten(common.to_torch(batch.next_observation, d))
-        action = self.scaler.to_unit(common.to_torch(batch.action, d))
-        reward, discount = common.to_torch(batch.reward, d), common.to_torch(batch.discount, d)
-        atoms = self.critic.head.atoms
+        flatten = self.policy.encoder.flatten
+        obs, next_obs = flatten(b.observation), flatten(b.next_observation)
         with torch.no_grad():
             for p in self.duals.values():  # Acme's projection, before the duals are read
                 p.clamp_(min=MIN_LOG_DUAL)
@@ -285,29 +283,18 @@ class DMPOAgent:
             sampled_logits = self.sampled_logits(next_obs, sampled)  # (N, B, K)
             q_values = (torch.softmax(sampled_logits, -1) * atoms).sum(-1)  # (N, B)
 
-        loss_c, metrics = critic_loss(self.critic(obs, action), sampled_logits, reward, discount,
-                                      atoms, self.batch_spec.bootstrap_gamma)  # fmt: skip
+        loss_c, metrics = critic_loss(
+            self.critic(obs, b.action), sampled_logits, b.reward, b.discount, atoms,
+            self.batch_spec.bootstrap_gamma,
+        )  # fmt: skip
         mean, std = self.policy(next_obs)
         loss_p, m = mpo_loss(mean, std, target_mean, target_std, sampled, q_values, self.duals, c)
         metrics.update(m)
 
-        for opt in self.optimizers.values():
-            opt.zero_grad(set_to_none=True)
         # each loss reaches only its own parameters, so one backward serves all three optimisers
-        (loss_c + loss_p).backward()
-        if c.max_grad_norm > 0:
-            for name in ("policy", "critic"):
-                # foreach=None: the fused kernel where the device has one (not on meta)
-                nn.utils.clip_grad_norm_(self.modules[name].parameters(), c.max_grad_norm,
-                                         foreach=None)  # fmt: skip
-        for opt in self.optimizers.values():
-            opt.step()
-
-        self.step += 1
-        common.periodic_update(
-            self.step, c.target_update_period,
-            {self.target_policy: self.policy, self.target_critic: self.critic},
-        )  # fmt: skip
+        clip = (self.policy.parameters(), self.critic.parameters())
+        common.joint_step(self.optimizers.values(), loss_c + loss_p, clip, c.max_grad_norm)
+        self.step = common.advance(self.step, c.target_update_period, self.targets)
         return common.metrics_to_floats(metrics)
 
     def sampled_logits(self, next_obs, sampled: torch.Tensor) -> torch.Tensor:
@@ -320,14 +307,19 @@ class DMPOAgent:
 
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+        """The Gaussian's mean with ``greedy=True``; with ``greedy=False`` a sample (Acme's
+        behaviour network), both clipped to the action bounds."""
         mean, std = self.policy(common.to_torch(observation, self.device))
         if not greedy:
             noise = torch.randn(mean.shape, generator=self.generators["act"], device=mean.device)
             mean = mean + std * noise
         return self.scaler.from_unit(mean.clamp(-1.0, 1.0))
 
-    state_dict = common.state_dict
-    load_state_dict = common.load_state_dict
+    def state_dict(self) -> dict:
+        return common.agent_state(self.modules, self.optimizers, self.generators, self.step)
+
+    def load_state_dict(self, state: dict) -> None:
+        self.step = common.load_agent_state(state, self.modules, self.optimizers, self.generators)
 
 
 Agent = DMPOAgent

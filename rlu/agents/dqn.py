@@ -49,15 +49,7 @@ def dqn_loss(network, target_network, batch: dc.TorchTransition, gamma: float,
              huber_delta: float = 1.0, double_q: bool = True):  # fmt: skip
     """Huber loss between Q(s, a) and the (double-)Q target; ``gamma`` bootstraps (gamma^n)."""
     q_taken = dc.taken(network(batch.observation), batch.action)
-    with torch.no_grad():
-        q_next_target = target_network(batch.next_observation)
-        if double_q:
-            q_next_online = network(batch.next_observation)
-            target = dc.double_q_target(
-                batch.reward, batch.discount, gamma, q_next_online, q_next_target
-            )
-        else:
-            target = dc.q_learning_target(batch.reward, batch.discount, gamma, q_next_target)
+    target = dc.dqn_target(network, target_network, batch, gamma, double_q)
     loss = dc.huber(target - q_taken, huber_delta).mean()
     return loss, {"critic/loss": loss, "critic/q": q_taken.mean(), "critic/target": target.mean()}
 
@@ -66,11 +58,14 @@ class DQNAgent:
     def __init__(
         self, observation_spec, action_spec, config: DQNConfig, seed: int = 0, device="cpu"
     ) -> None:
-        dc.setup(
-            self, "dqn", observation_spec, action_spec, config, seed,
-            lambda shape, n: dc.QNetwork(shape, n, config.atari),
-            device=device,
-        )  # fmt: skip
+        self.config, self.device, self.step = config, common.device(device), 0
+        self.batch_spec, self.num_steps = config.atari.batch_spec(), config.atari.num_steps
+        self.pretrain_steps = 0
+        self.network, self.target_network, self.optimizers, self.generators = dc.build(
+            "dqn", observation_spec, action_spec, config, seed, self.device, dc.QNetwork
+        )
+        self.modules = {"network": self.network, "target_network": self.target_network}
+        self.targets = {self.target_network: self.network}  # copied every target_update_period
 
     def update(self, batch: Transition) -> dict[str, float]:
         c = self.config
@@ -78,16 +73,20 @@ class DQNAgent:
             self.network, self.target_network, dc.to_torch(batch, self.device),
             self.batch_spec.bootstrap_gamma, c.atari.huber_delta, c.double_q,
         )  # fmt: skip
-        self.step = dc.learn(self, loss)
+        self.step = dc.learn(self.optimizers["network"], loss, self.step, c.atari, self.targets)
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
-        q = self.network(dc.frames(observation, device=self.device))
-        return dc.epsilon_greedy(q, dc.epsilon(self.config.atari, greedy), self.generators["act"])
+        """Epsilon-greedy on Q: argmax_a Q(s, a), replaced by a uniform action with probability
+        ``atari.eval_epsilon`` (greedy) or ``atari.explore_epsilon`` (module docstring)."""
+        return dc.act(self.network, observation, self.config.atari, greedy, self.generators["act"])
 
-    state_dict = common.state_dict
-    load_state_dict = common.load_state_dict
+    def state_dict(self) -> dict:
+        return common.agent_state(self.modules, self.optimizers, self.generators, self.step)
+
+    def load_state_dict(self, state: dict) -> None:
+        self.step = common.load_agent_state(state, self.modules, self.optimizers, self.generators)
 
 
 Agent = DQNAgent

@@ -161,9 +161,7 @@ def dopamine_dqn_loss(network, target_network, batch: dc.TorchTransition, gamma:
     """Dopamine's DQN loss: the batch mean of Huber(r + gamma d max_a Q_target(s', a) - Q(s, a));
     ``gamma`` bootstraps (gamma^n for n-step batches)."""
     q_taken = dc.taken(network(batch.observation), batch.action)
-    with torch.no_grad():
-        q_next_target = target_network(batch.next_observation)
-        target = dc.q_learning_target(batch.reward, batch.discount, gamma, q_next_target)
+    target = dc.dqn_target(network, target_network, batch, gamma, double_q=False)
     loss = dc.huber(target - q_taken, huber_delta).mean()
     return loss, {"critic/loss": loss, "critic/q": q_taken.mean(), "critic/target": target.mean()}
 
@@ -173,16 +171,19 @@ class DopamineDQNAgent:
         self, observation_spec, action_spec, config: DopamineDQNConfig, seed: int = 0,
         device="cpu",
     ) -> None:  # fmt: skip
-        dc.setup(
-            self, "dopamine_dqn", observation_spec, action_spec, config, seed,
-            lambda shape, n: dc.QNetwork(shape, n, config.atari),
-            device=device,
+        self.config, self.device, self.step = config, common.device(device), 0
+        self.batch_spec, self.num_steps = config.atari.batch_spec(), config.atari.num_steps
+        self.pretrain_steps = 0
+        self.network, self.target_network, self.optimizers, self.generators = dc.build(
+            "dopamine_dqn", observation_spec, action_spec, config, seed, self.device, dc.QNetwork,
+            # Dopamine's DQN learns with TF1's RMSProp, not the offline agents' Adam
+            optimizer=lambda params: TFRMSProp(
+                params, config.learning_rate, config.rmsprop_decay, config.rmsprop_momentum,
+                config.rmsprop_epsilon, config.centered,
+            ),
         )  # fmt: skip
-        # setup gives every discrete agent Adam; Dopamine's DQN learns with TF1's RMSProp
-        self.optimizers["network"] = TFRMSProp(
-            self.network.parameters(), config.learning_rate, config.rmsprop_decay,
-            config.rmsprop_momentum, config.rmsprop_epsilon, config.centered,
-        )  # fmt: skip
+        self.modules = {"network": self.network, "target_network": self.target_network}
+        self.targets = {self.target_network: self.network}  # copied every target_update_period
 
     def update(self, batch: Transition) -> dict[str, float]:
         c = self.config
@@ -190,18 +191,20 @@ class DopamineDQNAgent:
             self.network, self.target_network, dc.to_torch(batch, self.device),
             self.batch_spec.bootstrap_gamma, c.atari.huber_delta,
         )  # fmt: skip
-        self.step = dc.learn(self, loss)
+        self.step = dc.learn(self.optimizers["network"], loss, self.step, c.atari, self.targets)
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
         """Epsilon-greedy on Q: ``atari.eval_epsilon`` (Dopamine's 0.001) with ``greedy=True``,
         ``atari.explore_epsilon`` (its training epsilon, 0.01) with ``greedy=False``."""
-        q = self.network(dc.frames(observation, device=self.device))
-        return dc.epsilon_greedy(q, dc.epsilon(self.config.atari, greedy), self.generators["act"])
+        return dc.act(self.network, observation, self.config.atari, greedy, self.generators["act"])
 
-    state_dict = common.state_dict
-    load_state_dict = common.load_state_dict
+    def state_dict(self) -> dict:
+        return common.agent_state(self.modules, self.optimizers, self.generators, self.step)
+
+    def load_state_dict(self, state: dict) -> None:
+        self.step = common.load_agent_state(state, self.modules, self.optimizers, self.generators)
 
 
 Agent = DopamineDQNAgent

@@ -27,7 +27,7 @@ Deviations and choices:
   suite needs none: per-step rewards lie in [0, 1] over 1000-step episodes, so returns already
   span at most 1000.
 - Observations go through ``networks.Encoder`` (one per network; cameras through the ResNet
-  torso); the twin critics share one encoder.
+  torso); the twin critics (``networks.TwinCritic``) share one encoder.
 - torch's default initialisation instead of the original's orthogonal one.
 - The cosine horizon is ``num_steps`` (the original's ``max_steps``); a run stopped earlier
   ends before the policy's rate reaches 0.
@@ -139,20 +139,6 @@ class ValueNet(nn.Module):
         return self.net(self.encoder(obs)).squeeze(-1)
 
 
-class Critics(nn.Module):
-    def __init__(self, observation_spec, action_dim: int, c: IQLConfig):
-        super().__init__()
-        self.encoder = nets.Encoder(observation_spec, c.torso_hidden)
-        f = self.encoder.output_dim + action_dim
-        self.q1 = nets.mlp(f, c.hidden_layers, 1)
-        self.q2 = nets.mlp(f, c.hidden_layers, 1)
-
-    def forward(self, obs, action: torch.Tensor) -> torch.Tensor:
-        """(2, B): both critics' values."""
-        sa = torch.cat([self.encoder(obs), action], -1)
-        return torch.stack([self.q1(sa).squeeze(-1), self.q2(sa).squeeze(-1)])
-
-
 class GaussianPolicy(nn.Module):
     """N(tanh(MLP(s)), exp(log_std)) with a state-independent, clipped log std."""
 
@@ -173,16 +159,15 @@ class IQLAgent:
     def __init__(
         self, observation_spec, action_spec, config: IQLConfig, seed: int = 0, device="cpu"
     ):
-        self.config, self.device = config, common.device(device)
+        self.config, self.device, self.step = config, common.device(device), 0
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, gamma=config.gamma)
-        self.pretrain_steps = 0
-        self.num_steps = config.num_steps
-        self.generator = common.generator(seed, self.device)
-        a, d = self.scaler.dim, self.device
+        self.num_steps, self.pretrain_steps = config.num_steps, 0
+        a, d, layers, th = self.scaler.dim, self.device, config.hidden_layers, config.torso_hidden
+        self.generator = common.generator(seed, d)
         with common.seeded(seed):
             self.value = ValueNet(observation_spec, config).to(d)
-            self.critics = Critics(observation_spec, a, config).to(d)
+            self.critics = nets.TwinCritic(observation_spec, a, layers, th).to(d)
             self.policy = GaussianPolicy(observation_spec, a, config).to(d)
         self.target_critics = common.frozen_copy(self.critics)
         self.modules = {
@@ -195,16 +180,16 @@ class IQLAgent:
             "policy": common.adam(self.policy.parameters(), config.actor_lr),
         }
         self.generators = {"sample": self.generator}
-        self.step = 0
 
     def update(self, batch: Transition) -> dict[str, float]:
-        c, d = self.config, self.device
+        c = self.config
+        b = common.transition(batch, self.scaler, self.device)
         # every network here encodes the same spec: the keys are concatenated once per batch
-        obs = self.value.encoder.flatten(common.to_torch(batch.observation, d))
-        next_obs = self.value.encoder.flatten(common.to_torch(batch.next_observation, d))
-        action = self.scaler.to_unit(common.to_torch(batch.action, d))
-        reward = common.to_torch(batch.reward, d) * c.reward_scale
-        discount = common.to_torch(batch.discount, d)
+        obs, next_obs = (
+            self.value.encoder.flatten(b.observation),
+            self.value.encoder.flatten(b.next_observation),
+        )
+        action, reward = b.action, b.reward * c.reward_scale
 
         with torch.no_grad():
             q_min = self.target_critics(obs, action).amin(0)
@@ -214,7 +199,7 @@ class IQLAgent:
         with torch.no_grad():  # the policy and the critics both see the updated V
             v, v_next = self.value(nets.cat_batches(obs, next_obs)).split(len(reward))  # one pass
             adv = q_min - v
-            target = reward + self.batch_spec.bootstrap_gamma * discount * v_next
+            target = reward + self.batch_spec.bootstrap_gamma * b.discount * v_next
         if c.cosine_decay:
             lr = cosine_lr(c.actor_lr, self.step, c.num_steps)
             for group in self.optimizers["policy"].param_groups:
@@ -227,21 +212,24 @@ class IQLAgent:
         loss_q, m = critic_loss(self.critics(obs, action), target)
         metrics.update(m)
         common.sgd_step(self.optimizers["critic"], loss_q)
-
-        common.soft_update(self.target_critics, self.critics, c.tau)
-        self.step += 1
+        self.step = common.advance(self.step, 0, {self.target_critics: self.critics}, c.tau)
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+        """The Gaussian's mean (the original evaluates at temperature 0) with ``greedy=True``;
+        with ``greedy=False`` a sample of N(mean, exp(log_std)) from the agent's generator."""
         mean, std = self.policy(common.to_torch(observation, self.device))
         if not greedy:
             noise = torch.randn(mean.shape, generator=self.generator, device=mean.device)
             mean = mean + std * noise
         return self.scaler.from_unit(mean)
 
-    state_dict = common.state_dict
-    load_state_dict = common.load_state_dict
+    def state_dict(self) -> dict:
+        return common.agent_state(self.modules, self.optimizers, self.generators, self.step)
+
+    def load_state_dict(self, state: dict) -> None:
+        self.step = common.load_agent_state(state, self.modules, self.optimizers, self.generators)
 
 
 Agent = IQLAgent

@@ -142,11 +142,15 @@ class IQNAgent:
     def __init__(
         self, observation_spec, action_spec, config: IQNConfig, seed: int = 0, device="cpu"
     ) -> None:
-        dc.setup(
-            self, "iqn", observation_spec, action_spec, config, seed,
-            lambda shape, n: ImplicitQuantileNetwork(shape, n, config.atari, config.embedding_size),
-            device=device,
+        self.config, self.device, self.step = config, common.device(device), 0
+        self.batch_spec, self.num_steps = config.atari.batch_spec(), config.atari.num_steps
+        self.pretrain_steps = 0
+        self.network, self.target_network, self.optimizers, self.generators = dc.build(
+            "iqn", observation_spec, action_spec, config, seed, self.device,
+            lambda shape, n, s: ImplicitQuantileNetwork(shape, n, s, config.embedding_size),
         )  # fmt: skip
+        self.modules = {"network": self.network, "target_network": self.target_network}
+        self.targets = {self.target_network: self.network}  # copied every target_update_period
 
     def update(self, batch: Transition) -> dict[str, float]:
         c = self.config
@@ -155,11 +159,13 @@ class IQNAgent:
             self.batch_spec.bootstrap_gamma, self.generators["learner"],
             c.num_tau_samples, c.num_tau_samples, c.kappa, c.double_q,
         )  # fmt: skip
-        self.step = dc.learn(self, loss)
+        self.step = dc.learn(self.optimizers["network"], loss, self.step, c.atari, self.targets)
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+        """argmax_a of the mean of ``num_quantile_samples`` quantiles at fractions drawn from the
+        acting generator, epsilon-greedy (``atari.eval_epsilon`` when greedy)."""
         frames, generator = dc.frames(observation, device=self.device), self.generators["act"]
         taus = torch.rand(
             frames.shape[0], self.config.num_quantile_samples, generator=generator,
@@ -168,8 +174,11 @@ class IQNAgent:
         q = self.network(frames, taus).mean(1)
         return dc.epsilon_greedy(q, dc.epsilon(self.config.atari, greedy), generator)
 
-    state_dict = common.state_dict
-    load_state_dict = common.load_state_dict
+    def state_dict(self) -> dict:
+        return common.agent_state(self.modules, self.optimizers, self.generators, self.step)
+
+    def load_state_dict(self, state: dict) -> None:
+        self.step = common.load_agent_state(state, self.modules, self.optimizers, self.generators)
 
 
 Agent = IQNAgent

@@ -13,6 +13,9 @@
 - ``Torso``: Encoder -> ResidualMLP -> optional 2-layer LSTM (the sequence tasks).
 - ``MixtureHead``: 5-component diagonal Gaussian mixture policy (evaluation variance 1e-4);
   ``GaussianHead`` the single Gaussian of RABM; ``CategoricalHead`` the distributional critic.
+- ``TwinCritic``: two Q MLPs on one encoder (IQL, CQL, BRAC); ``TanhGaussianPolicy``: the
+  tanh-squashed Gaussian policy of SAC-style agents (CQL, BRAC), with
+  ``sample_tanh_gaussian`` for its reparameterised samples and their log densities.
 
 Network pieces only: seeding, tensors, optimisers and the checkpoint format are in
 ``rlu.agents.common``, shared with the discrete agents.
@@ -28,6 +31,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from rlu.agents.losses import tanh_gaussian_log_prob
 from rlu.types import ArraySpec, BoundedSpec, ObservationSpec, SpecError
 
 
@@ -269,6 +273,77 @@ class CategoricalHead(nn.Module):
 
     def mean(self, logits: torch.Tensor) -> torch.Tensor:
         return (torch.softmax(logits, -1) * self.atoms).sum(-1)
+
+
+class TwinCritic(nn.Module):
+    """Two Q-networks on one encoder: Q_i(s, a) = MLP_i([Encoder(s), a]) (ReLU MLPs)."""
+
+    def __init__(
+        self, observation_spec: ObservationSpec, action_dim: int, layers, torso_hidden: int
+    ):
+        super().__init__()
+        self.encoder = Encoder(observation_spec, torso_hidden)
+        f = self.encoder.output_dim + action_dim
+        self.q1 = mlp(f, layers, 1)
+        self.q2 = mlp(f, layers, 1)
+
+    def forward(self, obs, action: torch.Tensor) -> torch.Tensor:
+        """(2, ...) values of (B, A) actions, or (N, B, A): N actions per state, one encoder
+        pass."""
+        s = self.encoder(obs)
+        sa = torch.cat([s.expand(*action.shape[:-1], s.shape[-1]), action], -1)
+        return torch.stack([self.q1(sa).squeeze(-1), self.q2(sa).squeeze(-1)])
+
+
+class TanhGaussianPolicy(nn.Module):
+    """tanh(u), u ~ N(mean, std), with [mean, raw log std] = MLP(Encoder(s)) (ReLU MLP).
+
+    ``log_std_range`` (lo, hi) bounds the log std: clipped to it (rlkit's SAC, CQL), or with
+    ``squash_log_std`` mapped smoothly onto it, lo + (hi - lo) (tanh(raw) + 1) / 2 (BRAC's
+    ``ActorNetwork``)."""
+
+    def __init__(
+        self,
+        observation_spec: ObservationSpec,
+        action_dim: int,
+        layers,
+        torso_hidden: int,
+        log_std_range: tuple[float, float],
+        squash_log_std: bool = False,
+    ):
+        super().__init__()
+        self.encoder = Encoder(observation_spec, torso_hidden)
+        self.net = mlp(self.encoder.output_dim, layers, 2 * action_dim)
+        self.log_std_range, self.squash_log_std = log_std_range, squash_log_std
+
+    def forward(self, obs) -> tuple[torch.Tensor, torch.Tensor]:
+        """(mean, std) of the pre-tanh Gaussian."""
+        return self.dist(self.encoder(obs))
+
+    def dist(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        mean, log_std = self.net(features).chunk(2, -1)
+        lo, hi = self.log_std_range
+        if self.squash_log_std:
+            log_std = lo + 0.5 * (hi - lo) * (torch.tanh(log_std) + 1.0)
+        else:
+            log_std = log_std.clamp(lo, hi)
+        return mean, log_std.exp()
+
+    def log_prob(self, obs, action: torch.Tensor, clip: float, features=None) -> torch.Tensor:
+        """log pi(action | s) of (B, A) or (S, B, A) actions at (B, ...) states, the actions
+        clipped to +-``clip`` first (atanh of exactly +-1 is infinite)."""
+        mean, std = self.dist(self.encoder(obs) if features is None else features)
+        return tanh_gaussian_log_prob(mean, std, torch.atanh(action.clamp(-clip, clip)))
+
+    def sample(self, obs, num: int, generator: torch.Generator):
+        """(num, B, A) reparameterised actions and their (num, B) log densities."""
+        return sample_tanh_gaussian(*self(obs), num, generator)
+
+
+def sample_tanh_gaussian(mean, std, num: int, generator: torch.Generator):
+    """(num, B, A) reparameterised actions tanh(mean + std eps) and their (num, B) log densities."""
+    u = mean + std * torch.randn((num, *mean.shape), generator=generator, device=mean.device)
+    return torch.tanh(u), tanh_gaussian_log_prob(mean, std, u)
 
 
 def mixture_sample(logits, mean, std, generator: torch.Generator, std_override=None):

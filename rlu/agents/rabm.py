@@ -35,17 +35,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from rlu.agents import common
+from rlu.agents import common, losses
 from rlu.agents import networks as nets
-from rlu.agents.losses import (
-    abm_weights,
-    bootstrap_values,
-    categorical_cross_entropy,
-    categorical_projection,
-    gaussian_kl,
-    gaussian_log_prob,
-    mpo_e_step,
-)
 from rlu.types import BatchSpec, Sequence, Transition
 
 
@@ -147,18 +138,18 @@ class Critic(nn.Module):
 
 def prior_loss(log_prob, advantage, kind: str, temperature: float):
     """ABM: advantage-weighted log-likelihood of the data's actions under the prior."""
-    w = abm_weights(advantage.detach(), kind, temperature)
+    w = losses.abm_weights(advantage.detach(), kind, temperature)
     loss = -(w * log_prob).mean()
     return loss, {"prior/loss": loss, "prior/weight_mean": w.mean()}
 
 
 def mpo_m_step(weights, samples, mean, std, target_mean, target_std, duals, c: RABMConfig):
     """Decoupled MPO M-step: weighted ML of the prior's samples plus KL trust regions."""
-    logp_mean = gaussian_log_prob(mean, target_std, samples)  # (N, M): mean moves, std fixed
-    logp_std = gaussian_log_prob(target_mean, std, samples)
+    logp_mean = losses.gaussian_log_prob(mean, target_std, samples)  # (N, M): mean moves, std fixed
+    logp_std = losses.gaussian_log_prob(target_mean, std, samples)
     loss_fit = -(weights * (logp_mean + logp_std)).sum(0).mean()
-    kl_mean = gaussian_kl(target_mean, target_std, mean, target_std).mean()
-    kl_std = gaussian_kl(target_mean, target_std, target_mean, std).mean()
+    kl_mean = losses.gaussian_kl(target_mean, target_std, mean, target_std).mean()
+    kl_std = losses.gaussian_kl(target_mean, target_std, target_mean, std).mean()
     alpha_mean = F.softplus(duals["log_alpha_mean"]) + 1e-8
     alpha_std = F.softplus(duals["log_alpha_std"]) + 1e-8
     loss_kl = alpha_mean.detach() * kl_mean + alpha_std.detach() * kl_std
@@ -174,10 +165,9 @@ class RABMAgent:
     def __init__(
         self, observation_spec, action_spec, config: RABMConfig, seed: int = 0, device="cpu"
     ):
-        self.config, self.device = config, common.device(device)
+        self.config, self.device, self.step = config, common.device(device), 0
         self.scaler = nets.ActionScaler(action_spec)
-        self.pretrain_steps = 0
-        self.num_steps = config.num_steps
+        self.num_steps, self.pretrain_steps = config.num_steps, 0
         if config.recurrent:  # windows train on 1-step targets inside them
             self.batch_spec = BatchSpec(
                 config.batch_size, "sequence", sequence_length=config.sequence_length,
@@ -210,7 +200,8 @@ class RABMAgent:
             "prior": self.prior, "policy": self.policy, "critic": self.critic, "duals": self.duals,
             "target_policy": self.target_policy, "target_critic": self.target_critic,
         }  # fmt: skip
-        self.step = 0
+        # copied into their targets every target_update_period updates
+        self.targets = {self.target_policy: self.policy, self.target_critic: self.critic}
         self._rollout_state = None
 
     def _features(self, torso, batch, seq: bool, valid, which: str) -> torch.Tensor:
@@ -241,10 +232,12 @@ class RABMAgent:
             next_a = (t_mean + t_std * noise).clamp(-1, 1)
             t_logits = self.target_critic.logits(feats(self.target_critic, "next"), next_a)
             t_probs = torch.softmax(t_logits, -1).mean(0)
-            values = bootstrap_values(b.reward, b.discount, self.batch_spec.bootstrap_gamma,
+            values = losses.bootstrap_values(b.reward, b.discount, self.batch_spec.bootstrap_gamma,
                                       atoms.expand(b.reward.shape[0], -1))  # fmt: skip
-            target = categorical_projection(values, t_probs, atoms)
-        loss_critic = categorical_cross_entropy(self.critic.logits(crit_h, b.action), target).mean()
+            target = losses.categorical_projection(values, t_probs, atoms)
+        loss_critic = losses.categorical_cross_entropy(
+            self.critic.logits(crit_h, b.action), target
+        ).mean()
         metrics = {"critic/loss": loss_critic}
 
         mean, std = self.policy.head(pol_h)
@@ -262,32 +255,26 @@ class RABMAgent:
             tp_mean, tp_std = self.target_policy.head(feats(self.target_policy, "cur"))
         metrics["critic/q_mean"] = q_data.mean()
         loss_prior, m = prior_loss(
-            gaussian_log_prob(prior_mean, prior_std, b.action), advantage,
+            losses.gaussian_log_prob(prior_mean, prior_std, b.action), advantage,
             c.advantage_weights, c.advantage_temperature,
         )  # fmt: skip
         metrics.update(m)
         temperature = F.softplus(self.duals["log_temperature"]) + 1e-8
-        weights, loss_temperature = mpo_e_step(q_prior, temperature, c.epsilon)
+        weights, loss_temperature = losses.mpo_e_step(q_prior, temperature, c.epsilon)
         loss_policy, m = mpo_m_step(weights, prior_a, mean, std, tp_mean, tp_std, self.duals, c)
         metrics.update(m)
         metrics["dual/temperature"] = temperature
 
-        for opt in self.optimizers.values():
-            opt.zero_grad(set_to_none=True)
         # Each loss reaches only its own network's parameters, so one backward serves all four.
-        (loss_critic + loss_prior + loss_policy + loss_temperature).backward()
-        for opt in self.optimizers.values():
-            opt.step()
-
-        self.step += 1
-        common.periodic_update(
-            self.step, c.target_update_period,
-            {self.target_policy: self.policy, self.target_critic: self.critic},
-        )  # fmt: skip
+        loss = loss_critic + loss_prior + loss_policy + loss_temperature
+        common.joint_step(self.optimizers.values(), loss)
+        self.step = common.advance(self.step, c.target_update_period, self.targets)
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+        """The Gaussian's mean plus noise of variance ``eval_variance`` (the paper's evaluation)
+        with ``greedy=True``; with ``greedy=False`` a sample of the learnt Gaussian."""
         obs = common.to_torch(observation, self.device)
         state = nets.carried_state(self._rollout_state, is_first, obs)
         h, self._rollout_state = self.policy.torso(obs, state=state)
@@ -297,10 +284,11 @@ class RABMAgent:
         noise = torch.randn(mean.shape, generator=self.generators["act"], device=mean.device)
         return self.scaler.from_unit(mean + std * noise)
 
-    state_dict = common.state_dict
+    def state_dict(self) -> dict:
+        return common.agent_state(self.modules, self.optimizers, self.generators, self.step)
 
     def load_state_dict(self, state: dict) -> None:
-        common.load_state_dict(self, state)
+        self.step = common.load_agent_state(state, self.modules, self.optimizers, self.generators)
         self._rollout_state = None  # acting restarts after a restore
 
 

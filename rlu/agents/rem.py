@@ -73,11 +73,15 @@ class REMAgent:
     def __init__(
         self, observation_spec, action_spec, config: REMConfig, seed: int = 0, device="cpu"
     ) -> None:
-        dc.setup(
-            self, "rem", observation_spec, action_spec, config, seed,
-            lambda shape, n: dc.QNetwork(shape, n, config.atari, config.num_heads),
-            device=device,
+        self.config, self.device, self.step = config, common.device(device), 0
+        self.batch_spec, self.num_steps = config.atari.batch_spec(), config.atari.num_steps
+        self.pretrain_steps = 0
+        self.network, self.target_network, self.optimizers, self.generators = dc.build(
+            "rem", observation_spec, action_spec, config, seed, self.device,
+            lambda shape, n, s: dc.QNetwork(shape, n, s, config.num_heads),
         )  # fmt: skip
+        self.modules = {"network": self.network, "target_network": self.target_network}
+        self.targets = {self.target_network: self.network}  # copied every target_update_period
 
     def update(self, batch: Transition) -> dict[str, float]:
         c = self.config
@@ -86,16 +90,21 @@ class REMAgent:
             self.network, self.target_network, dc.to_torch(batch, self.device),
             self.batch_spec.bootstrap_gamma, alpha, c.atari.huber_delta,
         )  # fmt: skip
-        self.step = dc.learn(self, loss)
+        self.step = dc.learn(self.optimizers["network"], loss, self.step, c.atari, self.targets)
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
     def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+        """argmax_a of the mean of the heads' Q (Agarwal et al.'s evaluation), replaced by a
+        uniform action with probability ``atari.eval_epsilon`` (greedy) or ``explore_epsilon``."""
         q = self.network(dc.frames(observation, device=self.device)).mean(1)
         return dc.epsilon_greedy(q, dc.epsilon(self.config.atari, greedy), self.generators["act"])
 
-    state_dict = common.state_dict
-    load_state_dict = common.load_state_dict
+    def state_dict(self) -> dict:
+        return common.agent_state(self.modules, self.optimizers, self.generators, self.step)
+
+    def load_state_dict(self, state: dict) -> None:
+        self.step = common.load_agent_state(state, self.modules, self.optimizers, self.generators)
 
 
 Agent = REMAgent

@@ -12,6 +12,7 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from rlu.agents import cql, make_agent  # noqa: E402
+from rlu.agents import networks as nets  # noqa: E402
 from tests.fakes import CONT_ACTION, LOWDIM_OBS, fake_transition  # noqa: E402
 
 
@@ -90,7 +91,7 @@ def test_tanh_gaussian_samples_and_densities_match_torch_distributions():
 
     g = torch.Generator().manual_seed(0)
     mean, std = t([[0.3, -1.0], [2.0, 0.0]]), t([[0.5, 1.0], [0.2, 2.0]])
-    actions, log_prob = cql.sample_tanh_gaussian(mean, std, 7, g)
+    actions, log_prob = nets.sample_tanh_gaussian(mean, std, 7, g)
     assert actions.shape == (7, 2, 2) and log_prob.shape == (7, 2)
     assert torch.all(actions.abs() < 1.0)
     dist = TransformedDistribution(Normal(mean, std), [TanhTransform()])
