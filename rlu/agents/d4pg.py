@@ -1,17 +1,29 @@
 """D4PG run offline (Barth-Maron et al. 2018; paper appendix A.1, "D4PG").
 
-The paper uses Acme's D4PG "following their network architectures and hyper-parameters":
-policy LayerNormMLP(256, 256, 256) -> linear -> tanh, critic on [observation, action]
-LayerNormMLP(512, 512, 256) -> 51 logits over returns in [-150, 150], n-step returns (Acme's
-default n = 5), discount 0.99, hard target updates every 100 learner steps, Adam 1e-4 for both,
-batch 256. Camera images go through the ResNet torso with 512 ReLU units (table 5).
+The paper uses Acme's D4PG "following their network architectures and hyper-parameters" with
+Adam 1e-4 for both networks and batch 256. Acme's networks (``examples/control_suite/
+run_d4pg.py``): policy LayerNormMLP(256, 256, 256) -> linear -> tanh, critic on [observation,
+action] LayerNormMLP(512, 512, 256) -> 51 logits over returns in [-150, 150]; camera images go
+through the ResNet torso with 512 ReLU units (table 5).
 
-Batches are n-step Transitions from the data layer: ``reward`` is the gamma-discounted n-step
-sum (``gamma`` below is the gamma it must use), ``discount`` the product of per-step discounts;
-the agent bootstraps with gamma^n * discount.
+The learner is Acme's ``D4PGLearner`` (``acme/agents/tf/d4pg/learning.py``) as RL Unplugged's
+D4PG notebook runs it offline (``rl_unplugged/dm_control_suite_d4pg.ipynb``, deepmind-research):
+on the release's 2-step windows turned into 1-step SARSA tuples (``dm_control_suite.py``,
+``_build_sarsa_example``: r_t = reward[0], p_t = discount[0]), with ``discount=0.99`` and
+``target_update_period=100`` and the learner's other defaults: ``clipping=True`` (each network's
+gradient clipped to a global norm of 40, and dQ/da clipped per example to norm 1 in the policy
+gradient, ``acme/tf/losses/dpg.py``). So the ``paper`` preset learns from 1-step transitions:
+Acme's online agent (``agents/tf/d4pg/agent.py``) adds 5-step transitions to its replay
+(``n_step=5``), which no 2-step window of the release can give. As the learner, one update
+computes the critic's and the policy's gradients from the same parameters before either steps,
+and the policy is trained at the batch's next observations (``dpg_a_t = policy(o_t)``).
 
-Deviations: offline, so no exploration noise; the policy gradient is taken through the mean of
-the critic's distribution (Acme does the same).
+Batches are n-step Transitions from the data layer (``n_step`` > 1 needs whole episodes, e.g.
+the ``*_episodes`` families): ``reward`` is the gamma-discounted n-step sum (``gamma`` below is
+the gamma it must use), ``discount`` the product of per-step discounts; the agent bootstraps
+with gamma^n * discount.
+
+Deviations: offline, so no exploration noise. The ``small`` preset keeps clipping off.
 """
 
 from __future__ import annotations
@@ -37,21 +49,28 @@ class D4PGConfig:
     torso_hidden: int = 512
     """Camera ResNet embedding size (table 5, D4PG column: 512, ReLU)."""
     num_atoms: int = 51
-    """Atoms of the categorical critic."""
+    """Atoms of the categorical critic (table 5, D4PG: 51)."""
     vmin: float = -150.0
-    """Lowest atom."""
+    """Lowest atom (table 5, D4PG: -150)."""
     vmax: float = 150.0
-    """Highest atom."""
+    """Highest atom (table 5, D4PG: 150)."""
     gamma: float = 0.99
     """Per-step discount; the data layer's n-step reward must be discounted with this gamma."""
-    n_step: int = 5
-    """Steps of the n-step return."""
+    n_step: int = 1
+    """Steps of the n-step return: 1, as the RL Unplugged notebook's learner sees the release's
+    windows (Acme's online agent uses 5; the release's 2-step windows hold one transition)."""
     target_update_period: int = 100
-    """Learner steps between hard copies into the target networks."""
+    """Learner steps between hard copies into the target networks (the notebook's 100)."""
     policy_lr: float = 1e-4
-    """Adam learning rate of the policy."""
+    """Adam learning rate of the policy (the paper: 1e-4 for both, Acme's default)."""
     critic_lr: float = 1e-4
     """Adam learning rate of the critic."""
+    max_grad_norm: float = 40.0
+    """Global-norm clip of the critic's and of the policy's gradient, each on its own (Acme's
+    learner with ``clipping=True``: ``tf.clip_by_global_norm(..., 40.)``); 0: none."""
+    dqda_clip_norm: float = 1.0
+    """Per-example norm clip of dQ/da in the policy gradient (Acme's ``losses.dpg`` with
+    ``dqda_clipping=1.0, clip_norm=True``, on with ``clipping=True``); 0: none."""
     batch_size: int = 256
     """Transitions per update."""
     num_steps: int = 1_000_000
@@ -62,11 +81,10 @@ class D4PGConfig:
 Config = D4PGConfig
 PRESETS = {
     "paper": D4PGConfig(),
-    # 1-step targets: n-step returns of a noisy behaviour policy are uncorrected off-policy
-    # targets, and on the small cartpole learning check n = 5 scored 21, n = 1 154.
+    # Clipping off: the small preset's learning rates were chosen without it.
     "small": D4PGConfig(policy_layers=(256, 256), critic_layers=(256, 256), torso_hidden=64,
-                        vmin=-100.0, vmax=100.0, n_step=1, policy_lr=3e-4, critic_lr=3e-4,
-                        num_steps=20_000),
+                        vmin=-100.0, vmax=100.0, policy_lr=3e-4, critic_lr=3e-4,
+                        max_grad_norm=0.0, dqda_clip_norm=0.0, num_steps=20_000),
 }  # fmt: skip
 GRID: dict[str, list] = {}  # the paper reports no sweep for D4PG
 
@@ -108,11 +126,20 @@ def critic_loss(logits, target_logits, reward, discount, atoms, bootstrap_gamma:
     return loss, {"critic/loss": loss, "critic/q_mean": q}
 
 
-def policy_loss(q_logits, atoms):
-    """Deterministic policy gradient through the critic's mean: -E[Q(s, pi(s))]."""
+def policy_loss(q_logits, atoms, action=None, dqda_clip_norm: float = 0.0):
+    """Deterministic policy gradient through the critic's mean Q = E[Z(s, pi(s))]: the loss's
+    gradient is -E[dQ/da da/dw]. With ``dqda_clip_norm`` > 0 each example's dQ/da (taken at
+    ``action``, the policy's output) is first clipped to that norm, as Acme's ``losses.dpg``
+    (loss 0.5 ||stop(a + clip(dQ/da)) - a||^2). ``actor/loss`` reports -E[Q] either way."""
     q = (torch.softmax(q_logits, -1) * atoms).sum(-1)
-    loss = -q.mean()
-    return loss, {"actor/loss": loss}
+    if dqda_clip_norm <= 0:
+        loss = -q.mean()
+        return loss, {"actor/loss": loss}
+    dqda = torch.autograd.grad(q.sum(), action)[0]
+    norm = torch.linalg.vector_norm(dqda, dim=-1, keepdim=True)
+    clipped = dqda * (dqda_clip_norm / norm.clamp(min=dqda_clip_norm))  # tf.clip_by_norm
+    loss = 0.5 * ((action + clipped).detach() - action).pow(2).sum(-1).mean()
+    return loss, {"actor/loss": -q.mean().detach(), "actor/dqda_norm": norm.mean()}
 
 
 class D4PGAgent:
@@ -143,7 +170,8 @@ class D4PGAgent:
         self.targets = {self.target_policy: self.policy, self.target_critic: self.critic}
 
     def update(self, batch: Transition) -> dict[str, float]:
-        b, atoms = common.transition(batch, self.scaler, self.device), self.critic.head.atoms
+        c, b = self.config, common.transition(batch, self.scaler, self.device)
+        atoms = self.critic.head.atoms
         with torch.no_grad():
             next_a = self.target_policy(b.next_observation)
             target_logits = self.target_critic(b.next_observation, next_a)
@@ -151,12 +179,17 @@ class D4PGAgent:
             self.critic(b.observation, b.action), target_logits, b.reward, b.discount, atoms,
             self.batch_spec.bootstrap_gamma,
         )  # fmt: skip
-        common.sgd_step(self.optimizers["critic"], loss_c)
-
-        loss_p, m = policy_loss(self.critic(b.observation, self.policy(b.observation)), atoms)
-        common.sgd_step(self.optimizers["policy"], loss_p, inputs=list(self.policy.parameters()))
+        # Acme's learner: the policy at the next observations, through the critic as it was
+        # before this update's critic step (so the policy steps first: the critic's step would
+        # change weights the policy's backward pass still reads)
+        pi_a = self.policy(b.next_observation)
+        loss_p, m = policy_loss(self.critic(b.next_observation, pi_a), atoms, pi_a,
+                                c.dqda_clip_norm)  # fmt: skip
         metrics.update(m)
-        self.step = common.advance(self.step, self.config.target_update_period, self.targets)
+        common.sgd_step(self.optimizers["policy"], loss_p, list(self.policy.parameters()),
+                        c.max_grad_norm)  # fmt: skip
+        common.sgd_step(self.optimizers["critic"], loss_c, max_norm=c.max_grad_norm)
+        self.step = common.advance(self.step, c.target_update_period, self.targets)
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()

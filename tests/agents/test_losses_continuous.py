@@ -9,8 +9,10 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from rlu.agents import bcq, brac, d4pg  # noqa: E402
+from rlu.agents import bcq, brac, d4pg, make_agent  # noqa: E402
 from rlu.agents import losses as L  # noqa: E402
+from rlu.agents import networks as nets  # noqa: E402
+from tests.fakes import CONT_ACTION, LOWDIM_OBS, fake_transition  # noqa: E402
 
 LOG_SQRT_2PI = 0.5 * math.log(2 * math.pi)
 
@@ -85,6 +87,35 @@ def test_d4pg_critic_loss_is_cross_entropy_to_the_projected_target():
     close(metrics["critic/q_mean"], 1.0)
 
 
+def test_d4pg_policy_gradient_clips_dq_da_per_example_as_acmes_dpg_loss():
+    # Q(a) = sigmoid(k . a) over atoms {0, 1}; at a = 0, dQ/da = k / 4 = [1, 0.75] (norm 1.25).
+    k, atoms = t([4.0, 3.0]), t([0.0, 1.0])
+
+    def logits(a):
+        z = (a * k).sum(-1)
+        return torch.stack([torch.zeros_like(z), z], -1)
+
+    a = torch.zeros(2, 2, requires_grad=True)
+    loss, metrics = d4pg.policy_loss(logits(a), atoms, a, dqda_clip_norm=1.0)
+    close(loss.detach(), 0.5 * (0.8**2 + 0.6**2))  # Acme's 0.5 ||clip(dQ/da)||^2, batch mean
+    close(metrics["actor/loss"], -0.5)
+    close(metrics["actor/dqda_norm"], 1.25)
+    close(torch.autograd.grad(loss, a)[0], [[-0.4, -0.3], [-0.4, -0.3]])  # -[0.8, 0.6] / B
+    # a norm under the clip leaves dQ/da alone: the gradient of -E[Q], the unclipped loss's
+    loss, _ = d4pg.policy_loss(logits(a), atoms, a, dqda_clip_norm=10.0)
+    unclipped, _ = d4pg.policy_loss(logits(a), atoms)
+    close(torch.autograd.grad(loss, a)[0], [[-0.5, -0.375], [-0.5, -0.375]])
+    close(torch.autograd.grad(unclipped, a)[0], [[-0.5, -0.375], [-0.5, -0.375]])
+    close(unclipped.detach(), -0.5)
+
+
+def test_d4pg_paper_preset_is_the_notebooks_offline_learner():
+    c = d4pg.PRESETS["paper"]
+    assert (c.n_step, c.gamma, c.target_update_period, c.batch_size) == (1, 0.99, 100, 256)
+    assert (c.max_grad_norm, c.dqda_clip_norm) == (40.0, 1.0)  # Acme's clipping=True
+    assert (c.policy_lr, c.critic_lr) == (1e-4, 1e-4)
+
+
 def test_mixture_log_likelihood():
     # Equal weights, unit components at 0 and 2, action 1: both densities equal N(1; 0, 1).
     lp = L.mixture_log_prob(t([[0.0, 0.0]]), t([[[0.0], [2.0]]]), t([[[1.0], [1.0]]]), t([[1.0]]))
@@ -157,3 +188,28 @@ def test_mpo_e_step_weights_and_temperature_dual():
 
 def test_gaussian_kl_closed_form():
     close(L.gaussian_kl(t([0.0]), t([1.0]), t([1.0]), t([2.0])), math.log(2) + 2 / 8 - 0.5)
+
+
+def test_brac_warm_start_trains_the_policy_on_the_kl_alone_then_adds_q():
+    kw = dict(policy_layers=(16,), critic_layers=(16,), behaviour_layers=(16,), alpha=0.3,
+              behaviour_steps=1, warm_start_steps=2)  # fmt: skip
+    agent = make_agent("brac", LOWDIM_OBS, CONT_ACTION, **kw)
+    metrics = [agent.update(fake_transition(LOWDIM_OBS, CONT_ACTION, 8, i)) for i in range(4)]
+    assert "actor/loss" not in metrics[0]  # the behaviour phase
+    for m in metrics[1:3]:  # agent updates 0 and 1: alpha KL only
+        close(m["actor/loss"], 0.3 * m["actor/kl"], 1e-6)
+    assert abs(metrics[3]["actor/loss"] - 0.3 * metrics[3]["actor/kl"]) > 1e-3  # - Q joins
+
+
+def test_brac_policy_log_std_is_squashed_into_the_originals_range():
+    policy = nets.TanhGaussianPolicy(LOWDIM_OBS, 2, (8,), 16, (-5.0, 0.0), squash_log_std=True)
+    with torch.no_grad():
+        policy.net[-1].bias.copy_(t([0.0, 0.0, 50.0, -50.0]))  # raw log std +-50
+        policy.net[-1].weight.zero_()
+    obs = {
+        k: torch.as_tensor(v)
+        for k, v in fake_transition(LOWDIM_OBS, CONT_ACTION, 3).observation.items()
+    }
+    _, std = policy(obs)
+    close(std.detach(), [[1.0, math.exp(-5.0)]] * 3)  # -5 + 2.5 (tanh(+-50) + 1) = 0, -5
+    assert brac.LOG_STD_RANGE == (-5.0, 0.0)
