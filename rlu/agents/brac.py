@@ -8,9 +8,14 @@ value penalty: the KL from the policy to a behaviour model is subtracted from th
 value in the critic target and added to the actor loss,
 
     y = r + gamma d (min_i Q'_i(s', a') - alpha KL(s')),  a' ~ pi(s')
-    L_pi = E_s [alpha KL(s) - min_i Q_i(s, a)],            a  ~ pi(s)
+    L_pi = E_s [alpha KL(s) - w_k min_i Q_i(s, a)],        a  ~ pi(s)
 
-with KL(s) = mean over ``num_kl_samples`` a ~ pi(s) of log pi(a|s) - log b(a|s). The behaviour
+with KL(s) = mean over ``num_kl_samples`` a ~ pi(s) of log pi(a|s) - log b(a|s), and the
+original's warm start: w_k = 0 for the first ``warm_start_steps`` agent updates k (20 000, the
+original's ``warm_start``: ``q_start = global_step > warm_start``), so the policy first moves
+towards b under the KL alone while the critics learn, then w_k = 1. The policy and b are the
+original's ``ActorNetwork``: tanh(u), u ~ N(mean, std) with log std = -5 + 2.5 (tanh(raw) + 1)
+in [-5, 0] (``networks.TanhGaussianPolicy`` with ``squash_log_std``). The behaviour
 model b is a tanh-Gaussian (200-200) trained by behaviour cloning separately, first: the first
 ``behaviour_steps`` updates (300 000 in the paper, Adam 5e-4) train only b, later updates train
 critics and policy against the frozen b. That phase is the agent's ``pretrain_steps``: the
@@ -18,9 +23,11 @@ training loop runs it on top of the ``num_steps`` learner steps. Critic Adam 1e-
 the paper sweeps the policy learning rate over {1e-5, 1e-4, 3e-5} and alpha over
 {0.1, 0.3, 1.0} (``GRID``); the ``paper`` preset takes 3e-5 and 0.1 from those grids.
 
-Deviations: actions are clipped to +-(1 - 1e-3) before b's log density (as the original's
-``clip_eps``); no SAC entropy term in the actor (the KL's log pi term already keeps the policy's
-spread). ``act(greedy=True)`` returns tanh(mean).
+As the original's defaults (``alpha_entropy=0``): no SAC entropy term in the actor (the KL's
+log pi term already keeps the policy's spread); actions are clipped to +-(1 - 1e-3) before b's
+log density (the original's ``clip_eps``). The warm start counts agent updates from 0 and turns
+the Q term on at k = ``warm_start_steps``, one update before the original's ``>`` does (so that
+0 means no warm start). ``act(greedy=True)`` returns tanh(mean).
 """
 
 from __future__ import annotations
@@ -66,6 +73,9 @@ class BRACConfig:
     behaviour_steps: int = 300_000
     """Updates spent training only the behaviour model before the agent trains (pre-training,
     run by the loop on top of ``num_steps``)."""
+    warm_start_steps: int = 20_000
+    """Agent updates, after the behaviour phase, whose policy loss has no Q term, only the KL
+    penalty (the original's ``warm_start=20000``); 0: none."""
     batch_size: int = 256
     """Transitions per update."""
     num_steps: int = 1_000_000
@@ -76,14 +86,16 @@ class BRACConfig:
 Config = BRACConfig
 PRESETS = {
     "paper": BRACConfig(),
+    # warm start: 4 % of the run, as the original's 20k of its 500k (run_primal.sh)
     "small": BRACConfig(policy_layers=(256, 256), critic_layers=(256, 256),
                         behaviour_layers=(256, 256), policy_lr=3e-4, alpha=0.3,
-                        behaviour_steps=2_000, num_steps=20_000, target_update_period=0),
+                        behaviour_steps=2_000, warm_start_steps=800, num_steps=20_000,
+                        target_update_period=0),
 }  # fmt: skip
 GRID: dict[str, list] = {"policy_lr": [1e-5, 1e-4, 3e-5], "alpha": [0.1, 0.3, 1.0]}
 
 CLIP = 1.0 - 1e-3
-LOG_STD_RANGE = (-5.0, 2.0)
+LOG_STD_RANGE = (-5.0, 0.0)  # the original's LOG_STD_MIN, LOG_STD_MAX (networks.py)
 
 
 def behaviour_loss(log_prob):
@@ -98,7 +110,7 @@ def critic_loss(q, target):
 
 
 def actor_loss(q_min, kl, alpha: float):
-    """Value penalty actor loss: alpha KL(s) - Q(s, a), a ~ pi."""
+    """Value penalty actor loss: alpha KL(s) - Q(s, a), a ~ pi (``q_min`` 0 in the warm start)."""
     loss = (alpha * kl - q_min).mean()
     return loss, {"actor/loss": loss, "actor/kl": kl.mean()}
 
@@ -115,10 +127,10 @@ class BRACAgent:
         a, th, d = self.scaler.dim, config.torso_hidden, self.device
         with common.seeded(seed):
             self.policy = nets.TanhGaussianPolicy(
-                observation_spec, a, config.policy_layers, th, LOG_STD_RANGE
+                observation_spec, a, config.policy_layers, th, LOG_STD_RANGE, squash_log_std=True
             ).to(d)
             self.behaviour = nets.TanhGaussianPolicy(
-                observation_spec, a, config.behaviour_layers, th, LOG_STD_RANGE
+                observation_spec, a, config.behaviour_layers, th, LOG_STD_RANGE, squash_log_std=True
             ).to(d)
             self.critics = nets.TwinCritic(observation_spec, a, config.critic_layers, th).to(d)
         self.target_critics = common.frozen_copy(self.critics)
@@ -159,7 +171,10 @@ class BRACAgent:
 
         samples, logp = self.policy.sample(obs, c.num_kl_samples, g)
         kl = self._kl(obs, samples, logp)
-        q = self.critics(obs, samples[0]).amin(0)
+        if self.step - c.behaviour_steps >= c.warm_start_steps:
+            q = self.critics(obs, samples[0]).amin(0)
+        else:  # the warm start: the KL penalty alone
+            q = torch.zeros_like(kl)
         loss_a, m = actor_loss(q, kl, c.alpha)
         metrics.update(m)
         common.sgd_step(self.optimizers["policy"], loss_a, inputs=list(self.policy.parameters()))

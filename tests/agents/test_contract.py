@@ -39,7 +39,7 @@ SHRINK = {
     ("bcq", False): dict(actor_layers=(32,), critic_layers=(32,), vae_layers=(32,),
                          torso_hidden=16),
     ("brac", False): dict(policy_layers=(32,), critic_layers=(32,), behaviour_layers=(32,),
-                          torso_hidden=16, behaviour_steps=1),
+                          torso_hidden=16, behaviour_steps=1, warm_start_steps=1),
     ("rabm", False): dict(hidden_size=32, num_layers=2, lstm_hidden=16, sequence_length=5,
                           num_samples=4),
     ("crr", False): dict(hidden_size=32, num_layers=2, torso_hidden=16, num_advantage_samples=2),
