@@ -1,15 +1,23 @@
 """Random Ensemble Mixture, REM (paper appendix A.2; Agarwal et al. 2020, "An Optimistic
 Perspective on Offline Reinforcement Learning").
 
-Original code: google-research/batch_rl ``FixedReplayMultiHeadREMAgent`` with
-``random_combination`` (one convex combination per mini-batch). The network is the multi-head
-Nature CNN: shared convolutions and 512-unit layer, then ``num_heads`` x actions outputs.
-Deviations: Adam epsilon 1e-7 (TF2 default, as the paper states) instead of 0.01/32; the
-learning-rate grid is {3e-5, 5e-5, 1e-4} (see ``discrete_common.LEARNING_RATE_GRID``).
-The target is REM's own: max over actions of the same combination of the target heads (no
-double-Q, which the paper names for DQN only).
+The paper: "We have used a random ensemble of 4 DQN networks in our implementation", learning
+rate 1e-4 from online policy selection. The ``paper`` preset is that: ``num_heads`` = 4
+separate Nature CNN Q-networks (convolutions, 512-unit layer and action outputs each), as the
+original code's ``MulitNetworkQNetwork`` (google-research/batch_rl,
+``batch_rl/multi_head/atari_helpers.py``, used by ``multi_network_dqn_agent.py`` with
+``transform_strategy='STOCHASTIC'``). ``separate_networks=False`` gives the multi-head REM of
+the same code (``MultiHeadQNetwork``, ``fixed_replay/configs/rem.gin``): one torso and 512-unit
+layer shared by ``num_heads`` x actions outputs, about 4x cheaper; the ``small`` preset uses it.
 
-Acting: ``greedy=True`` is argmax_a of the mean of the heads (Agarwal et al.'s evaluation),
+Every update draws one convex combination alpha of the estimates (uniform draws normalised to
+sum to one, ``random_stochastic_matrix`` with one column) and regresses the same combination of
+the online estimates onto the Q-learning target of that combination of the target estimates:
+max over actions, no double-Q (which the paper names for DQN only). Deviations: Adam epsilon
+1e-7 (TF2 default, as the paper states) instead of batch_rl's 0.01/32; the learning-rate grid is
+{3e-5, 5e-5, 1e-4} (see ``discrete_common.LEARNING_RATE_GRID``).
+
+Acting: ``greedy=True`` is argmax_a of the mean of the estimates (Agarwal et al.'s evaluation),
 replaced by a uniform action with probability ``atari.eval_epsilon`` (0.4^8); ``greedy=False``
 uses ``atari.explore_epsilon`` (0.01).
 """
@@ -21,6 +29,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from torch import nn
 
 from rlu.agents import common
 from rlu.agents import discrete_common as dc
@@ -34,17 +43,39 @@ class REMConfig:
     learning_rate: float = 1e-4
     """Adam step size; the paper's online policy selection picked 1e-4 for REM."""
     num_heads: int = 4
-    """Q-value heads mixed by a random convex combination (the paper uses 4)."""
+    """Q-value estimates mixed by a random convex combination (the paper's 4)."""
+    separate_networks: bool = True
+    """Each estimate is a Q-network of its own (the paper's "random ensemble of 4 DQN
+    networks"); False: ``num_heads`` heads on one shared torso (batch_rl's multi-head REM)."""
 
 
 Config = REMConfig
 
 PRESETS: dict[str, REMConfig] = {
     "paper": REMConfig(),
-    "small": REMConfig(**dc.SMALL_FIELDS),
+    # one shared torso: a quarter of the convolutions' cost on a CPU
+    "small": REMConfig(**dc.SMALL_FIELDS, separate_networks=False),
 }
 
 GRID: dict[str, list[Any]] = {"learning_rate": list(dc.LEARNING_RATE_GRID)}
+
+
+class QEnsemble(nn.Module):
+    """``num`` separate Q-networks (``discrete_common.QNetwork`` each): (B, num, A) out."""
+
+    def __init__(self, shape, num_actions: int, settings: dc.AtariSettings, num: int) -> None:
+        super().__init__()
+        self.networks = nn.ModuleList(dc.QNetwork(shape, num_actions, settings) for _ in range(num))
+
+    def forward(self, frames: torch.Tensor) -> torch.Tensor:
+        return torch.stack([network(frames) for network in self.networks], 1)
+
+
+def q_estimates(shape, num_actions: int, settings: dc.AtariSettings, config: REMConfig):
+    """REM's network: the ensemble of separate networks, or the multi-head network."""
+    if config.separate_networks:
+        return QEnsemble(shape, num_actions, settings, config.num_heads)
+    return dc.QNetwork(shape, num_actions, settings, config.num_heads)
 
 
 def random_convex_weights(
@@ -78,7 +109,7 @@ class REMAgent:
         self.pretrain_steps = 0
         self.network, self.target_network, self.optimizers, self.generators = dc.build(
             "rem", observation_spec, action_spec, config, seed, self.device,
-            lambda shape, n, s: dc.QNetwork(shape, n, s, config.num_heads),
+            lambda shape, n, s: q_estimates(shape, n, s, config),
         )  # fmt: skip
         self.modules = {"network": self.network, "target_network": self.target_network}
         self.targets = {self.target_network: self.network}  # copied every target_update_period

@@ -224,6 +224,28 @@ def test_rem_loss_uses_one_convex_combination_per_batch():
     assert loss2.item() != pytest.approx(loss.item())
 
 
+def test_rem_paper_preset_is_an_ensemble_of_four_separate_networks():
+    from rlu.agents import make_agent
+    from tests.fakes import ATARI_ACTION, ATARI_OBS, fake_transition
+
+    tiny = {"atari.channels": (4, 8, 8), "atari.hidden_size": 16, "atari.batch_size": 8}
+    agent = make_agent("rem", ATARI_OBS, ATARI_ACTION, preset="paper", **tiny)
+    assert make_agent("rem", ATARI_OBS, ATARI_ACTION, **tiny).config.separate_networks is False
+    ensemble = agent.network
+    assert isinstance(ensemble, rem.QEnsemble) and len(ensemble.networks) == 4
+    frames = dc.frames(fake_transition(ATARI_OBS, ATARI_ACTION, 3).observation)
+    out = ensemble(frames)
+    assert out.shape == (3, 4, ATARI_ACTION.num_values)
+    for k, network in enumerate(ensemble.networks):  # estimate k is network k's own output
+        torch.testing.assert_close(out[:, k], network(frames))
+    first = [net.torso.convs[0].weight.detach().clone() for net in ensemble.networks]
+    assert all(not torch.equal(first[0], w) for w in first[1:])  # initialised apart
+    for seed in range(2):  # every network learns: each carries a share of alpha
+        agent.update(fake_transition(ATARI_OBS, ATARI_ACTION, 8, seed))
+    for w, net in zip(first, ensemble.networks, strict=True):
+        assert not torch.equal(w, net.torso.convs[0].weight)
+
+
 def test_bcq_action_mask():
     logits = torch.log(t([[0.6, 0.25, 0.15]]))  # ratios to the max: 1, 0.4167, 0.25
     assert bcq_discrete.bcq_action_mask(logits, 0.0).tolist() == [[True, True, True]]

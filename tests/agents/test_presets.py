@@ -50,6 +50,7 @@ def test_paper_presets_name_the_paper_choices():
     assert make_config("iqn", True, "paper").num_tau_samples == 16
     assert make_config("bcq", True, "paper").threshold == 0.5
     assert make_config("rem", True, "paper").num_heads == 4
+    assert make_config("rem", True, "paper").separate_networks is True  # "4 DQN networks"
     assert agent_module("bcq", True).GRID["threshold"] == [0.25, 0.5, 0.75, 1.0]
     assert agent_module("iqn", True).GRID["num_tau_samples"] == [8, 16, 32]
     lrs = {n: make_config(n, True, "paper").learning_rate for n in ("bc", "dqn", "iqn", "bcq",
