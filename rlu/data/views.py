@@ -242,7 +242,8 @@ class Sampler:
 
     def __init__(self, view: TransitionView | SequenceView, batch_size: int, seed: int = 0):
         if len(view) == 0:
-            raise RluError(f"{view.ds.path}: the dataset has no {type(view).__name__} samples")
+            raise RluError(f"{view.ds.path}: the dataset has no {type(view).__name__} samples: "
+                           + _why_no_samples(view))  # fmt: skip
         self.view, self.batch_size = view, int(batch_size)
         self.rng = np.random.default_rng(seed)
 
@@ -265,6 +266,23 @@ class Sampler:
 
     def set_state(self, state: dict) -> None:
         self.rng.bit_generator.state = state["bit_generator"]
+
+
+def _why_no_samples(view: TransitionView | SequenceView) -> str:
+    """Why an empty view is empty, and the fix, for the sampler's error."""
+    longest = int(view.length.max(initial=0))
+    if longest < 2:
+        held = "no segments" if not len(view.length) else "no segment of 2 or more steps"
+        return f"it holds {held} (a transition needs two steps of one segment)"
+    n = view.n_step if isinstance(view, TransitionView) else 1
+    return (
+        f"a {n}-step transition needs {n + 1} steps of one segment (or a terminal inside its "
+        f"window) and the longest segment holds {longest} (window files convert to one segment "
+        "per window: 2 steps for dm_control_suite, dm_locomotion seq2 and bsuite); use "
+        f"n_step <= {longest - 1} (an agent override, e.g. `rlu train ... n_step={longest - 1}`)"
+        " or a family that keeps whole episodes (dm_control_suite_episodes, "
+        "dm_locomotion_episodes, atari_episodes_ordered)"
+    )
 
 
 def transition_sampler(

@@ -389,8 +389,35 @@ def test_empty_view_raises_clear_error(tmp_path):
         np.zeros(1, bool),
     )
     ds = write(tmp_path, [seg], DICT_SCHEMA)
-    with pytest.raises(RluError, match="no TransitionView samples"):
+    with pytest.raises(RluError, match="no TransitionView samples: it holds no segment of 2"):
         Sampler(TransitionView(ds), 4)
+
+
+def test_n_step_longer_than_every_window_says_why_and_the_fix(tmp_path):
+    """Converted 2-step windows (the control suite's release family) hold one transition each:
+    a 5-step view of them is empty, and the error names the lengths and both fixes."""
+    from rlu.data import Sampler
+    from rlu.types import RluError
+
+    def window(i):
+        return Segment(
+            {"a": np.full((2, 2), i, np.float32), "cam": np.zeros((2, 3, 3, 2), np.uint8)},
+            np.zeros((2, 1), np.float32),
+            np.ones(2, np.float32),
+            np.ones(2, np.float32),
+            np.array([True, False]),
+            np.array([False, True]),
+            np.zeros(2, bool),  # not terminal: the window is cut from a longer episode
+        )
+
+    ds = write(tmp_path, [window(i) for i in range(3)], DICT_SCHEMA)
+    assert len(TransitionView(ds, n_step=1)) == 3
+    with pytest.raises(RluError) as err:
+        Sampler(TransitionView(ds, n_step=5, gamma=0.99), 4)
+    message = str(err.value)
+    assert "no TransitionView samples" in message and "\n" not in message
+    assert "a 5-step transition needs 6 steps" in message and "longest segment holds 2" in message
+    assert "n_step <= 1" in message and "dm_control_suite_episodes" in message
 
 
 @settings(max_examples=60, deadline=None)
