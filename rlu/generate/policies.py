@@ -43,6 +43,19 @@ from typing import Any
 
 import numpy as np
 
+from rlu.files import (
+    AnyJSON,
+    Bool,
+    Float,
+    Int,
+    ListOf,
+    MapOf,
+    Record,
+    Str,
+    check_value,
+    read_json,
+    write_atomic,
+)
 from rlu.types import Policy, RluError
 
 FORMAT = "rlu-behaviour-policy"
@@ -72,17 +85,8 @@ def write_npz(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
             arr = np.ascontiguousarray(arrays[name])
             with zf.open(info, "w") as fh:
                 np.lib.format.write_array(fh, arr, allow_pickle=False)
-    _write_atomic(path, buf.getvalue())
-
-
-def _write_atomic(path: Path, data: bytes) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb") as fh:
-        fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+    write_atomic(path, buf.getvalue())
 
 
 def _stored(value: np.ndarray, dtype: str) -> np.ndarray:
@@ -151,7 +155,7 @@ def save_snapshot(
     name = f"checkpoint_{int(checkpoint):05d}"
     write_npz(folder / f"{name}.npz", arrays)
     text = json.dumps(json.loads(json.dumps(meta)), indent=1, sort_keys=True) + "\n"
-    _write_atomic(folder / f"{name}.json", text.encode())
+    write_atomic(folder / f"{name}.json", text)
 
 
 def snapshot_files(work: Path, kept: Sequence[tuple[int, int]]) -> dict[str, Path]:
@@ -222,11 +226,17 @@ def list_policies(dataset: Any) -> list[PolicyInfo]:
             of = start // int(meta["checkpoint_steps"]) == checkpoint
             rec = np.asarray(curve["episode_return"], np.float64)[of]
         kept = rets[(runs == run) & (ckpts == checkpoint)]
-        out.append(PolicyInfo(
-            run, checkpoint, int(meta["env_steps"]),
-            int(rec.size), float(rec.mean()) if rec.size else math.nan,
-            int(kept.size), float(kept.mean()) if kept.size else math.nan,
-        ))  # fmt: skip
+        out.append(
+            PolicyInfo(
+                run,
+                checkpoint,
+                int(meta["env_steps"]),
+                int(rec.size),
+                float(rec.mean()) if rec.size else math.nan,
+                int(kept.size),
+                float(kept.mean()) if kept.size else math.nan,
+            )
+        )
     return out
 
 
@@ -257,24 +267,38 @@ def _checked_file(ds: Any, rel: str, run: int, checkpoint: int) -> Path:
     return path
 
 
+_META = Record(
+    {
+        "task": Str(),
+        "agent": Str(choices=tuple(ACTING_MODULE)),  # a key of the registry, never a module path
+        "module": Str(),
+        "agent_config": MapOf(AnyJSON()),
+        "arrays": MapOf(
+            Record({"shape": ListOf(Int(min=0), max_len=8), "dtype": Str()}), max_len=1024
+        ),
+        "checkpoint_steps": Int(min=1),
+        "env_steps": Int(min=0),
+        "exploration": Record(
+            {}, {"epsilon": Float(0.0, 1.0), "sigma": Float(min=0.0), "sample": Bool()}, extra=False
+        ),
+        "env_settings": MapOf(AnyJSON()),
+    }
+)
+"""What a behaviour policy's JSON must hold (checked before any value is used)."""
+
+
 def _read_meta(ds: Any, run: int, checkpoint: int) -> dict[str, Any]:
     path = _checked_file(ds, policy_stem(run, checkpoint) + ".json", run, checkpoint)
-    try:
-        meta = json.loads(path.read_text())
-    except (ValueError, UnicodeDecodeError) as e:
-        raise RluError(f"{path}: corrupt JSON ({e}); re-generate the dataset") from None
-    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+    fix = "re-generate the dataset"
+    meta = read_json(path, MapOf(AnyJSON()), fix)
+    if meta.get("format") != FORMAT:
         raise RluError(f"{path}: field 'format' is not {FORMAT!r}; not an rlu behaviour policy")
     if meta.get("version") != VERSION:
         raise RluError(
             f"{path}: field 'version' is {meta.get('version')!r}; this rlu reads version "
             f"{VERSION}: upgrade rlu"
         )
-    for key in ("task", "agent", "module", "agent_config", "arrays", "checkpoint_steps",
-                "env_steps", "exploration", "env_settings"):  # fmt: skip
-        if key not in meta:
-            raise RluError(f"{path}: field {key!r} is missing; re-generate the dataset")
-    return meta
+    return check_value(_META, meta, str(path), fix)
 
 
 def _read_arrays(path: Path, meta: Mapping[str, Any], json_path: Path) -> dict[str, np.ndarray]:
@@ -338,8 +362,7 @@ def load_behaviour_policy(
         )
     module = agent_module(meta["agent"], task.discrete)
     config = config_from_json(module.Config, meta["agent_config"])
-    agent = module.Agent(task.observation_spec, task.action_spec, config, seed=seed,
-                         device=device)  # fmt: skip
+    agent = module.Agent(task.observation_spec, task.action_spec, config, seed=seed, device=device)
     if meta["module"] not in agent.modules:
         raise RluError(
             f"{json_path}: field 'module' is {meta['module']!r}; agent {meta['agent']!r} has "
@@ -446,13 +469,24 @@ def behaviour_ope(
         estimate = fqe_estimate(transitions, init, policy, action_spec, config, device)
         result = rollout_behaviour(ds, run, checkpoint, episodes, seed, False, num_envs, device)
         info = infos[(run, checkpoint)]
-        rows.append({**asdict(info), "fqe_estimate": float(estimate), "return": result.mean,
-                     "returns": list(result.returns)})  # fmt: skip
+        rows.append(
+            {
+                **asdict(info),
+                "fqe_estimate": float(estimate),
+                "return": result.mean,
+                "returns": list(result.returns),
+            }
+        )
     rho = math.nan
     if len(rows) >= 2:
         rho = spearman([r["fqe_estimate"] for r in rows], [r["return"] for r in rows])
-    return {"dataset": str(ds.path), "fqe": asdict(config), "episodes": episodes,
-            "policies": rows, "spearman": rho}  # fmt: skip
+    return {
+        "dataset": str(ds.path),
+        "fqe": asdict(config),
+        "episodes": episodes,
+        "policies": rows,
+        "spearman": rho,
+    }
 
 
 __all__ = [
