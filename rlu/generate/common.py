@@ -199,41 +199,32 @@ def report_episode(run: int, episode: int, seg: Segment) -> None:
 def merge_runs(
     task: TaskSpec,
     work: Path,
-    runs: int,
-    settings: dict[str, Any],
-    target: int | None,
-    seed: int,
     out: Path,
+    settings: dict[str, Any],
     command: str,
     policies: str | None = None,
 ) -> Path:
-    """Select episodes from every run's parts under ``work`` and write the final dataset. The
+    """Select episodes from every run's parts under ``work`` and write the final dataset to
+    ``out`` (``settings``: the generation's, with its runs, seed and target episodes). The
     provenance keeps every recorded episode's return and length per run (``runs``): the runs'
     learning curves, of which the dataset keeps a sub-sample (``rlu.generate.curves``).
     ``policies`` (the weights' dtype; None: the recipe keeps none): attach the behaviour policy
     of every (run, checkpoint) the kept episodes name, from ``work/run_*/policies/``."""
     parts, curves = [], []
-    for r in range(runs):
+    for r in range(settings["runs"]):
         run_parts = sorted((work / f"run_{r:03d}").glob("part_*"))
         mine = [open_dataset(p) for p in run_parts if (p / "manifest.json").exists()]
         parts += mine
-        curves.append(
-            {
-                "run": r,
-                "episode_return": [
-                    round(float(x), 3)
-                    for p in mine
-                    for x in np.asarray(p.metadata("episode_return"))
-                ],
-                "episode_steps": [int(n) - 1 for p in mine for n in np.asarray(p.length)],
-            }
-        )
+        curve = [round(float(x), 3) for p in mine for x in np.asarray(p.metadata("episode_return"))]
+        lengths = [int(n) - 1 for p in mine for n in np.asarray(p.length)]
+        curves.append({"run": r, "episode_return": curve, "episode_steps": lengths})
     returns = np.concatenate([np.asarray(p.metadata("episode_return")) for p in parts])
     terminal = np.concatenate(
         [np.asarray(p.column("is_terminal"))[p.start + p.length - 1] for p in parts]
     )
     where = [(i, j) for i, p in enumerate(parts) for j in range(len(p))]
-    rng = stream_rng(seed, SELECTION)
+    rng = stream_rng(settings["seed"], SELECTION)
+    target = settings["target_episodes"]
     keep, counts = select_episodes(is_success(task, returns, terminal), target, rng)
     provenance = {
         "generator": "rlu generate",

@@ -144,7 +144,7 @@ def generate_with_policy(config: GenerateConfig, task: TaskSpec, out: Path, work
     jobs = [(config, sc, r, work) for r in range(runs)]
     play_runs(config, play_policy_run, jobs, bar)
     bar.close()
-    path = merge_runs(task, work, runs, settings, target, config.seed, out, cmd + " --out DIR")
+    path = merge_runs(task, work, out, settings, cmd + " --out DIR")
     if not config.keep_work:
         shutil.rmtree(work)
     return path

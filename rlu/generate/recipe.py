@@ -130,17 +130,8 @@ def generate_runs(
     jobs = [(config, sc.online, r, work, on_chunk) for r in range(runs)]
     play_runs(config, play_run, jobs, bar)
     bar.close()
-    path = merge_runs(
-        task,
-        work,
-        runs,
-        settings,
-        target,
-        config.seed,
-        out,
-        command + " --out DIR",
-        policies=sc.online.policy_dtype,
-    )
+    dtype = sc.online.policy_dtype
+    path = merge_runs(task, work, out, settings, command + " --out DIR", policies=dtype)
     if not config.keep_work:
         shutil.rmtree(work)
     return path
