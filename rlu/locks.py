@@ -4,16 +4,19 @@ The lock of ``<dir>/<name>`` is the file ``<dir>/.<name>.lock`` holding the owne
 with ``flock``. The kernel drops an ``flock`` when its holder dies, so the lock of a killed
 process (``kill -9``) is simply taken over by the next writer, whatever the file still says; a
 live holder makes the next writer fail at once with "in use by PID N" instead of writing over its
-partial output. Forked children (conversion's reader processes) close their copy of the lock at
-fork, so a lock lives exactly as long as the process that took it.
+partial output. A lock file planted as a symbolic or hard link is refused, never written through.
+Forked children (conversion's reader processes) close their copy of the lock at fork, so a lock
+lives exactly as long as the process that took it.
 
 Standard library only (``fcntl``: POSIX).
 """
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import os
+import stat
 from pathlib import Path
 
 from rlu.types import RluError
@@ -56,7 +59,7 @@ class OutputLock:
             return self
         self.path.parent.mkdir(parents=True, exist_ok=True)
         while True:
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+            fd = self._open()
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
@@ -80,6 +83,27 @@ class OutputLock:
             self.fd = fd
             _HELD.add(fd)
             return self
+
+    def _open(self) -> int:
+        """The lock file, never through a planted link: ``O_NOFOLLOW`` refuses a symbolic link,
+        and a hard link to another file (or a non-file) is refused before anything is written."""
+        try:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC | os.O_NOFOLLOW, 0o644)
+        except OSError as e:
+            if e.errno != errno.ELOOP:
+                raise
+            raise RluError(
+                f"{self.path}: the lock file of this {self.what} is a symbolic link; rlu never "
+                "writes through one: remove it (and find out who made it)"
+            ) from None
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode) or st.st_nlink > 1:
+            os.close(fd)
+            raise RluError(
+                f"{self.path}: the lock file of this {self.what} is not a file of its own (a "
+                "hard link or not a regular file); rlu never writes through one: remove it"
+            )
+        return fd
 
     def release(self) -> None:
         fd, self.fd = self.fd, None

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 
 
 def _dataset_args(p: argparse.ArgumentParser) -> None:
@@ -34,6 +33,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="follow redirects to other hosts (a mirror behind a CDN); same-host ones always are",
     )
     p.add_argument("--list", action="store_true", help="print the URLs and exit")
+    _quiet_arg(p)
     p.set_defaults(func=_download)
 
     p = sub.add_parser(
@@ -68,7 +68,18 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="store images raw or zlib-compressed (default: zlib for Atari)",
     )
     p.add_argument("--overwrite", action="store_true")
+    _quiet_arg(p)
     p.set_defaults(func=_convert)
+
+
+def _quiet_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--quiet",
+        "-q",
+        action="store_true",
+        help="no progress on stderr (default: a bar with rate and ETA on a terminal, a plain "
+        "line every 10 s otherwise; $RLU_PROGRESS=bar|lines|quiet picks one)",
+    )
 
 
 def _download(args: argparse.Namespace) -> int:
@@ -90,6 +101,7 @@ def _download(args: argparse.Namespace) -> int:
         retries=args.retries,
         timeout=args.timeout,
         allow_redirects=args.allow_redirects,
+        progress=not args.quiet,
     )
     got = d.fetch(sel.objects)
     reused = sum(f.reused for f in got)
@@ -130,7 +142,7 @@ def _convert(args: argparse.Namespace) -> int:
         on_error="skip" if args.skip_corrupt else "raise",
         image_encoding=args.image_encoding,
         overwrite=args.overwrite,
-        progress=os.isatty(2),
+        progress=not args.quiet,
     )
     print(
         f"wrote {report.out}: {report.segments:,} segments, {report.steps:,} steps from "

@@ -52,6 +52,18 @@ def object_url(obj: str, base_url: str | None = None) -> str:
     return f"{(base_url or BASE_URL).rstrip('/')}/{obj}"
 
 
+UNKNOWN_SHARD_BYTES = 16 << 30  # a name outside the release's families: no shard is larger
+
+
+def shard_limit(obj: str) -> int:
+    """The most bytes a file of ``obj`` may have: its family's ``max_shard_bytes`` (the top
+    folder of the name), :data:`UNKNOWN_SHARD_BYTES` for a name of no known family."""
+    from rlu.data.release.families import FAMILIES
+
+    fam = FAMILIES.get(obj.split("/", 1)[0])
+    return fam.max_shard_bytes if fam is not None else UNKNOWN_SHARD_BYTES
+
+
 def dataset_binding(
     task: TaskSpec,
     run: str | int | None = None,

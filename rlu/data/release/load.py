@@ -14,7 +14,7 @@ from collections.abc import Sequence
 
 from rlu.data.release import catalog
 from rlu.data.release.convert import convert
-from rlu.data.release.download import cache_root, download
+from rlu.data.release.download import cache_root, download, open_private
 from rlu.data.store import Dataset, open_dataset
 
 
@@ -42,17 +42,26 @@ def load_release_dataset(
     workers: int | None = None,
     progress: bool | None = None,
 ) -> Dataset:
-    """The converted release dataset of ``task_id`` (downloaded and converted on first use)."""
+    """The converted release dataset of ``task_id`` (downloaded and converted on first use).
+
+    ``progress``: False shows nothing; otherwise download and conversion show an
+    :class:`rlu.progress.Progress` on stderr (a bar on a terminal, a line every 10 s elsewhere).
+    A download that cannot succeed (offline, a refused port, HTTP 403/404) raises at once.
+    """
     sel = catalog.select(task_id, family, run, challenge, size, shards)
     dest = release_dataset_path(sel, cache_dir, all_shards=shards is None)
     if os.path.isfile(os.path.join(dest, "manifest.json")):
         return open_dataset(dest)
     os.makedirs(os.path.dirname(dest), exist_ok=True)
-    with open(dest + ".lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)  # two processes loading one dataset: one converts
+    # never through a planted link (open_private refuses one)
+    fd = open_private(dest + ".lock", os.O_RDWR | os.O_CREAT, "dataset lock")
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)  # two processes loading one dataset: one converts
         if os.path.isfile(os.path.join(dest, "manifest.json")):
             return open_dataset(dest)
         _fetch_and_convert(sel, dest, cache_dir, base_url, workers, progress)
+    finally:
+        os.close(fd)
     return open_dataset(dest)
 
 
@@ -66,6 +75,7 @@ def _fetch_and_convert(sel, dest, cache_dir, base_url, workers, progress) -> Non
         challenge=sel.binding.split("/")[0] if sel.task.domain == "rwrl" else None,
         run=sel.binding if sel.task.domain == "atari" else None,
         workers=workers,
+        progress=progress is not False,
         provenance={
             "dataset": sel.binding,
             "objects": list(sel.objects),
