@@ -52,6 +52,7 @@ from rlu.data.episode import Segment
 from rlu.data.release import example as ex
 from rlu.data.release.framing import RecordReader, RecordWriter
 from rlu.data.release.png import decode_png, encode_png
+from rlu.tasks import ATARI_MAX_AGENT_STEPS
 from rlu.types import FormatError
 
 FIRST, MID, LAST = 0, 1, 2
@@ -409,6 +410,12 @@ def parse_atari_episodes(cols: Mapping[str, Any], where: str = "record") -> list
             raise FormatError(f"{where}: 'observations' must be a bytes_list of PNG frames")
         t = _integers(_numeric(_need(row, "actions", where), "actions", where), "actions", where)
         t = t.shape[1]
+        if t > ATARI_MAX_AGENT_STEPS + 1:
+            # checked before a frame is decoded: 100 MB of tiny PNGs would inflate to gigabytes
+            raise FormatError(
+                f"{where}: an episode of {t:,} steps; the recording stopped episodes at "
+                f"{ATARI_MAX_AGENT_STEPS:,} agent steps (108,000 frames)"
+            )
         rec: Raw = {}
         for k in _ATARI_EP_LISTS:
             v = _numeric(_need(row, k, where), k, where)
