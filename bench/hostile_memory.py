@@ -1,11 +1,17 @@
-"""Peak memory of rlu on bombs: conversion of gzip shards that inflate to gigabytes, sampling and
-validating a dataset with a zlib bomb frame, importing an .npz whose header claims 1e12 values.
+"""Peak memory of rlu on bombs: conversion of gzip shards that inflate to gigabytes (zeros, one
+huge record header, valid windows, valid 100 MiB records), a download whose chunked body never
+ends, sampling and validating a dataset with a zlib bomb frame, importing an .npz whose header
+claims 1e12 values.
 
-Each command runs as its own process under GNU ``/usr/bin/time -v``; its "Maximum resident set
-size" (the largest of the process and the reader processes it waited for) is printed with the
-wall time and the exit code. The bar (issue 15): under 512 MB.
+Each command runs as its own process under GNU ``/usr/bin/time -v`` (and ``timeout``, so a
+command that would run forever is stopped and its figure is still printed); its "Maximum
+resident set size" (the largest of the process and the reader processes it waited for) is
+printed with the wall time and the exit code. The endless body comes from a server thread of
+this script on 127.0.0.1, which also prints how many bytes it sent before the client hung up.
+The bar (issues 15 and 30): under 512 MB.
 
     PYTHONPATH=. .venv/bin/python bench/hostile_memory.py [--workdir DIR] [--gib 2.5]
+        [--only WORD...]
 """
 
 from __future__ import annotations
@@ -13,6 +19,7 @@ from __future__ import annotations
 import argparse
 import gzip
 import hashlib
+import http.server
 import json
 import os
 import re
@@ -20,6 +27,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import threading
 import zlib
 from pathlib import Path
 
@@ -90,6 +98,74 @@ def atari_bomb(path: Path, total: int) -> None:
     path.write_bytes(_members(one * ((16 << 20) // len(one)), total))
 
 
+def long_records(path: Path, family: str, n: int = 30, mib: int = 100) -> None:
+    """``n`` valid records of ``mib`` MiB each (a few kB of gzip apiece): a real record of the
+    family plus a bytes feature no loader names, padded with zeros. 30 of 100 MiB: the 3 MB
+    shard of issue 30 that took the old reader to 3.2 GB before its first record was decoded."""
+    from rlu.data.release import example as ex
+    from rlu.data.release import families as Fm
+    from rlu.data.release.framing import frame
+
+    if family == "dm_control_suite":
+        payload = Fm.encode_sequence(
+            {
+                "observation/position": np.zeros((2, 3), np.float32),
+                "observation/velocity": np.zeros((2, 2), np.float32),
+                "action": np.zeros((2, 1), np.float32),
+                "reward": np.float32([0.5, 0.5]),
+                "discount": np.float32([1, 1]),
+                "step_type": np.float32([1, 1]),
+            }
+        )
+    else:
+        t = 5
+        payload = Fm.encode_atari_episode(
+            {
+                "observations": np.zeros((t, 84, 84), np.uint8),
+                "actions": np.zeros(t, np.int64),
+                "unclipped_rewards": np.zeros(t, np.float32),
+                "clipped_rewards": np.zeros(t, np.float32),
+                "discounts": np.ones(t, np.float32),
+                "checkpoint_idx": np.int64(0),
+                "episode_idx": np.int64(0),
+                "episode_return": np.float32(0),
+                "clipped_episode_return": np.float32(0),
+            }
+        )
+    big = payload + ex.encode_example({"padding": [b"\0" * (mib << 20)]})
+    path.write_bytes(gzip.compress(frame(big), 9, mtime=0) * n)
+
+
+class _Endless(http.server.BaseHTTPRequestHandler):
+    """Any GET: a chunked body of zeros that never ends (until the client hangs up)."""
+
+    protocol_version = "HTTP/1.1"
+
+    def log_message(self, *a):  # quiet
+        pass
+
+    def do_GET(self):  # noqa: N802
+        self.send_response(200)
+        self.send_header("Transfer-Encoding", "chunked")
+        self.end_headers()
+        block = b"\0" * (1 << 20)
+        chunk = b"%x\r\n" % len(block) + block + b"\r\n"
+        try:
+            while True:
+                self.wfile.write(chunk)
+                self.server.sent += len(block)
+        except OSError:  # the client hung up
+            pass
+
+
+def endless_server() -> http.server.ThreadingHTTPServer:
+    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), _Endless)
+    srv.daemon_threads = True
+    srv.sent = 0
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    return srv
+
+
 def bomb_frame_dataset(dest: Path) -> None:
     """A Pong dataset (zlib frames) whose frame 5 is a stream of frame size inflating to 6 MiB."""
     from rlu.data import Schema
@@ -127,12 +203,24 @@ def npz_claiming(path: Path) -> None:
 ONLY: list[str] = []
 
 
-def measure(label: str, argv: list[str]) -> None:
-    if ONLY and not any(word in label for word in ONLY):
+def wanted(label: str) -> bool:
+    return not ONLY or any(word in label for word in ONLY)
+
+
+def measure(label: str, argv: list[str], limit: int = 1800) -> None:
+    """One row: peak RSS, wall time, exit code (124: stopped by ``timeout`` after ``limit`` s)
+    and the first line of its error."""
+    if not wanted(label):
         return
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    for k in ("http_proxy", "https_proxy", "HTTP_PROXY", "HTTPS_PROXY", "all_proxy", "ALL_PROXY"):
+        env.pop(k, None)  # the endless server is on 127.0.0.1
     out = subprocess.run(
-        ["/usr/bin/time", "-v", *argv], cwd=ROOT, env=env, capture_output=True, text=True
+        ["/usr/bin/time", "-v", "timeout", str(limit), *argv],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
     )
     rss = int(re.search(r"Maximum resident set size \(kbytes\): (\d+)", out.stderr).group(1))
     wall = re.search(r"Elapsed \(wall clock\) time.*: (\S+)", out.stderr).group(1)
@@ -187,6 +275,29 @@ def main() -> None:
             [*rlu, "convert", "--family", "atari", "--task", "atari/Pong", "--out",
              str(work / "out"), "--workers", str(workers), str(atari)],
         )  # fmt: skip
+    for family, task in (("dm_control_suite", TASK), ("atari_episodes_ordered", "atari/Pong")):
+        label = f"convert, 30 valid 100 MiB {family} records"
+        if not wanted(label):
+            continue
+        shard = work / family / "run_1-00000-of-00001"
+        shard.parent.mkdir(exist_ok=True)
+        long_records(shard, family)
+        shutil.rmtree(work / "out", ignore_errors=True)
+        label += f" ({shard.stat().st_size / 1e6:.1f} MB of gzip)"
+        measure(label, [*rlu, "convert", "--family", family, "--task", task, "--out",
+                        str(work / "out"), "--quiet", str(shard)])  # fmt: skip
+    if wanted("download, an endless chunked body"):
+        srv = endless_server()
+        measure(
+            "download, an endless chunked body",
+            [*rlu, "download", TASK, "--shards", "0", "--retries", "0", "--quiet", "--base-url",
+             f"http://127.0.0.1:{srv.server_address[1]}", "--cache-dir", str(work / "cache")],
+            limit=60,
+        )  # fmt: skip
+        left = sum(p.stat().st_size for p in (work / "cache").rglob("*") if p.is_file())
+        print(f"(the server sent {srv.sent / 2**20:,.0f} MiB before the client hung up; "
+              f"{left / 2**20:,.1f} MiB left in the cache)")  # fmt: skip
+        srv.shutdown()
     shutil.rmtree(work / "out", ignore_errors=True)
     sample = (
         "import sys; from rlu.data import open_dataset; from rlu.data.views import make_sampler\n"

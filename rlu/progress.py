@@ -12,16 +12,18 @@
 
 Three modes, chosen once when the display is made:
 
-- ``"bar"``: one line redrawn in place (``\\r``) at most every ``redraw`` seconds: percent, a bar,
-  ``n/total``, elapsed time, ETA and rate; the default when the stream is a terminal.
+- ``"bar"``: one line drawn at once, then redrawn in place (``\\r``) at most every ``redraw``
+  seconds: percent, a bar, ``n/total``, elapsed time, ETA and rate; the default when the stream
+  is a terminal.
 - ``"lines"``: a plain line at most every ``interval`` seconds (default 10), the first one
   ``interval`` seconds in; never a ``\\r``, so a CI log or a file redirect reads top to bottom.
   The default when the stream is not a terminal.
 - ``"quiet"``: nothing (``quiet=True``, a command's ``--quiet``).
 
 :meth:`~Progress.close` writes the final state (and ends the bar's line) when the display showed
-something or work was done; a job that failed before its first unit leaves no line of its own, so
-its error is the only thing on the screen.
+something or the job did work. A job that fails (``close(failed=True)``, or an exception through
+the ``with`` block) before its first plain line, or before any work under a bar, leaves no line
+of its own: its error is the only line on the screen.
 
 ``$RLU_PROGRESS`` (``bar``, ``lines`` or ``quiet``) overrides the automatic choice, for a log
 that is a terminal or a terminal that wants lines; an explicit ``mode`` or ``quiet=True`` wins
@@ -128,7 +130,8 @@ class Progress:
         self._initial = initial
         self._clock = clock
         self._start = clock()
-        self._last = self._start  # when the last line or bar was written
+        # when the last line or bar was written: a bar is drawn at once, lines wait an interval
+        self._last = self._start - (redraw if self.mode == "bar" else 0)
         self._postfix = ""
         self._lock = threading.RLock()
         self._closed = False
@@ -172,25 +175,32 @@ class Progress:
             else:
                 self._write(text + "\n")
 
-    def close(self) -> None:
-        """The last state, then a newline after a bar; more calls do nothing."""
+    def close(self, failed: bool = False) -> None:
+        """The last state, then a newline after a bar; more calls do nothing.
+
+        ``failed``: the job ended in an error, which its caller prints: plain lines that showed
+        nothing yet stay silent, and a bar of a job that did nothing is wiped, so that the error
+        is the only line.
+        """
         with self._lock:
             if self._closed:
                 return
             self._closed = True
-            if not (self._shown or self.n > self._initial):
-                return
+            worked = self.n > self._initial
             if self.mode == "bar":
-                self._bar()
-                self._write("\n")
-            elif self.mode == "lines":
+                if failed and not worked:
+                    self._clear()  # nothing done: the error's line is the only one
+                elif self._shown or worked:
+                    self._bar()
+                    self._write("\n")
+            elif self.mode == "lines" and (self._shown or (worked and not failed)):
                 self._line(final=True)
 
     def __enter__(self) -> Progress:
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __exit__(self, exc_type: object, *exc: object) -> None:
+        self.close(failed=exc_type is not None)
 
     # --- what is shown ---------------------------------------------------------------------
     def render(self, final: bool = False, bar: str = "") -> str:

@@ -68,6 +68,13 @@ def test_a_job_that_fails_before_any_work_leaves_no_line():
     term = Terminal()
     Progress(3, "download", stream=term).close()
     assert term.getvalue() == ""
+    term = Terminal()
+    with pytest.raises(RuntimeError):
+        with Progress(3, "download", stream=term) as bar:
+            bar.set_postfix(files="0/3")  # drawn at once
+            raise RuntimeError("refused")
+    assert term.getvalue().startswith("\rdownload:   0%") and "\n" not in term.getvalue()
+    assert term.getvalue().endswith(" \r")  # wiped: the error will be the only line
 
 
 def test_the_rate_counts_only_this_run():
@@ -84,7 +91,7 @@ def test_bar_on_a_terminal_is_redrawn_and_notes_go_above_it(monkeypatch):
     bar = Progress(4, "train", "steps", stream=term, clock=clock)
     assert bar.mode == "bar"
     clock.t += 1
-    bar.update(1)
+    bar.update(1)  # the first: drawn at once
     bar.update(1)  # within the redraw interval: not drawn
     clock.t += 1
     bar.note("eval: return 812.5")

@@ -372,6 +372,7 @@ def convert(
     pool = _Pool(paths, job, workers) if workers > 1 else None
     sizes = [os.path.getsize(p) for p in paths]
     bar = Progress(sum(sizes), "convert", "B", quiet=not progress)
+    ok = False
     try:
         with DatasetWriter(out, schema, provenance=prov, overwrite=overwrite) as writer:
             for i, path in enumerate(paths):
@@ -409,10 +410,11 @@ def convert(
             writer.provenance["skipped_records"] = report.skipped
             report.segments = writer.num_segments
             report.steps = writer.num_steps
+        ok = True
     finally:
         if pool is not None:
             pool.close()
-        bar.close()
+        bar.close(failed=not ok)
     report.seconds = time.monotonic() - t0
     return report
 

@@ -54,7 +54,6 @@ import json
 import os
 import socket
 import ssl
-import stat
 import struct
 import tempfile
 import threading
@@ -67,7 +66,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 from rlu.data.release.catalog import object_url, shard_limit
-from rlu.locks import OutputLock
+from rlu.locks import OutputLock, open_private
 from rlu.progress import Progress
 from rlu.types import RluError
 
@@ -118,37 +117,10 @@ class Fetched:
 # --- files that refuse links ---------------------------------------------------------------
 
 
-def open_private(path: str, flags: int, what: str = "cache file") -> int:
-    """``os.open`` of a file rlu owns, never through a link: a symbolic link (``O_NOFOLLOW``),
-    something else than a regular file, or a file with a second hard link is refused with an
-    :class:`~rlu.types.RluError`. ``O_TRUNC`` is applied only after the checks."""
-    trunc = flags & os.O_TRUNC
-    try:
-        fd = os.open(path, (flags & ~os.O_TRUNC) | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
-    except OSError as e:
-        if e.errno == errno.ELOOP:
-            raise RluError(
-                f"{path}: this {what} is a symbolic link; rlu never writes or reads its cache "
-                "through a link: remove it (and find out who made it)"
-            ) from None
-        raise
-    st = os.fstat(fd)
-    if not stat.S_ISREG(st.st_mode) or st.st_nlink > 1:
-        os.close(fd)
-        kind = "has another hard link" if stat.S_ISREG(st.st_mode) else "is not a regular file"
-        raise RluError(
-            f"{path}: this {what} {kind}; rlu writes its cache only into files of its own: "
-            "remove it (and find out who made it)"
-        )
-    if trunc:
-        os.ftruncate(fd, 0)
-    return fd
-
-
 def _read_private(path: str) -> bytes | None:
     """The bytes of a cache file, None when missing; a link is refused (see open_private)."""
     try:
-        fd = open_private(path, os.O_RDONLY)
+        fd = open_private(path, os.O_RDONLY, "cache file")
     except FileNotFoundError:
         return None
     with os.fdopen(fd, "rb") as f:
@@ -224,7 +196,7 @@ class _Manifest:
 
 def sha256_file(path: str) -> str:
     h = hashlib.sha256()
-    with os.fdopen(open_private(path, os.O_RDONLY), "rb") as f:
+    with os.fdopen(open_private(path, os.O_RDONLY, "cache file"), "rb") as f:
         while chunk := f.read(CHUNK * 4):
             h.update(chunk)
     return h.hexdigest()
@@ -388,8 +360,8 @@ class _Tally:
     def summary(self) -> str:
         return f"{self.done} of {self.files} files done, {self.failed} failed"
 
-    def close(self) -> None:
-        self.bar.close()
+    def close(self, failed: bool) -> None:
+        self.bar.close(failed)
 
 
 class Downloader:
@@ -470,6 +442,7 @@ class Downloader:
                     stop.set()
                     return
 
+        ok = False
         try:
             if self.workers == 1 or len(objects) <= 1:
                 work()
@@ -489,11 +462,12 @@ class Downloader:
                         deadline = deadline or time.monotonic() + _GRACE
                         if time.monotonic() > deadline:
                             break
+            ok = not errors
         except BaseException:
             stop.set()  # Ctrl-C: the workers stop at their next chunk
             raise
         finally:
-            tally.close()
+            tally.close(failed=not ok)
         if errors:
             first = errors[0]
             if isinstance(first, DownloadError) and len(objects) > 1:
@@ -783,7 +757,7 @@ def release_framing(path: str, obj: str) -> str:
     fam = FAMILIES.get(obj.split("/", 1)[0])
     if fam is None:
         return ""  # not a catalog object: nothing is known to check
-    with os.fdopen(open_private(path, os.O_RDONLY), "rb") as f:
+    with os.fdopen(open_private(path, os.O_RDONLY, "partial download"), "rb") as f:
         head = f.read(1 << 16)
     if fam.compression == "gzip":
         if head[:2] != GZIP_MAGIC:
@@ -816,7 +790,7 @@ def _check_hashes(path: str, meta: dict) -> str:
         import google_crc32c
 
         c = google_crc32c.Checksum()
-    with os.fdopen(open_private(path, os.O_RDONLY), "rb") as f:
+    with os.fdopen(open_private(path, os.O_RDONLY, "partial download"), "rb") as f:
         while chunk := f.read(CHUNK * 4):
             h.update(chunk)
             if c is not None:

@@ -700,7 +700,7 @@ class Family:
 
 _MiB, _GiB = 1 << 20, 1 << 30
 # Limits: well above what the release holds (sizes from the TFDS catalog, which describe the same
-# data re-encoded; docs/release_format.md), well below what a machine cannot hold. Records: a
+# data re-encoded; docs/release_format.md §5), well below what a machine cannot hold. Records: a
 # window of 2 or 40 steps is a few kB (a locomotion seq40 window with its 64x64x3 camera, 0.5
 # MB); a control-suite or RWRL episode is 1000 steps of at most ~90 floats (under 1 MB); a
 # locomotion episode keeps 12,288 camera bytes per step (about 12-18 MB); an Atari episode up to

@@ -31,6 +31,7 @@ from typing import BinaryIO
 
 import numpy as np
 
+from rlu.locks import open_private
 from rlu.types import FormatError
 
 GZIP_MAGIC = b"\x1f\x8b"
@@ -528,7 +529,8 @@ class RecordWriter:
     def __init__(self, path: str | os.PathLike, compression: str | None = "gzip", level: int = 6):
         self.path = os.fspath(path)
         self._tmp = self.path + ".partial"
-        raw = open(self._tmp, "wb")
+        # never through a link planted at the temporary name
+        raw = os.fdopen(open_private(self._tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC), "wb")
         self._raw = raw
         if compression == "gzip":
             # mtime=0 keeps the bytes reproducible; one member, as TF writes it.

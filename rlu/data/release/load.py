@@ -14,8 +14,9 @@ from collections.abc import Sequence
 
 from rlu.data.release import catalog
 from rlu.data.release.convert import convert
-from rlu.data.release.download import cache_root, download, open_private
+from rlu.data.release.download import cache_root, download
 from rlu.data.store import Dataset, open_dataset
+from rlu.locks import open_private
 
 
 def release_dataset_path(
