@@ -20,12 +20,18 @@ GENERATED = {"source": "generated", "scale": "laptop", "command": "rlu generate 
 
 
 def paper_steps(agent: str, discrete: bool) -> int | None:
-    """The learner budget of an agent's paper preset, as ``rlu report`` passes it (the report's
-    package may not import the agents)."""
+    """The learner budget of an agent's paper preset (None: no such agent or preset), as the
+    caller of ``write_report`` passes it (the report's package may not import the agents):
+    continuous configs hold ``num_steps``, discrete ones their shared ``atari`` settings'."""
     pytest.importorskip("torch")
     from rlu.agents import agent_module
 
-    config = agent_module(agent, discrete).PRESETS["paper"]
+    try:
+        config = agent_module(agent, discrete).PRESETS.get("paper")
+    except RluError:
+        return None
+    if config is None:
+        return None
     return config.atari.num_steps if discrete else config.num_steps
 
 
@@ -109,6 +115,7 @@ def test_an_agent_with_one_configuration_needs_no_selection():
 def test_comparable_only_with_the_paper_preset_its_budget_and_the_release():
     budget = paper_steps("bc", False)
     assert budget == 1_000_000 and paper_steps("dqn", True) == 2_000_000
+    assert paper_steps("no_such_agent", False) is None
     full = run_provenance(rec(CARTPOLE, "bc", "a", 0, 1, preset="paper", steps=budget,
                               data=RELEASE))  # fmt: skip
     assert not_comparable(full, budget) == []
