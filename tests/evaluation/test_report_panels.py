@@ -22,7 +22,8 @@ REFS = {g: 0.0 for g in TUNING + HELD_OUT}, {g: 100.0 for g in TUNING + HELD_OUT
 
 
 def rec(task, agent, config, seed, score, overrides=None):
-    r = {"task": task, "agent": agent, "config": config, "seed": seed, "score": float(score)}
+    r = {"task": task, "agent": agent, "config": config, "seed": seed, "score": float(score),
+         "run": f"{task}/{agent}/{config}/seed_{seed}"}  # fmt: skip
     if overrides is not None:
         r["overrides"] = overrides
     return r

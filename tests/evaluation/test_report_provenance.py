@@ -22,7 +22,7 @@ GENERATED = {"source": "generated", "scale": "laptop", "command": "rlu generate 
 def paper_steps(agent: str, discrete: bool) -> int | None:
     """The learner budget of an agent's paper preset (None: no such agent or preset), as the
     caller of ``write_report`` passes it (the report's package may not import the agents):
-    continuous configs hold ``num_steps``, discrete ones their shared ``atari`` settings'."""
+    continuous configs hold ``num_steps``, discrete ones their shared ``atari`` settings."""
     pytest.importorskip("torch")
     from rlu.agents import agent_module
 
