@@ -156,9 +156,10 @@ PAPER_SENSITIVITY: dict[str, dict[str, Any]] = {
 }
 
 PAPER_FIGURE_ONLY = (
-    "the paper prints this figure without numbers; 'paper (table)' is the median of the paper's "
-    "per-game appendix table (raw scores) normalised with the reference scores used here, which "
-    "are not the paper's own (rlu/resources/atari_best_behaviour.json says where they come from)"
+    'the paper prints this figure without numbers; the "paper\'s table" columns hold the median '
+    "of the paper's per-game appendix table (raw scores) normalised with the reference scores "
+    "used here, which are not the paper's own (rlu/resources/atari_best_behaviour.json says where "
+    "they come from)"
 )
 
 
