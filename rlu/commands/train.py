@@ -352,7 +352,9 @@ def _report(args: argparse.Namespace) -> int:
 
         for sweep_dir in args.sweep_dirs:
             fqe_selection(sweep_dir, FQEConfig(steps=args.fqe_steps), args.device)
-    paths = write_report(args.sweep_dirs, args.out)
+    from rlu.agents import paper_steps
+
+    paths = write_report(args.sweep_dirs, args.out, paper_steps=paper_steps)
     for p in paths:
         print(f"wrote {p}")
     return 0

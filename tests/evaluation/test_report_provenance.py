@@ -20,19 +20,12 @@ GENERATED = {"source": "generated", "scale": "laptop", "command": "rlu generate 
 
 
 def paper_steps(agent: str, discrete: bool) -> int | None:
-    """The learner budget of an agent's paper preset (None: no such agent or preset), as the
-    caller of ``write_report`` passes it (the report's package may not import the agents):
-    continuous configs hold ``num_steps``, discrete ones their shared ``atari`` settings."""
+    """What ``rlu report`` passes to ``write_report`` (the report's package may not import the
+    agents)."""
     pytest.importorskip("torch")
-    from rlu.agents import agent_module
+    from rlu.agents import paper_steps as budget
 
-    try:
-        config = agent_module(agent, discrete).PRESETS.get("paper")
-    except RluError:
-        return None
-    if config is None:
-        return None
-    return config.atari.num_steps if discrete else config.num_steps
+    return budget(agent, discrete)
 
 
 def rec(task, agent, config, seed, score, **fields):
