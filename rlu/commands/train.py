@@ -18,6 +18,8 @@ import argparse
 import json
 from typing import Any
 
+from rlu.commands._video import add_video_options, check_video_options, write_run_videos
+
 EVAL_EVERY_MIN = 10_000
 """Fewest gradient steps between two periodic evaluations of ``rlu train``."""
 
@@ -167,6 +169,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     add_device_option(p)
+    add_video_options(p)
     p.set_defaults(func=_evaluate)
 
     p = sub.add_parser("sweep", help="tasks x agents x grids x seeds, locally or on Ray")
@@ -278,6 +281,8 @@ def _evaluate(args: argparse.Namespace) -> int:
 
     if args.threads < 1:
         raise RluError(f"--threads {args.threads}; use 1 or more")
+    if args.video is not None:
+        check_video_options(args)
     import torch
 
     torch.set_num_threads(args.threads)
@@ -293,6 +298,8 @@ def _evaluate(args: argparse.Namespace) -> int:
             f"{len(res.returns)} episodes: mean return {res.mean:.3f}, returns "
             + ", ".join(f"{r:.2f}" for r in res.returns)
         )
+    if args.video is not None:
+        write_run_videos(args)
     return 0
 
 

@@ -83,11 +83,9 @@ def record_video(
 ) -> list[Video]:
     """Film ``num_episodes`` episodes of ``policy`` in envs from ``env_fn`` (which must render
     ``rgb_array``) into ``out_dir/<name>_<i>.<fmt>``; see the module docstring."""
-    if fmt not in FORMATS:
-        raise RluError(f"video format {fmt!r}; use one of {', '.join(FORMATS)}")
     if num_episodes < 1:
         raise RluError(f"num_episodes={num_episodes}; film at least one episode")
-    open_writer = _mp4_writer() if fmt == "mp4" else _gif_writer()
+    open_writer = check_format(fmt)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     env = env_fn()
@@ -139,6 +137,17 @@ def _film(policy, env, episode, seed, max_steps, path, open_writer, fps, caption
         raise
     os.replace(tmp, path)
     return total, t
+
+
+def check_format(fmt: str) -> Callable[[Path, tuple, float], _Writer]:
+    """The writer of ``fmt``; an unknown format or a missing package is an RluError now."""
+    if fmt not in FORMATS:
+        raise RluError(f"video format {fmt!r}; use one of {', '.join(FORMATS)}")
+    try:
+        import PIL  # noqa: F401  (the caption strip, and GIFs)
+    except ImportError:
+        raise RluError(f"videos need Pillow: {install_hint('video')}") from None
+    return _mp4_writer() if fmt == "mp4" else _gif_writer()
 
 
 class _Frames:
