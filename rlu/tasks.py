@@ -115,6 +115,14 @@ class TaskSpec:
         domain is kept because RWRL and the control suite share task names)."""
         return f"{GYM_NAMESPACE}/{self.domain}-{self.name}-v{GYM_VERSION}"
 
+    def max_episode_steps(self, env_settings: Mapping[str, Any] | None = None) -> int:
+        """Agent steps after which the env made with ``env_settings`` truncates an episode
+        (Gymnasium's ``spec.max_episode_steps``): ``episode_length``, or Atari's
+        ``max_episode_steps`` setting."""
+        if self.domain == "atari" and env_settings and "max_episode_steps" in env_settings:
+            return int(env_settings["max_episode_steps"])
+        return self.episode_length
+
     @property
     def action_dim(self) -> int:
         if isinstance(self.action_spec, DiscreteSpec):

@@ -142,7 +142,7 @@ class DmControlEnv(gym.Env):
     rate; ``camera`` is the default render view.
     """
 
-    metadata = {"render_modes": list(RENDER_MODES), "render_fps": 50}
+    metadata = {"render_modes": list(RENDER_MODES)}  # each env adds its render_fps
 
     def __init__(
         self,
@@ -166,7 +166,11 @@ class DmControlEnv(gym.Env):
         self._render_size = render.size or RENDER_SIZE
         self._camera = render.camera if render.camera is not None else camera
         if render.mode is not None:
-            self._check_view(name or type(environment).__name__)
+            try:
+                self._check_view(name or type(environment).__name__)
+            except RluError:
+                environment.close()  # built already: free its physics before refusing
+                raise
         self._spec = dict(obs_spec)
         self._keys = [(k, (keys or {}).get(k, k)) for k in self._spec]
         self._shapes = {k: (s.shape, np.dtype(s.dtype)) for k, s in self._spec.items()}

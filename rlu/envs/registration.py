@@ -69,16 +69,9 @@ def env_spec(task: TaskSpec | str, settings: Mapping[str, Any] | None = None) ->
         id=task.gym_id,
         entry_point=GYM_ENTRY_POINT,
         kwargs=kwargs,
-        max_episode_steps=max_episode_steps(task, kwargs),
+        max_episode_steps=task.max_episode_steps(kwargs),
         disable_env_checker=False,
     )
-
-
-def max_episode_steps(task: TaskSpec, settings: Mapping[str, Any] | None = None) -> int:
-    """Agent steps after which the env of ``task`` made with ``settings`` truncates."""
-    if task.domain == "atari":
-        return int((settings or {}).get("max_episode_steps", task.episode_length))
-    return task.episode_length
 
 
 def register_envs() -> None:
@@ -89,5 +82,5 @@ def register_envs() -> None:
                 id=task.gym_id,
                 entry_point=GYM_ENTRY_POINT,
                 kwargs={"task_id": task.id},
-                max_episode_steps=max_episode_steps(task),
+                max_episode_steps=task.max_episode_steps(),
             )
