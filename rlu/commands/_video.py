@@ -50,15 +50,15 @@ def write_run_videos(args: argparse.Namespace) -> list[Any]:
     (none with ``--json``: DIR/videos.json holds them)."""
     from rlu.evaluation.rollout import task_env_factory
     from rlu.evaluation.video import record_video
-    from rlu.runs import load_policy
+    from rlu.restore import load_policy
 
     policy, resolved = load_policy(args.run, args.device)
-    train_cfg = resolved["train"]
     settings = dict(resolved["env_settings"])
     if args.challenge is not None:
         settings["challenge"] = args.challenge  # the evaluation before this checked it
-    factory = args.env if args.env is not None else train_cfg["env"]
-    env_fn = task_env_factory(train_cfg["task"], factory, render_mode="rgb_array", **settings)
+    # --env as the evaluation took it: typed, so trusted (a run's recorded factory never is)
+    task = resolved["train"]["task"]
+    env_fn = task_env_factory(task, args.env, render_mode="rgb_array", **settings)
     videos = record_video(
         policy,
         env_fn,
@@ -70,5 +70,5 @@ def write_run_videos(args: argparse.Namespace) -> list[Any]:
     )
     if not args.json:
         for v in videos:
-            print(f"{v.path}: episode {v.episode}, return {v.episode_return:.2f}, {v.length} steps")
+            print(f"{v.path}: episode {v.episode}, return {v.episode_return:.1f}, {v.length} steps")
     return videos
