@@ -288,7 +288,7 @@ class Record(Shape):
     def check(self, value: Any, where: str) -> Any:
         if not isinstance(value, Mapping):
             raise Bad(
-                where or "(top level)",
+                where,
                 f"is {_name(value)} ({_short(value)}); expected an object with "
                 f"{', '.join(self.required) or 'fields'}",
             )
@@ -423,8 +423,9 @@ def check_value(shape: Shape, value: Any, what: str, fix: str) -> Any:
     try:
         return shape.check(value, "")
     except Bad as e:
-        field = f"field '{e.where}' " if e.where else ""
-        raise FormatError(f"{what}: {field}{e.what}; {fix}") from None
+        if not e.where:  # the value as a whole
+            raise FormatError(f"{what} {e.what}; {fix}") from None
+        raise FormatError(f"{what}: field '{e.where}' {e.what}; {fix}") from None
 
 
 # --- reading --------------------------------------------------------------------------------

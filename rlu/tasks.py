@@ -501,11 +501,6 @@ def _build() -> dict[str, TaskSpec]:
 TASKS: Mapping[str, TaskSpec] = MappingProxyType(_build())
 
 
-def rwrl_release_binding(challenge: str, size: str) -> str:
-    """The ``{challenge}``/``{size}`` fill of an RWRL release path (``size`` as in the bucket)."""
-    return f"{challenge}/{size}"
-
-
 def rwrl_observation_spec(task: TaskSpec, challenge: str) -> Mapping[str, ArraySpec]:
     """Observation spec of an RWRL task under a challenge (``easy`` adds 10 dummy scalars)."""
     spec = dict(task.observation_spec)  # type: ignore[arg-type]

@@ -189,7 +189,7 @@ def _train(
     discrete = isinstance(action_spec, DiscreteSpec)
     agent_cfg = agent_config(config.agent, discrete, settings.preset, config.overrides)
     env_kwargs = env_settings(config.task, ds, settings.challenge)
-    if settings.env is None and settings.eval_every != -1:
+    if settings.env is None:
         from rlu.tasks import check_data_matches
 
         # an unknown task, or data of another task, fails here: before the run folder is touched
@@ -238,6 +238,10 @@ def _train(
     steps = agent.num_steps if settings.steps is None else int(settings.steps)
     total = agent.pretrain_steps + steps  # a pre-training phase comes on top of the budget
 
+    if agent.batch_spec.statistics:  # computed from the whole dataset, once, before any update
+        from rlu.data.statistics import dataset_statistics
+
+        agent.set_statistics(dataset_statistics(ds, agent.batch_spec.statistics))
     start = 0
     if resume and ckpts:
         state = load_state(ckpts[-1], ("agent", "sampler", "torch_rng", "numpy_rng", "step"))

@@ -49,12 +49,6 @@ def _flat(obs: Any) -> np.ndarray:
     return obs.reshape(len(obs), -1).astype(np.float32)
 
 
-def _slice(obs: Any, idx: np.ndarray) -> Any:
-    if isinstance(obs, Mapping):
-        return {k: v[idx] for k, v in obs.items()}
-    return obs[idx]
-
-
 def _all_first(x: Any) -> np.ndarray:
     first = next(iter(x.values())) if isinstance(x, Mapping) else x
     return np.ones(len(first), bool)
