@@ -96,6 +96,7 @@ EXTRA_OF = {
     "matplotlib": "report",
     "jinja2": "report",
     "jax": "jax",
+    "imageio_ffmpeg": "video",
 }
 """The extra that installs each optional module rlu imports (pyproject.toml's extras)."""
 
