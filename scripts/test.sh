@@ -5,7 +5,7 @@
 # Extra arguments go to pytest.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-bash scripts/install.sh control locomotion atari agents jax distributed report dev tensorboard wandb
+bash scripts/install.sh control locomotion atari agents jax distributed report video dev tensorboard wandb
 # MuJoCo renders offscreen through Mesa's EGL (in the base image); without MUJOCO_GL set,
 # rendering fails looking for an X display.
 export MUJOCO_GL=${MUJOCO_GL:-egl}

@@ -14,6 +14,7 @@ import argparse
 import json
 from typing import Any
 
+from rlu.commands._video import add_video_options, check_video_options, write_run_videos
 from rlu.loggers import LOGGERS
 from rlu.settings import EVAL_EVERY_MIN, add_options, checked, from_args
 
@@ -144,6 +145,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     add_device_option(p)
+    add_video_options(p)
     p.set_defaults(func=_evaluate)
 
     p = sub.add_parser(
@@ -280,6 +282,8 @@ def _evaluate(args: argparse.Namespace) -> int:
         from rlu.evaluation.rollout import trust_env_factory
 
         trust_env_factory(args.env)
+    if args.video is not None:
+        check_video_options(args)
     import torch
 
     torch.set_num_threads(args.threads)
@@ -301,6 +305,8 @@ def _evaluate(args: argparse.Namespace) -> int:
             f"{len(res.returns)} episodes: mean return {res.mean:.1f}, returns "
             + ", ".join(f"{r:.1f}" for r in res.returns)
         )
+    if args.video is not None:
+        write_run_videos(args)
     return 0
 
 

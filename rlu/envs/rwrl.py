@@ -44,7 +44,7 @@ from typing import Any
 
 import numpy as np
 
-from rlu.envs.core import DmControlEnv
+from rlu.envs.core import DmControlEnv, Render
 from rlu.tasks import TaskSpec, _f32, rwrl_observation_spec
 from rlu.types import ArraySpec, RluError
 
@@ -609,6 +609,7 @@ def make(
     task: TaskSpec,
     seed: int | None = None,
     challenge: str | Challenge = "none",
+    render: Render | None = None,
     **settings: Any,
 ) -> DmControlEnv:
     """The RWRL env of ``task`` under ``challenge`` (a name of CHALLENGES or a Challenge)."""
@@ -637,5 +638,12 @@ def make(
     domain = task.env["suite_domain"]
     env = _make_environment(domain, task.env["suite_task"], s, seed)
     return DmControlEnv(
-        env, observation_spec(task, s), env.restart, name=f"{task.id} ({name} challenge)"
+        env,
+        observation_spec(task, s),
+        env.restart,
+        physics=lambda: env.physics,
+        control_timestep=env.control_timestep(),
+        name=f"{task.id} ({name} challenge)",
+        render=render,
+        camera=0,  # as the control suite: each model's first camera
     )
