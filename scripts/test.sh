@@ -5,7 +5,7 @@
 # Extra arguments go to pytest.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-bash scripts/install.sh control locomotion atari agents jax distributed report dev
+bash scripts/install.sh control locomotion atari agents jax distributed report dev docs
 # MuJoCo renders offscreen through Mesa's EGL (in the base image); without MUJOCO_GL set,
 # rendering fails looking for an X display.
 export MUJOCO_GL=${MUJOCO_GL:-egl}
@@ -20,6 +20,10 @@ if [ "${RLU_SLOW:-0}" = "1" ] && ! command -v chromium >/dev/null; then
     echo "scripts/test.sh: no chromium and no root apt-get; the browser test will skip"
   fi
 fi
+# The documentation site (mkdocs.yml), warnings as errors: a broken link or anchor, a page left
+# out of the nav, a docstring mkdocstrings cannot read. Into build/site (git-ignored).
+NO_MKDOCS_2_WARNING=1 .venv/bin/mkdocs build --strict --quiet --site-dir build/site
+echo "docs: built build/site (mkdocs build --strict)"
 marker=(-m "not slow")
 [ "${RLU_SLOW:-0}" = "1" ] && marker=()
 set +e
