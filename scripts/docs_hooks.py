@@ -188,6 +188,15 @@ def agent_page(entry: dict[str, Any], settings: str, agents_md: str) -> str:
         "the command line (`rlu train ... FIELD=VALUE`) or in Python "
         f"(`rlu.agents.make_config({name!r}, {discrete}, 'small', FIELD=VALUE)`).",
         "",
+        *(
+            [
+                "The settings every Atari agent shares are its `atari` field: "
+                "[`AtariSettings`][rlu.agents.discrete_common.AtariSettings].",
+                "",
+            ]
+            if discrete
+            else []
+        ),
         f"::: {module}.{names['Config']}",
         "    options:",
         "      show_root_heading: true",
