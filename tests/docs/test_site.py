@@ -123,3 +123,13 @@ def test_nav_holds_every_page():
     pages = {str(p.relative_to(DOCS)) for p in DOCS.rglob("*.md")}
     assert pages == listed, f"not in the nav: {pages - listed}; missing: {listed - pages}"
     assert "Agents" in [next(iter(i)) for i in config["nav"] if isinstance(i, dict)]
+
+
+def test_lists_get_the_blank_line_markdown_needs():
+    pytest.importorskip("griffe")
+    lists = load_script("docs_griffe").blank_line_before_lists
+    assert lists("Deviations:\n- one\n- two\nafter") == "Deviations:\n\n- one\n- two\nafter"
+    assert lists("  lead:\n  - item") == "  lead:\n\n  - item"
+    # already apart, a continuation line, a code block: unchanged
+    for text in ("a:\n\n- b", "- item\n  wraps\n- next", "code::\n\n    x = 1\n    - y"):
+        assert lists(text) == text
