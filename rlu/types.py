@@ -162,6 +162,9 @@ class Policy(Protocol):
 
 
 BATCH_KINDS = ("transition", "sequence")
+BATCH_LIMITS = {"batch_size": 1 << 20, "n_step": 1000, "sequence_length": 100_000}
+"""Largest values a BatchSpec takes (a batch of 1M rows already holds gigabytes of Atari
+frames; larger values are typing mistakes that would end in an out-of-memory kill)."""
 
 
 @dataclass(frozen=True)
@@ -193,10 +196,13 @@ class BatchSpec:
     def __post_init__(self) -> None:
         if self.kind not in BATCH_KINDS:
             raise SpecError(f"BatchSpec.kind={self.kind!r}; use one of {', '.join(BATCH_KINDS)}")
-        for name in ("batch_size", "n_step", "sequence_length"):
+        for name, most in BATCH_LIMITS.items():
             value = getattr(self, name)
-            if not isinstance(value, int | np.integer) or value < 1:
+            if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
                 raise SpecError(f"BatchSpec.{name}={value!r}; it must be an integer >= 1")
+            if value > most:
+                raise SpecError(f"BatchSpec.{name}={value!r}; at most {most:,} (a larger value "
+                                "would not fit in memory)")  # fmt: skip
         if not 0.0 <= float(self.gamma) <= 1.0:
             raise SpecError(f"BatchSpec.gamma={self.gamma!r}; a discount lies in [0, 1]")
         if self.reward_clip is not None and not float(self.reward_clip) > 0.0:

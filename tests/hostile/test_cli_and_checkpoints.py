@@ -107,12 +107,13 @@ class Planted:
 def run(tmp_path_factory):
     pytest.importorskip("torch")
     pytest.importorskip("gymnasium")
-    from rlu.train import TrainConfig, train
+    from rlu.train import train
+    from tests.fakes import train_config
     from tests.train.pendulum import write_dataset
 
     root = tmp_path_factory.mktemp("ck")
     dataset = write_dataset(root / "pendulum", "test/pendulum", seed=0)
-    cfg = TrainConfig(
+    cfg = train_config(
         task="test/pendulum",
         agent="tests.train.fake_agent",
         dataset=str(dataset),
@@ -156,7 +157,7 @@ HOW = ["python_object", "empty", "truncated", "junk", "a_tensor", "no_agent"]
 def test_damaged_checkpoint(run, tmp_path, how, capsys):
     import shutil
 
-    from rlu.checkpoints import load_checkpoint
+    from rlu.checkpoints import load_state as load_checkpoint
     from rlu.train import train
 
     path, cfg = run
