@@ -133,3 +133,20 @@ def test_lists_get_the_blank_line_markdown_needs():
     # already apart, a continuation line, a code block: unchanged
     for text in ("a:\n\n- b", "- item\n  wraps\n- next", "code::\n\n    x = 1\n    - y"):
         assert lists(text) == text
+
+
+def test_the_api_reference_has_every_module():
+    import re
+
+    from rlu.agents import AGENTS
+
+    modules = set()
+    for path in (ROOT / "rlu").rglob("*.py"):
+        parts = path.relative_to(ROOT).with_suffix("").parts
+        modules.add(".".join(parts[:-1] if parts[-1] == "__init__" else parts))
+    # the CLI's own modules are on the command-line page, the agents on their own pages
+    left_out = {"rlu.__main__", "rlu.cli", "rlu.resources", *AGENTS.values()}
+    wanted = {m for m in modules if m not in left_out and not m.startswith("rlu.commands")}
+    text = "\n".join(p.read_text() for p in DOCS.rglob("*.md"))
+    documented = set(re.findall(r"^::: (\S+)$", text, flags=re.M))
+    assert wanted <= documented, f"not in docs/reference/: {sorted(wanted - documented)}"
