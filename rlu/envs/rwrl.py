@@ -5,7 +5,7 @@ walk, each with no challenge and with the ``easy`` combined challenge (Dulac-Arn
 "An empirical investigation of the challenges of real-world reinforcement learning"). The
 original evaluation env was ``realworldrl_suite.environments.load(domain, 'realworld_' + task,
 combined_challenge=...)`` (``rl_unplugged/rwrl.py``) plus float32. realworldrl_suite is not on
-PyPI; this module re-implements it. Every number carries its source; "rwrl/<file>" below means
+PyPI; this module re-implements it. Every number carries its source; ``rwrl/<file>`` below means
 ``google-research/realworldrl_suite/realworldrl_suite/environments/<file>``.
 
 What a challenge does, in the original's order (rwrl/realworld_env.py ``Base``):
