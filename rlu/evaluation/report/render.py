@@ -665,6 +665,13 @@ def render_aggregates(dom: Mapping[str, Any], domain: str, figures: Figures | No
     return [Text(text), Table(head, tuple(rows))]
 
 
+def _rank_corr(value: Any) -> str:
+    """A Spearman correlation, or why there is none (one configuration: nothing to rank)."""
+    if value is None or (isinstance(value, float) and value != value):
+        return "- (one config)"
+    return f"{value:.2f}"
+
+
 def render_fqe(dom: Mapping[str, Any], domain: str, figures: Figures | None) -> list[Block]:
     rows = []
     for x in dom["fqe"]:
@@ -672,7 +679,7 @@ def render_fqe(dom: Mapping[str, Any], domain: str, figures: Figures | None) -> 
         texts = [
             f"{true[x['chosen']]:.1f}",
             f"{max(true.values()):.1f}",
-            f"{x['spearman']:.2f}",
+            _rank_corr(x["spearman"]),
             f"{x['regret_at_1']:.1f}",
         ]
         rows.append(
