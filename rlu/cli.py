@@ -103,6 +103,8 @@ EXTRA_OF = {
 
 
 def _say(line: str) -> None:
+    """One line on stderr, whatever the message holds (a library's multi-line text included)."""
+    line = " ".join(part.strip() for part in line.splitlines() if part.strip())
     try:
         print(line, file=sys.stderr)
     except OSError:  # stderr closed too: nothing left to tell
