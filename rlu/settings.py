@@ -48,6 +48,9 @@ class RunSettings:
     eval_every: int | None = field(default=None, metadata=bounds(min=-1))
     """Learner steps between evaluations in the env (default: every max(10,000, steps / 10) and
     at the end; 0: only at the end; -1: never)."""
+    eval_at_start: bool = False
+    """Also evaluate the untrained agent before its first update (step 0 of the learning
+    curve in eval.jsonl)."""
     eval_episodes: int = field(default=5, metadata=bounds(min=1, metavar="N"))
     """Env episodes per evaluation."""
     eval_envs: int = field(default=4, metadata=bounds(min=1, metavar="N"))

@@ -278,7 +278,24 @@ def _train(
     if runtime.compile:
         compile_modules(agent.modules)
     policy = greedy_policy(agent)
-    last_eval: dict[str, Any] | None = None
+
+    def evaluate_at(step: int) -> dict[str, Any]:
+        result = evaluate(
+            policy,
+            env_fn,
+            settings.eval_episodes,
+            seed=derive_seed(config.seed, step),  # stream `step` of the run seed
+            num_envs=settings.eval_envs,
+            max_steps=settings.eval_max_steps,
+        )
+        record = {"step": step, **result.to_json()}
+        elog.write(json.dumps(record) + "\n")
+        elog.flush()
+        for logger in loggers:
+            logger.log("eval", record)
+        bar.note(f"eval {result.mean:.1f}")
+        return record
+
     with (
         _Progress(total, start, progress) as bar,
         runs.append_log(metrics_path) as mlog,
@@ -286,6 +303,8 @@ def _train(
         numerics(runtime) as update_context,
         prefetched(sampler, runtime.device, runtime.prefetch) as batches,
     ):
+        if eval_period and settings.eval_at_start and start == 0:
+            evaluate_at(0)
         for step in range(start + 1, total + 1):
             with update_context():
                 metrics = agent.update(batches.sample())
@@ -296,20 +315,7 @@ def _train(
                 for logger in loggers:
                     logger.log("metrics", rec)
             if eval_period and (step % eval_period == 0 or step == total):
-                result = evaluate(
-                    policy,
-                    env_fn,
-                    settings.eval_episodes,
-                    seed=derive_seed(config.seed, step),  # stream `step` of the run seed
-                    num_envs=settings.eval_envs,
-                    max_steps=settings.eval_max_steps,
-                )
-                last_eval = {"step": step, **result.to_json()}
-                elog.write(json.dumps(last_eval) + "\n")
-                elog.flush()
-                for logger in loggers:
-                    logger.log("eval", last_eval)
-                bar.note(f"eval {result.mean:.1f}")
+                evaluate_at(step)
             if step % settings.checkpoint_every == 0 or step == total:
                 alg, keys, pos, has_gauss, cached = np.random.get_state()
                 state = {
