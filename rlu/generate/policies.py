@@ -169,6 +169,228 @@ def snapshot_files(work: Path, kept: Sequence[tuple[int, int]]) -> dict[str, Pat
     return out
 
 
+# ----------------------------------------------------------------- the files' schema (reading)
+# Every field of a policy's ``.json`` rlu reads, with its type and range, in one place: checked
+# before anything is built from the file (the network, the env), so that a value of the wrong
+# type or an absurd size is a one-line error naming the file and the field.
+@dataclass(frozen=True)
+class Field:
+    """What one JSON field may hold."""
+
+    kind: str
+    """'int', 'float', 'bool', 'str', 'list' or 'dict' (JSON's types; an int is a float too)."""
+    lo: float | None = None
+    """Least value (numbers), or least length (lists)."""
+    hi: float | None = None
+    """Greatest value (numbers)."""
+    choices: tuple[Any, ...] | None = None
+    """The values allowed, if only some are."""
+    size: int | None = None
+    """Most elements (lists, dicts) or characters (strings)."""
+    items: Field | None = None
+    """What each element of a list (or each value of a dict) holds."""
+    fields: Mapping[str, Field] | None = None
+    """A dict's known keys (any other key is refused)."""
+    required: bool = True
+
+
+_U63, _STEPS = 2**63 - 1, 2**53
+_WIDTH = Field("int", 1, 4096)
+_LAYERS = Field("list", 1, size=16, items=_WIDTH)
+ENV_SETTINGS: Mapping[str, Field] = {
+    "camera": Field("bool", required=False),
+    "max_episode_steps": Field("int", 1, 10**7, required=False),
+    "clip_rewards": Field("bool", required=False),
+    "sticky_action_prob": Field("float", 0, 1, required=False),
+    "frame_skip": Field("int", 1, 64, required=False),
+    "challenge": Field("str", choices=("none", "easy", "medium", "hard"), required=False),
+    "safety": Field("bool", required=False),
+    "safety_coeff": Field("float", 0, 1, required=False),
+    "multiobj_reward": Field("bool", required=False),
+    "multiobj_coeff": Field("float", 0, 1, required=False),
+    "multiobj_observed": Field("bool", required=False),
+}
+"""The env settings a policy may name (``rlu.envs.make_env``'s keyword arguments): a file never
+hands anything else to the env factory."""
+POLICY_ARRAY_DTYPES = ("float16", "float32", "float64", "int64", "int32", "uint8", "bool")
+POLICY_FIELDS: Mapping[str, Field] = {
+    "format": Field("str", choices=(FORMAT,)),
+    "version": Field("int", choices=(VERSION,)),
+    "task": Field("str", size=200),
+    "agent": Field("str", choices=tuple(ACTING_MODULE)),
+    "module": Field("str", choices=tuple(sorted(set(ACTING_MODULE.values())))),
+    "preset": Field("str", size=64, required=False),
+    "agent_overrides": Field("dict", size=64, required=False),
+    "agent_config": Field("dict", size=256),
+    "env_settings": Field("dict", fields=ENV_SETTINGS),
+    "seed": Field("int", 0, _U63, required=False),
+    "run": Field("int", 0, 2**31, required=False),
+    "checkpoint": Field("int", 0, 2**40, required=False),
+    "checkpoint_steps": Field("int", 1, _STEPS),
+    "env_steps": Field("int", 0, _STEPS),
+    "episode_index": Field("int", 0, _STEPS, required=False),
+    "exploration": Field(
+        "dict",
+        fields={
+            "epsilon": Field("float", 0, 1, required=False),
+            "sigma": Field("float", 0, 100, required=False),
+            "sample": Field("bool", required=False),
+        },
+    ),
+    "arrays": Field(
+        "dict",
+        size=256,
+        items=Field(
+            "dict",
+            fields={
+                "shape": Field("list", size=8, items=Field("int", 0, 2**31)),
+                "dtype": Field("str", choices=POLICY_ARRAY_DTYPES),
+            },
+        ),
+    ),
+}
+"""A policy's ``.json`` (written by ``save_snapshot``)."""
+AGENT_CONFIG_RANGES: Mapping[str, Field] = {
+    "policy_layers": _LAYERS,
+    "critic_layers": _LAYERS,
+    "torso_hidden": _WIDTH,
+    "num_atoms": Field("int", 1, 1001),
+    "num_samples": Field("int", 1, 1024),
+    "cpu_slice_rows": Field("int", 1, 1 << 20),
+    "atari.channels": Field("list", 1, size=8, items=Field("int", 1, 1024)),
+    "atari.kernel_sizes": Field("list", 1, size=8, items=Field("int", 1, 16)),
+    "atari.strides": Field("list", 1, size=8, items=Field("int", 1, 8)),
+    "atari.hidden_size": Field("int", 1, 8192),
+}
+"""Ranges of the ``agent_config`` fields that size what building the agent allocates (its
+networks); the type of every field comes from the agent's config dataclass
+(:func:`check_agent_config`). The paper's widest behaviour network is 1024 units."""
+MAX_POLICY_JSON_BYTES = 1 << 20
+MAX_POLICY_BYTES = 256 << 20
+"""The most a policy's arrays may declare in all (a D4PG 256x3 policy in float16: 0.1 MB;
+Dopamine's DQN: 3.4 MB)."""
+
+
+def _describe(f: Field) -> str:
+    if f.choices is not None:
+        return "one of " + ", ".join(repr(c) for c in f.choices)
+    what = {"int": "an integer", "float": "a number", "bool": "true or false", "str": "a string",
+            "list": "a list", "dict": "an object"}[f.kind]  # fmt: skip
+    if f.kind in ("int", "float") and (f.lo is not None or f.hi is not None):
+        what += f" in [{f.lo}, {f.hi}]"
+    if f.kind == "list" and f.items is not None:
+        what += f" of at most {f.size} x {_describe(f.items)}"
+    elif f.size is not None:
+        what += f" of at most {f.size} {'characters' if f.kind == 'str' else 'entries'}"
+    return what
+
+
+def check_field(value: Any, f: Field, name: str, where: Path) -> None:
+    """Raise an RluError naming ``where`` and field ``name`` unless ``value`` is what ``f``
+    allows (recursively, for lists and dicts)."""
+    fix = "re-generate the dataset"
+
+    def bad(why: str = "") -> RluError:
+        shown = repr(value) if len(repr(value)) <= 60 else repr(value)[:57] + "..."
+        return RluError(f"{where}: field {name!r} is {shown}{why}; want {_describe(f)}: {fix}")
+
+    kinds = {"int": int, "float": (int, float), "bool": bool, "str": str, "list": list,
+             "dict": dict}  # fmt: skip
+    if isinstance(value, bool) != (f.kind == "bool") or not isinstance(value, kinds[f.kind]):
+        raise bad()
+    if f.choices is not None and value not in f.choices:
+        raise bad()
+    if f.kind in ("int", "float"):
+        if (
+            not math.isfinite(value)
+            or (f.lo is not None and value < f.lo)
+            or (f.hi is not None and value > f.hi)
+        ):
+            raise bad()
+    if f.kind in ("str", "list", "dict") and f.size is not None and len(value) > f.size:
+        raise bad(f" ({len(value)} long)")
+    if f.kind == "list":
+        if f.lo is not None and len(value) < f.lo:
+            raise bad()
+        for i, v in enumerate(value):
+            if f.items is not None:
+                check_field(v, f.items, f"{name}[{i}]", where)
+    if f.kind == "dict":
+        if not all(isinstance(k, str) for k in value):
+            raise bad()
+        if f.fields is not None:
+            check_fields(value, f.fields, where, f"{name}.")
+        elif f.items is not None:
+            for k, v in value.items():
+                check_field(v, f.items, f"{name}.{k}", where)
+
+
+def check_fields(d: Mapping[str, Any], table: Mapping[str, Field], where: Path, prefix="") -> None:
+    """Every field of ``table`` in ``d`` (the required ones present); no other key."""
+    unknown = sorted(set(d) - set(table))
+    if unknown:
+        raise RluError(
+            f"{where}: unknown field(s) {', '.join(prefix + k for k in unknown[:5])}; known: "
+            f"{', '.join(prefix + k for k in table)}: re-generate the dataset"
+        )
+    for key, f in table.items():
+        if key not in d:
+            if f.required:
+                raise RluError(
+                    f"{where}: field {prefix + key!r} is missing; re-generate the dataset"
+                )
+            continue
+        check_field(d[key], f, prefix + key, where)
+
+
+def check_agent_config(cls: type, data: Mapping[str, Any], where: Path, prefix: str = "") -> None:
+    """``agent_config`` against the agent's config dataclass ``cls``: each field's JSON type as
+    its annotation says (int, float, bool, str, a tuple of them, a nested config), the fields of
+    ``AGENT_CONFIG_RANGES`` in range, every number finite; before the config is built."""
+    import dataclasses
+    import typing
+
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise RluError(
+            f"{where}: field 'agent_config' has unknown field(s) {unknown[:5]} for "
+            f"{cls.__name__}; re-generate the dataset"
+        )
+    for key, value in data.items():
+        name = f"{prefix}{key}"
+        hint = hints[key]
+        if name in AGENT_CONFIG_RANGES:
+            check_field(value, AGENT_CONFIG_RANGES[name], f"agent_config.{name}", where)
+        elif dataclasses.is_dataclass(hint):
+            check_field(value, Field("dict", size=256), f"agent_config.{name}", where)
+            check_agent_config(hint, value, where, f"{name}.")
+            continue
+        kind = _json_kind(hint)
+        if kind is None:
+            continue  # a type with no JSON counterpart: the config's own checks apply
+        if kind[0] == "list":
+            f = Field("list", size=64, items=Field(kind[1], -_STEPS, _STEPS))
+        else:
+            f = Field(kind[0], -_STEPS if kind[0] != "str" else None, _STEPS if kind[0] != "str"
+                      else None, size=200 if kind[0] == "str" else None)  # fmt: skip
+        check_field(value, f, f"agent_config.{name}", where)
+
+
+def _json_kind(hint: Any) -> tuple[str, str] | tuple[str] | None:
+    import typing
+
+    simple = {int: "int", float: "float", bool: "bool", str: "str"}
+    if hint in simple:
+        return (simple[hint],)
+    if typing.get_origin(hint) is tuple:
+        args = [a for a in typing.get_args(hint) if a is not Ellipsis]
+        if len(set(args)) == 1 and args[0] in simple:
+            return ("list", simple[args[0]])
+    return None
+
+
 # ----------------------------------------------------------------------------------- reading
 @dataclass(frozen=True)
 class PolicyInfo:
@@ -259,10 +481,17 @@ def _checked_file(ds: Any, rel: str, run: int, checkpoint: int) -> Path:
 
 def _read_meta(ds: Any, run: int, checkpoint: int) -> dict[str, Any]:
     path = _checked_file(ds, policy_stem(run, checkpoint) + ".json", run, checkpoint)
+    if path.stat().st_size > MAX_POLICY_JSON_BYTES:
+        raise RluError(
+            f"{path}: {path.stat().st_size} bytes, more than a policy's JSON holds "
+            f"({MAX_POLICY_JSON_BYTES}); re-generate the dataset"
+        )
     try:
-        meta = json.loads(path.read_text())
+        meta = json.loads(path.read_bytes())
     except (ValueError, UnicodeDecodeError) as e:
         raise RluError(f"{path}: corrupt JSON ({e}); re-generate the dataset") from None
+    except RecursionError:
+        raise RluError(f"{path}: JSON nested too deeply; re-generate the dataset") from None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise RluError(f"{path}: field 'format' is not {FORMAT!r}; not an rlu behaviour policy")
     if meta.get("version") != VERSION:
@@ -270,38 +499,39 @@ def _read_meta(ds: Any, run: int, checkpoint: int) -> dict[str, Any]:
             f"{path}: field 'version' is {meta.get('version')!r}; this rlu reads version "
             f"{VERSION}: upgrade rlu"
         )
-    for key in ("task", "agent", "module", "agent_config", "arrays", "checkpoint_steps",
-                "env_steps", "exploration", "env_settings"):  # fmt: skip
-        if key not in meta:
-            raise RluError(f"{path}: field {key!r} is missing; re-generate the dataset")
+    check_fields(meta, POLICY_FIELDS, path)
     return meta
 
 
 def _read_arrays(path: Path, meta: Mapping[str, Any], json_path: Path) -> dict[str, np.ndarray]:
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in z.files}
-    except ValueError as e:
-        if "pickle" in str(e):
-            raise RluError(
-                f"{path}: holds an object array, which only pickle can load; rlu never unpickles "
-                "a policy (a plain-array .npz is what rlu generate writes): re-generate it"
-            ) from None
-        raise RluError(f"{path}: not a readable .npz ({e}); re-generate the dataset") from None
-    except (OSError, EOFError, KeyError, zipfile.BadZipFile) as e:
-        raise RluError(f"{path}: not a readable .npz ({e}); re-generate the dataset") from None
+    """The arrays of a policy's ``.npz``, each member's header checked against the ``arrays``
+    field of its JSON (and the total against ``MAX_POLICY_BYTES``) before a byte is inflated."""
+    from rlu.data.foreign import NpzFile
+
     want = meta["arrays"]
-    if set(arrays) != set(want):
+    declared = sum(math.prod(a["shape"]) * np.dtype(a["dtype"]).itemsize for a in want.values())
+    if declared > MAX_POLICY_BYTES:
         raise RluError(
-            f"{path}: arrays {sorted(arrays)} differ from {json_path.name}'s field 'arrays' "
-            f"{sorted(want)}; re-generate the dataset"
+            f"{json_path}: field 'arrays' declares {declared} bytes of weights, more than a "
+            f"behaviour policy holds ({MAX_POLICY_BYTES}); re-generate the dataset"
         )
-    for k, v in arrays.items():
-        if list(v.shape) != list(want[k]["shape"]) or v.dtype.kind not in "fiub":
+    fix = "a plain-array .npz is what rlu generate writes: re-generate the dataset"
+    with NpzFile(path, fix) as z:
+        if set(z.infos) != set(want):
             raise RluError(
-                f"{path}: array {k!r} is {v.dtype}{list(v.shape)}; {json_path.name} field "
-                f"'arrays.{k}' says {want[k]['dtype']}{want[k]['shape']}; re-generate the dataset"
+                f"{path}: arrays {sorted(z.infos)[:8]} differ from {json_path.name}'s field "
+                f"'arrays' {sorted(want)[:8]}; re-generate the dataset"
             )
+        for k in sorted(want):
+            m = z.member(k)
+            if list(m.shape) != list(want[k]["shape"]) or m.dtype != np.dtype(want[k]["dtype"]):
+                raise RluError(
+                    f"{path}: array {k!r} is {m.dtype}{list(m.shape)}; {json_path.name} field "
+                    f"'arrays.{k}' says {want[k]['dtype']}{want[k]['shape']}; re-generate the "
+                    "dataset"
+                )
+        arrays = {k: z.read(k, MAX_POLICY_BYTES) for k in sorted(want)}
+    for k, v in arrays.items():
         if v.dtype.kind == "f" and not np.isfinite(v).all():
             raise RluError(f"{path}: array {k!r} holds NaN or inf; re-generate the dataset")
     return arrays
@@ -337,6 +567,7 @@ def load_behaviour_policy(
             "re-generate the dataset"
         )
     module = agent_module(meta["agent"], task.discrete)
+    check_agent_config(module.Config, meta["agent_config"], json_path)
     config = config_from_json(module.Config, meta["agent_config"])
     agent = module.Agent(task.observation_spec, task.action_spec, config, seed=seed,
                          device=device)  # fmt: skip
