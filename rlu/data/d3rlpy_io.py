@@ -309,7 +309,8 @@ def d3rlpy_episodes(ds: Dataset) -> Iterator[tuple[int, dict[str, Any]]]:
         t = len(seg) - 1 if terminal else len(seg)  # d3rlpy keeps no state after a terminal
         obs: Any = seg.observation
         if keys is not None:
-            parts = [np.asarray(obs[k][:t]).reshape(t, -1 if flat else spec[k].shape) for k in keys]
+            shapes = {k: (-1,) if flat else spec[k].shape for k in keys}
+            parts = [np.asarray(obs[k][:t]).reshape(t, *shapes[k]) for k in keys]
             obs = np.concatenate(parts, axis=1) if flat else parts
         elif schema.frame_stack > 1:  # single frames, channel first: d3rlpy's Atari layout
             obs = np.asarray(obs[:t])[:, None]
