@@ -279,9 +279,11 @@ def _check_schema(lay: _Layout, schema: Schema, where: str) -> None:
         return
     if "" in lay.obs:
         size = sum(s.size for s in spec.values())
-        if len(lay.obs[""].shape) != 2:
-            want(lay.obs[""], "observations", -1, (size,))
-        want(lay.obs[""], "observations", size, f"({size},): keys {list(spec)} flattened")
+        if len(lay.obs[""].shape) != 2 or lay.obs[""].shape[1] != size:
+            raise FormatError(
+                f"{where}: 'observations' has rows of shape {lay.obs[''].shape[1:]}; task {task} "
+                f"stores its keys {list(spec)} flattened to ({size},)"
+            )
         return
     unknown, absent = sorted(set(lay.obs) - set(spec)), sorted(set(spec) - set(lay.obs))
     if unknown or absent:

@@ -50,6 +50,9 @@ EPISODE_LENGTH_FACTOR = 4
 """An imported episode may be at most this many times its task's episode length (Atari's
 original evaluation limit of 108,000 steps is 4 x the 27,000 of the data): longer means the file
 lacks its episode ends."""
+MAX_POLICY_BYTES = 256 << 20
+"""The most a kept behaviour policy's arrays (``policies/**.npz``) may declare in all (a D4PG
+256x3 policy in float16: 0.1 MB; Dopamine's DQN: 3.4 MB)."""
 MAX_HDF5_LINKS = 1 << 20
 HDF5_FILTERS = {
     1: "deflate (gzip)",

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rlu.data.foreign import NpzFile, iter_blocks
+from rlu.data.foreign import MAX_POLICY_BYTES, NpzFile, iter_blocks
 from rlu.data.store import (
     FLAG_COLUMNS,
     Dataset,
@@ -135,6 +135,13 @@ def _check_npz_against_json(npz: Path, jpath: Path) -> None:
                     f"{npz}: array {key!r} is {m.dtype}{list(m.shape)}; {jpath.name} field "
                     f"'arrays.{key}' says {want['dtype']}{want['shape']}; {fix}"
                 )
+        size = sum(z.member(key).nbytes for key in declared)
+        if size > MAX_POLICY_BYTES:
+            raise FormatError(
+                f"{npz}: its arrays declare {size} bytes, more than a kept policy may hold "
+                f"({MAX_POLICY_BYTES}); {fix}"
+            )
+        for key in sorted(declared):
             col = z.column(key)
             for a, b in iter_blocks(col.shape[0] if col.shape else 1, col.row_bytes):
                 col.rows(a, b)  # inflated and dropped: the zip's CRC is checked at the end

@@ -43,6 +43,7 @@ from typing import Any
 
 import numpy as np
 
+from rlu.data.foreign import MAX_POLICY_BYTES
 from rlu.types import Policy, RluError
 
 FORMAT = "rlu-behaviour-policy"
@@ -266,9 +267,6 @@ AGENT_CONFIG_RANGES: Mapping[str, Field] = {
 networks); the type of every field comes from the agent's config dataclass
 (:func:`check_agent_config`). The paper's widest behaviour network is 1024 units."""
 MAX_POLICY_JSON_BYTES = 1 << 20
-MAX_POLICY_BYTES = 256 << 20
-"""The most a policy's arrays may declare in all (a D4PG 256x3 policy in float16: 0.1 MB;
-Dopamine's DQN: 3.4 MB)."""
 
 
 def _describe(f: Field) -> str:
