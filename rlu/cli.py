@@ -45,6 +45,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    if sys.stdout is None:  # started with stdout closed (``rlu list >&-``): its output is dropped
+        sys.stdout = open(os.devnull, "w")  # noqa: SIM115 (lives as long as the process)
+    if sys.stderr is None:
+        sys.stderr = open(os.devnull, "w")  # noqa: SIM115
     args = build_parser().parse_args(argv)
     try:
         code = int(args.func(args) or 0)
@@ -63,6 +67,34 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         _say("rlu: interrupted")
         return 130
+    except ModuleNotFoundError as e:  # an extra is missing: the one line that installs it
+        extra = EXTRA_OF.get((e.name or "").partition(".")[0])
+        if extra is None:
+            raise
+        from rlu.types import install_hint
+
+        _say(f"rlu: error: rlu {args.command} needs {e.name} (the {extra} extra): "
+             f"{install_hint(extra)}")  # fmt: skip
+        return 2
+
+
+EXTRA_OF = {
+    "torch": "agents",
+    "dm_control": "control",
+    "mujoco": "control",
+    "gymnasium": "control",
+    "ale_py": "atari",
+    "cv2": "atari",
+    "ray": "distributed",
+    "h5py": "interop",
+    "minari": "interop",
+    "google_crc32c": "release",
+    "PIL": "release",
+    "matplotlib": "report",
+    "jinja2": "report",
+    "jax": "jax",
+}
+"""The extra that installs each optional module rlu imports (pyproject.toml's extras)."""
 
 
 def _say(line: str) -> None:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import fcntl
 import os
+import stat
 from pathlib import Path
 
 from rlu.types import RluError
@@ -56,7 +57,7 @@ class OutputLock:
             return self
         self.path.parent.mkdir(parents=True, exist_ok=True)
         while True:
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+            fd = self._open()
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
@@ -80,6 +81,28 @@ class OutputLock:
             self.fd = fd
             _HELD.add(fd)
             return self
+
+    def _open(self) -> int:
+        """The lock file, created if missing; a planted symlink (or hard link) is refused, never
+        followed: the lock's PID would be written into whatever it points at."""
+        flags = os.O_RDWR | os.O_CREAT | os.O_CLOEXEC | os.O_NOFOLLOW
+        try:
+            fd = os.open(self.path, flags, 0o644)
+        except OSError as e:
+            if self.path.is_symlink():
+                raise RluError(
+                    f"{self.path}: the lock file of {self.target} is a symbolic link; rlu does not "
+                    "write through it: remove it and run again"
+                ) from None
+            raise RluError(f"{self.path}: the lock file cannot be opened ({e.strerror})") from None
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode) or st.st_nlink > 1:
+            os.close(fd)
+            raise RluError(
+                f"{self.path}: the lock file of {self.target} is not a plain file of its own "
+                "(a hard link or a device); remove it and run again"
+            )
+        return fd
 
     def release(self) -> None:
         fd, self.fd = self.fd, None

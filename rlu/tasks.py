@@ -478,11 +478,6 @@ def _build() -> dict[str, TaskSpec]:
 TASKS: Mapping[str, TaskSpec] = MappingProxyType(_build())
 
 
-def rwrl_release_binding(challenge: str, size: str) -> str:
-    """The ``{challenge}``/``{size}`` fill of an RWRL release path (``size`` as in the bucket)."""
-    return f"{challenge}/{size}"
-
-
 def rwrl_observation_spec(task: TaskSpec, challenge: str) -> Mapping[str, ArraySpec]:
     """Observation spec of an RWRL task under a challenge (``easy`` adds 10 dummy scalars)."""
     spec = dict(task.observation_spec)  # type: ignore[arg-type]
@@ -526,3 +521,67 @@ def list_tasks(domain: str | None = None, selection: str | None = None) -> list[
         if (domain is None or t.domain == domain)
         and (selection is None or t.selection == selection)
     ]
+
+
+def check_challenge(task: str, challenge: str, keys: set[str], recorded: str, what: str) -> None:
+    """An RWRL policy runs only where the env gives the observation keys its data had (the easy
+    challenge adds dummy observations): refuse a challenge whose keys differ."""
+    wanted = set(rwrl_observation_spec(get_task(task), challenge))
+    if wanted != keys:
+        differ = sorted(wanted ^ keys)
+        raise RluError(
+            f"{what} was recorded under RWRL challenge {recorded!r}; challenge {challenge!r} gives "
+            f"other observations ({', '.join(differ[:4])}{' ...' if len(differ) > 4 else ''}), so "
+            f"its policies cannot run there: evaluate under {recorded!r} (drop --challenge)"
+        )
+
+
+def _spec_text(spec: ObservationSpec | ActionSpec) -> str:
+    if isinstance(spec, Mapping):
+        return "{" + ", ".join(f"{k}: {tuple(v.shape)}" for k, v in sorted(spec.items())) + "}"
+    if isinstance(spec, DiscreteSpec):
+        return f"{spec.num_values} discrete actions"
+    return str(tuple(spec.shape))
+
+
+def check_data_matches(
+    task_id: str,
+    observation_spec: ObservationSpec,
+    action_spec: ActionSpec,
+    what: str,
+    recorded_task: str | None = None,
+    challenge: str = "none",
+) -> None:
+    """Refuse, before any training step, a dataset whose observations or actions are not those
+    of ``task_id``'s env (``what`` names the dataset; ``recorded_task``: the task its manifest
+    names). Observations are compared as the agent sees them (Atari: stacked frames)."""
+    task = get_task(task_id)
+    fix = f"train --task {recorded_task} on it" if recorded_task else "pass the dataset's own task"
+    if recorded_task and recorded_task in TASKS and TASKS[recorded_task].id != task.id:
+        raise RluError(
+            f"{what} holds data of task {recorded_task}, not {task.id}: {fix}, or give a "
+            f"dataset of {task.id}"
+        )
+    want_obs = (
+        rwrl_observation_spec(task, challenge) if task.domain == "rwrl" else task.observation_spec
+    )
+
+    def shapes(spec: ObservationSpec) -> Any:
+        if isinstance(spec, Mapping):
+            return {k: tuple(v.shape) for k, v in spec.items()}
+        return tuple(spec.shape)
+
+    if shapes(observation_spec) != shapes(want_obs):
+        raise RluError(
+            f"{what}: its observations {_spec_text(observation_spec)} are not those of "
+            f"{task.id}'s env {_spec_text(want_obs)}; {fix}, or give a dataset of {task.id}"
+        )
+    want_act = task.action_spec
+    same = type(action_spec) is type(want_act) and tuple(action_spec.shape) == tuple(want_act.shape)
+    if same and isinstance(want_act, DiscreteSpec):
+        same = action_spec.num_values == want_act.num_values  # type: ignore[union-attr]
+    if not same:
+        raise RluError(
+            f"{what}: its actions ({_spec_text(action_spec)}) are not those of {task.id}'s env "
+            f"({_spec_text(want_act)}); {fix}, or give a dataset of {task.id}"
+        )

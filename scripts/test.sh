@@ -20,6 +20,10 @@ if [ "${RLU_SLOW:-0}" = "1" ] && ! command -v chromium >/dev/null; then
     echo "scripts/test.sh: no chromium and no root apt-get; the browser test will skip"
   fi
 fi
+# the linters run first, as in d3rlpy's CI: a lint failure fails the test command
+echo "scripts/test.sh: ruff check and ruff format --check"
+.venv/bin/ruff check .
+.venv/bin/ruff format --check rlu tests bench scripts
 marker=(-m "not slow")
 [ "${RLU_SLOW:-0}" = "1" ] && marker=()
 set +e

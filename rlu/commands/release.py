@@ -115,6 +115,10 @@ def _convert(args: argparse.Namespace) -> int:
         files = catalog.find_shards(args.src, sel, args.shards)
     elif args.shards:
         raise RluError("--shards picks shards under --src; with FILE... list the files instead")
+    from rlu.files import check_output
+
+    # --out must not be or hold an input: --overwrite replaces it whole once written
+    check_output(args.out, [*files, *([args.src] if args.src else [])], "manifest.json", "dataset")
     challenge = args.challenge
     if challenge is None and args.task.startswith("rwrl/"):
         challenge = _challenge_from_path(files)

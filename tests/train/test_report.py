@@ -184,7 +184,7 @@ def test_fqe_selection_over_a_sweep(local_sweep, tmp_path):
     import shutil
 
     from rlu.evaluation.fqe import FQEConfig
-    from rlu.runs import fqe_selection
+    from rlu.restore import fqe_selection
 
     sweep_dir = tmp_path / "sweep"
     shutil.copytree(local_sweep[0], sweep_dir)  # fqe.json must not leak into the shared sweep

@@ -48,9 +48,11 @@ def _crc_impl():
     try:
         import google_crc32c
     except ImportError as e:  # pragma: no cover - the release extra installs it
-        raise ImportError(
+        # named, so that the command line prints the extra's install line (rlu.cli.EXTRA_OF)
+        raise ModuleNotFoundError(
             "reading RL Unplugged release files needs the C-backed CRC-32C: "
-            "pip install 'rlu[release]' (google-crc32c)"
+            "pip install 'rlu[release]' (google-crc32c)",
+            name="google_crc32c",
         ) from e
     return google_crc32c.value
 

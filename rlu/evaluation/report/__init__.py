@@ -119,6 +119,6 @@ def _read_sweeps(
         fqe_path = d / runs.FQE
         if fqe_path.exists():
             any_fqe = True
-            selections += json.loads(fqe_path.read_text()).get("selections", [])
+            selections += runs.read_fqe(d)["selections"]
     fqe = {"selections": selections} if any_fqe else None
     return records, datasets if any_datasets else None, fqe
