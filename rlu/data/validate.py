@@ -11,7 +11,6 @@ pickle. Whatever sampling could trip on, validate reports first.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -28,6 +27,7 @@ from rlu.data.store import (
     verify_checksums,
 )
 from rlu.data.store.schema import action_problem
+from rlu.files import Int, ListOf, MapOf, Record, Str, read_json
 from rlu.types import BoundedSpec, FormatError, RluError, observation_spec_to_json
 
 _CHUNK = 1 << 20  # steps per chunk when scanning columns
@@ -101,27 +101,20 @@ def _check_attachments(ds: Dataset, manifest: dict, report: Report) -> None:
 
 
 MAX_ATTACHMENT_JSON_BYTES = 1 << 20
+_ARRAYS = Record(
+    {
+        "arrays": MapOf(
+            Record({"shape": ListOf(Int(0), max_len=8), "dtype": Str(max_len=16)}), max_len=256
+        )
+    }
+)
+"""What validate reads of a policy's ``.json``: the arrays its ``.npz`` holds (the whole file's
+shape is rlu.generate.policies.POLICY_SHAPE, checked when a policy is loaded)."""
 
 
 def _check_npz_against_json(npz: Path, jpath: Path) -> None:
     fix = "re-generate the dataset"
-    if jpath.stat().st_size > MAX_ATTACHMENT_JSON_BYTES:
-        raise FormatError(f"{jpath}: more than {MAX_ATTACHMENT_JSON_BYTES} bytes; {fix}")
-    try:
-        meta = json.loads(jpath.read_bytes())
-    except (ValueError, UnicodeDecodeError, RecursionError) as e:
-        raise FormatError(f"{jpath}: not JSON ({type(e).__name__}); {fix}") from None
-    declared = meta.get("arrays") if isinstance(meta, dict) else None
-    if not isinstance(declared, dict) or not all(
-        isinstance(a, dict)
-        and isinstance(a.get("shape"), list)
-        and all(isinstance(x, int) and not isinstance(x, bool) and x >= 0 for x in a["shape"])
-        and isinstance(a.get("dtype"), str)
-        for a in declared.values()
-    ):
-        raise FormatError(
-            f"{jpath}: field 'arrays' is not an object of {{shape: [ints], dtype: name}}; {fix}"
-        )
+    declared = read_json(jpath, _ARRAYS, fix, max_bytes=MAX_ATTACHMENT_JSON_BYTES)["arrays"]
     with NpzFile(npz, "a plain-array .npz is what rlu generate writes: " + fix) as z:
         if set(z.infos) != set(declared):
             raise FormatError(

@@ -44,6 +44,20 @@ from typing import Any
 import numpy as np
 
 from rlu.data.foreign import MAX_POLICY_BYTES
+from rlu.files import (
+    AnyJSON,
+    Bool,
+    Float,
+    Int,
+    ListOf,
+    MapOf,
+    Record,
+    Shape,
+    Str,
+    check_value,
+    read_json,
+    shape_of,
+)
 from rlu.types import Policy, RluError
 
 FORMAT = "rlu-behaviour-policy"
@@ -170,223 +184,106 @@ def snapshot_files(work: Path, kept: Sequence[tuple[int, int]]) -> dict[str, Pat
     return out
 
 
-# ----------------------------------------------------------------- the files' schema (reading)
-# Every field of a policy's ``.json`` rlu reads, with its type and range, in one place: checked
-# before anything is built from the file (the network, the env), so that a value of the wrong
-# type or an absurd size is a one-line error naming the file and the field.
-@dataclass(frozen=True)
-class Field:
-    """What one JSON field may hold."""
-
-    kind: str
-    """'int', 'float', 'bool', 'str', 'list' or 'dict' (JSON's types; an int is a float too)."""
-    lo: float | None = None
-    """Least value (numbers), or least length (lists)."""
-    hi: float | None = None
-    """Greatest value (numbers)."""
-    choices: tuple[Any, ...] | None = None
-    """The values allowed, if only some are."""
-    size: int | None = None
-    """Most elements (lists, dicts) or characters (strings)."""
-    items: Field | None = None
-    """What each element of a list (or each value of a dict) holds."""
-    fields: Mapping[str, Field] | None = None
-    """A dict's known keys (any other key is refused)."""
-    required: bool = True
-
-
-_U63, _STEPS = 2**63 - 1, 2**53
-_WIDTH = Field("int", 1, 4096)
-_LAYERS = Field("list", 1, size=16, items=_WIDTH)
-ENV_SETTINGS: Mapping[str, Field] = {
-    "camera": Field("bool", required=False),
-    "max_episode_steps": Field("int", 1, 10**7, required=False),
-    "clip_rewards": Field("bool", required=False),
-    "sticky_action_prob": Field("float", 0, 1, required=False),
-    "frame_skip": Field("int", 1, 64, required=False),
-    "challenge": Field("str", choices=("none", "easy", "medium", "hard"), required=False),
-    "safety": Field("bool", required=False),
-    "safety_coeff": Field("float", 0, 1, required=False),
-    "multiobj_reward": Field("bool", required=False),
-    "multiobj_coeff": Field("float", 0, 1, required=False),
-    "multiobj_observed": Field("bool", required=False),
-}
+# ----------------------------------------------------------------- the files' shapes (reading)
+# Every field of a policy's ``.json`` rlu reads, with its type and range, in one place, written as
+# rlu.files shapes: checked before anything is built from the file (the network, the env), so a
+# value of the wrong type or an absurd size is a one-line error naming the file and the field.
+_WIDTH = Int(1, 4096)
+_LAYERS = ListOf(_WIDTH, max_len=16, min_len=1, as_tuple=True)
+ENV_SETTINGS = Record(
+    {},
+    {
+        "camera": Bool(),
+        "max_episode_steps": Int(1, 10**7),
+        "clip_rewards": Bool(),
+        "sticky_action_prob": Float(0, 1),
+        "frame_skip": Int(1, 64),
+        "challenge": Str(("none", "easy", "medium", "hard")),
+        "safety": Bool(),
+        "safety_coeff": Float(0, 1),
+        "multiobj_reward": Bool(),
+        "multiobj_coeff": Float(0, 1),
+        "multiobj_observed": Bool(),
+    },
+    extra=False,
+)
 """The env settings a policy may name (``rlu.envs.make_env``'s keyword arguments): a file never
 hands anything else to the env factory."""
 POLICY_ARRAY_DTYPES = ("float16", "float32", "float64", "int64", "int32", "uint8", "bool")
-POLICY_FIELDS: Mapping[str, Field] = {
-    "format": Field("str", choices=(FORMAT,)),
-    "version": Field("int", choices=(VERSION,)),
-    "task": Field("str", size=200),
-    "agent": Field("str", choices=tuple(ACTING_MODULE)),
-    "module": Field("str", choices=tuple(sorted(set(ACTING_MODULE.values())))),
-    "preset": Field("str", size=64, required=False),
-    "agent_overrides": Field("dict", size=64, required=False),
-    "agent_config": Field("dict", size=256),
-    "env_settings": Field("dict", fields=ENV_SETTINGS),
-    "seed": Field("int", 0, _U63, required=False),
-    "run": Field("int", 0, 2**31, required=False),
-    "checkpoint": Field("int", 0, 2**40, required=False),
-    "checkpoint_steps": Field("int", 1, _STEPS),
-    "env_steps": Field("int", 0, _STEPS),
-    "episode_index": Field("int", 0, _STEPS, required=False),
-    "exploration": Field(
-        "dict",
-        fields={
-            "epsilon": Field("float", 0, 1, required=False),
-            "sigma": Field("float", 0, 100, required=False),
-            "sample": Field("bool", required=False),
-        },
-    ),
-    "arrays": Field(
-        "dict",
-        size=256,
-        items=Field(
-            "dict",
-            fields={
-                "shape": Field("list", size=8, items=Field("int", 0, 2**31)),
-                "dtype": Field("str", choices=POLICY_ARRAY_DTYPES),
-            },
+_U63, _STEPS = 2**63 - 1, 2**53
+POLICY_SHAPE = Record(
+    {
+        "format": Str((FORMAT,)),
+        "version": Int(VERSION, VERSION),
+        "task": Str(max_len=200),
+        "agent": Str(tuple(ACTING_MODULE)),
+        "module": Str(tuple(sorted(set(ACTING_MODULE.values())))),
+        "agent_config": MapOf(AnyJSON(depth=8), max_len=256),  # + AGENT_CONFIG_RANGES, below
+        "env_settings": ENV_SETTINGS,
+        "checkpoint_steps": Int(1, _STEPS),
+        "env_steps": Int(0, _STEPS),
+        "exploration": Record(
+            {}, {"epsilon": Float(0, 1), "sigma": Float(0, 100), "sample": Bool()}, extra=False
         ),
-    ),
-}
+        "arrays": MapOf(
+            Record(
+                {
+                    "shape": ListOf(Int(0, 2**31), max_len=8),
+                    "dtype": Str(POLICY_ARRAY_DTYPES),
+                },
+                extra=False,
+            ),
+            max_len=256,
+        ),
+    },
+    {
+        "preset": Str(max_len=64),
+        "agent_overrides": MapOf(AnyJSON(depth=8), max_len=64),
+        "seed": Int(0, _U63),
+        "run": Int(0, 2**31),
+        "checkpoint": Int(0, 2**40),
+        "episode_index": Int(0, _STEPS),
+    },
+    extra=False,
+)
 """A policy's ``.json`` (written by ``save_snapshot``)."""
-AGENT_CONFIG_RANGES: Mapping[str, Field] = {
+AGENT_CONFIG_RANGES: Mapping[str, Shape] = {
     "policy_layers": _LAYERS,
     "critic_layers": _LAYERS,
     "torso_hidden": _WIDTH,
-    "num_atoms": Field("int", 1, 1001),
-    "num_samples": Field("int", 1, 1024),
-    "cpu_slice_rows": Field("int", 1, 1 << 20),
-    "atari.channels": Field("list", 1, size=8, items=Field("int", 1, 1024)),
-    "atari.kernel_sizes": Field("list", 1, size=8, items=Field("int", 1, 16)),
-    "atari.strides": Field("list", 1, size=8, items=Field("int", 1, 8)),
-    "atari.hidden_size": Field("int", 1, 8192),
+    "num_atoms": Int(1, 1001),
+    "num_samples": Int(1, 1024),
+    "cpu_slice_rows": Int(1, 1 << 20),
+    "atari.channels": ListOf(Int(1, 1024), max_len=8, min_len=1, as_tuple=True),
+    "atari.kernel_sizes": ListOf(Int(1, 16), max_len=8, min_len=1, as_tuple=True),
+    "atari.strides": ListOf(Int(1, 8), max_len=8, min_len=1, as_tuple=True),
+    "atari.hidden_size": Int(1, 8192),
 }
 """Ranges of the ``agent_config`` fields that size what building the agent allocates (its
-networks); the type of every field comes from the agent's config dataclass
-(:func:`check_agent_config`). The paper's widest behaviour network is 1024 units."""
+networks; the paper's widest behaviour network is 1024 units). Every other field is typed by the
+agent's config dataclass (``rlu.files.shape_of``): :func:`agent_config_shape`."""
 MAX_POLICY_JSON_BYTES = 1 << 20
 
 
-def _describe(f: Field) -> str:
-    if f.choices is not None:
-        return "one of " + ", ".join(repr(c) for c in f.choices)
-    what = {"int": "an integer", "float": "a number", "bool": "true or false", "str": "a string",
-            "list": "a list", "dict": "an object"}[f.kind]  # fmt: skip
-    if f.kind in ("int", "float") and (f.lo is not None or f.hi is not None):
-        what += f" in [{f.lo}, {f.hi}]"
-    if f.kind == "list" and f.items is not None:
-        what += f" of at most {f.size} x {_describe(f.items)}"
-    elif f.size is not None:
-        what += f" of at most {f.size} {'characters' if f.kind == 'str' else 'entries'}"
-    return what
+def agent_config_shape(cls: type) -> Record:
+    """The shape of ``agent_config`` for config dataclass ``cls``: ``shape_of(cls)`` with the
+    fields of ``AGENT_CONFIG_RANGES`` (dotted paths into composed configs) ranged."""
 
+    def ranged(record: Record, prefix: str) -> Record:
+        parts = []
+        for fields in (record.required, record.optional):
+            out = {}
+            for name, shape in fields.items():
+                path = prefix + name
+                if path in AGENT_CONFIG_RANGES:
+                    shape = AGENT_CONFIG_RANGES[path]
+                elif isinstance(shape, Record):
+                    shape = ranged(shape, path + ".")
+                out[name] = shape
+            parts.append(out)
+        return Record(parts[0], parts[1], extra=record.extra)
 
-def check_field(value: Any, f: Field, name: str, where: Path) -> None:
-    """Raise an RluError naming ``where`` and field ``name`` unless ``value`` is what ``f``
-    allows (recursively, for lists and dicts)."""
-    fix = "re-generate the dataset"
-
-    def bad(why: str = "") -> RluError:
-        shown = repr(value) if len(repr(value)) <= 60 else repr(value)[:57] + "..."
-        return RluError(f"{where}: field {name!r} is {shown}{why}; want {_describe(f)}: {fix}")
-
-    kinds = {"int": int, "float": (int, float), "bool": bool, "str": str, "list": list,
-             "dict": dict}  # fmt: skip
-    if isinstance(value, bool) != (f.kind == "bool") or not isinstance(value, kinds[f.kind]):
-        raise bad()
-    if f.choices is not None and value not in f.choices:
-        raise bad()
-    if f.kind in ("int", "float"):
-        if (
-            not math.isfinite(value)
-            or (f.lo is not None and value < f.lo)
-            or (f.hi is not None and value > f.hi)
-        ):
-            raise bad()
-    if f.kind in ("str", "list", "dict") and f.size is not None and len(value) > f.size:
-        raise bad(f" ({len(value)} long)")
-    if f.kind == "list":
-        if f.lo is not None and len(value) < f.lo:
-            raise bad()
-        for i, v in enumerate(value):
-            if f.items is not None:
-                check_field(v, f.items, f"{name}[{i}]", where)
-    if f.kind == "dict":
-        if not all(isinstance(k, str) for k in value):
-            raise bad()
-        if f.fields is not None:
-            check_fields(value, f.fields, where, f"{name}.")
-        elif f.items is not None:
-            for k, v in value.items():
-                check_field(v, f.items, f"{name}.{k}", where)
-
-
-def check_fields(d: Mapping[str, Any], table: Mapping[str, Field], where: Path, prefix="") -> None:
-    """Every field of ``table`` in ``d`` (the required ones present); no other key."""
-    unknown = sorted(set(d) - set(table))
-    if unknown:
-        raise RluError(
-            f"{where}: unknown field(s) {', '.join(prefix + k for k in unknown[:5])}; known: "
-            f"{', '.join(prefix + k for k in table)}: re-generate the dataset"
-        )
-    for key, f in table.items():
-        if key not in d:
-            if f.required:
-                raise RluError(
-                    f"{where}: field {prefix + key!r} is missing; re-generate the dataset"
-                )
-            continue
-        check_field(d[key], f, prefix + key, where)
-
-
-def check_agent_config(cls: type, data: Mapping[str, Any], where: Path, prefix: str = "") -> None:
-    """``agent_config`` against the agent's config dataclass ``cls``: each field's JSON type as
-    its annotation says (int, float, bool, str, a tuple of them, a nested config), the fields of
-    ``AGENT_CONFIG_RANGES`` in range, every number finite; before the config is built."""
-    import dataclasses
-    import typing
-
-    hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(data) - names)
-    if unknown:
-        raise RluError(
-            f"{where}: field 'agent_config' has unknown field(s) {unknown[:5]} for "
-            f"{cls.__name__}; re-generate the dataset"
-        )
-    for key, value in data.items():
-        name = f"{prefix}{key}"
-        hint = hints[key]
-        if name in AGENT_CONFIG_RANGES:
-            check_field(value, AGENT_CONFIG_RANGES[name], f"agent_config.{name}", where)
-        elif dataclasses.is_dataclass(hint):
-            check_field(value, Field("dict", size=256), f"agent_config.{name}", where)
-            check_agent_config(hint, value, where, f"{name}.")
-            continue
-        kind = _json_kind(hint)
-        if kind is None:
-            continue  # a type with no JSON counterpart: the config's own checks apply
-        if kind[0] == "list":
-            f = Field("list", size=64, items=Field(kind[1], -_STEPS, _STEPS))
-        else:
-            f = Field(kind[0], -_STEPS if kind[0] != "str" else None, _STEPS if kind[0] != "str"
-                      else None, size=200 if kind[0] == "str" else None)  # fmt: skip
-        check_field(value, f, f"agent_config.{name}", where)
-
-
-def _json_kind(hint: Any) -> tuple[str, str] | tuple[str] | None:
-    import typing
-
-    simple = {int: "int", float: "float", bool: "bool", str: "str"}
-    if hint in simple:
-        return (simple[hint],)
-    if typing.get_origin(hint) is tuple:
-        args = [a for a in typing.get_args(hint) if a is not Ellipsis]
-        if len(set(args)) == 1 and args[0] in simple:
-            return ("list", simple[args[0]])
-    return None
+    return ranged(shape_of(cls), "")
 
 
 # ----------------------------------------------------------------------------------- reading
@@ -479,17 +376,8 @@ def _checked_file(ds: Any, rel: str, run: int, checkpoint: int) -> Path:
 
 def _read_meta(ds: Any, run: int, checkpoint: int) -> dict[str, Any]:
     path = _checked_file(ds, policy_stem(run, checkpoint) + ".json", run, checkpoint)
-    if path.stat().st_size > MAX_POLICY_JSON_BYTES:
-        raise RluError(
-            f"{path}: {path.stat().st_size} bytes, more than a policy's JSON holds "
-            f"({MAX_POLICY_JSON_BYTES}); re-generate the dataset"
-        )
-    try:
-        meta = json.loads(path.read_bytes())
-    except (ValueError, UnicodeDecodeError) as e:
-        raise RluError(f"{path}: corrupt JSON ({e}); re-generate the dataset") from None
-    except RecursionError:
-        raise RluError(f"{path}: JSON nested too deeply; re-generate the dataset") from None
+    fix = "re-generate the dataset"
+    meta = read_json(path, AnyJSON(depth=16), fix, max_bytes=MAX_POLICY_JSON_BYTES)
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise RluError(f"{path}: field 'format' is not {FORMAT!r}; not an rlu behaviour policy")
     if meta.get("version") != VERSION:
@@ -497,8 +385,14 @@ def _read_meta(ds: Any, run: int, checkpoint: int) -> dict[str, Any]:
             f"{path}: field 'version' is {meta.get('version')!r}; this rlu reads version "
             f"{VERSION}: upgrade rlu"
         )
-    check_fields(meta, POLICY_FIELDS, path)
-    return meta
+    agent = meta.get("agent")
+    if isinstance(agent, str) and agent not in ACTING_MODULE:
+        raise RluError(
+            f"{path}: field 'agent' is {agent[:80]!r}, not one of rlu's behaviour agents "
+            f"({', '.join(ACTING_MODULE)}); a name read from a file is looked up, never "
+            f"imported: {fix}"
+        )
+    return check_value(POLICY_SHAPE, meta, str(path), fix)
 
 
 def _read_arrays(path: Path, meta: Mapping[str, Any], json_path: Path) -> dict[str, np.ndarray]:
@@ -565,8 +459,9 @@ def load_behaviour_policy(
             "re-generate the dataset"
         )
     module = agent_module(meta["agent"], task.discrete)
-    check_agent_config(module.Config, meta["agent_config"], json_path)
-    config = config_from_json(module.Config, meta["agent_config"])
+    shape = Record({"agent_config": agent_config_shape(module.Config)})
+    data = check_value(shape, meta, str(json_path), "re-generate the dataset")["agent_config"]
+    config = config_from_json(module.Config, data)
     agent = module.Agent(task.observation_spec, task.action_spec, config, seed=seed,
                          device=device)  # fmt: skip
     if meta["module"] not in agent.modules:

@@ -2,17 +2,16 @@
 4 and 5): HDF5 files that point outside themselves (external raw storage, external links, soft
 links and their loops, virtual datasets), compressed bombs (HDF5 gzip datasets, .npz members and
 policy .npz files that inflate to far more than they store), policy JSON of the wrong types or
-absurd sizes, and HDF5 imports without h5py. Each case is refused with one RluError naming the
-file and the field (exit 2 from the CLI), reads nothing outside the file, leaves nothing at the
-destination, and holds a bounded amount of memory (numpy's and Python's allocations, as
-``tracemalloc`` counts them) whatever the file declares."""
+absurd sizes. Each case is refused with one RluError naming the file and the field (exit 2 from
+the CLI), reads nothing outside the file, leaves nothing at the destination, and holds a bounded
+amount of memory (numpy's and Python's allocations, as ``tracemalloc`` counts them) whatever the
+file declares. (`rlu import X.hdf5` without h5py: tests/hostile/test_missing_extras.py.)"""
 
 from __future__ import annotations
 
 import io
 import json
 import os
-import sys
 import tracemalloc
 import zipfile
 import zlib
@@ -499,16 +498,3 @@ def test_cli_on_bad_policy_json_exits_2_with_one_line(copy, capsys):
     err = capsys.readouterr().err
     assert err.startswith("rlu: error: ") and err.count("\n") == 1, err
     assert "policy_layers" in err
-
-
-# --- class 5: `rlu import X.hdf5` without h5py: the one-line pip hint ---------------------------
-def test_hdf5_import_without_h5py_gives_the_install_hint(tmp_path, capsys, monkeypatch):
-    path = tmp_path / "x.hdf5"
-    _write_d4rl(path, _d4rl(tmp_path))
-    monkeypatch.setitem(sys.modules, "h5py", None)  # `import h5py` raises ImportError
-    argv = ["import", str(path), "--format", "d4rl", "--task", TASK, "--out", str(_dest(tmp_path))]
-    assert main(argv) == 2
-    err = capsys.readouterr().err
-    assert err.startswith("rlu: error: ") and err.count("\n") == 1, err
-    assert "needs h5py" in err and "pip install" in err
-    assert not _dest(tmp_path).exists()
