@@ -1,8 +1,9 @@
 """The ``rlu`` command: parsing and printing only; the logic lives in the library.
 
-Every module in ``rlu/commands/`` contributes subcommands through ``register(subparsers)``; such
-modules import only the standard library at the top and the library inside their handlers, so
-``rlu list`` stays a numpy-only command.
+Every module in ``rlu/commands/`` contributes subcommands through ``register(subparsers)``
+(``_name`` modules are helpers of the others, with no command of their own); such modules import
+only the standard library at the top and the library inside their handlers, so ``rlu list``
+stays a numpy-only command.
 
 Bad input never ends in a traceback: the library raises :class:`~rlu.types.RluError` (the message
 names the file, the field and the fix), and a file the system refuses (permissions, a full disk)
@@ -39,6 +40,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for info in sorted(pkgutil.iter_modules(rlu.commands.__path__), key=lambda m: m.name):
+        if info.name.startswith("_"):
+            continue  # a helper of other command modules (options they share), no command
         module = importlib.import_module(f"rlu.commands.{info.name}")
         module.register(sub)
     return parser
@@ -50,6 +53,7 @@ def main(argv: list[str] | None = None) -> int:
     if sys.stderr is None:
         sys.stderr = open(os.devnull, "w")  # noqa: SIM115
     args = build_parser().parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)  # what was typed (rlu train --config)
     try:
         code = int(args.func(args) or 0)
         sys.stdout.flush()  # a closed pipe shows here, not in the interpreter's exit
@@ -93,6 +97,7 @@ EXTRA_OF = {
     "matplotlib": "report",
     "jinja2": "report",
     "jax": "jax",
+    "imageio_ffmpeg": "video",
 }
 """The extra that installs each optional module rlu imports (pyproject.toml's extras)."""
 

@@ -28,7 +28,7 @@ import ast
 import dataclasses
 import json
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -154,9 +154,10 @@ def train(
     out: str | os.PathLike,
     resume: bool = False,
     progress: bool = False,
-    tensorboard: bool = False,
+    loggers: Sequence[str] = (),
 ) -> dict[str, Any]:
     """Train ``config.agent`` on ``config.dataset``; returns the content of ``result.json``.
+    ``loggers``: where the metrics go besides the run's own logs (``rlu.loggers.LOGGERS``).
 
     One process per run folder: a second ``train`` into the same ``out`` fails with "in use by
     PID N" (:class:`rlu.locks.OutputLock`) while the first lives.
@@ -165,11 +166,15 @@ def train(
 
     trust(config.agent, config.run.env)
     with OutputLock(Path(out), "run folder"):
-        return _train(config, out, resume, progress, tensorboard)
+        return _train(config, out, resume, progress, tuple(loggers))
 
 
 def _train(
-    config: TrainConfig, out: str | os.PathLike, resume: bool, progress: bool, tensorboard: bool
+    config: TrainConfig,
+    out: str | os.PathLike,
+    resume: bool,
+    progress: bool,
+    logger_names: tuple[str, ...],
 ) -> dict[str, Any]:
     import torch
 
@@ -252,17 +257,11 @@ def _train(
     eval_period = settings.eval_period(total)
     if eval_period:
         env_fn = task_env_factory(config.task, settings.env, **env_kwargs)
-    summary_writer: Any = None
-    if tensorboard:
-        try:
-            from torch.utils.tensorboard import SummaryWriter
+    from rlu.loggers import LOGGERS
 
-            summary_writer = SummaryWriter
-        except ImportError:
-            from rlu.types import install_hint
-
-            hint = install_hint("tensorboard")
-            raise RluError(f"TensorBoard logging needs tensorboard: {hint}") from None
+    unknown = [n for n in logger_names if n not in LOGGERS]
+    if unknown:
+        raise RluError(f"logger {unknown[0]!r}; loggers are {', '.join(LOGGERS)}")
 
     # everything that can fail before the first step has run: only now is the run folder written
     run.mkdir(parents=True, exist_ok=True)
@@ -272,7 +271,9 @@ def _train(
     metrics_path, eval_path = run / runs.METRICS, run / runs.EVAL
     for path in (metrics_path, eval_path):  # drop what was logged after the checkpoint
         runs.cut_log(path, start)
-    writer = summary_writer(str(run / "tensorboard")) if summary_writer is not None else None
+    from rlu.loggers import make_loggers
+
+    loggers = make_loggers(logger_names, run, start, resolved)
 
     if runtime.compile:
         compile_modules(agent.modules)
@@ -292,9 +293,8 @@ def _train(
                 rec = {"step": step, **{k: float(v) for k, v in metrics.items()}}
                 mlog.write(json.dumps(rec) + "\n")
                 mlog.flush()
-                if writer is not None:
-                    for k, v in metrics.items():
-                        writer.add_scalar(k, float(v), step)
+                for logger in loggers:
+                    logger.log("metrics", rec)
             if eval_period and (step % eval_period == 0 or step == total):
                 result = evaluate(
                     policy,
@@ -307,8 +307,8 @@ def _train(
                 last_eval = {"step": step, **result.to_json()}
                 elog.write(json.dumps(last_eval) + "\n")
                 elog.flush()
-                if writer is not None:
-                    writer.add_scalar("eval/return", result.mean, step)
+                for logger in loggers:
+                    logger.log("eval", last_eval)
                 bar.note(f"eval {result.mean:.1f}")
             if step % settings.checkpoint_every == 0 or step == total:
                 alg, keys, pos, has_gauss, cached = np.random.get_state()
@@ -321,8 +321,8 @@ def _train(
                 }
                 runs.save_checkpoint(run, step, state, settings.keep_checkpoints)
             bar.update(1)
-    if writer is not None:
-        writer.close()
+    for logger in loggers:
+        logger.close()
     evals = runs.read_log(eval_path, total)
     result = {
         "task": config.task,

@@ -223,7 +223,10 @@ def env_spec_for(schema: Schema, provenance: Mapping[str, Any]) -> Any:
     if task.id != schema.task_id:
         return None
     kwargs = {"task_id": task.id, **env_settings(provenance)}
-    return EnvSpec(id=task.gym_id, entry_point=GYM_ENTRY_POINT, kwargs=kwargs)
+    steps = task.max_episode_steps(kwargs)
+    return EnvSpec(
+        id=task.gym_id, entry_point=GYM_ENTRY_POINT, kwargs=kwargs, max_episode_steps=steps
+    )
 
 
 def describe_provenance(provenance: Mapping[str, Any], task_id: str | None) -> str:

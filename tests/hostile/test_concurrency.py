@@ -280,3 +280,19 @@ def test_a_killed_sweeps_workers_die_with_it(pendulum, tmp_path):
                 os.kill(pid, signal.SIGKILL)
             except ProcessLookupError:
                 pass
+
+
+def test_a_second_sweep_into_a_folder_in_use_is_refused_at_once(tmp_path):
+    """Two ``rlu sweep`` into one --out: the second stops with "in use by PID N" before writing
+    anything (on main both went on and both failed)."""
+    from rlu.generate.recipe import bundled_dataset
+
+    out = tmp_path / "sweep"
+    data = f"{TASK}={bundled_dataset()}"
+    args = [sys.executable, "-m", "rlu", "sweep", "--tasks", TASK, "--agents", "bc",
+            "--dataset", data, "--steps", "1", "--out", str(out)]  # fmt: skip
+    with OutputLock(out, "sweep folder"):  # the first sweep, alive
+        res = subprocess.run(args, cwd=ROOT, capture_output=True, text=True)
+    assert res.returncode == 2, res.stderr
+    assert f"in use by PID {os.getpid()}" in res.stderr and "Traceback" not in res.stderr
+    assert not out.exists()
