@@ -557,3 +557,25 @@ def check_output(
             f"outputs: choose a new {flag} or empty that folder yourself"
         )
     return out
+
+
+@contextlib.contextmanager
+def interrupts_deferred() -> Iterator[None]:
+    """Hold Ctrl-C (SIGINT) for the duration of a block that must not be cut (closing an HDF5
+    file: an interrupt inside h5py's close is swallowed as "Exception ignored", and the command
+    would go on and exit 0), then raise it at the block's end. Main thread only (elsewhere the
+    block runs as it is)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if caught:
+        raise KeyboardInterrupt

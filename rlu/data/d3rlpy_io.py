@@ -358,11 +358,16 @@ def export_d3rlpy(ds: Dataset, out: str | os.PathLike) -> Path:
     h5py = _require_h5py("writing d3rlpy dumps")
     if not out.parent.is_dir():
         raise RluError(f"{out}: the folder {out.parent} does not exist; create it first")
+    from rlu.files import interrupts_deferred
+    from rlu.locks import OutputLock
+
     keys = ["observations", "actions", "rewards", "terminated"]
     tmp = out.with_name(f".{out.name}.partial{out.suffix}")
     written = 0
+    lock = OutputLock(out, "export file").acquire()  # one writer per output file
     try:
-        with h5py.File(tmp, "w") as h5:
+        h5 = h5py.File(tmp, "w")
+        try:
             h5.create_dataset("columns", data=keys)
             episodes = d3rlpy_episodes(ds)
             for j, (_, ep) in enumerate(episodes):
@@ -378,9 +383,13 @@ def export_d3rlpy(ds: Dataset, out: str | os.PathLike) -> Path:
                 raise RluError(f"{ds.path}: every segment is a single step; nothing to export")
             h5.create_dataset("num_episodes", data=written)
             h5.create_dataset("version", data=SUPPORTED_VERSIONS[-1])
+        finally:
+            with interrupts_deferred():  # a Ctrl-C here is raised after the close
+                h5.close()
         os.replace(tmp, out)
     finally:
         tmp.unlink(missing_ok=True)
+        lock.release()
     _warn_lossy(ds, written)
     return out
 

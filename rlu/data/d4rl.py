@@ -149,24 +149,32 @@ def export_d4rl(ds: Dataset, out: str | os.PathLike) -> Path:
         h5py = _require_h5py("writing D4RL .hdf5 files")
     if not out.parent.is_dir():
         raise RluError(f"{out}: the folder {out.parent} does not exist; create it first")
+    from rlu.files import interrupts_deferred
+    from rlu.locks import OutputLock
+
     arrays = d4rl_file_arrays(ds)
     tmp = out.with_name(f".{out.name}.partial{suffix}")
-    try:
-        if suffix == ".npz":
-            np.savez(tmp, **arrays)
-        else:
-            with h5py.File(tmp, "w") as f:
-                for name, a in arrays.items():
-                    if a.dtype.kind == "U":  # h5py stores str as variable-length UTF-8
-                        data: Any = a.tolist()
-                        f.create_dataset(name, data=data)
-                    elif a.dtype == np.uint8 and a.ndim > 2:  # frames: gzip, as D4RL's own files
-                        f.create_dataset(name, data=a, compression="gzip", compression_opts=1)
-                    else:
-                        f.create_dataset(name, data=a)
-        os.replace(tmp, out)
-    finally:
-        tmp.unlink(missing_ok=True)
+    with OutputLock(out, "export file"):  # one writer per output file
+        try:
+            if suffix == ".npz":
+                np.savez(tmp, **arrays)
+            else:
+                f = h5py.File(tmp, "w")
+                try:
+                    for name, a in arrays.items():
+                        if a.dtype.kind == "U":  # h5py stores str as variable-length UTF-8
+                            data: Any = a.tolist()
+                            f.create_dataset(name, data=data)
+                        elif a.dtype == np.uint8 and a.ndim > 2:  # frames: gzip, as D4RL's
+                            f.create_dataset(name, data=a, compression="gzip", compression_opts=1)
+                        else:
+                            f.create_dataset(name, data=a)
+                finally:
+                    with interrupts_deferred():  # a Ctrl-C here is raised after the close
+                        f.close()
+            os.replace(tmp, out)
+        finally:
+            tmp.unlink(missing_ok=True)
     return out
 
 

@@ -43,6 +43,7 @@ dataset's spaces). rlu's segments, windows included, round-trip column for colum
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
@@ -350,10 +351,13 @@ def export_minari(
         raise RluError(f"--id {dataset_id!r}: {e}; use NAMESPACE/NAME-vN") from None
     if "-v" not in dataset_id.rsplit("/", 1)[-1]:
         raise RluError(f"--id {dataset_id!r} has no version; use NAMESPACE/NAME-vN")
-    with _datasets_root(root), warnings.catch_warnings():
+    from rlu.locks import OutputLock
+
+    with _datasets_root(root), warnings.catch_warnings(), contextlib.ExitStack() as stack:
         from minari.storage import get_dataset_path
 
         path = Path(get_dataset_path(dataset_id))
+        stack.enter_context(OutputLock(path, "Minari dataset"))  # one writer per dataset
         if path.exists():
             raise RluError(f"{path}: Minari dataset {dataset_id} already exists; use another --id")
         obs_space, act_space = spaces_for(ds.schema)
