@@ -5,21 +5,19 @@ with ``flock``. The kernel drops an ``flock`` when its holder dies, so the lock 
 process (``kill -9``) is simply taken over by the next writer, whatever the file still says; a
 live holder makes the next writer fail at once with "in use by PID N" instead of writing over its
 partial output. A lock file planted as a symbolic or hard link is refused, never written through
-(:func:`open_private`, which rlu's caches and temporary files use too).
-Forked children (conversion's reader processes) close their copy of the lock at fork, so a lock
-lives exactly as long as the process that took it.
+(:func:`rlu.files.open_private`). Forked children (conversion's reader processes) close their copy
+of the lock at fork, so a lock lives exactly as long as the process that took it.
 
 Standard library only (``fcntl``: POSIX).
 """
 
 from __future__ import annotations
 
-import errno
 import fcntl
 import os
-import stat
 from pathlib import Path
 
+from rlu.files import open_private
 from rlu.types import RluError
 
 _HELD: set[int] = set()  # descriptors of locks this process holds (closed in forked children)
@@ -35,34 +33,6 @@ def _close_in_child() -> None:
 
 
 os.register_at_fork(after_in_child=_close_in_child)
-
-
-def open_private(path: str | os.PathLike, flags: int, what: str = "file") -> int:
-    """``os.open`` of a file rlu owns (a lock, a cache entry, a temporary file), never through a
-    link: a symbolic link (``O_NOFOLLOW``), anything but a regular file, or a file with a second
-    hard link is refused with an :class:`~rlu.types.RluError` naming it. ``O_TRUNC`` is applied
-    only after these checks, so a planted link is never truncated either."""
-    trunc = flags & os.O_TRUNC
-    try:
-        fd = os.open(path, (flags & ~os.O_TRUNC) | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
-    except OSError as e:
-        if e.errno == errno.ELOOP:
-            raise RluError(
-                f"{path}: this {what} is a symbolic link; rlu never writes or reads its own files "
-                "through a link: remove it (and find out who made it)"
-            ) from None
-        raise
-    st = os.fstat(fd)
-    if not stat.S_ISREG(st.st_mode) or st.st_nlink > 1:
-        os.close(fd)
-        kind = "has another hard link" if stat.S_ISREG(st.st_mode) else "is not a regular file"
-        raise RluError(
-            f"{path}: this {what} {kind}; rlu writes only into files of its own: remove it (and "
-            "find out who made it)"
-        )
-    if trunc:
-        os.ftruncate(fd, 0)
-    return fd
 
 
 class LockBusy(RluError):
@@ -114,8 +84,12 @@ class OutputLock:
             return self
 
     def _open(self) -> int:
-        # never through a planted link: a symbolic or hard link is refused before a byte is written
-        return open_private(self.path, os.O_RDWR | os.O_CREAT, f"lock file of a {self.what}")
+        """The lock file, created if missing; a planted symlink (or hard link) is refused, never
+        followed: the lock's PID would be written into whatever it points at."""
+        try:
+            return open_private(self.path, os.O_RDWR | os.O_CREAT, f"lock file of {self.target}")
+        except OSError as e:
+            raise RluError(f"{self.path}: the lock file cannot be opened ({e.strerror})") from None
 
     def release(self) -> None:
         fd, self.fd = self.fd, None

@@ -1,14 +1,14 @@
 """One progress display for every long command: a bar on a terminal, plain lines in a log, or none.
 
-::
+```python
+from rlu.progress import Progress
 
-    from rlu.progress import Progress
-
-    with Progress(total=len(files), desc="convert", unit="shards") as bar:
-        for f in files:
-            ...
-            bar.update(1)
-            bar.set_postfix(steps=steps)
+with Progress(total=len(files), desc="convert", unit="shards") as bar:
+    for f in files:
+        ...
+        bar.update(1)
+        bar.set_postfix(steps=steps)
+```
 
 Three modes, chosen once when the display is made:
 
@@ -20,7 +20,7 @@ Three modes, chosen once when the display is made:
   The default when the stream is not a terminal.
 - ``"quiet"``: nothing (``quiet=True``, a command's ``--quiet``).
 
-:meth:`~Progress.close` writes the final state (and ends the bar's line) when the display showed
+``Progress.close`` writes the final state (and ends the bar's line) when the display showed
 something or the job did work. A job that fails (``close(failed=True)``, or an exception through
 the ``with`` block) before its first plain line, or before any work under a bar, leaves no line
 of its own: its error is the only line on the screen.
@@ -32,7 +32,7 @@ stays what it prints as its result.
 
 The ETA and rate count only what this display saw (``initial`` units done before it started,
 e.g. by a resumed run, move the bar but not the rate). ``total`` may be unknown (``None``) or
-grow (:meth:`~Progress.set_total`, e.g. bytes as downloads announce their sizes). Updates are
+grow (``Progress.set_total``, e.g. bytes as downloads announce their sizes). Updates are
 thread-safe, so worker threads may share one display.
 
 Why not tqdm: the core depends on numpy only, and tqdm's output when stderr is not a terminal is

@@ -117,26 +117,34 @@ def _download(args: argparse.Namespace) -> int:
 def _convert(args: argparse.Namespace) -> int:
     from rlu.data.release import catalog
     from rlu.data.release.convert import convert
+    from rlu.tasks import resolve_task
     from rlu.types import RluError
 
+    ref = resolve_task(args.task)  # a TFDS name carries its run or challenge and size
+    family, run, challenge, size = ref.dataset_settings(
+        args.family, args.run, args.challenge, args.size
+    )
     files = list(args.files)
     if args.src:
         if files:
             raise RluError("give either FILE... or --src ROOT, not both")
-        sel = catalog.select(args.task, args.family, args.run, args.challenge, args.size)
+        sel = catalog.select(ref.task.id, family, run, challenge, size)
         files = catalog.find_shards(args.src, sel, args.shards)
     elif args.shards:
         raise RluError("--shards picks shards under --src; with FILE... list the files instead")
-    challenge = args.challenge
-    if challenge is None and args.task.startswith("rwrl/"):
+    from rlu.files import check_output
+
+    # --out must not be or hold an input: --overwrite replaces it whole once written
+    check_output(args.out, [*files, *([args.src] if args.src else [])], "manifest.json", "dataset")
+    if challenge is None and ref.task.domain == "rwrl":
         challenge = _challenge_from_path(files)
     report = convert(
         files,
-        args.family,
-        args.task,
+        family,
+        ref.task.id,
         args.out,
         challenge=challenge,
-        run=args.run,
+        run=run,
         workers=args.workers,
         verify=not args.no_verify,
         on_error="skip" if args.skip_corrupt else "raise",

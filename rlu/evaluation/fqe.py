@@ -15,7 +15,7 @@ depends on the device.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -31,11 +31,11 @@ class FQEConfig:
     """MLP hidden layer sizes."""
     learning_rate: float = 1e-3
     """Adam learning rate."""
-    steps: int = 2000
-    """Gradient steps."""
-    batch_size: int = 256
+    steps: int = field(default=2000, metadata={"min": 1, "metavar": "N"})
+    """FQE gradient steps."""
+    batch_size: int = field(default=256, metadata={"min": 1, "metavar": "N"})
     """Transitions per gradient step."""
-    target_period: int = 100
+    target_period: int = field(default=100, metadata={"min": 1, "metavar": "N"})
     """Steps between copies of the online network into the target network."""
     seed: int = 0
     """Seeds the network initialisation and the minibatch order."""
@@ -47,12 +47,6 @@ def _flat(obs: Any) -> np.ndarray:
         return np.concatenate(parts, axis=1)
     obs = np.asarray(obs)
     return obs.reshape(len(obs), -1).astype(np.float32)
-
-
-def _slice(obs: Any, idx: np.ndarray) -> Any:
-    if isinstance(obs, Mapping):
-        return {k: v[idx] for k, v in obs.items()}
-    return obs[idx]
 
 
 def _all_first(x: Any) -> np.ndarray:

@@ -19,7 +19,7 @@ from rlu.tasks import (
     ReleaseDataset,
     TaskSpec,
     _binding_fields,
-    get_task,
+    resolve_task,
 )
 from rlu.types import RluError
 
@@ -122,8 +122,11 @@ def select(
     size: str | None = None,
     shards: str | Sequence[int] | None = None,
 ) -> ReleaseSelection:
-    """The release objects of a task's dataset (all shards unless ``shards`` picks some)."""
-    task = get_task(task_id)
+    """The release objects of a task's dataset (all shards unless ``shards`` picks some); a TFDS
+    name (``rlu_atari/Pong_run_1``) fills in the family, run, challenge and size it carries."""
+    ref = resolve_task(task_id)
+    task = ref.task
+    family, run, challenge, size = ref.dataset_settings(family, run, challenge, size)
     rel = task.release_dataset(family)
     binding = dataset_binding(task, run, challenge, size)
     names = rel.shard_names(binding)

@@ -55,7 +55,6 @@ import os
 import socket
 import ssl
 import struct
-import tempfile
 import threading
 import time
 import urllib.error
@@ -66,7 +65,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 from rlu.data.release.catalog import object_url, shard_limit
-from rlu.locks import OutputLock, open_private
+from rlu.files import open_private, write_atomic
+from rlu.locks import OutputLock
 from rlu.progress import Progress
 from rlu.types import RluError
 
@@ -137,17 +137,9 @@ def _read_json(path: str) -> dict:
 
 
 def _write_json_atomic(path: str, value: dict) -> None:
-    """Write through a fresh temporary file (``mkstemp``: ``O_EXCL``) renamed over ``path``."""
-    fd, tmp = tempfile.mkstemp(prefix=os.path.basename(path) + ".", suffix=".tmp",
-                               dir=os.path.dirname(path))  # fmt: skip
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(value, f, indent=1, sort_keys=True)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
+    """The manifest's bytes as before (sorted, indent 1), written by rlu.files.write_atomic (a
+    temporary opened with ``O_EXCL | O_NOFOLLOW``, renamed over ``path``)."""
+    write_atomic(path, json.dumps(value, indent=1, sort_keys=True))
 
 
 class _Manifest:
@@ -192,6 +184,11 @@ class _Manifest:
                 _write_json_atomic(self.path, current)
             finally:
                 os.close(fd)
+
+
+def read_manifest(root: str) -> dict[str, dict]:
+    """The entries of ``root/manifest.json`` ({} when missing or damaged; a link is refused)."""
+    return _Manifest(root).entries
 
 
 def sha256_file(path: str) -> str:

@@ -8,6 +8,7 @@ Two views of each record (docs/release_format.md §3, §4):
 - ``segments``: the same data in rlu's model (:class:`rlu.data.episode.Segment`, RLDS steps). Each
   family's alignment rule, pinned by one test each in ``tests/release/test_families.py``:
 
+  ```text
   ============================  ==============================================================
   family                        reward_t / discount_t / final step
   ============================  ==============================================================
@@ -34,6 +35,7 @@ Two views of each record (docs/release_format.md §3, §4):
                                 every LAST is terminal (the notebook's loader)
   dmlab                         fixed-length episodes, values as stored; pixels BGR -> RGB
   ============================  ==============================================================
+  ```
 
 Where a segment's last step carries values the file holds (windows), they are kept, so that the
 transition view yields exactly the loader's ``(o_t, a_t, r_t, d_t, o_tp1, a_tp1)``.

@@ -31,7 +31,7 @@ from typing import BinaryIO
 
 import numpy as np
 
-from rlu.locks import open_private
+from rlu.files import open_private
 from rlu.types import FormatError
 
 GZIP_MAGIC = b"\x1f\x8b"
@@ -49,9 +49,11 @@ def _crc_impl():
     try:
         import google_crc32c
     except ImportError as e:  # pragma: no cover - the release extra installs it
-        raise ImportError(
+        # named, so that the command line prints the extra's install line (rlu.cli.EXTRA_OF)
+        raise ModuleNotFoundError(
             "reading RL Unplugged release files needs the C-backed CRC-32C: "
-            "pip install 'rlu[release]' (google-crc32c)"
+            "pip install 'rlu[release]' (google-crc32c)",
+            name="google_crc32c",
         ) from e
     return google_crc32c.value
 
