@@ -184,6 +184,7 @@ def _train(
     from rlu.data.provenance import data_source
     from rlu.data.torch import DeviceSampler, prefetched
     from rlu.evaluation.rollout import evaluate, task_env_factory
+    from rlu.progress import Progress
 
     run = Path(out)
     settings = config.run
@@ -293,11 +294,11 @@ def _train(
         elog.flush()
         for logger in loggers:
             logger.log("eval", record)
-        bar.note(f"eval {result.mean:.1f}")
+        bar.set_postfix(eval=f"{result.mean:.1f}")
         return record
 
     with (
-        _Progress(total, start, progress) as bar,
+        Progress(total, f"train {config.agent}", "steps", quiet=not progress, initial=start) as bar,
         runs.append_log(metrics_path) as mlog,
         runs.append_log(eval_path) as elog,
         numerics(runtime) as update_context,
@@ -345,38 +346,6 @@ def _train(
     }
     runs.write_json(run / runs.RESULT, result)
     return result
-
-
-class _Progress:
-    """A one-line progress bar on stderr (only when it is a terminal)."""
-
-    def __init__(self, total: int, start: int, enabled: bool):
-        import sys
-        import time
-
-        self.total, self.step, self.start, self.text = total, start, start, ""
-        self.enabled = enabled and sys.stderr.isatty()
-        self.t0, self._time, self._err = time.monotonic(), time.monotonic, sys.stderr
-
-    def __enter__(self) -> _Progress:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        if self.enabled and self.step > self.start:
-            self._err.write("\n")
-
-    def note(self, text: str) -> None:
-        self.text = text
-
-    def update(self, n: int) -> None:
-        self.step += n
-        if not self.enabled or (self.step % 50 and self.step != self.total):
-            return
-        frac = self.step / max(self.total, 1)
-        rate = (self.step - self.start) / max(self._time() - self.t0, 1e-9)
-        bar = "#" * int(30 * frac)
-        self._err.write(f"\r[{bar:<30}] {self.step}/{self.total} {rate:6.1f} steps/s {self.text}")
-        self._err.flush()
 
 
 def greedy_policy(agent: Any) -> Any:

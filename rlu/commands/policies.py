@@ -59,6 +59,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--threads", type=_count, default=1, help="torch threads (default 1)")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
+    p.add_argument("--quiet", action="store_true", help="no progress of the FQE steps (stderr)")
     add_device_option(p)
     p.set_defaults(func=_evaluate)
 
@@ -119,7 +120,8 @@ def _evaluate(args: argparse.Namespace) -> int:
         from rlu.evaluation.fqe import FQEConfig
 
         fqe = FQEConfig(steps=args.fqe_steps, target_period=args.fqe_target_period)
-        res = behaviour_ope(ds, which, args.episodes, fqe, args.seed, args.envs, device)
+        res = behaviour_ope(ds, which, args.episodes, fqe, args.seed, args.envs, device,
+                            quiet=args.quiet)  # fmt: skip
         if args.json:
             rho = res["spearman"]
             print(json.dumps({**res, "spearman": None if math.isnan(rho) else rho}))

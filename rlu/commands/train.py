@@ -86,7 +86,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         "(OUT/tensorboard; the tensorboard extra), wandb (the wandb extra; WANDB_MODE=offline "
         "writes under OUT/wandb)",
     )
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--quiet",
+        "--no-progress",
+        dest="no_progress",
+        action="store_true",
+        help="no progress (a bar on a terminal, else a plain line every 10 s, on stderr)",
+    )
     add_options(p, RunSettings)
     p.add_argument(
         "overrides",

@@ -543,6 +543,7 @@ def behaviour_ope(
     seed: int = 0,
     num_envs: int = 4,
     device: Any = "cpu",
+    quiet: bool = False,
 ) -> dict[str, Any]:
     """An off-policy evaluation study on the dataset's own behaviour policies: per policy (all
     kept, or the (run, checkpoint) pairs ``which``), the FQE estimate from the data alone
@@ -564,14 +565,22 @@ def behaviour_ope(
             _checked_file(ds, policy_stem(*pair) + ".npz", *pair)  # raises, naming what is kept
     transitions, init = dataset_fqe_inputs(ds)
     action_spec = get_task(ds.schema.task_id).action_spec
+    from rlu.progress import Progress
+
     rows = []
-    for run, checkpoint in pairs:
-        policy = load_behaviour_policy(ds, run, checkpoint, seed=seed, device=device)
-        estimate = fqe_estimate(transitions, init, policy, action_spec, config, device)
-        result = rollout_behaviour(ds, run, checkpoint, episodes, seed, False, num_envs, device)
-        info = infos[(run, checkpoint)]
-        rows.append({**asdict(info), "fqe_estimate": float(estimate), "return": result.mean,
-                     "returns": list(result.returns)})  # fmt: skip
+    # FQE's gradient steps are the cost; each policy's roll-outs come after its steps
+    with Progress(len(pairs) * config.steps, "FQE", "steps", quiet=quiet) as bar:
+        for run, checkpoint in pairs:
+            policy = load_behaviour_policy(ds, run, checkpoint, seed=seed, device=device)
+            estimate = fqe_estimate(transitions, init, policy, action_spec, config, device,
+                                    progress=bar)  # fmt: skip
+            result = rollout_behaviour(ds, run, checkpoint, episodes, seed, False, num_envs,
+                                       device)  # fmt: skip
+            info = infos[(run, checkpoint)]
+            rows.append({**asdict(info), "fqe_estimate": float(estimate), "return": result.mean,
+                         "returns": list(result.returns)})  # fmt: skip
+            bar.note(f"run {run} checkpoint {checkpoint}: FQE {estimate:.2f}, return "
+                     f"{result.mean:.1f}")  # fmt: skip
     rho = math.nan
     if len(rows) >= 2:
         rho = spearman([r["fqe_estimate"] for r in rows], [r["return"] for r in rows])
