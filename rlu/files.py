@@ -4,7 +4,8 @@ Writing. Every file rlu writes for its own state goes through :func:`write_atomi
 :func:`atomic_path` for writers that need a path, such as ``torch.save``): a temporary sibling
 opened with ``O_EXCL | O_NOFOLLOW``, synced, renamed over the target, the folder synced. A kill
 leaves the old file or the new one, never half of one, and a planted ``.tmp`` symlink is refused
-instead of written through.
+instead of written through. A file rlu opens again and again (a lock, a cache entry, a partial
+download) goes through :func:`open_private`: never a symbolic link, a hard link or a non-file.
 
 Reading. A JSON file rlu reads is checked at the boundary, once, against a *shape* of its own
 (:class:`Shape`: types, ranges, sizes, nesting depth) before any value is used; a shape is written
@@ -25,6 +26,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import errno
 import json
 import math
 import os
@@ -66,6 +68,34 @@ def open_new(path: str | os.PathLike, mode: int = 0o644) -> int:
     file or a planted symlink at ``path`` is refused (``FileExistsError``), never followed."""
     flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC
     return os.open(path, flags, mode)
+
+
+def open_private(path: str | os.PathLike, flags: int, what: str = "file") -> int:
+    """``os.open`` of a file rlu keeps reopening (a lock, a cache entry, a partial download),
+    never through a link: a symbolic link (``O_NOFOLLOW``), anything but a regular file, or a file
+    with a second hard link is refused with an :class:`~rlu.types.RluError` naming it. ``O_TRUNC``
+    is applied only after these checks, so a planted hard link is never truncated either. Other
+    ``OSError`` (a missing file, permissions) propagate."""
+    trunc = flags & os.O_TRUNC
+    try:
+        fd = os.open(path, (flags & ~os.O_TRUNC) | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            raise RluError(
+                f"{path}: the {what} is a symbolic link; rlu does not write through it (nor read "
+                "its own files through one): remove it and run again"
+            ) from None
+        raise
+    st = os.fstat(fd)
+    if not stat.S_ISREG(st.st_mode) or st.st_nlink > 1:
+        os.close(fd)
+        raise RluError(
+            f"{path}: the {what} is not a plain file of its own (a hard link or a device); "
+            "remove it and run again"
+        )
+    if trunc:
+        os.ftruncate(fd, 0)
+    return fd
 
 
 def _tmp_name(path: Path) -> Path:
@@ -288,7 +318,7 @@ class Record(Shape):
     def check(self, value: Any, where: str) -> Any:
         if not isinstance(value, Mapping):
             raise Bad(
-                where or "(top level)",
+                where,
                 f"is {_name(value)} ({_short(value)}); expected an object with "
                 f"{', '.join(self.required) or 'fields'}",
             )
@@ -423,8 +453,9 @@ def check_value(shape: Shape, value: Any, what: str, fix: str) -> Any:
     try:
         return shape.check(value, "")
     except Bad as e:
-        field = f"field '{e.where}' " if e.where else ""
-        raise FormatError(f"{what}: {field}{e.what}; {fix}") from None
+        if not e.where:  # the value as a whole
+            raise FormatError(f"{what} {e.what}; {fix}") from None
+        raise FormatError(f"{what}: field '{e.where}' {e.what}; {fix}") from None
 
 
 # --- reading --------------------------------------------------------------------------------
@@ -556,3 +587,25 @@ def check_output(
             f"outputs: choose a new {flag} or empty that folder yourself"
         )
     return out
+
+
+@contextlib.contextmanager
+def interrupts_deferred() -> Iterator[None]:
+    """Hold Ctrl-C (SIGINT) for the duration of a block that must not be cut (closing an HDF5
+    file: an interrupt inside h5py's close is swallowed as "Exception ignored", and the command
+    would go on and exit 0), then raise it at the block's end. Main thread only (elsewhere the
+    block runs as it is)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if caught:
+        raise KeyboardInterrupt

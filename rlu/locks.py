@@ -4,8 +4,9 @@ The lock of ``<dir>/<name>`` is the file ``<dir>/.<name>.lock`` holding the owne
 with ``flock``. The kernel drops an ``flock`` when its holder dies, so the lock of a killed
 process (``kill -9``) is simply taken over by the next writer, whatever the file still says; a
 live holder makes the next writer fail at once with "in use by PID N" instead of writing over its
-partial output. Forked children (conversion's reader processes) close their copy of the lock at
-fork, so a lock lives exactly as long as the process that took it.
+partial output. A lock file planted as a symbolic or hard link is refused, never written through
+(:func:`rlu.files.open_private`). Forked children (conversion's reader processes) close their copy
+of the lock at fork, so a lock lives exactly as long as the process that took it.
 
 Standard library only (``fcntl``: POSIX).
 """
@@ -14,9 +15,9 @@ from __future__ import annotations
 
 import fcntl
 import os
-import stat
 from pathlib import Path
 
+from rlu.files import open_private
 from rlu.types import RluError
 
 _HELD: set[int] = set()  # descriptors of locks this process holds (closed in forked children)
@@ -85,24 +86,10 @@ class OutputLock:
     def _open(self) -> int:
         """The lock file, created if missing; a planted symlink (or hard link) is refused, never
         followed: the lock's PID would be written into whatever it points at."""
-        flags = os.O_RDWR | os.O_CREAT | os.O_CLOEXEC | os.O_NOFOLLOW
         try:
-            fd = os.open(self.path, flags, 0o644)
+            return open_private(self.path, os.O_RDWR | os.O_CREAT, f"lock file of {self.target}")
         except OSError as e:
-            if self.path.is_symlink():
-                raise RluError(
-                    f"{self.path}: the lock file of {self.target} is a symbolic link; rlu does not "
-                    "write through it: remove it and run again"
-                ) from None
             raise RluError(f"{self.path}: the lock file cannot be opened ({e.strerror})") from None
-        st = os.fstat(fd)
-        if not stat.S_ISREG(st.st_mode) or st.st_nlink > 1:
-            os.close(fd)
-            raise RluError(
-                f"{self.path}: the lock file of {self.target} is not a plain file of its own "
-                "(a hard link or a device); remove it and run again"
-            )
-        return fd
 
     def release(self) -> None:
         fd, self.fd = self.fd, None

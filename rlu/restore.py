@@ -136,7 +136,7 @@ def evaluate_run(
 
 
 def fqe_selection(
-    sweep_dir: str | os.PathLike, config: Any = None, device: Any = "cpu"
+    sweep_dir: str | os.PathLike, config: Any = None, device: Any = "cpu", quiet: bool = False
 ) -> dict[str, Any]:
     """Offline policy selection by FQE over a finished sweep (see
     ``rlu.evaluation.fqe.fqe_selection``), policies and FQE on ``device``; writes and returns
@@ -151,7 +151,7 @@ def fqe_selection(
         policy, resolved = load_policy(run, device)
         return policy, ArraySpec.from_json(resolved["action_spec"])
 
-    out = select(runs.load_results(sweep_dir), datasets, policy_of, config, device)
+    out = select(runs.load_results(sweep_dir), datasets, policy_of, config, device, quiet)
     out["fqe_config"] = dataclasses.asdict(config)
     runs.write_json(Path(sweep_dir) / runs.FQE, out)
     return out

@@ -48,6 +48,9 @@ class RunSettings:
     eval_every: int | None = field(default=None, metadata=bounds(min=-1))
     """Learner steps between evaluations in the env (default: every max(10,000, steps / 10) and
     at the end; 0: only at the end; -1: never)."""
+    eval_at_start: bool = False
+    """Also evaluate the untrained agent before its first update (step 0 of the learning
+    curve in eval.jsonl)."""
     eval_episodes: int = field(default=5, metadata=bounds(min=1, metavar="N"))
     """Env episodes per evaluation."""
     eval_envs: int = field(default=4, metadata=bounds(min=1, metavar="N"))
@@ -149,10 +152,12 @@ def add_options(
     skip: tuple[str, ...] = (),
     dest_prefix: str = "",
     flag_prefix: str = "--",
+    require: bool = True,
 ) -> None:
     """One option per field of dataclass ``cls`` (nested dataclasses: their fields, flattened),
     typed, range-checked and helped by the field; ``only`` / ``skip`` choose fields. A field
-    without a default is a required option; a tuple field takes one or more values."""
+    without a default is a required option (``require=False``: the command checks it, e.g.
+    after reading a config file); a tuple field takes one or more values."""
     hints = typing.get_type_hints(cls)
     docs = field_docs(cls)
     for f in dataclasses.fields(cls):
@@ -169,8 +174,10 @@ def add_options(
         default = meta.get("cli_default", default)
         doc = docs.get(f.name, "")
         kwargs: dict[str, Any] = {"dest": dest_prefix + f.name}
-        if required:
+        if required and require:
             kwargs["required"] = True
+        elif required:
+            kwargs["default"] = None
         else:
             kwargs["default"] = list(default) if isinstance(default, tuple) else default
         item = hint
@@ -188,6 +195,8 @@ def add_options(
             if "metavar" in meta:
                 kwargs["metavar"] = meta["metavar"]
             shown = ""
+            if required and not require:
+                doc += " (required, on the command line or in --config)"
             if not required and default is not None and "(default" not in doc:
                 value = " ".join(map(str, default)) if isinstance(default, tuple) else default
                 shown = f" (default: {value})"
@@ -216,3 +225,82 @@ def from_args(cls: type, args: argparse.Namespace, dest_prefix: str = "", **give
                 value = tuple(value)
             values[f.name] = value
     return cls(**values)
+
+
+# --- config files ---------------------------------------------------------------------------
+MAX_CONFIG_BYTES = 1 << 20
+"""Largest run config file rlu reads (a run's config.json is a few kB)."""
+
+
+def _optional_shape(cls: type) -> Any:
+    """``rlu.files.shape_of(cls)`` with every field optional (a config file may give some)."""
+    from rlu.files import Record, shape_of
+
+    shape = shape_of(cls)
+    fields = {**shape.required, **shape.optional}
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        hint, _ = _scalar(hints[f.name])
+        if dataclasses.is_dataclass(hint):
+            fields[f.name] = _optional_shape(hint)
+    return Record({}, fields, extra=False)
+
+
+def read_config_file(path: str, cls: type) -> dict[str, Any]:
+    """A config file (JSON, or YAML by its .yaml / .yml name) holding some fields of dataclass
+    ``cls`` (nested dataclasses as objects), checked against their shapes; a run folder's
+    config.json (``{"train": {...}, ...}``) gives its ``train`` object. YAML is read with
+    PyYAML's safe loader and anchors / aliases are refused (their expansion is unbounded)."""
+    from pathlib import Path
+
+    from rlu.files import check_value, parse_json, read_bytes
+    from rlu.types import FormatError, install_hint
+
+    fix = "write it as JSON or YAML with the fields of `rlu train --help`"
+    raw = read_bytes(path, MAX_CONFIG_BYTES, fix)
+    if Path(path).suffix.lower() in (".yaml", ".yml"):
+        try:
+            import yaml
+        except ImportError:
+            raise FormatError(
+                f"{path}: reading YAML needs PyYAML: {install_hint('agents')}"
+            ) from None
+        try:
+            for event in yaml.parse(raw, Loader=yaml.SafeLoader):
+                if isinstance(event, yaml.AliasEvent):
+                    raise FormatError(f"{path}: YAML aliases (*name) are not read; {fix}")
+            data = yaml.safe_load(raw)
+        except yaml.YAMLError as e:
+            why = " ".join(str(e).split())[:200]
+            raise FormatError(f"{path}: not valid YAML ({why}); {fix}") from None
+        except RecursionError:
+            raise FormatError(f"{path}: YAML nested too deep; {fix}") from None
+    else:
+        data = parse_json(raw, str(path), fix)
+    if isinstance(data, dict) and "train" in data and "agent_config" in data:
+        data = data["train"]  # a run folder's config.json
+    return check_value(_optional_shape(cls), data, str(path), fix)
+
+
+def typed_dests(parser: argparse.ArgumentParser, argv: list[str]) -> set[str]:
+    """The ``dest`` of every option of ``parser`` that ``argv`` names (what the user typed; the
+    parser takes no abbreviations, so a typed option is one of its full names)."""
+    tokens = {t.split("=", 1)[0] for t in argv if t.startswith("--")}
+    return {a.dest for a in parser._actions if tokens & set(a.option_strings)}
+
+
+def flat_values(cls: type, data: dict[str, Any], dest_prefix: str = "") -> dict[str, Any]:
+    """A (partial) nested config dict as the option dests :func:`add_options` gives the same
+    fields (a nested dataclass's fields under ``dest_prefix + name + "."``)."""
+    hints = typing.get_type_hints(cls)
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(cls):
+        if f.name not in data:
+            continue
+        hint, _ = _scalar(hints[f.name])
+        if dataclasses.is_dataclass(hint):
+            out.update(flat_values(hint, data[f.name], f"{dest_prefix}{f.name}."))
+        else:
+            value = data[f.name]
+            out[dest_prefix + f.name] = list(value) if isinstance(value, tuple) else value
+    return out

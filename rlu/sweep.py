@@ -101,8 +101,14 @@ def agent_presets(agent: str, discrete: bool) -> tuple[str, ...]:
 
 
 def expand(config: SweepConfig, out: str | os.PathLike) -> list[RunSpec]:
-    """Every run of the sweep, in (task, agent, config, seed) order."""
+    """Every run of the sweep, in (task, agent, config, seed) order. A module path among the
+    agents (or the env factory) is imported here: the config came from code or the command
+    line, never from a file."""
     from rlu.data import open_dataset
+    from rlu.train import trust
+
+    for agent in config.agents:
+        trust(agent, config.run.env)
 
     specs = []
     for task in config.tasks:
@@ -198,15 +204,12 @@ def sweep(
     One process per sweep folder: a second ``sweep`` into the same ``out`` fails at once with
     "in use by PID N" while the first lives (its runs' folders are locked too)."""
     from rlu.locks import OutputLock
-    from rlu.train import trust
 
     out = Path(out)
     where = backend or Backend()
     config = dataclasses.replace(
         config, datasets={t: str(Path(p).resolve()) for t, p in config.datasets.items()}
     )
-    for agent in config.agents:  # a module path the caller named: trusted, checked up front
-        trust(agent, config.run.env)
     check_output(out, list(config.datasets.values()), runs.SWEEP_CONFIG, "sweep folder")
     with OutputLock(out, "sweep folder"):
         cfg_path = out / runs.SWEEP_CONFIG
@@ -220,13 +223,7 @@ def sweep(
         specs = expand(config, out)
         out.mkdir(parents=True, exist_ok=True)
         runs.write_json(cfg_path, config.to_json())
-        finished = _Finished(out, len(specs), progress)
-        todo = []
-        for spec in specs:
-            if (Path(spec.run_dir) / runs.RESULT).exists():
-                finished.add(run_one(spec, config), quiet=True)
-            else:
-                todo.append(spec)
+        todo = [s for s in specs if not (Path(s.run_dir) / runs.RESULT).exists()]
         if progress:
             print(f"rlu sweep: {out}", file=sys.stderr)
             for line in plan(config, specs):
@@ -236,20 +233,27 @@ def sweep(
                     f"  {len(specs) - len(todo)} already finished (skipped), {len(todo)} to run",
                     file=sys.stderr,
                 )
+        finished = _Finished(out, len(specs), progress, len(todo))
+        for spec in specs:
+            if spec not in todo:
+                finished.add(run_one(spec, config), quiet=True)
         check = None
         if where.kind == "ray":
 
             def check(ray: Any) -> None:
                 check_ray_gpus(ray, where.gpus_per_job, config.run.runtime.device)
 
-        run_jobs(
-            run_one,
-            [(spec, config) for spec in todo],
-            where,
-            on_result=lambda i, rec: finished.add(rec),
-            on_error=lambda i, e: finished.fail(todo[i], e),
-            ray_check=check,
-        )
+        try:
+            run_jobs(
+                run_one,
+                [(spec, config) for spec in todo],
+                where,
+                on_result=lambda i, rec: finished.add(rec),
+                on_error=lambda i, e: finished.fail(todo[i], e),
+                ray_check=check,
+            )
+        finally:
+            finished.bar.close(failed=bool(finished.failed))
         finished.check()
         return finished.records
 
@@ -267,20 +271,21 @@ class _Finished:
     one, so ``rlu report`` reads a sweep that is still running or was interrupted (its finished
     runs so far)."""
 
-    def __init__(self, out: Path, total: int, progress: bool):
+    def __init__(self, out: Path, total: int, progress: bool, todo: int):
+        from rlu.progress import Progress
+
         self.out, self.total, self.progress = out, total, progress
         self.records: list[dict[str, Any]] = []
         self.failed: list[str] = []
+        self.bar = Progress(todo, "sweep", "runs", quiet=not progress)
 
     def fail(self, spec: RunSpec, error: BaseException) -> None:
         """A run that raised: the others go on; ``check`` names it at the end."""
         why = (str(error).splitlines() or [""])[0]
         self.failed.append(f"{spec.run_dir}: {type(error).__name__}: {why}")
-        if self.progress:
-            print(
-                f"[failed] {spec.task} {spec.agent} {spec.config} seed {spec.seed}: {why}",
-                file=sys.stderr,
-            )
+        self.bar.note(f"[failed] {spec.task} {spec.agent} {spec.config} seed {spec.seed}: {why}")
+        self.bar.update(1)
+        self.bar.set_postfix(failed=len(self.failed))
 
     def check(self) -> None:
         if self.failed:
@@ -294,13 +299,13 @@ class _Finished:
         self.records.append(rec)
         self.records.sort(key=lambda r: (r["task"], r["agent"], r["config"], r["seed"]))
         runs.write_results(self.out, self.records)
-        if self.progress and not quiet:
+        if not quiet:
             score = "not evaluated" if rec["score"] is None else f"{rec['score']:.1f}"
-            print(
-                f"[{len(self.records)}/{self.total}] {rec['task']} {rec['agent']} {rec['config']} "
-                f"seed {rec['seed']}: {score}",
-                file=sys.stderr,
+            self.bar.note(
+                f"{rec['task']} {rec['agent']} {rec['config']} seed {rec['seed']}: "
+                f"{score} ({rec['preset']} preset, {rec['steps']:,} steps)"
             )
+            self.bar.update(1)
 
 
 def results_table(records: Sequence[Mapping[str, Any]]) -> str:

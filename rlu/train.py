@@ -28,7 +28,7 @@ import ast
 import dataclasses
 import json
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -154,9 +154,10 @@ def train(
     out: str | os.PathLike,
     resume: bool = False,
     progress: bool = False,
-    tensorboard: bool = False,
+    loggers: Sequence[str] = (),
 ) -> dict[str, Any]:
     """Train ``config.agent`` on ``config.dataset``; returns the content of ``result.json``.
+    ``loggers``: where the metrics go besides the run's own logs (``rlu.loggers.LOGGERS``).
 
     One process per run folder: a second ``train`` into the same ``out`` fails with "in use by
     PID N" (:class:`rlu.locks.OutputLock`) while the first lives.
@@ -165,11 +166,15 @@ def train(
 
     trust(config.agent, config.run.env)
     with OutputLock(Path(out), "run folder"):
-        return _train(config, out, resume, progress, tensorboard)
+        return _train(config, out, resume, progress, tuple(loggers))
 
 
 def _train(
-    config: TrainConfig, out: str | os.PathLike, resume: bool, progress: bool, tensorboard: bool
+    config: TrainConfig,
+    out: str | os.PathLike,
+    resume: bool,
+    progress: bool,
+    logger_names: tuple[str, ...],
 ) -> dict[str, Any]:
     import torch
 
@@ -179,6 +184,7 @@ def _train(
     from rlu.data.provenance import data_source
     from rlu.data.torch import DeviceSampler, prefetched
     from rlu.evaluation.rollout import evaluate, task_env_factory
+    from rlu.progress import Progress
 
     run = Path(out)
     settings = config.run
@@ -189,7 +195,7 @@ def _train(
     discrete = isinstance(action_spec, DiscreteSpec)
     agent_cfg = agent_config(config.agent, discrete, settings.preset, config.overrides)
     env_kwargs = env_settings(config.task, ds, settings.challenge)
-    if settings.env is None and settings.eval_every != -1:
+    if settings.env is None:
         from rlu.tasks import check_data_matches
 
         # an unknown task, or data of another task, fails here: before the run folder is touched
@@ -238,6 +244,10 @@ def _train(
     steps = agent.num_steps if settings.steps is None else int(settings.steps)
     total = agent.pretrain_steps + steps  # a pre-training phase comes on top of the budget
 
+    if agent.batch_spec.statistics:  # computed from the whole dataset, once, before any update
+        from rlu.data.statistics import dataset_statistics
+
+        agent.set_statistics(dataset_statistics(ds, agent.batch_spec.statistics))
     start = 0
     if resume and ckpts:
         state = load_state(ckpts[-1], ("agent", "sampler", "torch_rng", "numpy_rng", "step"))
@@ -248,17 +258,11 @@ def _train(
     eval_period = settings.eval_period(total)
     if eval_period:
         env_fn = task_env_factory(config.task, settings.env, **env_kwargs)
-    summary_writer: Any = None
-    if tensorboard:
-        try:
-            from torch.utils.tensorboard import SummaryWriter
+    from rlu.loggers import LOGGERS
 
-            summary_writer = SummaryWriter
-        except ImportError:
-            from rlu.types import install_hint
-
-            hint = install_hint("tensorboard")
-            raise RluError(f"TensorBoard logging needs tensorboard: {hint}") from None
+    unknown = [n for n in logger_names if n not in LOGGERS]
+    if unknown:
+        raise RluError(f"logger {unknown[0]!r}; loggers are {', '.join(LOGGERS)}")
 
     # everything that can fail before the first step has run: only now is the run folder written
     run.mkdir(parents=True, exist_ok=True)
@@ -268,19 +272,40 @@ def _train(
     metrics_path, eval_path = run / runs.METRICS, run / runs.EVAL
     for path in (metrics_path, eval_path):  # drop what was logged after the checkpoint
         runs.cut_log(path, start)
-    writer = summary_writer(str(run / "tensorboard")) if summary_writer is not None else None
+    from rlu.loggers import make_loggers
+
+    loggers = make_loggers(logger_names, run, start, resolved)
 
     if runtime.compile:
         compile_modules(agent.modules)
     policy = greedy_policy(agent)
-    last_eval: dict[str, Any] | None = None
+
+    def evaluate_at(step: int) -> dict[str, Any]:
+        result = evaluate(
+            policy,
+            env_fn,
+            settings.eval_episodes,
+            seed=derive_seed(config.seed, step),  # stream `step` of the run seed
+            num_envs=settings.eval_envs,
+            max_steps=settings.eval_max_steps,
+        )
+        record = {"step": step, **result.to_json()}
+        elog.write(json.dumps(record) + "\n")
+        elog.flush()
+        for logger in loggers:
+            logger.log("eval", record)
+        bar.set_postfix(eval=f"{result.mean:.1f}")
+        return record
+
     with (
-        _Progress(total, start, progress) as bar,
+        Progress(total, f"train {config.agent}", "steps", quiet=not progress, initial=start) as bar,
         runs.append_log(metrics_path) as mlog,
         runs.append_log(eval_path) as elog,
         numerics(runtime) as update_context,
         prefetched(sampler, runtime.device, runtime.prefetch) as batches,
     ):
+        if eval_period and settings.eval_at_start and start == 0:
+            evaluate_at(0)
         for step in range(start + 1, total + 1):
             with update_context():
                 metrics = agent.update(batches.sample())
@@ -288,24 +313,10 @@ def _train(
                 rec = {"step": step, **{k: float(v) for k, v in metrics.items()}}
                 mlog.write(json.dumps(rec) + "\n")
                 mlog.flush()
-                if writer is not None:
-                    for k, v in metrics.items():
-                        writer.add_scalar(k, float(v), step)
+                for logger in loggers:
+                    logger.log("metrics", rec)
             if eval_period and (step % eval_period == 0 or step == total):
-                result = evaluate(
-                    policy,
-                    env_fn,
-                    settings.eval_episodes,
-                    seed=derive_seed(config.seed, step),  # stream `step` of the run seed
-                    num_envs=settings.eval_envs,
-                    max_steps=settings.eval_max_steps,
-                )
-                last_eval = {"step": step, **result.to_json()}
-                elog.write(json.dumps(last_eval) + "\n")
-                elog.flush()
-                if writer is not None:
-                    writer.add_scalar("eval/return", result.mean, step)
-                bar.note(f"eval {result.mean:.1f}")
+                evaluate_at(step)
             if step % settings.checkpoint_every == 0 or step == total:
                 alg, keys, pos, has_gauss, cached = np.random.get_state()
                 state = {
@@ -317,8 +328,8 @@ def _train(
                 }
                 runs.save_checkpoint(run, step, state, settings.keep_checkpoints)
             bar.update(1)
-    if writer is not None:
-        writer.close()
+    for logger in loggers:
+        logger.close()
     evals = runs.read_log(eval_path, total)
     result = {
         "task": config.task,
@@ -335,38 +346,6 @@ def _train(
     }
     runs.write_json(run / runs.RESULT, result)
     return result
-
-
-class _Progress:
-    """A one-line progress bar on stderr (only when it is a terminal)."""
-
-    def __init__(self, total: int, start: int, enabled: bool):
-        import sys
-        import time
-
-        self.total, self.step, self.start, self.text = total, start, start, ""
-        self.enabled = enabled and sys.stderr.isatty()
-        self.t0, self._time, self._err = time.monotonic(), time.monotonic, sys.stderr
-
-    def __enter__(self) -> _Progress:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        if self.enabled and self.step > self.start:
-            self._err.write("\n")
-
-    def note(self, text: str) -> None:
-        self.text = text
-
-    def update(self, n: int) -> None:
-        self.step += n
-        if not self.enabled or (self.step % 50 and self.step != self.total):
-            return
-        frac = self.step / max(self.total, 1)
-        rate = (self.step - self.start) / max(self._time() - self.t0, 1e-9)
-        bar = "#" * int(30 * frac)
-        self._err.write(f"\r[{bar:<30}] {self.step}/{self.total} {rate:6.1f} steps/s {self.text}")
-        self._err.flush()
 
 
 def greedy_policy(agent: Any) -> Any:

@@ -201,9 +201,9 @@ def _run_ray(fn, jobs, backend: Backend, on_result, on_error, ray_check) -> None
         if backend.address:
             ray.init(address=backend.address, log_to_driver=False)
         else:
-            ray.init(
-                num_cpus=max(1, os.cpu_count() or 1), include_dashboard=False, log_to_driver=False
-            )
+            # "local": a new instance of our own, never a cluster found on this machine
+            ray.init(address="local", num_cpus=max(1, os.cpu_count() or 1),
+                     include_dashboard=False, log_to_driver=False)  # fmt: skip
         started = True
     try:
         if ray_check is not None:

@@ -211,3 +211,17 @@ def make_agent(
     if config is None:
         config = make_config(name, discrete, preset, **overrides)
     return module.Agent(observation_spec, action_spec, config, seed=seed, device=device)
+
+
+def paper_steps(name: str, discrete: bool) -> int | None:
+    """The learner budget of agent ``name``'s paper preset: what a run must reach for its score
+    to stand beside the paper's (None: no such agent, no paper preset, or torch missing, so
+    the agent module cannot be read). Continuous configs hold ``num_steps``; discrete ones
+    their shared Atari settings' (``config.atari.num_steps``)."""
+    try:
+        config = agent_module(name, discrete).PRESETS.get("paper")
+    except (RluError, ImportError):
+        return None
+    if config is None:
+        return None
+    return int(config.atari.num_steps if discrete else config.num_steps)

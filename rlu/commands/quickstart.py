@@ -64,6 +64,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="N",
         help="torch threads per agent (default: 1)",
     )
+    p.add_argument("--quiet", action="store_true", help="no progress of the runs (stderr)")
     add_backend_options(p)
     add_device_option(p)
     p.set_defaults(func=_run)
@@ -175,7 +176,7 @@ def _run(args: argparse.Namespace) -> int:
         f"  training {', '.join(args.agents)} ({args.steps:,} steps each, small preset) in "
         f"{backend.workers} process(es)"
     )
-    records = sweep(config, out / "sweep", backend, progress=True)
+    records = sweep(config, out / "sweep", backend, progress=not args.quiet)
     by_agent = {r["agent"]: r for r in records}
     for agent in args.agents:
         r = by_agent[agent]

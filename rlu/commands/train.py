@@ -14,6 +14,8 @@ import argparse
 import json
 from typing import Any
 
+from rlu.commands._video import add_video_options, check_video_options, write_run_videos
+from rlu.loggers import LOGGERS
 from rlu.settings import EVAL_EVERY_MIN, add_options, checked, from_args
 
 __all__ = ["EVAL_EVERY_MIN", "add_device_option", "add_backend_options", "register"]
@@ -59,12 +61,38 @@ def register(sub: argparse._SubParsersAction) -> None:
     from rlu.sweep import SweepConfig
     from rlu.train import TrainConfig
 
-    p = sub.add_parser("train", help="train an agent on a dataset, evaluating in the env")
-    add_options(p, TrainConfig, only=("task", "agent", "dataset", "seed"))
+    p = sub.add_parser(
+        "train",
+        help="train an agent on a dataset, evaluating in the env",
+        allow_abbrev=False,  # a config file's values yield to the options typed in full
+    )
+    p.add_argument(
+        "--config",
+        metavar="FILE",
+        help="run config as JSON or YAML (the fields of TrainConfig: task, agent, dataset, seed, "
+        "overrides, run: {steps, preset, ...}), or a run folder's config.json; options typed "
+        "here override it",
+    )
+    add_options(p, TrainConfig, only=("task", "agent", "dataset", "seed"), require=False)
     p.add_argument("--out", required=True, help="run folder (created; an existing one: --resume)")
     p.add_argument("--resume", action="store_true", help="continue from the last checkpoint")
-    p.add_argument("--tensorboard", action="store_true", help="also log to OUT/tensorboard")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--log-to",
+        nargs="+",
+        default=[],
+        choices=list(LOGGERS),
+        metavar="LOGGER",
+        help="also log metrics to: csv (OUT/metrics.csv, OUT/eval.csv), tensorboard "
+        "(OUT/tensorboard; the tensorboard extra), wandb (the wandb extra; WANDB_MODE=offline "
+        "writes under OUT/wandb)",
+    )
+    p.add_argument(
+        "--quiet",
+        "--no-progress",
+        dest="no_progress",
+        action="store_true",
+        help="no progress (a bar on a terminal, else a plain line every 10 s, on stderr)",
+    )
     add_options(p, RunSettings)
     p.add_argument(
         "overrides",
@@ -72,7 +100,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="FIELD=VALUE",
         help="agent config overrides, e.g. learning_rate=3e-4 or atari.batch_size=64",
     )
-    p.set_defaults(func=_train)
+    p.set_defaults(func=_train, parser=p)
 
     p = sub.add_parser("evaluate", help="roll out a trained run's greedy policy in its env")
     p.add_argument("run", metavar="RUN_OR_CHECKPOINT")
@@ -123,6 +151,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     add_device_option(p)
+    add_video_options(p)
     p.set_defaults(func=_evaluate)
 
     p = sub.add_parser(
@@ -192,26 +221,56 @@ def _train(args: argparse.Namespace) -> int:
 
     from rlu.settings import RunSettings
     from rlu.train import TrainConfig, parse_overrides, train
+    from rlu.types import RluError
 
-    config = from_args(
-        TrainConfig,
-        args,
-        overrides=parse_overrides(args.overrides),
-        run=from_args(RunSettings, args),
-    )
+    overrides = parse_overrides(args.overrides)
+    if args.config is not None:
+        overrides = {**_from_config_file(args), **overrides}
+    for name in ("task", "agent", "dataset"):
+        if getattr(args, name) is None:
+            raise RluError(f"--{name} is missing: give it on the command line or in --config")
+    config = from_args(TrainConfig, args, overrides=overrides, run=from_args(RunSettings, args))
     print(f"rlu train: {args.agent} on {config.run.runtime.resolve().device}", file=sys.stderr)
     result = train(
         config,
         args.out,
         resume=args.resume,
         progress=not args.no_progress,
-        tensorboard=args.tensorboard,
+        loggers=args.log_to,
     )
     print(
         f"{args.out}: {result['steps']} steps ({result['preset']} preset), final evaluation "
         f"return {_score(result['score'])} over {result['eval_episodes']} episodes"
     )
     return 0
+
+
+def _from_config_file(args: argparse.Namespace) -> dict[str, Any]:
+    """Fill the options the user did not type from ``--config``; returns its overrides. A module
+    path the file names (agent, env factory) is refused unless typed too: names in files are
+    never imported."""
+    from rlu.settings import RunSettings, flat_values, read_config_file, typed_dests
+    from rlu.train import TrainConfig
+
+    data = read_config_file(args.config, TrainConfig)
+    typed = typed_dests(args.parser, args.argv)
+    values = flat_values(TrainConfig, {k: v for k, v in data.items() if k != "run"})
+    values.pop("overrides", None)
+    values.update(flat_values(RunSettings, data.get("run", {})))
+    for dest, value in values.items():
+        if dest not in typed:
+            setattr(args, dest, value)
+    from rlu.types import RluError
+
+    for dest, what in (("agent", "an agent module"), ("env", "an env factory")):
+        value = getattr(args, dest)
+        named = value is not None and (dest == "env" or "." in value)
+        if dest not in typed and named:
+            raise RluError(
+                f"{args.config}: field {dest!r} names {what} ({value!r}), and a module named in "
+                f"a file is never imported; if you trust it, type it: --{dest} {value}"
+            )
+    return dict(data.get("overrides", {}))
 
 
 def _score(value: float | None) -> str:
@@ -229,6 +288,8 @@ def _evaluate(args: argparse.Namespace) -> int:
         from rlu.evaluation.rollout import trust_env_factory
 
         trust_env_factory(args.env)
+    if args.video is not None:
+        check_video_options(args)
     import torch
 
     torch.set_num_threads(args.threads)
@@ -250,6 +311,8 @@ def _evaluate(args: argparse.Namespace) -> int:
             f"{len(res.returns)} episodes: mean return {res.mean:.1f}, returns "
             + ", ".join(f"{r:.1f}" for r in res.returns)
         )
+    if args.video is not None:
+        write_run_videos(args)
     return 0
 
 
@@ -301,7 +364,9 @@ def _report(args: argparse.Namespace) -> int:
 
         for sweep_dir in args.sweep_dirs:
             fqe_selection(sweep_dir, FQEConfig(steps=args.fqe_steps), args.device)
-    paths = write_report(args.sweep_dirs, args.out)
+    from rlu.agents import paper_steps
+
+    paths = write_report(args.sweep_dirs, args.out, paper_steps=paper_steps)
     for p in paths:
         print(f"wrote {p}")
     return 0

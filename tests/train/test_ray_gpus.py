@@ -21,7 +21,9 @@ pytest.importorskip("torch")
 def one_gpu_ray():
     if ray.is_initialized():
         pytest.skip("a Ray instance is already running in this process")
-    ray.init(num_cpus=4, num_gpus=1, include_dashboard=False, log_to_driver=False)
+    # address="local": a new instance, even where a Ray cluster already runs on this machine
+    ray.init(address="local", num_cpus=4, num_gpus=1, include_dashboard=False,
+             log_to_driver=False)  # fmt: skip
     yield ray
     ray.shutdown()
 

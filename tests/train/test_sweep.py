@@ -137,3 +137,34 @@ def test_a_failing_run_leaves_the_others_running_and_is_named_at_the_end(
     assert f"{spec.run_dir}: LockBusy" in str(err.value) and "run the sweep again" in str(err.value)
     kept = load_results(again)  # the 15 others finished and were recorded
     assert len(kept) == 15 and spec.run_dir not in {r["run"] for r in kept}
+
+
+def test_a_sweep_made_with_relative_paths_reports_from_anywhere(pendulum_datasets, tmp_path):
+    """sweep.json keeps its datasets resolved and results.jsonl its runs relative to the sweep
+    folder, so the sweep reports (and moves) independent of the folder it was started in."""
+    pytest.importorskip("matplotlib")
+    import os
+    import shutil
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[2]
+    work = tmp_path / "work"
+    shutil.copytree(Path(pendulum_datasets["test/pendulum"]), work / "data")
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    args = [sys.executable, "-m", "rlu", "sweep", "--tasks", "test/pendulum",
+            "--agents", "tests.train.fake_agent", "--grid", "learning_rate=0.01",
+            "--dataset", "test/pendulum=data", "--steps", "3", "--eval-episodes", "1",
+            "--eval-max-steps", "5", "--env", "tests.train.pendulum:make_env", "--workers", "1",
+            "--out", "sweep"]  # fmt: skip
+    res = subprocess.run(args, cwd=work, env=env, capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    saved = json.loads((work / "sweep" / "sweep.json").read_text())
+    assert saved["datasets"] == {"test/pendulum": str((work / "data").resolve())}
+    line = json.loads((work / "sweep" / "results.jsonl").read_text().splitlines()[0])
+    assert not Path(line["run"]).is_absolute()
+    shutil.move(work / "sweep", tmp_path / "moved")  # the sweep folder moved elsewhere
+    res = subprocess.run([sys.executable, "-m", "rlu", "report", str(tmp_path / "moved")],
+                         cwd=root, env=env, capture_output=True, text=True)  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    assert load_results(tmp_path / "moved")[0]["run"].startswith(str(tmp_path / "moved"))

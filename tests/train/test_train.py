@@ -177,3 +177,24 @@ def test_rwrl_easy_shard_trains_and_evaluates_in_its_challenge(tmp_path):
     with pytest.raises(RluError, match="drop --challenge"):
         train(dataclasses.replace(config, run=dataclasses.replace(config.run, challenge="none")),
               tmp_path / "run_none")  # fmt: skip
+
+
+def test_eval_at_start_adds_step_0_and_changes_nothing_else(pendulum_datasets, tmp_path):
+    """The option added to prove the run-settings value: one field in RunSettings and its use in
+    the loop; its flag and help come from the field."""
+    from rlu.cli import build_parser
+    from rlu.settings import RunSettings, from_args
+
+    data = pendulum_datasets["test/pendulum"]
+    train(_config(data), tmp_path / "plain")
+    train(_config(data, eval_at_start=True), tmp_path / "start")
+    plain = (tmp_path / "plain" / "eval.jsonl").read_text().splitlines()
+    start = (tmp_path / "start" / "eval.jsonl").read_text().splitlines()
+    assert json.loads(start[0])["step"] == 0 and start[1:] == plain
+    for name in ("metrics.jsonl", "result.json"):
+        assert (tmp_path / "start" / name).read_text() == (tmp_path / "plain" / name).read_text()
+    parser = build_parser()
+    args = ["train", "--task", "t", "--agent", "a", "--dataset", "d", "--out", "o"]
+    assert from_args(RunSettings, parser.parse_args([*args, "--eval-at-start"])).eval_at_start
+    help_text = parser._subparsers._group_actions[0].choices["train"].format_help()
+    assert "--eval-at-start" in help_text and "untrained agent" in help_text
