@@ -54,6 +54,7 @@ from typing import Any
 import numpy as np
 
 from rlu.evaluation.protocols import Selection, offline_selection_naive, online_selection
+from rlu.evaluation.reference import denominator_flags, random_spread
 from rlu.evaluation.scores import (
     domain_statistic,
     load_reference_scores,
@@ -551,6 +552,7 @@ def build_report(
         dom: dict[str, Any] = {"agents": agents, "tasks": tasks, "normalised": norm is not None}
         if norm is not None:
             dom["reference_scores"] = refs
+            dom["reference_flags"] = denominator_flags(refs, random_spread())
         dom["panels"] = []
         dom["absent"] = {}
         for name, panel in PANELS.items():

@@ -264,7 +264,10 @@ def atari_per_game_figure(dom: Mapping[str, Any], plt: Any) -> Any:
         ax.set_ylim(_symlog_pad(min(seen)), _symlog_pad(max(seen)))
         ax.yaxis.set_major_formatter(plt.FuncFormatter(lambda v, _: f"{v:g}"))
         labels = [
-            b["task"].split("/", 1)[-1] + (" *" if b["selection"] == "online" else "") for b in bars
+            b["task"].split("/", 1)[-1]
+            + (" *" if b["selection"] == "online" else "")
+            + (" †" if dom.get("reference_flags", {}).get(b["task"]) else "")
+            for b in bars
         ]
         ax.set_xticks(x, labels, rotation=60, fontsize=7, ha="right")
         ax.set_xlim(-0.75, max(len(bars), 3) - 0.25)
@@ -406,6 +409,16 @@ def _skipped(skipped: Mapping[str, str]) -> str:
     return "".join(f" Left out: {why}." for why in skipped.values())
 
 
+def _small_denominators(dom: Mapping[str, Any], tasks: Sequence[str]) -> str:
+    """The games of ``tasks`` whose normaliser is small (``rlu.evaluation.reference``), marked †."""
+    from rlu.evaluation.reference import SPREAD_K
+
+    games = [t.split("/", 1)[-1] for t in tasks if dom.get("reference_flags", {}).get(t)]
+    return (f" † small denominator (best - random < {SPREAD_K:g} x the random returns' std): "
+            f"{', '.join(games)}; their normalised scores mostly measure random play's spread."
+            if games else "")  # fmt: skip
+
+
 def render_aggregates(dom: Mapping[str, Any], domain: str, figures: Figures | None) -> list[Block]:
     agg = dom["aggregates"]
     stat = agg["statistic"]
@@ -533,6 +546,7 @@ def render_atari_median(
         + f". A game missing from the sweep is left out. Note: {panel['note']}."
         + "".join(f" {h}: left out, {why}." for h, why in panel["missing"].items())
         + _skipped(panel.get("offline", {}).get("skipped", {}))
+        + _small_denominators(dom, dom["tasks"])
     )
     head = ("selection", "agent", "games", "median", "[25, 75]", "paper (table), same games",
             "paper (table), all games")  # fmt: skip
@@ -556,7 +570,8 @@ def render_atari_per_game(
     for task in dom["tasks"]:
         if not any(task in by[a] for a in agents):
             continue
-        cells = [Cell(task, numeric=False), Cell(task_selection(task), numeric=False)]
+        mark = " †" if dom.get("reference_flags", {}).get(task) else ""
+        cells = [Cell(task + mark, numeric=False), Cell(task_selection(task), numeric=False)]
         for a in agents:
             b = by[a].get(task)
             cells += [
@@ -573,6 +588,7 @@ def render_atari_per_game(
         "protocol; in bold an improvement. Note: the paper prints this figure without numbers; "
         "'paper' is its per-game appendix table normalised with the reference scores used here."
         + _skipped(panel["skipped"])
+        + _small_denominators(dom, dom["tasks"])
     )
     blocks: list[Block] = [Text(text), Table(tuple(head), tuple(rows))]
     if figures is not None:
