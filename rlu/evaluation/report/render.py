@@ -276,6 +276,8 @@ def atari_per_game_figure(dom: Mapping[str, Any], plt: Any) -> Any:
         ax.set_title(f"{_short(a)}", fontsize=9)
     title = "Atari: per-game improvement over the best behaviour snapshot (normalised score - 100)"
     note = "* tuning game (online policy selection); others held-out (naive offline selection)"
+    if any(dom.get("reference_flags", {}).values()):
+        note += "; † small denominator (best - random under 2 random stds)"
     fig.suptitle(_wrap(title, width, 10) + "\n" + _wrap(note, width, 8), fontsize=10)
     _legend_below(fig, list(axes[:, 0]))
     return fig
