@@ -51,8 +51,9 @@ def runs_of(records: list[dict], agent: str = "DQN") -> list[list[float]]:
 def provenance(commit: str, date: str) -> dict[str, str]:
     return {
         "source": f"Dopamine's published DQN baseline training curves: repository {REPO_URL}, "
-        f"commit {commit} ({date}), files {PATH} (one per game; agent 'DQN'). The same DQN "
-        "records were at baselines/data/<game>.json from 2018 until commit 8842298 (2021).",
+        f"commit {commit} ({date}), files {PATH} (one per game; agent 'DQN'). Until commit "
+        "8842298 (2021) the files were baselines/data/<game>.json, with the same DQN records "
+        "(equal at commit 7ec9c15).",
         "layout": "Each file lists, per agent, 5 runs x 199 training iterations (0-198) of "
         "{Agent, Iteration, Value}, the runs concatenated one after the other (Iteration "
         "restarts at 0 for the next run).",
@@ -62,7 +63,8 @@ def provenance(commit: str, date: str) -> dict[str, str]:
         "policy that was collecting data at that point, what a dataset checkpoint holds.",
         "agent": "Dopamine DQN with sticky actions (repeat_action_probability 0.25), "
         "dopamine/agents/dqn/configs/dqn.gin (now dopamine/tf/agents/dqn/configs/dqn.gin): the "
-        "configuration of batch_rl/baselines/configs/dqn.gin that logged the DQN Replay Dataset, "
+        "configuration of batch_rl/baselines/configs/dqn.gin (google-research/batch_rl, commit "
+        "8d967cc: the same values) that logged the DQN Replay Dataset, "
         "which RL Unplugged's Atari data is (epsilon_train 0.01, epsilon decay 250k steps, "
         "min replay 20k, target update 8k steps, centred RMSProp lr 2.5e-4, 200 iterations of "
         "250k agent steps, episodes capped at 27k agent steps, 4-frame repeat).",

@@ -78,9 +78,18 @@ def main() -> int:
         cells = " | ".join(f"{m[a]['online']:.1f} / {m[a]['offline']:.1f}" for a in AGENTS)
         print(f"| {combine} | {cells} |")
     print()
+    rnd, best = references(rdoc, bdoc)
+    keep = [g for g in rnd if not reference.small_denominator(
+        rnd[g], rdoc["scores"][f"atari/{g}"]["std"], best[g])]  # fmt: skip
+    m = reference.paper_medians(load_paper_results()["atari"], rnd, best,
+                                [g for g in ATARI_ONLINE if g in keep],
+                                [g for g in ATARI_OFFLINE if g in keep])  # fmt: skip
+    print("new references, flagged games left out: " + "; ".join(
+        f"{a} {m[a]['online']:.1f} / {m[a]['offline']:.1f}" for a in AGENTS))  # fmt: skip
+    print()
     print(
         "| game | split | random (n) | std | old random (5) | best (mean of 5 runs) | runs' "
-        "bests, min-max | old best (run 1) | best - random | separation | ref. SE (pts) | "
+        "bests, min to max | old best (run 1) | best - random | separation | ref. SE (pts) | "
         "flag |"
     )
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
@@ -93,7 +102,7 @@ def main() -> int:
         o_b = obdoc["scores"][t]["mean"] if old else float("nan")
         split = "online" if g in ATARI_ONLINE else "offline"
         print(f"| {g} | {split} | {r['mean']:.1f} ({r['episodes']}) | {r['std']:.1f} | "
-              f"{o_r:.1f} | {b['mean']:.1f} | {min(runs):.1f}-{max(runs):.1f} | {o_b:.1f} | "
+              f"{o_r:.1f} | {b['mean']:.1f} | {min(runs):.1f} to {max(runs):.1f} | {o_b:.1f} | "
               f"{chk['denominator']:.1f} | {chk['separation']:.2f} | "
               f"{chk['reference_se']:.1f} | {'†' if chk['flagged'] else ''} |")  # fmt: skip
     cost = [rdoc["scores"][f"atari/{g}"] for g in ATARI_ONLINE + ATARI_OFFLINE]

@@ -11,7 +11,7 @@ File layout::
     {"format": "rlu.random_scores/1",
      "provenance": {"date", "code_version", "seed", "episodes", "settings", "packages", ...,
                     "runs": [{"date", "code_version", "episodes", "seed", "workers",
-                              "tasks", "cpu_seconds", "steps"}, ...]},
+                              "tasks", "cpu_seconds", "wall_seconds", "steps"}, ...]},
      "scores": {"atari/Pong": {"mean", "std", "episodes", "returns", "lengths", "challenge",
                                "settings", "seed", "date", "code_version", "cpu_seconds",
                                "steps"},
@@ -197,15 +197,18 @@ def measure(
         "workers": workers,
         "tasks": [],
         "cpu_seconds": 0.0,
+        "wall_seconds": 0.0,
         "steps": 0,
     }
     doc["provenance"].setdefault("runs", []).append(run)
+    start = time.monotonic()
 
     def done(key: str, entry: dict[str, Any]) -> None:
         doc["scores"][key] = entry
         run["tasks"].append(key)
         run["cpu_seconds"] = round(run["cpu_seconds"] + entry["cpu_seconds"], 2)
         run["steps"] += entry["steps"]
+        run["wall_seconds"] = round(time.monotonic() - start, 1)
         if progress is not None:
             progress(key, entry)
 
