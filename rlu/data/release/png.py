@@ -125,11 +125,6 @@ def decode_png(
     return np.asarray(im)
 
 
-def decode_pngs(frames: list[bytes], channels: int | None = None) -> np.ndarray:
-    """Several PNGs of one size -> stacked on axis 0."""
-    return np.stack([decode_png(f, channels) for f in frames])
-
-
 def _chunk(kind: bytes, body: bytes) -> bytes:
     return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
 
