@@ -6,6 +6,8 @@ from __future__ import annotations
 import argparse
 import os
 
+from rlu.settings import checked
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("envs", help="environment tools")
@@ -18,11 +20,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--task", action="append", help="a task id to measure (repeatable)")
     r.add_argument(
         "--episodes",
-        type=int,
+        type=checked(int, {"min": 1}, "--episodes"),
         default=100,
         help="episodes per task (default 100, what the shipped Atari scores hold)",
     )
-    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--seed", type=checked(int, {"min": 0}, "--seed"), default=0)
     r.add_argument(
         "--atari-max-steps",
         type=int,
@@ -43,7 +45,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     r.add_argument(
         "--workers",
-        type=int,
+        type=checked(int, {"min": 1}, "--workers"),
         default=1,
         help="processes measuring tasks in parallel (default 1); the numbers do not depend on it",
     )
