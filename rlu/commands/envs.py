@@ -97,8 +97,6 @@ def _random_scores(args: argparse.Namespace) -> int:
             settings["camera"] = bool(args.camera)
         for challenge in ("none", "easy") if t.domain == "rwrl" else ("none",):
             jobs.append((t.id, challenge, settings))
-    if args.workers < 1:
-        raise RluError("--workers must be >= 1")
     existing = scores.load(args.out) if args.resume and os.path.exists(args.out) else None
     kept = []
     if existing is not None:

@@ -102,4 +102,8 @@ def test_workers_and_resume_by_episode_count(tmp_path, capsys):
     assert "[1/1] atari/Breakout: mean" in capsys.readouterr().out
     assert main([*argv, str(out), "--resume"]) == 0
     assert "keeping 1 of 1 tasks" in capsys.readouterr().out
-    assert main([*argv, str(out), "--workers", "0"]) == 2
+    with pytest.raises(SystemExit) as stop:  # refused by the parser
+        main([*argv, str(out), "--workers", "0"])
+    assert stop.value.code == 2 and "--workers: 0 is out of range" in capsys.readouterr().err
+    with pytest.raises(RluError, match="workers=0"):
+        scores.measure(jobs, 1, workers=0)
