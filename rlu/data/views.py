@@ -33,9 +33,8 @@ from rlu.types import ArraySpec, BatchSpec, RluError, Sequence, Transition
 
 def _take(col, rows: np.ndarray) -> np.ndarray:
     """``col[rows]`` along the first axis (``rows`` of any shape). ``np.take`` gathers the same
-    rows as fancy indexing, faster: a 256-transition SARSA batch of dict features samples in
-    71 us instead of 111 (n-step 5: 138 vs 201, windows of 40: 249 vs 303; stacked frames, where
-    the copy dominates, alike)."""
+    rows as fancy indexing, faster on every batch kind but stacked frames, where the copy
+    dominates (bench/sampling.py; the figures: bench/README.md, "Design choices")."""
     if isinstance(col, ZlibColumn):
         return col.take(rows)
     return np.take(col, rows, axis=0)
@@ -107,7 +106,8 @@ class _Index:
         self.stride = stride
         self.size = int(self.cum[-1])
         # Guide table: the segment holding id b * width, so that locating an id is one gather
-        # plus a few vectorised steps forward instead of a binary search (4x faster on 1M steps).
+        # plus a few vectorised steps forward instead of a binary search (faster on large
+        # datasets: bench/README.md, "Design choices").
         self.width = max(1, self.size // max(1, len(self.counts)))
         buckets = np.arange(0, max(self.size, 1), self.width)
         self.guide = np.searchsorted(self.cum, buckets, side="right") - 1
