@@ -27,8 +27,6 @@ and state; one generation at a time owns it (:func:`claim_work`: a second one in
 from __future__ import annotations
 
 import contextlib
-import sys
-import time
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -259,13 +257,16 @@ def merge_runs(
 
 
 class Progress:
-    """A one-line progress bar on stderr (one line per run when stderr is not a terminal)."""
+    """Generation's progress on the one display (``rlu.progress``): episodes played over every
+    run, with the latest run, episode and return after the counts."""
 
     def __init__(self, total: int, label: str, enabled: bool = True):
-        self.total, self.label, self.enabled = total, label, enabled
-        self.done, self.t0 = 0, time.perf_counter()
+        from rlu.progress import Progress as Display
+
         self.latest: dict[int, int] = {}  # run -> its last episode number (1-based)
-        self.tty = sys.stderr.isatty()
+        self.done = 0
+        # a budget in env steps has no episode count: total 0 shows counts without a bar
+        self.display = Display(total or None, label, "episodes", quiet=not enabled)
 
     def update(self, run: int, episode: int, seg: Segment) -> None:
         self.report(run, episode, float(seg.metadata["episode_return"]))
@@ -273,23 +274,10 @@ class Progress:
     def report(self, run: int, episode: int, episode_return: float) -> None:
         # episodes played, counted from each run's episode number: a resumed run's first report
         # counts the episodes it played before the interruption too
-        first = run not in self.latest  # this run's first episode here, fresh or resumed
         self.latest[run] = episode
         self.done = sum(self.latest.values())
-        if not self.enabled:
-            return
-        frac = self.done / self.total if self.total else 0.0  # 0: a budget in env steps
-        bar = "#" * int(30 * min(1.0, frac))
-        el = time.perf_counter() - self.t0
-        msg = (
-            f"{self.label} [{bar:<30}] {self.done}/{self.total or '?'} episodes  run {run} "
-            f"ep {episode} return {episode_return:8.1f}  {el:6.0f}s"
-        )
-        if self.tty:
-            print("\r" + msg, end="", file=sys.stderr, flush=True)
-        elif first or self.done == self.total or self.done % 10 == 0:
-            print(msg, file=sys.stderr, flush=True)
+        self.display.set_postfix(run=run, episode=episode, ret=f"{episode_return:.1f}")
+        self.display.update_to(self.done)
 
     def close(self) -> None:
-        if self.enabled and self.tty:
-            print(file=sys.stderr)
+        self.display.close()

@@ -53,19 +53,22 @@ def test_curve_summary_by_hand():
 
 
 def test_progress_counts_a_resumed_runs_earlier_episodes(capsys):
-    """A resumed generate's bar starts where the runs stopped, not at 0."""
+    """A resumed generate's count starts where the runs stopped, not at 0 (on the one display,
+    rlu.progress: a non-terminal stderr gets its final line at the end)."""
     from rlu.generate.common import Progress
 
     bar = Progress(2 * 400, "t")
     bar.report(0, 1, 0.0)  # a fresh run's first episode
+    assert bar.done == 1
     bar.report(1, 210, 5.0)  # run 1 resumed after 209 episodes
+    assert bar.done == 211  # every report is 1-based per run
     for ep in range(211, 220):
         bar.report(1, ep, 5.0)
+    bar.close()
     lines = capsys.readouterr().err.splitlines()
-    assert lines[0].startswith("t [") and " 1/800 episodes  run 0 ep 1 " in lines[0]
-    assert " 211/800 episodes  run 1 ep 210 " in lines[1]  # every report is 1-based per run
-    assert " 220/800 episodes  run 1 ep 219 " in lines[-1]
-    assert len(lines) == 3  # a non-terminal stderr: each run's first episode here, every tenth
+    assert bar.done == 220 and len(lines) == 1, lines
+    assert lines[0].startswith("t:") and "220/800 episodes" in lines[0]
+    assert "run=1 episode=219 ret=5.0" in lines[0]
 
 
 def test_replay_n_step_targets_by_hand():
