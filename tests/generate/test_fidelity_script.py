@@ -19,10 +19,17 @@ def test_the_study_script_runs_end_to_end_and_resumes(tmp_path):
     pytest.importorskip("dm_control")
     pytest.importorskip("jinja2")
     env = {
-        **os.environ, "OUT": str(tmp_path / "study"), "TASKS": "cartpole_swingup", "SEEDS": "0",
-        "SCALE": "tiny", "STEPS": "30", "EVAL_EPISODES": "1", "WORKERS": "1",
-        "RLU": f"{sys.executable} -m rlu", "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"),
-    }  # fmt: skip
+        **os.environ,
+        "OUT": str(tmp_path / "study"),
+        "TASKS": "cartpole_swingup",
+        "SEEDS": "0",
+        "SCALE": "tiny",
+        "STEPS": "30",
+        "EVAL_EPISODES": "1",
+        "WORKERS": "1",
+        "RLU": f"{sys.executable} -m rlu",
+        "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"),
+    }
     script = ["bash", str(ROOT / "scripts" / "fidelity_study.sh")]
     first = subprocess.run(script, env=env, cwd=ROOT, capture_output=True, text=True, timeout=900)
     assert first.returncode == 0, first.stderr[-3000:]
@@ -34,7 +41,10 @@ def test_the_study_script_runs_end_to_end_and_resumes(tmp_path):
     assert sorted(row["cells"]) == ["bc", "bcq", "brac", "d4pg", "rabm"]  # the paper's five
     assert sorted(row["paper"]) == sorted(row["cells"])  # its table beside ours
     md = (study / "report" / "report.md").read_text()
-    assert "| bc (paper) |" in md and "386.0 ± 6.0" in md  # the paper's BC on cartpole swingup
+    assert "386.0 ± 6.0" in md  # the paper's BC on cartpole swingup
+    # a small-preset, laptop-data study: the report says so and heads the paper as not comparable
+    assert "| bc: paper (" in md and "): not comparable to these cells |" in md
+    assert "preset small, 30 learner steps" in md and "no run here did" in md
     stamps = {p: p.stat().st_mtime_ns for p in study.rglob("result.json")}
     again = subprocess.run(script, env=env, cwd=ROOT, capture_output=True, text=True, timeout=900)
     assert again.returncode == 0, again.stderr[-3000:]
