@@ -67,10 +67,12 @@ def test_residual_torso_of_the_paper_presets():
 
 
 def test_batch_specs_say_what_the_data_must_be():
-    d4pg = make_agent("d4pg", IMAGE_OBS, CONT_ACTION, preset="paper")
+    d4pg = make_agent("d4pg", IMAGE_OBS, CONT_ACTION, preset="paper")  # the release's windows
+    assert d4pg.batch_spec.n_step == 1 and d4pg.batch_spec.gamma == 0.99
+    assert d4pg.batch_spec.reward_clip is None
+    d4pg = make_agent("d4pg", IMAGE_OBS, CONT_ACTION, preset="paper", n_step=5)
     assert d4pg.batch_spec.n_step == 5 and d4pg.batch_spec.gamma == 0.99
     assert d4pg.batch_spec.bootstrap_gamma == pytest.approx(0.99**5)
-    assert d4pg.batch_spec.reward_clip is None
     dqn = make_agent("dqn", ATARI_OBS, ATARI_ACTION, "small", **TINY, **{"atari.n_step": 3})
     assert dqn.batch_spec.n_step == 3 and dqn.batch_spec.reward_clip == 1.0
     assert dqn.batch_spec.bootstrap_gamma == pytest.approx(0.99**3)
