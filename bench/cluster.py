@@ -165,7 +165,7 @@ def _size(path: Path) -> int:
 # --- shards: one job per core ----------------------------------------------------------------
 
 
-def _one_shard(path: str, out: str, q) -> None:
+def _one_shard(path: str, out: str, task: str, q) -> None:
     """In a fresh process: one shard job (its peak RSS is this process's)."""
     import rlu.data.release.families  # noqa: F401 (the imports' memory is not the job's)
     import rlu.data.release.png as png
@@ -173,7 +173,7 @@ def _one_shard(path: str, out: str, q) -> None:
     png._pil()
     base = rss_mb()
     t0 = time.perf_counter()
-    job = DatasetJob("atari/Pong", "atari_episodes_ordered", out, (path,), "run_1")
+    job = DatasetJob(task, "atari_episodes_ordered", out, (path,), "run_1")
     convert_release([job], Backend("local", 1))
     q.put((time.perf_counter() - t0, peak_mb(), base))
 
@@ -190,7 +190,7 @@ def bench_shards(args, work: Path) -> None:
     for i, p in enumerate(paths):
         q = ctx.Queue()
         out = work / f"one{i}"
-        proc = ctx.Process(target=_one_shard, args=(p, str(out), q))
+        proc = ctx.Process(target=_one_shard, args=(p, str(out), f"atari/{args.game}", q))
         proc.start()
         seconds, peak, base = q.get()
         proc.join()
@@ -205,9 +205,10 @@ def bench_shards(args, work: Path) -> None:
     rate = float(np.median(rates))
     # the parts path against the direct one, and the assembly alone
     t0 = time.perf_counter()
-    convert(paths, "atari_episodes_ordered", "atari/Pong", work / "direct", workers=1, run=1)
+    task = f"atari/{args.game}"
+    convert(paths, "atari_episodes_ordered", task, work / "direct", workers=1, run=1)
     direct = time.perf_counter() - t0
-    job = DatasetJob("atari/Pong", "atari_episodes_ordered", str(work / "job"), tuple(paths))
+    job = DatasetJob(task, "atari_episodes_ordered", str(work / "job"), tuple(paths))
     report = convert_release([job], Backend("local", 1))
     same = _same(work / "direct", work / "job")
     ds_bytes = _size(work / "job")
@@ -233,14 +234,14 @@ def bench_shards(args, work: Path) -> None:
 # --- a Ray cluster on 127.0.0.1 ---------------------------------------------------------------
 
 
-def _cluster_run(paths, out: Path, nodes: int, remove_after: int | None = None) -> dict:
+def _cluster_run(paths, task: str, out: Path, nodes: int, remove_after: int | None = None) -> dict:
     import ray
 
     from tests.release.ray_cluster import loopback_cluster
 
     with loopback_cluster([1] * nodes) as (cluster, workers):
         ray.init(address=cluster.address, log_to_driver=False)
-        job = DatasetJob("atari/Pong", "atari_episodes_ordered", str(out), tuple(paths), "run_1")
+        job = DatasetJob(task, "atari_episodes_ordered", str(out), tuple(paths), "run_1")
         seen: dict = {}
         if remove_after is not None:
             victim = workers[-1]
@@ -267,7 +268,8 @@ def _cluster_run(paths, out: Path, nodes: int, remove_after: int | None = None) 
 def bench_ray(args, work: Path) -> None:
     paths = make_shards(work, args.game, args.shards, args.shard_steps, args.pool)
     t0 = time.perf_counter()
-    convert(paths, "atari_episodes_ordered", "atari/Pong", work / "local", workers=1, run=1)
+    task = f"atari/{args.game}"
+    convert(paths, "atari_episodes_ordered", task, work / "local", workers=1, run=1)
     local = time.perf_counter() - t0
     print(
         f"{args.shards} shards of ~{args.shard_steps:,} real {args.game} steps; local convert(), "
@@ -275,20 +277,21 @@ def bench_ray(args, work: Path) -> None:
     )
     for n in args.nodes:
         out = work / f"ray{n}"
-        got = _cluster_run(paths, out, n)
+        got = _cluster_run(paths, task, out, n)
         r = got["report"]
         per = ", ".join(
             f"{v['shards']:.0f} ({v['shards'] / r.shard_seconds:.3f}/s)" for v in r.nodes.values()
         )
         print(
             f"  {n} node(s) x 1 CPU: {r.shard_seconds:.1f} s of shard jobs = "
-            f"{r.shards / r.shard_seconds:.3f} shards/s; per node: {per}; assembly "
+            f"{r.shards / r.shard_seconds:.3f} shards/s "
+            f"({r.datasets[0].steps / r.shard_seconds:,.0f} steps/s); per node: {per}; assembly "
             f"{r.assemble_seconds:.2f} s; same bytes as local: {_same(work / 'local', out)}; "
             f"{load()}"
         )
         shutil.rmtree(out)
     out = work / "ray_loss"
-    got = _cluster_run(paths, out, 2, remove_after=args.remove_after)
+    got = _cluster_run(paths, task, out, 2, remove_after=args.remove_after)
     r = got["report"]
     print(
         f"  2 nodes, the second removed once {got['at']} parts were done (in flight then: "
@@ -312,7 +315,7 @@ def bench_ooc(args, work: Path) -> None:
     paths = make_shards(work, args.game, 1, args.block_steps, args.pool)
     block = work / "block"
     if not block.exists():
-        convert(paths, "atari_episodes_ordered", "atari/Pong", block, workers=1, run=1)
+        convert(paths, "atari_episodes_ordered", f"atari/{args.game}", block, workers=1, run=1)
     b = open_dataset(block)
     copies = -(-args.steps // b.num_steps)
     print(

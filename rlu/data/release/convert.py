@@ -177,8 +177,8 @@ def append_batch(writer: DatasetWriter, batch: SegmentBatch) -> None:
 
 def shard_batches(job: ShardJob, path: str, columns: bool = False):
     """One shard decoded, in order: ``(batch, None)``... then ``(None, stats)``; the batches
-    fitted to the schema, one decode batch held at a time (at most 64 MiB of records, 64 for
-    the image families), never the shard.
+    fitted to the schema, one decode batch held at a time (at most 64 MiB of records; 64 Atari
+    transitions, 4 Atari or DMLab episodes), never the shard.
 
     ``columns``: fast-path batches come as :class:`SegmentColumns` with image columns deflated
     in this thread (what a reader process or a cluster's shard job makes: whoever writes them

@@ -27,9 +27,10 @@ the parts. The dataset is the same bytes as the local conversion (:func:`convert
   shard's name, size and sha256 or modification time) and whose files match their sha256 is
   reused: an interrupted job, run again, converts only the shards without a part. A dataset
   already there is left as it is (``overwrite=True`` rebuilds it).
-- **Memory.** A shard job holds one decode batch (at most 64 MiB of records, 64 records for the
-  image families) and its decoded arrays, never the shard: an Atari episode shard of 1M frames
-  streams through (bench/README.md measures the peak). Assembly copies in 8 MiB blocks.
+- **Memory.** A shard job holds one decode batch (at most 64 MiB of records; 64 Atari
+  transitions; 4 Atari or DMLab episodes) and its decoded arrays, never the shard: an Atari
+  episode shard of 1M frames streams through, 4 episodes of frames at a time (bench/README.md
+  measures the peak). Assembly copies in 8 MiB blocks.
 """
 
 from __future__ import annotations
@@ -64,6 +65,12 @@ LOCK_WAIT = 600.0
 """Seconds a shard's download waits for a cache entry another attempt holds: a first attempt
 lost with its node holds it until its process dies (at once on one machine; an NFS server
 drops a dead client's locks after its lease, 90 s by default)."""
+SHARD_MEMORY = {"atari_episodes_ordered": 1 << 30, "dmlab": 1 << 30}
+"""Memory a shard job asks Ray for (bytes; other families: ``DEFAULT_SHARD_MEMORY``), so that a
+node runs no more of them at once than its memory holds. An Atari episode shard job of real Pong
+frames peaked at 174 MB (bench/README.md); 4 episodes of 27,000 frames, the longest the release
+has, decode to 760 MB."""
+DEFAULT_SHARD_MEMORY = 512 << 20
 _SEND_EVERY = 8 << 20  # bytes between two progress messages of one job
 _URL_SCHEMES = ("s3://", "gs://", "gcs://", "az://", "abfs://", "http://", "https://", "hdfs://")
 
@@ -551,6 +558,7 @@ def _run_shards(
             live[m[0]] += m[1]
             show()
 
+    memory = max(SHARD_MEMORY.get(s.job.family, DEFAULT_SHARD_MEMORY) for s in shards)
     with bar:
         run_jobs(
             run_shard,
@@ -559,6 +567,7 @@ def _run_shards(
             on_result=finished,
             on_message=message,
             retries=retries,
+            resources={"memory": memory},
         )
 
 
