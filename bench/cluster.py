@@ -53,6 +53,19 @@ def rss_mb() -> float:
     return float("nan")
 
 
+def rss_parts() -> str:
+    """Resident memory split: anonymous (the process's own) and file-backed (mapped columns,
+    pages the kernel can drop at any time)."""
+    got = {}
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith(("RssAnon:", "RssFile:")):
+                got[line.split(":")[0]] = int(line.split()[1]) / 1024
+    return (
+        f"RSS {rss_mb():.0f} MB (anonymous {got['RssAnon']:.0f}, file-backed {got['RssFile']:.0f})"
+    )
+
+
 def peak_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
@@ -330,7 +343,7 @@ def bench_ooc(args, work: Path) -> None:
             w.append_dataset(block)
     write = time.perf_counter() - t0
     size = _size(big)
-    frames = sum(f.stat().st_size for f in (big / "steps").glob("observation.*"))
+    frames = (big / "steps" / "observation.zlib").stat().st_size
     print(
         f"  wrote {size / 1e9:.2f} GB in {write:.0f} s ({size / 1e6 / write:.0f} MB/s), writer "
         f"peak RSS {peak_mb():.0f} MB; frames {frames / 1e9:.2f} GB; {load()}"
@@ -340,9 +353,12 @@ def bench_ooc(args, work: Path) -> None:
     ds = open_dataset(big)
     view = TransitionView(ds)
     opened = time.perf_counter() - t0
+    Sampler(view, 32, seed=0).sample()
+    first = time.perf_counter() - t0
     print(
         f"  open_dataset + TransitionView: {opened:.2f} s for {ds.num_steps:,} steps, "
-        f"{ds.num_segments:,} episodes; RSS {rss_mb():.0f} MB"
+        f"{ds.num_segments:,} episodes; with the first batch (the frame offsets mapped and "
+        f"checked): {first:.2f} s; {rss_parts()}"
     )
     for batch in (32, 256):
         s = Sampler(view, batch, seed=batch)
@@ -354,8 +370,8 @@ def bench_ooc(args, work: Path) -> None:
             n += 1
         dt = time.perf_counter() - t0
         print(
-            f"  stacked-frame SARSA batch {batch}: {n * batch / dt:,.0f} transitions/s, RSS "
-            f"{rss_mb():.0f} MB"
+            f"  stacked-frame SARSA batch {batch}: {n * batch / dt:,.0f} transitions/s, "
+            f"{rss_parts()}"
         )
     print(f"  peak RSS over the run: {peak_mb():.0f} MB")
     nsteps, nframes = ds.num_steps, ds.num_frames
@@ -366,7 +382,7 @@ def bench_ooc(args, work: Path) -> None:
         f"  per run of {RUN_STEPS:,} steps: frames raw {RUN_STEPS * 84 * 84 / 1e9:.0f} GB, zlib "
         f"{frames / nframes * RUN_STEPS / 1e9:.1f} GB ({frames / nframes:.0f} B/frame, this "
         f"game); other columns {other * RUN_STEPS / 1e9:.2f} GB ({other:.1f} B/step, zlib "
-        f"offsets included)"
+        f"the frames' zlib offsets included)"
     )
 
 

@@ -99,10 +99,12 @@ def send(message: Any) -> None:
     """From inside a job: pass ``message`` to the parent's ``on_message`` (progress), on every
     backend (on Ray through a queue actor on the driver's node; a message of a job whose node
     dies with it may be lost). Nothing happens when the parent gave no ``on_message``."""
+    global _RAY_SENT
     if _CHANNEL is not None:
         _CHANNEL.put(message)
     elif _RAY_CHANNEL is not None:
         _RAY_CHANNEL.put.remote(message)
+        _RAY_SENT = True
     elif _LOCAL_SINK is not None:
         _LOCAL_SINK(message)
 
@@ -110,6 +112,7 @@ def send(message: Any) -> None:
 _LOCAL_SINK: Callable[[Any], None] | None = None
 _RAY_CHANNEL: Any = None  # inside a Ray job: the driver's queue actor
 _RAY_NODE: str | None = None  # inside a Ray job: the id of the node it runs on
+_RAY_SENT = False  # this Ray job sent a message
 
 
 def node_name() -> str:
@@ -292,6 +295,9 @@ class _Queue:
         items, self.items = self.items, []
         return items
 
+    def ping(self) -> None:
+        pass
+
 
 def _ray_channel(ray: Any) -> Any:
     """A queue actor on the driver's own node (it needs no CPU), so that a worker node that dies
@@ -306,18 +312,25 @@ def _ray_channel(ray: Any) -> Any:
 
 
 def _ray_job(sys_path: tuple[str, ...], channel: Any, fn: Callable[..., Any], *args: Any) -> Any:
-    global _RAY_CHANNEL, _RAY_NODE
+    global _RAY_CHANNEL, _RAY_NODE, _RAY_SENT
     for p in sys_path:
         if p not in sys.path:
             sys.path.append(p)
     import ray
 
-    _RAY_CHANNEL = channel
+    _RAY_CHANNEL, _RAY_SENT = channel, False
     _RAY_NODE = ray.get_runtime_context().get_node_id()
     try:
         return fn(*args)
     finally:
         _RAY_CHANNEL = None
+        if _RAY_SENT:
+            # an actor runs one caller's calls in order: once this returns, every message of
+            # this job is in the queue, before the driver sees the job's result
+            try:
+                ray.get(channel.ping.remote(), timeout=60)
+            except Exception:  # noqa: BLE001 (the queue's node died: progress is not worth it)
+                pass
 
 
 def _ray_cause(error: BaseException) -> BaseException:

@@ -17,7 +17,7 @@ from rlu.data.release import catalog
 from rlu.data.release import families as Fm
 from rlu.data.release.jobs import DatasetJob, Fetch, convert_release
 from rlu.data.release.load import load_release_dataset, release_dataset_path
-from rlu.workers import Backend
+from rlu.workers import Backend, run_jobs, send
 from tests.release.ray_cluster import loopback_cluster
 from tests.release.test_convert import _windows
 from tests.release.test_jobs import same_bytes
@@ -97,6 +97,17 @@ def test_two_nodes_convert_many_tasks_to_the_local_bytes(tmp_path, bucket):
              "--backend", "ray", "--ray-address", cluster.address, "-q"]
         )  # fmt: skip
         assert code == 0
+        # what jobs send comes back to the driver, every message before the job's result
+        got, results = [], []
+        run_jobs(
+            send,
+            [((f"m{i}", i),) for i in range(4)],
+            Backend("ray", address=cluster.address),
+            on_result=lambda i, r: results.append(len(got)),
+            on_message=got.append,
+        )
+        assert sorted(got) == [(f"m{i}", i) for i in range(4)] and len(results) == 4
+        assert all(seen >= k + 1 for k, seen in enumerate(results))
     assert len(bucket.requests) == 6  # each shard fetched once; the first two at the same time
     bucket.hold = False  # the local path takes its shards one at a time
     for want, task in zip(local_datasets(bucket, tmp_path), TASKS, strict=True):

@@ -568,6 +568,28 @@ def _run_shards(
             on_message=message,
             retries=retries,
             resources={"memory": memory},
+            ray_check=lambda ray: check_ray_nodes(ray, memory),
+        )
+
+
+def check_ray_nodes(ray: Any, memory: int) -> None:
+    """Refuse, before submitting anything, a cluster where no shard task could ever start (Ray
+    would wait for a node forever): none alive with a CPU and ``memory`` bytes."""
+    best = max(
+        (
+            n["Resources"].get("memory", 0.0)
+            for n in ray.nodes()
+            if n.get("Alive") and n["Resources"].get("CPU", 0.0) >= 1
+        ),
+        default=None,
+    )
+    if best is None:
+        raise RluError("the Ray cluster has no node with a CPU, so no shard task could start; "
+                       "add worker nodes (a head started with --num-cpus=0 runs none)")  # fmt: skip
+    if best < memory:
+        raise RluError(
+            f"every Ray node offers less memory than a shard task asks for "
+            f"({format_size(best)} < {format_size(memory)}); use nodes with more memory"
         )
 
 
@@ -600,5 +622,6 @@ def fetch_release(
             on_result=finished,
             on_message=message,
             retries=retries,
+            ray_check=lambda ray: check_ray_nodes(ray, 0),
         )
     return [f for f in got if f is not None]
