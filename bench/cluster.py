@@ -381,8 +381,8 @@ def bench_ooc(args, work: Path) -> None:
     print(
         f"  per run of {RUN_STEPS:,} steps: frames raw {RUN_STEPS * 84 * 84 / 1e9:.0f} GB, zlib "
         f"{frames / nframes * RUN_STEPS / 1e9:.1f} GB ({frames / nframes:.0f} B/frame, this "
-        f"game); other columns {other * RUN_STEPS / 1e9:.2f} GB ({other:.1f} B/step, zlib "
-        f"the frames' zlib offsets included)"
+        f"game); other columns {other * RUN_STEPS / 1e9:.2f} GB ({other:.1f} B/step, the "
+        f"frames' zlib offsets included)"
     )
 
 

@@ -92,6 +92,11 @@ def test_two_nodes_convert_many_tasks_to_the_local_bytes(tmp_path, bucket):
     cache = tmp_path / "shared"
     with loopback_cluster((1, 1)) as (cluster, nodes):
         code = main(
+            ["download", *TASKS, "--shards", "0-2", "--cache-dir", str(cache), "--base-url",
+             bucket.url, "--backend", "ray", "--ray-address", cluster.address, "-q"]
+        )  # fmt: skip
+        assert code == 0  # then the conversion's shard jobs reuse them, verified
+        code = main(
             ["convert", "--family", "dm_control_suite", "--task", ",".join(TASKS), "--download",
              "--shards", "0-2", "--cache-dir", str(cache), "--base-url", bucket.url,
              "--backend", "ray", "--ray-address", cluster.address, "-q"]
