@@ -68,8 +68,8 @@ drops a dead client's locks after its lease, 90 s by default)."""
 SHARD_MEMORY = {"atari_episodes_ordered": 1 << 30, "dmlab": 1 << 30}
 """Memory a shard job asks Ray for (bytes; other families: ``DEFAULT_SHARD_MEMORY``), so that a
 node runs no more of them at once than its memory holds. An Atari episode shard job of real
-frames (Pong, MsPacman) peaked at 174-186 MB (bench/README.md); 4 episodes of 27,000 frames, the longest the release
-has, decode to 760 MB."""
+frames (Pong, MsPacman) peaked at 174-186 MB (bench/README.md); 4 episodes of 27,000 frames, the
+longest the release has, decode to 760 MB."""
 DEFAULT_SHARD_MEMORY = 512 << 20
 _SEND_EVERY = 8 << 20  # bytes between two progress messages of one job
 _URL_SCHEMES = ("s3://", "gs://", "gcs://", "az://", "abfs://", "http://", "https://", "hdfs://")
