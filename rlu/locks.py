@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import fcntl
 import os
+import time
 from pathlib import Path
 
 from rlu.files import open_private
@@ -53,10 +54,15 @@ class OutputLock:
         self.what = what
         self.fd: int | None = None
 
-    def acquire(self) -> OutputLock:
+    def acquire(self, wait: float = 0.0) -> OutputLock:
+        """Take the lock; a live holder makes it fail at once, or after ``wait`` seconds of
+        asking again (a cluster's retried job whose first attempt, on a node that died, may
+        still hold the lock until the kernel or the file server drops it)."""
         if self.fd is not None:
             return self
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        deadline = time.monotonic() + wait
+        pause = 0.02
         while True:
             fd = self._open()
             try:
@@ -64,6 +70,10 @@ class OutputLock:
             except BlockingIOError:
                 pid = _read_pid(fd)
                 os.close(fd)
+                if time.monotonic() < deadline:
+                    time.sleep(min(pause, max(0.0, deadline - time.monotonic())))
+                    pause = min(2 * pause, 1.0)
+                    continue
                 holder = f"PID {pid}" if pid else "another process"
                 raise LockBusy(
                     f"{self.target}: this {self.what} is in use by {holder} (lock file "

@@ -17,7 +17,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 
@@ -96,15 +96,33 @@ def _init_worker(parent: int, channel: Any, sys_path: tuple[str, ...]) -> None:
 
 
 def send(message: Any) -> None:
-    """From inside a job: pass ``message`` to the parent's ``on_message`` (progress). Dropped
-    on Ray, which has no channel back."""
+    """From inside a job: pass ``message`` to the parent's ``on_message`` (progress), on every
+    backend (on Ray through a queue actor on the driver's node; a message of a job whose node
+    dies with it may be lost). Nothing happens when the parent gave no ``on_message``."""
+    global _RAY_SENT
     if _CHANNEL is not None:
         _CHANNEL.put(message)
+    elif _RAY_CHANNEL is not None:
+        _RAY_CHANNEL.put.remote(message)
+        _RAY_SENT = True
     elif _LOCAL_SINK is not None:
         _LOCAL_SINK(message)
 
 
 _LOCAL_SINK: Callable[[Any], None] | None = None
+_RAY_CHANNEL: Any = None  # inside a Ray job: the driver's queue actor
+_RAY_NODE: str | None = None  # inside a Ray job: the id of the node it runs on
+_RAY_SENT = False  # this Ray job sent a message
+
+
+def node_name() -> str:
+    """Where the calling job runs: the Ray node's id inside a Ray job (several nodes of a test
+    cluster share one host name), else this machine's host name."""
+    if _RAY_NODE is not None:
+        return _RAY_NODE
+    import socket
+
+    return socket.gethostname()
 
 
 def run_jobs(
@@ -115,12 +133,20 @@ def run_jobs(
     on_error: Callable[[int, BaseException], None] | None = None,
     on_message: Callable[[Any], None] | None = None,
     ray_check: Callable[[Any], None] | None = None,
+    retries: int = 3,
+    resources: Mapping[str, float] | None = None,
 ) -> None:
     """Run ``fn(*job)`` for every job on ``backend``; ``on_result(i, result)`` in this process
     as each finishes (in completion order). A job that raises: ``on_error(i, error)`` and the
     others go on, or, without ``on_error``, the error is raised once the pool is stopped. Every
     backend gives the same results (jobs must not depend on where they run). Workers die with
-    this process, and Ctrl-C (any exception here) cancels every job not yet started."""
+    this process, and Ctrl-C (any exception here) cancels every job not yet started.
+
+    ``on_message``: called here with what jobs :func:`send` (progress). Ray only: ``retries``,
+    how many times a job whose worker or node died is run again (Ray's ``max_retries``; a job's
+    own exception is never retried), so a job that may run twice must be idempotent;
+    ``resources``, what each job asks for beyond its CPU and ``gpus_per_job`` (``{"memory":
+    bytes}`` keeps Ray from packing more jobs onto a node than its memory holds)."""
     global _LOCAL_SINK
     if backend.kind == "local" and (backend.workers <= 1 or len(jobs) <= 1):
         _LOCAL_SINK = on_message
@@ -140,7 +166,7 @@ def run_jobs(
     if backend.kind == "local":
         _run_pool(fn, jobs, backend.workers, on_result, on_error, on_message)
     else:
-        _run_ray(fn, jobs, backend, on_result, on_error, ray_check)
+        _run_ray(fn, jobs, backend, on_result, on_error, on_message, ray_check, retries, resources)
 
 
 def _run_pool(fn, jobs, workers, on_result, on_error, on_message) -> None:
@@ -187,7 +213,9 @@ def _run_pool(fn, jobs, workers, on_result, on_error, on_message) -> None:
     pool.shutdown(wait=True)
 
 
-def _run_ray(fn, jobs, backend: Backend, on_result, on_error, ray_check) -> None:
+def _run_ray(
+    fn, jobs, backend: Backend, on_result, on_error, on_message, ray_check, retries, resources
+) -> None:
     from rlu.types import RluError, install_hint
 
     try:
@@ -205,41 +233,112 @@ def _run_ray(fn, jobs, backend: Backend, on_result, on_error, ray_check) -> None
             ray.init(address="local", num_cpus=max(1, os.cpu_count() or 1),
                      include_dashboard=False, log_to_driver=False)  # fmt: skip
         started = True
+    channel = None
     try:
         if ray_check is not None:
             ray_check(ray)
+        if on_message is not None:
+            channel = _ray_channel(ray)
         paths = tuple(p for p in sys.path if p and os.path.isdir(p))
-        remote = ray.remote(**ray_options(backend.gpus_per_job))(_ray_job)
-        pending = {remote.remote(paths, fn, *job): i for i, job in enumerate(jobs)}
+        options = {**ray_options(backend.gpus_per_job), **(resources or {})}
+        remote = ray.remote(max_retries=retries, **options)(_ray_job)
+        pending = {remote.remote(paths, channel, fn, *job): i for i, job in enumerate(jobs)}
+
+        def drain() -> None:
+            nonlocal channel
+            if channel is None:
+                return
+            try:
+                messages = ray.get(channel.take.remote())
+            except Exception:  # noqa: BLE001 (the queue's node died: progress is not worth it)
+                channel = None
+                return
+            for m in messages:
+                on_message(m)
+
         try:
             while pending:
-                done, _ = ray.wait(list(pending), num_returns=1)
+                done, _ = ray.wait(list(pending), num_returns=1, timeout=0.25)
+                drain()
                 for ref in done:
                     i = pending.pop(ref)
                     try:
                         result = ray.get(ref)
                     except Exception as e:
                         if on_error is None:
-                            raise
+                            raise _ray_cause(e) from None
                         on_error(i, _ray_cause(e))
                         continue
                     on_result(i, result)
+            drain()
         except BaseException:
             for ref in pending:
                 ray.cancel(ref, force=True)
             raise
     finally:
+        if channel is not None:
+            ray.kill(channel)
         if started:
             ray.shutdown()
 
 
-def _ray_job(sys_path: tuple[str, ...], fn: Callable[..., Any], *args: Any) -> Any:
+class _Queue:
+    """Messages of a fan-out's Ray jobs for the driver (a Ray actor; see ``send``)."""
+
+    def __init__(self) -> None:
+        self.items: list[Any] = []
+
+    def put(self, item: Any) -> None:
+        self.items.append(item)
+
+    def take(self) -> list[Any]:
+        items, self.items = self.items, []
+        return items
+
+    def ping(self) -> None:
+        pass
+
+
+def _ray_channel(ray: Any) -> Any:
+    """A queue actor on the driver's own node (it needs no CPU), so that a worker node that dies
+    takes no message of the others with it."""
+    from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+    here = ray.get_runtime_context().get_node_id()
+    actor = ray.remote(num_cpus=0, max_restarts=0)(_Queue)
+    return actor.options(
+        scheduling_strategy=NodeAffinitySchedulingStrategy(here, soft=True)
+    ).remote()
+
+
+def _ray_job(sys_path: tuple[str, ...], channel: Any, fn: Callable[..., Any], *args: Any) -> Any:
+    global _RAY_CHANNEL, _RAY_NODE, _RAY_SENT
     for p in sys_path:
         if p not in sys.path:
             sys.path.append(p)
-    return fn(*args)
+    import ray
+
+    _RAY_CHANNEL, _RAY_SENT = channel, False
+    _RAY_NODE = ray.get_runtime_context().get_node_id()
+    try:
+        return fn(*args)
+    finally:
+        _RAY_CHANNEL = None
+        if _RAY_SENT:
+            # an actor runs one caller's calls in order: once this returns, every message of
+            # this job is in the queue, before the driver sees the job's result
+            try:
+                ray.get(channel.ping.remote(), timeout=60)
+            except Exception:  # noqa: BLE001 (the queue's node died: progress is not worth it)
+                pass
 
 
 def _ray_cause(error: BaseException) -> BaseException:
-    """The job's own exception inside Ray's wrapper (a RayTaskError is also an instance of it)."""
+    """The job's own exception out of Ray's wrapper (whose text carries the remote traceback),
+    so that an RluError reads as its one line; anything else Ray raised (a node lost past its
+    retries) as it is."""
+    from ray.exceptions import RayTaskError
+
+    if isinstance(error, RayTaskError) and isinstance(error.cause, Exception):
+        return error.cause
     return error

@@ -29,19 +29,28 @@ def add_device_option(p: argparse.ArgumentParser) -> None:
     add_options(p, Runtime, only=("device",))
 
 
-def add_backend_options(p: argparse.ArgumentParser, default_workers: int | None = None) -> None:
+def add_backend_options(
+    p: argparse.ArgumentParser,
+    default_workers: int | None = None,
+    workers_help: str | None = None,
+    gpus: bool = True,
+) -> None:
     """``--backend``, ``--workers``, ``--ray-address``, ``--gpus-per-run``: where a fan-out runs
-    (``rlu.workers.Backend``), shared by sweep, generate and the quick start."""
+    (``rlu.workers.Backend``), shared by sweep, generate, the quick start, download and convert
+    (``gpus=False``: no ``--gpus-per-run``, the jobs need none)."""
     from rlu.workers import Backend
 
-    add_options(p, Backend, skip=("kind", "workers"))
+    add_options(p, Backend, skip=("kind", "workers", *(() if gpus else ("gpus_per_job",))))
     add_options(p, Backend, only=("kind",))
+    if not gpus:
+        p.set_defaults(gpus_per_job=0.0)
     p.add_argument(
         "--workers",
         type=checked(int, {"min": 1}, "--workers"),
         default=default_workers,
         metavar="N",
-        help="local: processes at once (default: one per core); the results do not depend on it",
+        help=workers_help
+        or "local: processes at once (default: one per core); the results do not depend on it",
     )
 
 

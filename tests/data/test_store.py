@@ -43,6 +43,51 @@ def test_round_trip_every_segment(tmp_path, schema):
         assert got.metadata["episode_return"] == pytest.approx(want.metadata["episode_return"])
 
 
+@pytest.mark.parametrize("schema", [CARTPOLE, LOCO, ATARI], ids=["control", "camera", "atari"])
+def test_appending_datasets_writes_the_bytes_of_their_segments(tmp_path, schema):
+    """append_dataset (how a cluster job assembles its parts): the same files as appending
+    every segment of the parts to one writer, frame-stacked and zlib columns included."""
+    segs = list(random_episodes(schema, 7, 5, seed=2, vary_length=True))
+    with DatasetWriter(tmp_path / "whole", schema, {"source": "test"}) as w:
+        for s in segs:
+            w.append(s)
+    for name, part in (("a", segs[:3]), ("b", segs[3:4]), ("c", segs[4:])):
+        with DatasetWriter(tmp_path / name, schema) as w:
+            w.extend(part)
+    seen = []
+    with DatasetWriter(tmp_path / "joined", schema, {"source": "test"}) as w:
+        for name in "abc":
+            w.append_dataset(tmp_path / name, on_bytes=seen.append)
+    whole = json.loads((tmp_path / "whole" / "manifest.json").read_text())
+    joined = json.loads((tmp_path / "joined" / "manifest.json").read_text())
+    assert whole == joined
+    parts = sum(
+        f["bytes"] for n in "abc" for f in open_dataset(tmp_path / n).manifest["files"].values()
+    )
+    assert sum(seen) == parts
+    ds = open_dataset(tmp_path / "joined", verify=True)
+    np.testing.assert_array_equal(ds.segment(4).action, segs[4].action)
+
+
+def test_appending_a_damaged_or_foreign_dataset_fails_and_writes_nothing(tmp_path):
+    segs = list(random_episodes(ATARI, 3, 5, seed=3))
+    with DatasetWriter(tmp_path / "part", ATARI) as w:
+        w.extend(segs)
+    with DatasetWriter(tmp_path / "other", CARTPOLE) as w:
+        w.extend(random_episodes(CARTPOLE, 1, 5, seed=0))
+    with pytest.raises(SpecError, match="schema differs"):
+        with DatasetWriter(tmp_path / "out", ATARI) as w:
+            w.append_dataset(tmp_path / "other")
+    column = tmp_path / "part" / "steps" / "observation.zlib"
+    data = bytearray(column.read_bytes())
+    data[-1] ^= 0xFF
+    column.write_bytes(bytes(data))
+    with pytest.raises(RluError, match="differ from the sha256"):
+        with DatasetWriter(tmp_path / "out", ATARI) as w:
+            w.append_dataset(tmp_path / "part")
+    assert not (tmp_path / "out").exists()
+
+
 def test_zlib_images_are_smaller_than_raw(tmp_path):
     frames = np.zeros((201, 84, 84), np.uint8)
     frames[:, 40:44, 10:70] = 200  # mostly flat frames, like Atari screens

@@ -194,14 +194,14 @@ def test_parallel_conversion_is_deterministic(tmp_path, family, task, make):
 
 
 def test_readers_send_image_columns_deflated(tmp_path):
-    from rlu.data.release.convert import _Job, _shard_batches
+    from rlu.data.release.convert import ShardJob, shard_batches
     from rlu.data.store import Deflated, SegmentColumns
 
     recs = [atari_record(np.random.default_rng(j), 1.0) for j in range(5)]
     path = _shard(tmp_path, "atari", recs)
     schema = schema_for(get_task("atari/Pong"), "atari")
-    job = _Job("atari", schema, {"run": 1}, True, "raise")
-    out = [b for b, stats in _shard_batches(job, str(path), columns=True) if stats is None]
+    job = ShardJob("atari", schema, {"run": 1}, True, "raise")
+    out = [b for b, stats in shard_batches(job, str(path), columns=True) if stats is None]
     assert out and all(isinstance(b, SegmentColumns) for b in out)
     assert all(isinstance(b.columns["observation"], Deflated) for b in out)
     assert all(isinstance(b.columns["action"], np.ndarray) for b in out)  # only images deflate

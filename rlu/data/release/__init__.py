@@ -6,7 +6,9 @@
 - :mod:`.families`: per-family decoding into loader-shaped arrays and into Segments;
 - :mod:`.catalog`: bucket paths and shard counts for every registered task;
 - :mod:`.download`: resumable, checksum-recorded HTTPS download into a cache dir;
-- :mod:`.convert`: shards -> native store; :mod:`.load`: ``load_dataset(..., source="release")``.
+- :mod:`.convert`: shards -> native store; :mod:`.jobs`: one job per shard on the one runner (local
+  processes or a Ray cluster), one assembly per dataset; :mod:`.load`:
+  ``load_dataset(..., source="release")``.
 
 Reading needs the ``release`` extra (google-crc32c, Pillow); importing this package does not.
 """

@@ -134,6 +134,35 @@ def select(
     return ReleaseSelection(task, rel, binding, tuple(names[i] for i in picked))
 
 
+def expand_tasks(patterns: str | Sequence[str]) -> list[str]:
+    """Task names as typed: comma-separated lists and shell patterns over the registry's ids
+    (``atari/*``: every Atari game) expanded, in the order given, each name once. A name without
+    a pattern is kept as it is (a TFDS name too); a pattern that matches nothing is an error."""
+    import fnmatch
+
+    from rlu.tasks import TASKS
+
+    items = [patterns] if isinstance(patterns, str) else list(patterns)
+    out: list[str] = []
+    for item in items:
+        for name in (n.strip() for n in item.split(",")):
+            if not name:
+                continue
+            if any(c in name for c in "*?["):
+                hits = [t for t in TASKS if fnmatch.fnmatchcase(t, name)]
+                if not hits:
+                    raise RluError(
+                        f"no registered task matches {name!r}; see `rlu list` (patterns use "
+                        "* and ?, e.g. 'atari/*')"
+                    )
+            else:
+                hits = [name]
+            out.extend(h for h in hits if h not in out)
+    if not out:
+        raise RluError("no task given; name one or more, e.g. atari/Pong or 'atari/*'")
+    return out
+
+
 def catalog() -> list[dict]:
     """Every registered task's release datasets: family, binding, shard count, first object."""
     from rlu.tasks import TASKS

@@ -175,11 +175,15 @@ def append_batch(writer: DatasetWriter, batch: SegmentBatch) -> None:
 # --- workers -------------------------------------------------------------------------------
 
 
-def _shard_batches(job: _Job, path: str, columns: bool = False):
-    """(batch, None)... then (None, stats) for one shard; batches fitted to the schema.
+def shard_batches(job: ShardJob, path: str, columns: bool = False):
+    """One shard decoded, in order: ``(batch, None)``... then ``(None, stats)``; the batches
+    fitted to the schema, one decode batch held at a time (at most 64 MiB of records; 64 Atari
+    transitions, 4 Atari or DMLab episodes), never the shard.
 
     ``columns``: fast-path batches come as :class:`SegmentColumns` with image columns deflated
-    (what a reader process sends: the parent then only writes bytes).
+    in this thread (what a reader process or a cluster's shard job makes: whoever writes them
+    then only writes bytes). ``stats``: the shard's ``path``, ``records``, ``skipped``,
+    ``errors`` (the first 20) and ``bytes``.
     """
     reader = reader_for(path, job.family, verify=job.verify, on_error=job.on_error)
     for segments in iter_segments(path, job.family, reader=reader, on_error=job.on_error):
@@ -205,13 +209,104 @@ def _shard_batches(job: _Job, path: str, columns: bool = False):
     )
 
 
+def write_batch(writer: DatasetWriter, batch: SegmentBatch | SegmentColumns) -> None:
+    """Append one batch of :func:`shard_batches` to ``writer``."""
+    if isinstance(batch, SegmentColumns):
+        writer.append_columns(batch)
+    else:
+        append_batch(writer, batch)
+
+
 @dataclass(frozen=True)
-class _Job:
+class ShardJob:
+    """How every shard of one dataset is decoded (the same for each of its shards)."""
+
     family: str
+    """The release family of the files."""
     schema: Schema
+    """The dataset's store schema (:func:`schema_for`)."""
     meta: Mapping[str, Any]
+    """Segment metadata every segment gets where the file has none (the Atari run)."""
     verify: bool
+    """Check every record's CRCs."""
     on_error: str
+    """``raise`` at the first damaged record, or ``skip`` it and count it."""
+
+
+@dataclass(frozen=True)
+class ConvertPlan:
+    """What :func:`plan_conversion` settled for one dataset: how its shards decode and the
+    provenance it gets (before the shards' own entries, :func:`record_shards`)."""
+
+    task: TaskSpec
+    job: ShardJob
+    provenance: Mapping[str, Any]
+
+
+def plan_conversion(
+    paths: Sequence[str],
+    family: str,
+    task_id: str,
+    *,
+    challenge: str | None = None,
+    run: str | int | None = None,
+    verify: bool = True,
+    on_error: str = "raise",
+    image_encoding: str | None = None,
+    provenance: Mapping[str, Any] | None = None,
+    check_files: bool = True,
+) -> ConvertPlan:
+    """Every check of a conversion that needs no byte of the files (the family belongs to the
+    task, an RWRL challenge is given, the files exist unless ``check_files`` is False: a
+    cluster job's shards still to be downloaded), then how its shards decode and its
+    provenance."""
+    get_family(family)
+    task = get_task(task_id)
+    if family in ("bsuite", "dmlab"):
+        raise RluError(
+            f"{family} files decode with rlu.data.release.families, but {family} has no task in "
+            "the registry to convert into; read them with families.iter_segments"
+        )
+    task.release_dataset(family)  # the family must belong to the task
+    if task.domain == "rwrl" and challenge is None:
+        raise RluError(f"{task.id}: say which challenge the files are from: --challenge none|easy")
+    if not paths:
+        raise RluError("no shard files to convert; give FILE... or --src ROOT")
+    for p in paths if check_files else ():
+        if not os.path.isfile(p):
+            raise RluError(f"{p}: no such shard file")
+    schema = schema_for(task, family, challenge, image_encoding)
+    meta: dict[str, Any] = {}
+    if task.domain == "atari":
+        r = run if run is not None else _run_from_names(paths)
+        if r is not None:
+            meta["run"] = int(str(r).removeprefix("run_"))
+    prov = {
+        "source": "rl_unplugged release",
+        "family": family,
+        **({"reward": ATARI_REWARD[family]} if family in ATARI_REWARD else {}),
+        "task": task.id,
+        "challenge": challenge,
+        "run": meta.get("run"),
+        "code_version": _version(),
+        **(provenance or {}),
+    }
+    return ConvertPlan(task, ShardJob(family, schema, meta, verify, on_error), prov)
+
+
+def record_shards(provenance: dict[str, Any], stats: Sequence[Mapping[str, Any]]) -> None:
+    """The dataset's provenance gets each shard's name, bytes, records and skipped records, in
+    shard order (``stats`` as :func:`shard_batches` reports them)."""
+    provenance["files"] = [
+        {
+            "name": os.path.basename(f["path"]),
+            "bytes": f["bytes"],
+            "records": f["records"],
+            "skipped": f["skipped"],
+        }
+        for f in stats
+    ]
+    provenance["skipped_records"] = sum(f["skipped"] for f in stats)
 
 
 def _nbytes(x: Any) -> int:
@@ -227,7 +322,7 @@ def _nbytes(x: Any) -> int:
     return _nbytes(vars(x)) if hasattr(x, "__dict__") else 0
 
 
-def _worker(job: _Job, path: str, q: Any, budget: Any, parent: int) -> None:
+def _worker(job: ShardJob, path: str, q: Any, budget: Any, parent: int) -> None:
     """Read one shard into ``q``, holding at most ``_QUEUE_MIB`` queued (``budget``: MiB units).
 
     The bound is in bytes, not batches, so a reader of a later shard can get far ahead (whole
@@ -235,7 +330,7 @@ def _worker(job: _Job, path: str, q: Any, budget: Any, parent: int) -> None:
     """
     die_with_parent(parent)
     try:
-        for batch, stats in _shard_batches(job, path, columns=True):
+        for batch, stats in shard_batches(job, path, columns=True):
             if stats is not None:
                 q.put(("done", stats))
                 continue
@@ -252,7 +347,7 @@ def _worker(job: _Job, path: str, q: Any, budget: Any, parent: int) -> None:
 class _Pool:
     """Up to ``workers`` shard readers running ahead of the parent, each with its own queue."""
 
-    def __init__(self, files: Sequence[str], job: _Job, workers: int):
+    def __init__(self, files: Sequence[str], job: ShardJob, workers: int):
         self.ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
         self.files, self.job, self.workers = files, job, workers
         self.procs: dict[int, Any] = {}
@@ -331,44 +426,25 @@ def convert(
     ``progress``: show an :class:`rlu.progress.Progress` on stderr (a bar on a terminal, a line
     every 10 s elsewhere) over the shards' bytes, with shards, steps and episodes so far.
     """
-    get_family(family)
-    task = get_task(task_id)
-    if family in ("bsuite", "dmlab"):
-        raise RluError(
-            f"{family} files decode with rlu.data.release.families, but {family} has no task in "
-            "the registry to convert into; read them with families.iter_segments"
-        )
-    task.release_dataset(family)  # the family must belong to the task
-    if task.domain == "rwrl" and challenge is None:
-        raise RluError(f"{task.id}: say which challenge the files are from: --challenge none|easy")
     paths = [os.fspath(f) for f in files]
-    if not paths:
-        raise RluError("no shard files to convert; give FILE... or --src ROOT")
-    for p in paths:
-        if not os.path.isfile(p):
-            raise RluError(f"{p}: no such shard file")
-    schema = schema_for(task, family, challenge, image_encoding)
-    meta: dict[str, Any] = {}
-    if task.domain == "atari":
-        r = run if run is not None else _run_from_names(paths)
-        if r is not None:
-            meta["run"] = int(str(r).removeprefix("run_"))
+    plan = plan_conversion(
+        paths,
+        family,
+        task_id,
+        challenge=challenge,
+        run=run,
+        verify=verify,
+        on_error=on_error,
+        image_encoding=image_encoding,
+        provenance=provenance,
+    )
+    job, schema = plan.job, plan.job.schema
     workers = workers if workers is not None else min(available_cores(), len(paths), 8)
     report = ConvertReport(Path(out))
     t0 = time.monotonic()
-    prov = {
-        "source": "rl_unplugged release",
-        "family": family,
-        **({"reward": ATARI_REWARD[family]} if family in ATARI_REWARD else {}),
-        "task": task.id,
-        "challenge": challenge,
-        "run": meta.get("run"),
-        "code_version": _version(),
-        **(provenance or {}),
-    }
+    prov = dict(plan.provenance)
     # ``workers`` reader processes: the parent only appends decoded batches (and deflates image
     # columns in threads), so it shares a core with a reader rather than taking one.
-    job = _Job(family, schema, meta, verify, on_error)
     pool = _Pool(paths, job, workers) if workers > 1 else None
     sizes = [os.path.getsize(p) for p in paths]
     bar = Progress(sum(sizes), "convert", "B", quiet=not progress)
@@ -376,17 +452,14 @@ def convert(
     try:
         with DatasetWriter(out, schema, provenance=prov, overwrite=overwrite) as writer:
             for i, path in enumerate(paths):
-                stream = pool.shard(i) if pool else _shard_batches(job, path)
+                stream = pool.shard(i) if pool else shard_batches(job, path)
                 for batch, stats in stream:
                     if stats is not None:
                         report.files.append(stats)
                         report.records += stats["records"]
                         report.skipped += stats["skipped"]
                         continue
-                    if isinstance(batch, SegmentColumns):
-                        writer.append_columns(batch)
-                    else:
-                        append_batch(writer, batch)
+                    write_batch(writer, batch)
                     bar.set_postfix(
                         shards=f"{i}/{len(paths)}",
                         steps=writer.num_steps,
@@ -398,16 +471,7 @@ def convert(
                     steps=writer.num_steps,
                     episodes=writer.num_episodes,
                 )
-            writer.provenance["files"] = [
-                {
-                    "name": os.path.basename(f["path"]),
-                    "bytes": f["bytes"],
-                    "records": f["records"],
-                    "skipped": f["skipped"],
-                }
-                for f in report.files
-            ]
-            writer.provenance["skipped_records"] = report.skipped
+            record_shards(writer.provenance, report.files)
             report.segments = writer.num_segments
             report.steps = writer.num_steps
         ok = True

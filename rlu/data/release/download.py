@@ -376,10 +376,13 @@ class Downloader:
         verify_reuse: bool = True,
         allow_redirects: bool = False,
         max_bytes: int | None = None,
+        lock_wait: float = 0.0,
     ):
         """``progress``: show one (False: nothing; None or True: a bar on a terminal, plain
         lines elsewhere). ``max_bytes``: the bound of a body without a length (default: the
-        object's family's largest shard, :func:`rlu.data.release.catalog.shard_limit`)."""
+        object's family's largest shard, :func:`rlu.data.release.catalog.shard_limit`).
+        ``lock_wait``: seconds to wait for a cache entry another process holds before failing
+        with "in use" (0: at once; a cluster's retried shard waits for its lost first try)."""
         self.root = release_dir(cache_dir)
         self.base_url = base_url or os.environ.get("RLU_RELEASE_BASE_URL") or None
         self.workers = max(1, workers)
@@ -390,6 +393,7 @@ class Downloader:
         self.verify_reuse = verify_reuse
         self.allow_redirects = allow_redirects
         self.max_bytes = max_bytes
+        self.lock_wait = lock_wait
         self.manifest = _Manifest(self.root)
         self.sleep: Callable[[float], object] | None = None  # None: wait, unless stopped
         self._opener = urllib.request.build_opener(_Redirects(allow_redirects))
@@ -491,7 +495,7 @@ class Downloader:
         stop = stop or threading.Event()
         path = self.path_of(obj)
         os.makedirs(os.path.dirname(path), exist_ok=True)
-        with OutputLock(path, "cache entry"):
+        with OutputLock(path, "cache entry").acquire(self.lock_wait):
             got = self.verify_cached(obj, path)
             if got is not None:
                 return got

@@ -756,7 +756,12 @@ def get_family(name: str) -> Family:
 
 
 def _batch_size(fam: Family) -> int:
-    return 64 if fam.name in ("atari", "atari_episodes_ordered", "dmlab") else 4096
+    if fam.whole_episodes and fam.name in ("atari_episodes_ordered", "dmlab"):
+        # an episode of frames decodes to ~28x its PNG bytes (a Pong frame: 250 B -> 7 kB), so
+        # 64 of them held ~750 MB (bench/cluster.py); 4 bound a conversion job at ~1/16 of that
+        # and decode as fast (a record is hundreds to thousands of frames)
+        return 4
+    return 64 if fam.name == "atari" else 4096
 
 
 # Records of one decode batch, in bytes: a batch is decoded as soon as it holds this much, so a

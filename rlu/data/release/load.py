@@ -33,7 +33,16 @@ _PICKS = ("family", "run", "challenge", "size", "shards")
 def release_dataset_path(
     selection: catalog.ReleaseSelection, cache_dir: str | os.PathLike | None, all_shards: bool
 ) -> str:
-    parts = [cache_root(cache_dir), "datasets", *selection.task.id.split("/"), selection.family]
+    """Where ``load_dataset(source="release")`` keeps the converted dataset of ``selection``."""
+    return dataset_folder(os.path.join(cache_root(cache_dir), "datasets"), selection, all_shards)
+
+
+def dataset_folder(
+    root: str | os.PathLike, selection: catalog.ReleaseSelection, all_shards: bool
+) -> str:
+    """``ROOT/<task>/<family>[/<dataset>][/shards-<sel>]``: the layout of converted datasets
+    under a folder (the cache's ``datasets/``, or ``rlu convert --out-root``)."""
+    parts = [os.fspath(root), *selection.task.id.split("/"), selection.family]
     if selection.binding:
         parts.extend(selection.binding.split("/"))
     if not all_shards:

@@ -119,6 +119,11 @@ class Schema:
         if self.frame_stack > 1 and not isinstance(self.observation, ArraySpec):
             raise SpecError("frame_stack > 1 needs a single-array observation (Atari frames)")
 
+    def __reduce__(self) -> tuple[Any, ...]:
+        # a task's observation dict is a read-only mappingproxy, which pickle refuses: a schema
+        # travels to worker processes and Ray tasks as its manifest JSON
+        return (Schema.from_json, (self.to_json(),))
+
     @staticmethod
     def for_task(task: Any, image_encoding: str = "raw", observation: Any = None) -> Schema:
         """The schema of ``task``'s datasets: Atari stores single frames stacked at sample time."""

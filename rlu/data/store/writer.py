@@ -15,7 +15,7 @@ import json
 import os
 import shutil
 import zlib
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -378,6 +378,51 @@ class DatasetWriter:
         self.num_frames += frames
         self.num_episodes += int((first & last).sum())
 
+    def append_dataset(
+        self, src: str | os.PathLike, on_bytes: Callable[[int], object] | None = None
+    ) -> None:
+        """Append every segment of the finished dataset at ``src`` (same schema), streaming its
+        files: the result has the same bytes as appending its segments again, without decoding
+        a frame (column bytes and zlib streams are copied, offsets and the segment index
+        shifted). Assembles a dataset from parts written elsewhere (a conversion's shards on a
+        cluster). Each file of ``src`` is hashed as it is read and checked against its
+        manifest's sha256, so a part damaged since it was written fails here, not later.
+        ``on_bytes(n)``: n more bytes of ``src`` were copied."""
+        from rlu.data.store.reader import read_manifest
+
+        if self._closed:
+            raise RluError(f"{self.dest}: the writer is closed; open a new DatasetWriter")
+        src = Path(src)
+        manifest = read_manifest(src)
+        if manifest["schema"] != json.loads(json.dumps(self.schema.to_json())):
+            raise SpecError(
+                f"{src}: its schema differs from {self.dest}'s; only a dataset of the same "
+                "schema can be appended"
+            )
+        if any(is_attachment(rel) for rel in manifest["files"]):
+            raise SpecError(f"{src}: holds attachments; append_dataset copies segments only")
+        counts = manifest["counts"]
+        copy = _Copier(src, manifest["files"], on_bytes or (lambda n: None))
+        for name, col in self._cols.items():
+            if col.encoding == "zlib":
+                size = copy.raw(f"steps/{name}.zlib", col.file)
+                copy.shifted(f"steps/{name}.offsets.bin", col.offsets, col.end, skip=1)
+                col.end += size
+            else:
+                copy.raw(f"steps/{name}.bin", col.file)
+            col.count += int(counts["frames" if name in self._frame_names else "steps"])
+        index = self._index
+        copy.shifted("segments/start.bin", index["start"], self.num_steps)
+        copy.raw("segments/length.bin", index["length"])
+        shift = self.num_frames if self._frame_names else 0
+        copy.shifted("segments/frame_start.bin", index["frame_start"], shift)
+        for key in METADATA_FIELDS:
+            copy.raw(f"segments/meta_{key}.bin", index[f"meta_{key}"])
+        self.num_segments += int(counts["segments"])
+        self.num_steps += int(counts["steps"])
+        self.num_frames += int(counts["frames"])
+        self.num_episodes += int(counts["episodes"])
+
     def attach(self, rel: str, src: str | os.PathLike) -> None:
         """Copy file ``src`` into the dataset at ``rel`` (under one of ``ATTACHMENT_DIRS``, e.g.
         ``policies/run_000/checkpoint_00003.npz``); the manifest lists it with its sha256 and
@@ -451,3 +496,52 @@ class DatasetWriter:
         if self._lock.held:  # only the lock holder may touch the partial directory
             shutil.rmtree(self.tmp, ignore_errors=True)
         self._lock.release()
+
+
+class _Copier:
+    """Streams a finished dataset's files into a writer's files, each one hashed on the way and
+    checked against the source manifest (``append_dataset``)."""
+
+    CHUNK = 8 << 20
+
+    def __init__(self, root: Path, files: Mapping[str, Any], on_bytes: Callable[[int], object]):
+        self.root, self.files, self.on_bytes = root, files, on_bytes
+
+    def _blocks(self, rel: str, block: int) -> Iterable[bytes]:
+        entry = self.files.get(rel)
+        path = self.root / rel
+        if entry is None:
+            raise SpecError(f"{self.root}: its manifest lists no {rel}")
+        h = hashlib.sha256()
+        size = 0
+        with open(path, "rb") as fh:
+            while data := fh.read(block):
+                h.update(data)
+                size += len(data)
+                yield data
+                self.on_bytes(len(data))
+        if size != entry["bytes"] or h.hexdigest() != entry["sha256"]:
+            raise RluError(
+                f"{path}: its bytes differ from the sha256 its manifest records (damaged since "
+                "it was written); remove that dataset and write it again"
+            )
+
+    def raw(self, rel: str, out: _RawFile) -> int:
+        """Copy ``rel`` as it is; returns its size."""
+        n = 0
+        for data in self._blocks(rel, self.CHUNK):
+            out.write(data)
+            n += len(data)
+        return n
+
+    def shifted(self, rel: str, out: _RawFile, shift: int, skip: int = 0) -> int:
+        """Copy the int64 column ``rel`` plus ``shift``, its first ``skip`` values dropped;
+        returns the values written."""
+        n = 0
+        for data in self._blocks(rel, self.CHUNK):  # a multiple of 8: values never split
+            values = np.frombuffer(data, "<i8")
+            if skip:
+                values, skip = values[skip:], max(0, skip - len(values))
+            out.write_array(values + shift, "int64")
+            n += len(values)
+        return n
