@@ -49,6 +49,7 @@ from rlu.data import Schema, make_sampler, open_dataset  # noqa: E402
 from rlu.data.synthetic import write_synthetic  # noqa: E402
 from rlu.data.torch import DeviceSampler, Prefetcher, device_batch  # noqa: E402
 from rlu.devices import Runtime, compile_modules, numerics  # noqa: E402
+from rlu.settings import RunSettings  # noqa: E402
 from rlu.tasks import get_task  # noqa: E402
 from rlu.train import TrainConfig, dataset_specs, train  # noqa: E402
 
@@ -137,9 +138,16 @@ def loop_rate(name, task, path, overrides, preset, runtime, k, work: Path) -> fl
     """rlu's full loop: ``train()`` for N and N + K steps; K / (difference of wall times)."""
     times = []
     for steps in (20, 20 + k):
-        cfg = TrainConfig(task=task, agent=name, dataset=path, preset=preset, steps=steps,
-                          eval_every=-1, log_every=10**9, checkpoint_every=10**9,
-                          keep_checkpoints=1, overrides=overrides, runtime=runtime)  # fmt: skip
+        run = RunSettings(
+            preset=preset,
+            steps=steps,
+            eval_every=-1,
+            log_every=10**9,
+            checkpoint_every=10**9,
+            keep_checkpoints=1,
+            runtime=runtime,
+        )
+        cfg = TrainConfig(task=task, agent=name, dataset=path, overrides=overrides, run=run)
         out = work / f"{name}_{steps}"
         t0 = time.perf_counter()
         train(cfg, out)

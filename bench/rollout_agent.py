@@ -1,4 +1,4 @@
-"""Evaluation of a trained D4PG policy: ``rlu evaluate``'s path (``rlu.train.evaluate_run``:
+"""Evaluation of a trained D4PG policy: ``rlu evaluate``'s path (``rlu.restore.evaluate_run``:
 lockstep envs, one batched ``agent.act`` per step) vs a plain loop over a TorchScript copy of the
 same policy network, one env, one torch thread (the loop issue 19 timed: 30 episodes in 15 s
 where ``rlu evaluate`` ran 10 in 61 s on a loaded 2-core machine).
@@ -28,7 +28,8 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import torch  # noqa: E402
 
 from rlu.evaluation.rollout import episode_seed  # noqa: E402
-from rlu.runs import evaluate_run, load_agent  # noqa: E402
+from rlu.restore import evaluate_run, load_agent  # noqa: E402
+from rlu.settings import RunSettings  # noqa: E402
 from rlu.train import TrainConfig, train  # noqa: E402
 
 TASK = "control_suite/cartpole_swingup"
@@ -37,8 +38,8 @@ TASK = "control_suite/cartpole_swingup"
 def make_run(root: Path, preset: str) -> Path:
     from rlu.generate.recipe import bundled_dataset
 
-    cfg = TrainConfig(task=TASK, agent="d4pg", dataset=str(bundled_dataset()), preset=preset,
-                      steps=5, eval_every=-1, checkpoint_every=5, torch_threads=1)  # fmt: skip
+    run = RunSettings(preset=preset, steps=5, eval_every=-1, checkpoint_every=5)
+    cfg = TrainConfig(task=TASK, agent="d4pg", dataset=str(bundled_dataset()), run=run)
     train(cfg, root / "d4pg", progress=False)
     return root / "d4pg"
 

@@ -1,7 +1,10 @@
-"""Loading a training checkpoint as input that may be damaged or hostile.
+"""torch state files (training checkpoints, generation state): saved atomically, loaded as input
+that may be damaged or hostile.
 
-A checkpoint (``rlu train``'s ``checkpoints/step_*.pt``) holds tensors, numbers, strings and plain
-containers only, and is loaded with ``torch.load(weights_only=True)``: torch's restricted
+A state file (``rlu train``'s ``checkpoints/step_*.pt``, ``rlu generate``'s resume state) holds
+tensors, numbers, strings and plain containers only. It is written through ``rlu.files``
+(temporary file created without following links, synced, renamed) and loaded with
+``torch.load(weights_only=True)``: torch's restricted
 unpickler, which refuses any other Python object instead of running the code a pickle can carry.
 Its refusal message suggests ``weights_only=False``, which would run that code; rlu never passes
 that advice on. An empty, truncated or foreign file, or one holding Python objects, raises a
@@ -14,19 +17,35 @@ import os
 from pathlib import Path
 from typing import Any
 
+from rlu.files import atomic_path
 from rlu.types import FormatError, RluError
 
+CHECKPOINT_FIX = "use a checkpoint written by rlu train, or an earlier one of the run (or re-train)"
 
-def load_checkpoint(path: str | os.PathLike, keys: tuple[str, ...] = ()) -> dict[str, Any]:
+
+def save_state(path: str | os.PathLike, state: Any) -> Path:
+    """``torch.save(state)`` to ``path`` atomically (nothing partial is left by a kill or a full
+    disk: the temporary file is removed)."""
+    import torch
+
+    with atomic_path(path) as tmp:
+        fd = os.open(tmp, os.O_WRONLY | os.O_TRUNC | os.O_NOFOLLOW | os.O_CLOEXEC)
+        with os.fdopen(fd, "wb") as fh:
+            torch.save(state, fh)
+    return Path(path)
+
+
+def load_state(
+    path: str | os.PathLike, keys: tuple[str, ...] = (), fix: str = CHECKPOINT_FIX
+) -> dict[str, Any]:
     """The state dict saved at ``path``, which must hold ``keys`` at its top level."""
     import torch
 
     path = Path(path)
-    fix = "use a checkpoint written by rlu train, or an earlier one of the run (or re-train)"
     if not path.is_file():
-        raise RluError(f"{path}: no such checkpoint file; {fix}")
+        raise RluError(f"{path}: no such state file; {fix}")
     if path.stat().st_size == 0:
-        raise FormatError(f"{path}: an empty file (0 bytes), not a checkpoint; {fix}")
+        raise FormatError(f"{path}: an empty file (0 bytes), not a state file; {fix}")
     try:
         # on the CPU whatever device wrote it: a GPU run's checkpoint loads on a CPU-only machine
         state = torch.load(path, weights_only=True, map_location="cpu")

@@ -1,8 +1,9 @@
 """The ``rlu`` command: parsing and printing only; the logic lives in the library.
 
-Every module in ``rlu/commands/`` contributes subcommands through ``register(subparsers)``; such
-modules import only the standard library at the top and the library inside their handlers, so
-``rlu list`` stays a numpy-only command.
+Every module in ``rlu/commands/`` contributes subcommands through ``register(subparsers)``
+(``_name`` modules are helpers of the others, with no command of their own); such modules import
+only the standard library at the top and the library inside their handlers, so ``rlu list``
+stays a numpy-only command.
 
 Bad input never ends in a traceback: the library raises :class:`~rlu.types.RluError` (the message
 names the file, the field and the fix), and a file the system refuses (permissions, a full disk)
@@ -39,13 +40,20 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for info in sorted(pkgutil.iter_modules(rlu.commands.__path__), key=lambda m: m.name):
+        if info.name.startswith("_"):
+            continue  # a helper of other command modules (options they share), no command
         module = importlib.import_module(f"rlu.commands.{info.name}")
         module.register(sub)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
+    if sys.stdout is None:  # started with stdout closed (``rlu list >&-``): its output is dropped
+        sys.stdout = open(os.devnull, "w")  # noqa: SIM115 (lives as long as the process)
+    if sys.stderr is None:
+        sys.stderr = open(os.devnull, "w")  # noqa: SIM115
     args = build_parser().parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)  # what was typed (rlu train --config)
     try:
         code = int(args.func(args) or 0)
         sys.stdout.flush()  # a closed pipe shows here, not in the interpreter's exit
@@ -63,9 +71,40 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         _say("rlu: interrupted")
         return 130
+    except ModuleNotFoundError as e:  # an extra is missing: the one line that installs it
+        extra = EXTRA_OF.get((e.name or "").partition(".")[0])
+        if extra is None:
+            raise
+        from rlu.types import install_hint
+
+        _say(f"rlu: error: rlu {args.command} needs {e.name} (the {extra} extra): "
+             f"{install_hint(extra)}")  # fmt: skip
+        return 2
+
+
+EXTRA_OF = {
+    "torch": "agents",
+    "dm_control": "control",
+    "mujoco": "control",
+    "gymnasium": "control",
+    "ale_py": "atari",
+    "cv2": "atari",
+    "ray": "distributed",
+    "h5py": "interop",
+    "minari": "interop",
+    "google_crc32c": "release",
+    "PIL": "release",
+    "matplotlib": "report",
+    "jinja2": "report",
+    "jax": "jax",
+    "imageio_ffmpeg": "video",
+}
+"""The extra that installs each optional module rlu imports (pyproject.toml's extras)."""
 
 
 def _say(line: str) -> None:
+    """One line on stderr, whatever the message holds (a library's multi-line text included)."""
+    line = " ".join(part.strip() for part in line.splitlines() if part.strip())
     try:
         print(line, file=sys.stderr)
     except OSError:  # stderr closed too: nothing left to tell

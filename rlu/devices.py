@@ -13,7 +13,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 from collections.abc import Callable, Iterator, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from rlu.types import RluError, resolve_device
@@ -26,12 +26,13 @@ waiting (a deeper queue only holds more pinned memory)."""
 
 @dataclass(frozen=True)
 class Runtime:
-    """Where and how a run computes (``TrainConfig.runtime``, ``SweepConfig.runtime``)."""
+    """Where and how a run computes (``rlu.settings.RunSettings.runtime``)."""
 
-    device: str = "cpu"
+    device: str = field(default="cpu", metadata={"cli_default": "auto", "metavar": "DEVICE"})
     """auto, cpu, cuda or cuda:N: where the agent's modules, batches and random draws live
-    (auto: the first CUDA GPU if PyTorch sees one, else the CPU)."""
-    precision: str = "fp32"
+    (auto: the first CUDA GPU if PyTorch sees one, else the CPU; the command line's default,
+    where the library's is cpu)."""
+    precision: str = field(default="fp32", metadata={"choices": PRECISIONS})
     """fp32, or bf16: every update runs under ``torch.autocast`` with bfloat16 (matmuls and
     convolutions in bf16; weights, gradients and optimiser states stay fp32)."""
     tf32: bool = False
@@ -39,7 +40,7 @@ class Runtime:
     IEEE fp32, so fp32 means fp32 (PyTorch's own default runs cuDNN convolutions in TF32)."""
     compile: bool = False
     """``torch.compile`` the forward of every agent module (opt-in: the first updates compile)."""
-    prefetch: int | None = None
+    prefetch: int | None = field(default=None, metadata={"min": 0, "metavar": "N"})
     """Batches sampled ahead of the learner by a background thread (on CUDA copied from pinned
     memory on a side stream); None: 2 on CUDA, 0 on the CPU (sampled in line, as before)."""
     data_on_device: bool = False

@@ -4,8 +4,9 @@ The lock of ``<dir>/<name>`` is the file ``<dir>/.<name>.lock`` holding the owne
 with ``flock``. The kernel drops an ``flock`` when its holder dies, so the lock of a killed
 process (``kill -9``) is simply taken over by the next writer, whatever the file still says; a
 live holder makes the next writer fail at once with "in use by PID N" instead of writing over its
-partial output. Forked children (conversion's reader processes) close their copy of the lock at
-fork, so a lock lives exactly as long as the process that took it.
+partial output. A lock file planted as a symbolic or hard link is refused, never written through
+(:func:`rlu.files.open_private`). Forked children (conversion's reader processes) close their copy
+of the lock at fork, so a lock lives exactly as long as the process that took it.
 
 Standard library only (``fcntl``: POSIX).
 """
@@ -16,6 +17,7 @@ import fcntl
 import os
 from pathlib import Path
 
+from rlu.files import open_private
 from rlu.types import RluError
 
 _HELD: set[int] = set()  # descriptors of locks this process holds (closed in forked children)
@@ -56,7 +58,7 @@ class OutputLock:
             return self
         self.path.parent.mkdir(parents=True, exist_ok=True)
         while True:
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+            fd = self._open()
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
@@ -80,6 +82,14 @@ class OutputLock:
             self.fd = fd
             _HELD.add(fd)
             return self
+
+    def _open(self) -> int:
+        """The lock file, created if missing; a planted symlink (or hard link) is refused, never
+        followed: the lock's PID would be written into whatever it points at."""
+        try:
+            return open_private(self.path, os.O_RDWR | os.O_CREAT, f"lock file of {self.target}")
+        except OSError as e:
+            raise RluError(f"{self.path}: the lock file cannot be opened ({e.strerror})") from None
 
     def release(self) -> None:
         fd, self.fd = self.fd, None

@@ -1,5 +1,5 @@
-"""Run and sweep folders: the one module that knows their layout, writes them atomically and
-reads them back (a finished run's policy included).
+"""Run and sweep folders: the one module that knows their layout and their files, writes them
+atomically (``rlu.files``) and reads them back checked, each against its own shape.
 
 A run folder (``rlu train --out RUN``)::
 
@@ -12,27 +12,31 @@ A run folder (``rlu train --out RUN``)::
 A sweep folder (``rlu sweep --out SWEEP``)::
 
     sweep.json         the sweep config
-    results.jsonl      one record per finished run (task, agent, config, seed, score, run)
-    <task>/<agent>/<config>/seed_<s>/   the run folders
+    results.jsonl      one record per finished run (task, agent, config, seed, score, run, and
+                       what produced the score: preset, steps, data source, evaluation episodes)
+    <task>/<agent>/<config>/seed_<s>/   the run folders (``run`` in a record: relative to SWEEP)
     fqe.json           offline selection by FQE (``rlu report --fqe``)
 
 Every file is written to a temporary name, synced and renamed, so a kill leaves either the old
 file or the new one; the ``.jsonl`` logs are appended line by line and cut back to the last
-checkpoint on resume (a torn last line is dropped).
+checkpoint on resume (a torn last line is dropped). Every file is read through ``rlu.files``
+against the shape below: a file of the wrong shape is one FormatError naming it, the field and
+the fix, before any of its values is used. Rebuilding a finished run as an agent, a policy or
+an evaluation is ``rlu.restore``'s.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import json
+import contextlib
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from rlu.types import ArraySpec, DiscreteSpec, FormatError, RluError, observation_spec_from_json
+from rlu import files
+from rlu.checkpoints import save_state
+from rlu.files import AnyJSON, Float, Int, ListOf, MapOf, Optional, Record, Shape, Str
+from rlu.types import RluError
 
 CONFIG = "config.json"
 METRICS = "metrics.jsonl"
@@ -43,217 +47,220 @@ SWEEP_CONFIG = "sweep.json"
 RESULTS = "results.jsonl"
 FQE = "fqe.json"
 
+FIX_RUN = "rlu writes it whole (temporary file + rename), so it was damaged or replaced: restore it or train into a new --out"  # noqa: E501
+FIX_SWEEP = "rlu writes it whole, so it was damaged or replaced: restore it, or run the sweep again into a new --out"  # noqa: E501
 
-# --- files ----------------------------------------------------------------------------------
-def write_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w") as f:
-        f.write(text)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+# --- shapes of the files --------------------------------------------------------------------
+_DIM = Int(min=0, max=1 << 20)
 
 
-def write_json(path: Path, data: Any) -> None:
-    write_atomic(path, json.dumps(data, indent=2) + "\n")
+class _Spec(Shape):
+    """An array spec (``rlu.types.ArraySpec.to_json``) or, with ``keyed``, a dict of them."""
+
+    def __init__(self, keyed: bool = False):
+        self.keyed = keyed
+
+    _ONE = Record(
+        {"shape": ListOf(_DIM, max_len=8), "dtype": Str(max_len=16)},
+        {"minimum": Float(), "maximum": Float(), "num_values": Int(min=1, max=1 << 20)},
+        extra=False,
+    )
+
+    def check(self, value: Any, where: str) -> Any:
+        if self.keyed and isinstance(value, Mapping) and not {"shape", "dtype"} <= set(value):
+            return MapOf(self._ONE, max_len=1024).check(value, where)
+        return self._ONE.check(value, where)
+
+    def describe(self) -> str:
+        return "an array spec"
 
 
-def read_json(path: Path) -> Any:
-    """A JSON file rlu wrote (run config, result, sweep config), or a clear error if it is not."""
-    try:
-        return json.loads(Path(path).read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise FormatError(
-            f"{path}: not a readable JSON file ({type(e).__name__}: {e}); rlu writes it whole "
-            "(temporary file + rename), so it was damaged or replaced: restore it or rerun the "
-            "command that wrote it into a new folder"
-        ) from None
+def run_config_shape(train_shape: Shape) -> Record:
+    """The shape of a run's config.json; ``train_shape`` is ``rlu.files.shape_of(TrainConfig)``
+    (given by rlu.train, which owns that config)."""
+    return Record(
+        {
+            "train": train_shape,
+            "env_settings": MapOf(AnyJSON(depth=2), max_len=16),
+            "agent_config": MapOf(AnyJSON(depth=8), max_len=256),
+            "observation_spec": _Spec(keyed=True),
+            "action_spec": _Spec(),
+            "dataset": Record({"path": Str(), "num_steps": Int(min=0)}),
+        }
+    )
 
 
-def read_jsonl(path: Path, max_step: int | None = None) -> list[dict[str, Any]]:
-    """Complete records (with ``step <= max_step`` when given); a kill can leave a torn line."""
-    if not path.exists():
-        return []
-    keep = []
-    for line in path.read_text().splitlines():
-        try:
-            record = json.loads(line)
-        except json.JSONDecodeError:
-            continue
-        if max_step is None or int(record["step"]) <= max_step:
-            keep.append(record)
-    return keep
-
-
-def cut_log(path: Path, max_step: int) -> None:
-    """Keep the lines of ``path`` logged at or before ``max_step`` (resume from a checkpoint)."""
-    write_atomic(path, "".join(json.dumps(r) + "\n" for r in read_jsonl(path, max_step)))
+EVAL_RECORD = Record(
+    {
+        "step": Int(min=0),
+        "returns": ListOf(Float()),
+        "lengths": ListOf(Int(min=0)),
+        "mean": Float(),
+    }
+)
+METRICS_RECORD = Record({"step": Int(min=0)})
+DATA_SOURCE = Record(
+    {"source": Str(choices=("release", "generated", "imported", "synthetic", "unknown"))}
+)
+RESULT_SHAPE = Record(
+    {
+        "task": Str(),
+        "agent": Str(),
+        "seed": Int(min=0),
+        "steps": Int(min=0),
+        "score": Optional(Float()),
+        "final_eval": Optional(EVAL_RECORD),
+    },
+    {
+        "pretrain_steps": Int(min=0),
+        "env_settings": MapOf(AnyJSON(depth=2), max_len=16),
+        "preset": Str(),
+        "eval_episodes": Int(min=1),
+        "data": DATA_SOURCE,
+    },
+)
+RUN_RECORD = Record(
+    {
+        "task": Str(),
+        "agent": Str(),
+        "config": Str(),
+        "seed": Int(min=0),
+        "score": Optional(Float()),
+        "run": Str(),
+    },
+    {
+        "overrides": MapOf(AnyJSON(depth=4), max_len=256),
+        "preset": Str(),
+        "env_settings": MapOf(AnyJSON(depth=2), max_len=16),
+        "returns": Optional(ListOf(Float())),
+        "steps": Int(min=0),
+        "pretrain_steps": Int(min=0),
+        "eval_episodes": Int(min=1),
+        "data": DATA_SOURCE,
+    },
+)
+FQE_SHAPE = Record({"selections": ListOf(MapOf(AnyJSON(depth=6)), max_len=100_000)})
 
 
 # --- run folders ----------------------------------------------------------------------------
-def checkpoints(run: Path) -> list[Path]:
-    return sorted((Path(run) / CHECKPOINTS).glob("step_*.pt"))
+write_json = files.write_json
 
 
-def save_checkpoint(run: Path, step: int, state: Mapping[str, Any], keep: int) -> Path:
+def clear_temporary(run: str | os.PathLike) -> None:
+    """Remove the temporary files a killed writer left in a run folder (never following links)."""
+    for tmp in Path(run).rglob("*.tmp"):
+        if tmp.is_file() or tmp.is_symlink():
+            tmp.unlink()
+
+
+@contextlib.contextmanager
+def append_log(path: str | os.PathLike) -> Iterator[Any]:
+    """A run log opened for appending, refusing a planted symlink instead of writing through."""
+    flags = os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_NOFOLLOW | os.O_CLOEXEC
+    try:
+        fd = os.open(path, flags, 0o644)
+    except OSError as e:
+        raise RluError(
+            f"{path}: cannot be opened for appending ({e.strerror}); remove it"
+        ) from None
+    with os.fdopen(fd, "a") as fh:
+        yield fh
+
+
+def read_config(run: str | os.PathLike, train_shape: Shape) -> dict[str, Any]:
+    path = Path(run) / CONFIG
+    return files.read_json(path, run_config_shape(train_shape), FIX_RUN)
+
+
+def read_result(run: str | os.PathLike) -> dict[str, Any]:
+    return files.read_json(Path(run) / RESULT, RESULT_SHAPE, FIX_RUN)
+
+
+def read_log(path: str | os.PathLike, max_step: int | None = None) -> list[dict[str, Any]]:
+    """Complete records of a run's metrics.jsonl or eval.jsonl (with ``step <= max_step`` when
+    given); a kill can leave a torn last line, which is dropped; a torn line elsewhere, or a
+    line of the wrong shape, is a FormatError."""
+    shape = EVAL_RECORD if Path(path).name == EVAL else METRICS_RECORD
+    records = files.read_jsonl(path, shape, FIX_RUN, allow_nan=True)
+    return [r for r in records if max_step is None or r["step"] <= max_step]
+
+
+def cut_log(path: str | os.PathLike, max_step: int) -> None:
+    """Keep the lines of ``path`` logged at or before ``max_step`` (resume from a checkpoint)."""
+    import json
+
+    kept = read_log(path, max_step)
+    files.write_atomic(path, "".join(json.dumps(r) + "\n" for r in kept))
+
+
+def checkpoints(run: str | os.PathLike) -> list[Path]:
+    """The run's checkpoint files, oldest first (planted links are not checkpoints)."""
+    return sorted(p for p in (Path(run) / CHECKPOINTS).glob("step_*.pt") if not p.is_symlink())
+
+
+def save_checkpoint(run: str | os.PathLike, step: int, state: Mapping[str, Any], keep: int) -> Path:
     """Write ``state`` as ``checkpoints/step_XXXXXXXX.pt`` atomically; keep the newest ``keep``."""
-    import torch
-
     path = Path(run) / CHECKPOINTS / f"step_{step:08d}.pt"
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(dict(state), tmp)
-    with open(tmp, "rb+") as f:
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    save_state(path, state)
     for old in checkpoints(run)[:-keep] if keep > 0 else []:
         old.unlink()
     return path
 
 
-def load_checkpoint(path: Path, keys: tuple[str, ...] = ("agent",)) -> dict[str, Any]:
-    """A checkpoint's content, loaded without unpickling anything but tensors and plain data, on
-    the CPU whatever device wrote it (the agent's ``load_state_dict`` copies it onto its own);
-    a damaged, empty or planted file is a FormatError naming it (:mod:`rlu.checkpoints`)."""
-    from rlu.checkpoints import load_checkpoint as load
-
-    return load(path, keys)
-
-
-def load_run(path: str | os.PathLike) -> tuple[dict[str, Any], Path]:
-    """(resolved config, checkpoint path) of a run folder (its newest checkpoint) or of one
-    checkpoint file in it."""
+def find_run(path: str | os.PathLike) -> tuple[Path, Path]:
+    """(run folder, checkpoint) of a run folder (its newest checkpoint) or of one checkpoint
+    file in it."""
     p = Path(path)
     if p.is_file():
         ckpt, run = p, p.parent.parent
     else:
         run = p
+        if not (run / CONFIG).is_file():
+            raise RluError(
+                f"{run / CONFIG} is missing; {path} is not an rlu run folder or checkpoint "
+                "(rlu train --out)"
+            )
         found = checkpoints(run)
         if not found:
             raise RluError(f"{run} has no {CHECKPOINTS}/step_*.pt; train it first (rlu train)")
         ckpt = found[-1]
-    cfg_path = run / CONFIG
-    if not cfg_path.exists():
-        raise RluError(f"{cfg_path} is missing; {path} is not an rlu run folder or checkpoint")
-    return read_json(cfg_path), ckpt
-
-
-def build_agent(resolved: Mapping[str, Any], device: Any = "cpu") -> Any:
-    """The agent a run's resolved config describes, freshly initialised (config, specs, seed)
-    on ``device`` (any device: the one the run trained on does not matter)."""
-    from rlu.agents import agent_module, config_from_json
-
-    train_cfg = resolved["train"]
-    obs_spec = observation_spec_from_json(resolved["observation_spec"])
-    action_spec = ArraySpec.from_json(resolved["action_spec"])
-    module = agent_module(train_cfg["agent"], isinstance(action_spec, DiscreteSpec))
-    config = config_from_json(module.Config, resolved["agent_config"])
-    return module.Agent(obs_spec, action_spec, config, seed=int(train_cfg["seed"]), device=device)
-
-
-def load_agent(path: str | os.PathLike, device: Any = "cpu") -> tuple[Any, dict[str, Any]]:
-    """(agent restored on ``device`` from a run's newest checkpoint or a given checkpoint,
-    resolved config)."""
-    resolved, ckpt = load_run(path)
-    agent = build_agent(resolved, device)
-    agent.load_state_dict(load_checkpoint(ckpt)["agent"])
-    return agent, resolved
-
-
-def greedy_policy(agent: Any) -> Any:
-    """The evaluation policy of an agent (a ``rlu.types.Policy``): ``act(obs, greedy=True)``."""
-
-    def policy(observation: Any, is_first: np.ndarray | None = None) -> np.ndarray:
-        return agent.act(observation, greedy=True, is_first=is_first)
-
-    return policy
-
-
-def load_policy(path: str | os.PathLike, device: Any = "cpu") -> tuple[Any, dict[str, Any]]:
-    """(greedy policy of a run's newest checkpoint or of a given checkpoint, acting on
-    ``device``, resolved config)."""
-    agent, resolved = load_agent(path, device)
-    return greedy_policy(agent), resolved
-
-
-def evaluate_run(
-    path: str | os.PathLike,
-    episodes: int = 10,
-    seed: int = 0,
-    num_envs: int = 4,
-    env: str | None = None,
-    max_steps: int | None = None,
-    challenge: str | None = None,
-    device: Any = "cpu",
-) -> Any:
-    """Roll out the greedy policy of a run folder's newest checkpoint (or a given checkpoint) in
-    the env the run evaluated in (an RWRL run: its data's challenge, unless ``challenge``),
-    acting on ``device``."""
-    from rlu.evaluation.rollout import evaluate, task_env_factory
-
-    policy, resolved = load_policy(path, device)
-    train_cfg = resolved["train"]
-    settings = dict(resolved["env_settings"])
-    if challenge is not None:
-        if "challenge" not in settings:
-            raise RluError(f"--challenge applies to rwrl runs only; {path} is {train_cfg['task']}")
-        from rlu.train import check_challenge
-
-        keys = set(resolved["observation_spec"])
-        check_challenge(train_cfg["task"], challenge, keys, settings["challenge"], str(path))
-        settings["challenge"] = challenge
-    factory = env if env is not None else train_cfg["env"]
-    env_fn = task_env_factory(train_cfg["task"], factory, **settings)
-    return evaluate(policy, env_fn, episodes, seed, num_envs, max_steps)
+    if not (run / CONFIG).is_file():
+        raise RluError(f"{run / CONFIG} is missing; {path} is not an rlu run folder or checkpoint")
+    return run, ckpt
 
 
 # --- sweep folders --------------------------------------------------------------------------
-def load_sweep_config(sweep_dir: str | os.PathLike) -> dict[str, Any]:
+def load_sweep_config(sweep_dir: str | os.PathLike, shape: Shape | None = None) -> dict[str, Any]:
     path = Path(sweep_dir) / SWEEP_CONFIG
-    if not path.exists():
+    if not path.is_file():
         raise RluError(f"{path} is missing; {sweep_dir} is not a sweep folder (rlu sweep --out)")
-    return read_json(path)
+    return files.read_json(path, shape or Record({"datasets": MapOf(Str())}), FIX_SWEEP)
 
 
 def load_results(sweep_dir: str | os.PathLike) -> list[dict[str, Any]]:
+    """The sweep's run records, with each ``run`` folder resolved (records store it relative
+    to the sweep folder, so a sweep can be moved and reported from anywhere)."""
     path = Path(sweep_dir) / RESULTS
     if not path.exists():
         raise RluError(f"{path} is missing; run the sweep first (rlu sweep ... --out {sweep_dir})")
-    records = []
-    for i, line in enumerate(path.read_text().splitlines(), 1):
-        if not line.strip():
-            continue
-        try:
-            records.append(json.loads(line))
-        except json.JSONDecodeError as e:
-            raise FormatError(
-                f"{path}: line {i} is not JSON ({e}); rerun the sweep (it rewrites this file from "
-                "its finished runs)"
-            ) from None
-    return records
+    fix = "run the sweep again: it rewrites this file from its finished runs"
+    records = files.read_jsonl(path, RUN_RECORD, fix, torn="refuse", allow_nan=True)
+    root = Path(sweep_dir)
+    return [{**r, "run": str(root / r["run"])} for r in records]
 
 
 def write_results(sweep_dir: str | os.PathLike, records: Sequence[Mapping[str, Any]]) -> None:
-    text = "".join(json.dumps(r) + "\n" for r in records)
-    write_atomic(Path(sweep_dir) / RESULTS, text)
+    """Write the sweep's records, each ``run`` folder relative to the sweep folder."""
+    import json
+
+    root = Path(sweep_dir).resolve()
+    lines = []
+    for r in records:
+        run = Path(r["run"]).resolve()
+        rel = os.path.relpath(run, root) if run.is_relative_to(root) else str(run)
+        lines.append(json.dumps({**r, "run": rel}) + "\n")
+    files.write_atomic(Path(sweep_dir) / RESULTS, "".join(lines))
 
 
-def fqe_selection(
-    sweep_dir: str | os.PathLike, config: Any = None, device: Any = "cpu"
-) -> dict[str, Any]:
-    """Offline policy selection by FQE over a finished sweep (see
-    ``rlu.evaluation.fqe.fqe_selection``), policies and FQE on ``device``; writes and returns
-    ``SWEEP_DIR/fqe.json``."""
-    from rlu.evaluation.fqe import FQEConfig
-    from rlu.evaluation.fqe import fqe_selection as select
-
-    config = config or FQEConfig()
-    datasets = load_sweep_config(sweep_dir)["datasets"]
-
-    def policy_of(run: str) -> tuple[Any, Any]:
-        policy, resolved = load_policy(run, device)
-        return policy, ArraySpec.from_json(resolved["action_spec"])
-
-    out = select(load_results(sweep_dir), datasets, policy_of, config, device)
-    out["fqe_config"] = dataclasses.asdict(config)
-    write_json(Path(sweep_dir) / FQE, out)
-    return out
+def read_fqe(sweep_dir: str | os.PathLike) -> dict[str, Any]:
+    return files.read_json(Path(sweep_dir) / FQE, FQE_SHAPE, "run rlu report --fqe again")

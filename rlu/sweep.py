@@ -3,14 +3,17 @@
 Runs go to ``OUT/<task>/<agent>/<config>/seed_<s>``; a run whose ``result.json`` exists is
 skipped, so running a sweep again finishes only what is missing (an interrupted run resumes from
 its last checkpoint). Backends: a local process pool (default) or a Ray cluster
-(``backend="ray"``; ``ray.init`` on ``ray_address``, or a local instance). Every run sets its own
+(``Backend("ray")``; ``ray.init`` on its address, or a local instance). Every run sets its own
 seeds and torch thread count, so both backends give the same numbers. ``OUT/results.jsonl``
 holds one record per finished run (task, agent, config, overrides, seed, score, run folder),
 sorted, rewritten as each run finishes: ``rlu report`` reads a sweep in progress or interrupted.
 
-Every run computes on ``SweepConfig.runtime`` (device, precision, data path). On Ray a run asks
-for one CPU and ``gpus_per_run`` GPUs: a fraction packs several small runs onto one GPU (0.25:
-four). The runtime and the GPU request may change when an interrupted sweep is continued.
+Every run is run by ``SweepConfig.run`` (an ``rlu.settings.RunSettings``: preset, budget,
+evaluation, checkpoints; its runtime: device, precision, data path); each run's record in
+results.jsonl says what produced its score (preset, steps, data source, evaluation episodes).
+Runs are spread by the one runner (``rlu.workers.run_jobs``). On Ray a run asks for one CPU and
+``Backend.gpus_per_job`` GPUs: a fraction packs several small runs onto one GPU (0.25: four);
+the runtime and the GPU request may change when an interrupted sweep is continued.
 """
 
 from __future__ import annotations
@@ -26,47 +29,35 @@ from pathlib import Path
 from typing import Any
 
 from rlu import runs
-from rlu.devices import Runtime, check_gpus_per_run, check_ray_gpus, ray_options
-from rlu.types import DiscreteSpec, RluError, install_hint
-from rlu.workers import die_with_parent
+from rlu.devices import check_ray_gpus
+from rlu.files import bounds, check_output, shape_of
+from rlu.settings import RunSettings
+from rlu.types import DiscreteSpec, RluError
+from rlu.workers import Backend, run_jobs
 
 
 @dataclass(frozen=True)
 class SweepConfig:
-    tasks: tuple[str, ...]
-    agents: tuple[str, ...]
-    datasets: Mapping[str, str]
-    """Dataset path per task."""
-    seeds: tuple[int, ...] = (0,)
-    preset: str = "small"
-    steps: int | None = None
-    """Gradient steps per run (None: each agent config's ``num_steps``)."""
-    grid: Mapping[str, Sequence[Any]] | None = None
-    """Grid for every agent ({field: [values]}); None: each agent module's paper ``GRID``."""
-    max_configs: int | None = None
-    """Keep only the first N configurations of each grid (in grid order)."""
-    eval_every: int = 0
-    eval_episodes: int = 5
-    eval_envs: int = 4
-    eval_max_steps: int | None = None
-    log_every: int = 100
-    checkpoint_every: int = 1000
-    env: str | None = None
-    """Env factory 'module:function' (None: rlu.envs.make_env)."""
-    challenge: str | None = None
-    """RWRL: evaluate under this challenge (None: each dataset's own, from its provenance)."""
-    task_presets: Mapping[str, str] = field(default_factory=dict)
-    """Per-task preset replacing ``preset`` for the agents that have it: the paper's recurrent
-    presets on the sequence locomotion tasks, ``{"locomotion/rodent_mazes": "paper_recurrent"}``."""
-    torch_threads: int = 1
-    """Threads per run: runs are the unit of parallelism."""
-    runtime: Runtime = field(default_factory=Runtime)
-    """Device, precision and data path of every run (``rlu.devices.Runtime``)."""
-    gpus_per_run: float = 0.0
-    """Ray backend: GPUs each run asks for (a fraction shares a GPU: 0.25 packs four runs)."""
+    """Tasks x agents x grids x seeds, every run run by ``run`` (the template)."""
 
-    def __post_init__(self) -> None:
-        check_gpus_per_run(self.gpus_per_run)
+    tasks: tuple[str, ...]
+    """Task ids, e.g. control_suite/cartpole_swingup atari/Pong."""
+    agents: tuple[str, ...]
+    """Agent names (bc, d4pg, ...) or agent module paths you typed."""
+    datasets: Mapping[str, str]
+    """Dataset path per task (stored resolved: a sweep folder reports from anywhere)."""
+    seeds: tuple[int, ...] = field(default=(0,), metadata=bounds(min=0, max=2**63 - 1))
+    """Seeds of every configuration."""
+    grid: Mapping[str, Sequence[Any]] | None = None
+    """Grid for every agent ({field: [values]}); None: each agent module's paper GRID."""
+    max_configs: int | None = field(default=None, metadata=bounds(min=1))
+    """Keep only the first N configurations of each grid (in grid order)."""
+    task_presets: Mapping[str, str] = field(default_factory=dict)
+    """Per-task preset replacing ``run.preset`` for the agents that have it: the paper's
+    recurrent presets on the sequence locomotion tasks, {"locomotion/rodent_mazes":
+    "paper_recurrent"}."""
+    run: RunSettings = field(default_factory=RunSettings)
+    """How every run is run (preset, budget, evaluation, checkpoints, runtime)."""
 
     def to_json(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
@@ -110,8 +101,14 @@ def agent_presets(agent: str, discrete: bool) -> tuple[str, ...]:
 
 
 def expand(config: SweepConfig, out: str | os.PathLike) -> list[RunSpec]:
-    """Every run of the sweep, in (task, agent, config, seed) order."""
+    """Every run of the sweep, in (task, agent, config, seed) order. A module path among the
+    agents (or the env factory) is imported here: the config came from code or the command
+    line, never from a file."""
     from rlu.data import open_dataset
+    from rlu.train import trust
+
+    for agent in config.agents:
+        trust(agent, config.run.env)
 
     specs = []
     for task in config.tasks:
@@ -119,9 +116,9 @@ def expand(config: SweepConfig, out: str | os.PathLike) -> list[RunSpec]:
             raise RluError(f"no dataset for task {task!r}; pass --dataset {task}=PATH")
         discrete = isinstance(open_dataset(config.datasets[task]).schema.action, DiscreteSpec)
         for agent in config.agents:
-            preset = config.task_presets.get(task, config.preset)
+            preset = config.task_presets.get(task, config.run.preset)
             if preset not in agent_presets(agent, discrete):
-                preset = config.preset  # e.g. no recurrent variant of this agent
+                preset = config.run.preset  # e.g. no recurrent variant of this agent
             grid = dict(config.grid) if config.grid is not None else agent_grid(agent, discrete)
             keys = sorted(grid)
             settings = [
@@ -138,35 +135,21 @@ def expand(config: SweepConfig, out: str | os.PathLike) -> list[RunSpec]:
     return specs
 
 
-def run_one(spec: RunSpec, config: SweepConfig, sys_path: Sequence[str] = ()) -> dict[str, Any]:
+def run_one(spec: RunSpec, config: SweepConfig) -> dict[str, Any]:
     """Train one run (resuming or skipping it if it exists) and return its result record."""
-    for p in sys_path:  # remote workers import test or user agent modules like the driver
-        if p not in sys.path:
-            sys.path.append(p)
     from rlu.train import TrainConfig, train
 
     run = Path(spec.run_dir)
     if (run / runs.RESULT).exists():
-        result = runs.read_json(run / runs.RESULT)
+        result = runs.read_result(run)
     else:
         tc = TrainConfig(
             task=spec.task,
             agent=spec.agent,
             dataset=config.datasets[spec.task],
-            preset=spec.preset,
-            steps=config.steps,
             seed=spec.seed,
             overrides=dict(spec.overrides),
-            eval_every=config.eval_every,
-            eval_episodes=config.eval_episodes,
-            eval_envs=config.eval_envs,
-            eval_max_steps=config.eval_max_steps,
-            log_every=config.log_every,
-            checkpoint_every=config.checkpoint_every,
-            env=config.env,
-            challenge=config.challenge,
-            torch_threads=config.torch_threads,
-            runtime=config.runtime,
+            run=dataclasses.replace(config.run, preset=spec.preset),
         )
         result = train(tc, run, resume=True)
     return {
@@ -176,55 +159,110 @@ def run_one(spec: RunSpec, config: SweepConfig, sys_path: Sequence[str] = ()) ->
         "overrides": dict(spec.overrides),
         "seed": spec.seed,
         "preset": spec.preset,
-        "env_settings": result["env_settings"],
+        "steps": result["steps"],
+        "pretrain_steps": result.get("pretrain_steps", 0),
+        "eval_episodes": result.get("eval_episodes", config.run.eval_episodes),
+        "data": result.get("data", {"source": "unknown"}),
+        "env_settings": result.get("env_settings", {}),
         "score": result["score"],
         "returns": (result.get("final_eval") or {}).get("returns"),
         "run": str(run),
     }
 
 
+def plan(config: SweepConfig, specs: Sequence[RunSpec]) -> list[str]:
+    """What the sweep will run, in lines: per task and agent, its preset, the grid (and whether
+    it is the agent's paper grid) and the seeds; and how many runs in all."""
+    from collections import Counter
+
+    lines = []
+    per = Counter((s.task, s.agent) for s in specs)
+    seen = set()
+    for s in specs:
+        if (s.task, s.agent) in seen:
+            continue
+        seen.add((s.task, s.agent))
+        configs = sorted({x.config for x in specs if (x.task, x.agent) == (s.task, s.agent)})
+        source = "--grid" if config.grid is not None else f"{s.agent}'s paper grid"
+        shown = ", ".join(configs[:4]) + (f" ... ({len(configs)})" if len(configs) > 4 else "")
+        lines.append(
+            f"  {s.task} x {s.agent} ({s.preset} preset): {len(configs)} config(s) from "
+            f"{source} [{shown}] x {len(config.seeds)} seed(s) = {per[(s.task, s.agent)]} runs"
+        )
+    lines.append(f"  {len(specs)} runs in all")
+    return lines
+
+
 def sweep(
     config: SweepConfig,
     out: str | os.PathLike,
-    backend: str = "local",
-    workers: int = 2,
-    ray_address: str | None = None,
+    backend: Backend | None = None,
     progress: bool = False,
 ) -> list[dict[str, Any]]:
-    """Run every missing run of the sweep; return (and write to OUT/results.jsonl) all records."""
+    """Run every missing run of the sweep; return (and write to OUT/results.jsonl) all records.
+
+    One process per sweep folder: a second ``sweep`` into the same ``out`` fails at once with
+    "in use by PID N" while the first lives (its runs' folders are locked too)."""
+    from rlu.locks import OutputLock
+
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    cfg_path = out / runs.SWEEP_CONFIG
-    if backend == "local" and config.gpus_per_run:
-        raise RluError(
-            "--gpus-per-run asks Ray for GPUs; use --backend ray, or drop it (local runs all see "
-            "the machine's GPUs)"
-        )
-    if cfg_path.exists() and _what(runs.read_json(cfg_path)) != _what(config.to_json()):
-        raise RluError(
-            f"{cfg_path} was written by a different sweep configuration; use the same arguments "
-            "to continue it or choose a new --out"
-        )
-    runs.write_json(cfg_path, config.to_json())
-    specs = expand(config, out)
-    paths = [p for p in sys.path if p and Path(p).is_dir()]
-    finished = _Finished(out, len(specs), progress)
-    if backend == "local":
-        _run_local(specs, config, workers, paths, finished)
-    elif backend == "ray":
-        _run_ray(specs, config, ray_address, paths, finished)
-    else:
-        raise RluError(f"backend={backend!r}; use 'local' or 'ray'")
-    finished.check()
-    return finished.records
+    where = backend or Backend()
+    config = dataclasses.replace(
+        config, datasets={t: str(Path(p).resolve()) for t, p in config.datasets.items()}
+    )
+    check_output(out, list(config.datasets.values()), runs.SWEEP_CONFIG, "sweep folder")
+    with OutputLock(out, "sweep folder"):
+        cfg_path = out / runs.SWEEP_CONFIG
+        if cfg_path.exists():
+            old = runs.load_sweep_config(out, shape_of(SweepConfig))
+            if _what(old) != _what(config.to_json()):
+                raise RluError(
+                    f"{cfg_path} was written by a different sweep configuration; use the same "
+                    "arguments to continue it or choose a new --out"
+                )
+        specs = expand(config, out)
+        out.mkdir(parents=True, exist_ok=True)
+        runs.write_json(cfg_path, config.to_json())
+        todo = [s for s in specs if not (Path(s.run_dir) / runs.RESULT).exists()]
+        if progress:
+            print(f"rlu sweep: {out}", file=sys.stderr)
+            for line in plan(config, specs):
+                print(line, file=sys.stderr)
+            if len(todo) < len(specs):
+                print(
+                    f"  {len(specs) - len(todo)} already finished (skipped), {len(todo)} to run",
+                    file=sys.stderr,
+                )
+        finished = _Finished(out, len(specs), progress, len(todo))
+        for spec in specs:
+            if spec not in todo:
+                finished.add(run_one(spec, config), quiet=True)
+        check = None
+        if where.kind == "ray":
+
+            def check(ray: Any) -> None:
+                check_ray_gpus(ray, where.gpus_per_job, config.run.runtime.device)
+
+        try:
+            run_jobs(
+                run_one,
+                [(spec, config) for spec in todo],
+                where,
+                on_result=lambda i, rec: finished.add(rec),
+                on_error=lambda i, e: finished.fail(todo[i], e),
+                ray_check=check,
+            )
+        finally:
+            finished.bar.close(failed=bool(finished.failed))
+        finished.check()
+        return finished.records
 
 
 def _what(sweep_json: Mapping[str, Any]) -> dict[str, Any]:
-    """A sweep config without how its runs compute (runtime, GPU request): what must match to
-    continue a sweep in the same folder."""
+    """A sweep config without how its runs compute (runtime): what must match to continue a
+    sweep in the same folder."""
     out = json.loads(json.dumps(sweep_json))
-    out.pop("runtime", None)
-    out.pop("gpus_per_run", None)
+    out.get("run", {}).pop("runtime", None)
     return out
 
 
@@ -233,111 +271,67 @@ class _Finished:
     one, so ``rlu report`` reads a sweep that is still running or was interrupted (its finished
     runs so far)."""
 
-    def __init__(self, out: Path, total: int, progress: bool):
+    def __init__(self, out: Path, total: int, progress: bool, todo: int):
+        from rlu.progress import Progress
+
         self.out, self.total, self.progress = out, total, progress
         self.records: list[dict[str, Any]] = []
         self.failed: list[str] = []
+        self.bar = Progress(todo, "sweep", "runs", quiet=not progress)
 
     def fail(self, spec: RunSpec, error: BaseException) -> None:
         """A run that raised: the others go on; ``check`` names it at the end."""
-        self.failed.append(f"{spec.run_dir}: {type(error).__name__}: {error}")
-        if self.progress:
-            print(f"[failed] {spec.task} {spec.agent} {spec.config} seed {spec.seed}: {error}",
-                  file=sys.stderr)  # fmt: skip
+        why = (str(error).splitlines() or [""])[0]
+        self.failed.append(f"{spec.run_dir}: {type(error).__name__}: {why}")
+        self.bar.note(f"[failed] {spec.task} {spec.agent} {spec.config} seed {spec.seed}: {why}")
+        self.bar.update(1)
+        self.bar.set_postfix(failed=len(self.failed))
 
     def check(self) -> None:
         if self.failed:
             raise RluError(
-                f"{len(self.failed)} of {self.total} runs failed; the {len(self.records)} "
-                f"finished are in {self.out / runs.RESULTS}; fix the cause and run the sweep "
-                "again to retry only those:\n  " + "\n  ".join(self.failed)
+                f"{len(self.failed)} of {self.total} runs failed (first: {self.failed[0]}); the "
+                f"{len(self.records)} finished are in {self.out / runs.RESULTS}; fix the cause "
+                "and run the sweep again to retry only those"
             )
 
-    def add(self, rec: dict[str, Any]) -> None:
+    def add(self, rec: dict[str, Any], quiet: bool = False) -> None:
         self.records.append(rec)
         self.records.sort(key=lambda r: (r["task"], r["agent"], r["config"], r["seed"]))
         runs.write_results(self.out, self.records)
-        if self.progress:
-            print(
-                f"[{len(self.records)}/{self.total}] {rec['task']} {rec['agent']} {rec['config']} "
-                f"seed {rec['seed']}: {rec['score']}",
-                file=sys.stderr,
+        if not quiet:
+            score = "not evaluated" if rec["score"] is None else f"{rec['score']:.1f}"
+            self.bar.note(
+                f"{rec['task']} {rec['agent']} {rec['config']} seed {rec['seed']}: "
+                f"{score} ({rec['preset']} preset, {rec['steps']:,} steps)"
             )
-
-
-def _run_local(specs, config, workers, paths, finished: _Finished) -> None:
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor, as_completed
-
-    if workers <= 1:
-        for r in specs:
-            try:
-                finished.add(run_one(r, config, paths))
-            except Exception as e:  # one run's failure: the others still run
-                finished.fail(r, e)
-        return
-    # spawn: a fresh interpreter per worker (torch and fork do not mix); workers die with the
-    # driver, so a killed sweep leaves no run training on and holding its folder's lock
-    ctx = mp.get_context("spawn")
-    with ProcessPoolExecutor(workers, ctx, die_with_parent, (os.getpid(),)) as pool:
-        futures = {pool.submit(run_one, r, config, paths): r for r in specs}
-        try:
-            for f in as_completed(futures):
-                try:
-                    finished.add(f.result())
-                except Exception as e:
-                    finished.fail(futures[f], e)
-        except BaseException:  # Ctrl-C: start no further run
-            pool.shutdown(wait=False, cancel_futures=True)
-            raise
-
-
-def _run_ray(specs, config, address, paths, finished: _Finished) -> None:
-    try:
-        import ray
-    except ImportError:
-        raise RluError(f"the Ray backend needs ray: {install_hint('distributed')}") from None
-    started = False
-    if not ray.is_initialized():
-        if address:
-            ray.init(address=address, log_to_driver=False)
-        else:
-            ray.init(
-                num_cpus=max(1, os.cpu_count() or 1), include_dashboard=False, log_to_driver=False
-            )
-        started = True
-    try:
-        check_ray_gpus(ray, config.gpus_per_run, config.runtime.device)
-        remote = ray.remote(**ray_options(config.gpus_per_run))(run_one)
-        pending = {remote.remote(r, config, paths): r for r in specs}
-        while pending:
-            done, _ = ray.wait(list(pending), num_returns=1)
-            for ref in done:
-                spec = pending.pop(ref)
-                try:
-                    finished.add(ray.get(ref))
-                except Exception as e:
-                    finished.fail(spec, e)
-    finally:
-        if started:
-            ray.shutdown()
+            self.bar.update(1)
 
 
 def results_table(records: Sequence[Mapping[str, Any]]) -> str:
-    """Markdown table of every (task, agent, config): per-seed scores and their mean."""
+    """Markdown table of every (task, agent, config): preset and steps, per-seed scores and
+    their mean."""
     from collections import defaultdict
 
     groups: dict[tuple[str, str, str], dict[int, float]] = defaultdict(dict)
+    made: dict[tuple[str, str, str], str] = {}
     for r in records:
-        groups[(r["task"], r["agent"], r["config"])][int(r["seed"])] = r["score"]
-    lines = ["| task | agent | config | scores by seed | mean |", "|---|---|---|---|---|"]
+        key = (r["task"], r["agent"], r["config"])
+        groups[key][int(r["seed"])] = r["score"]
+        made[key] = f"{r.get('preset', '?')}, {r.get('steps', '?')} steps"
+    lines = [
+        "| task | agent | config | preset, steps | scores by seed | mean |",
+        "|---|---|---|---|---|---|",
+    ]
     for (task, agent, cfg), by_seed in sorted(groups.items()):
         # a run trained with --eval-every -1 has no score
         vals = [by_seed[s] for s in sorted(by_seed) if by_seed[s] is not None]
         scores = ", ".join(
-            f"{s}: {'not evaluated' if v is None else format(v, '.6g')}"
+            f"{s}: {'not evaluated' if v is None else format(v, '.1f')}"
             for s, v in sorted(by_seed.items())
         )
-        mean = format(sum(vals) / len(vals), ".6g") if vals else "-"
-        lines.append(f"| {task} | {agent} | {cfg} | {scores} | {mean} |")
+        mean = format(sum(vals) / len(vals), ".1f") if vals else "-"
+        lines.append(
+            f"| {task} | {agent} | {cfg} | {made[(task, agent, cfg)]} | {scores} | {mean} |"
+        )
     return "\n".join(lines) + "\n"

@@ -9,11 +9,22 @@ Sources for every number here:
   (``rl_unplugged/*.py``) name them;
 - Atari minimal action-set sizes: read from ale-py 0.12.1 (``tests/test_tasks.py`` re-checks them
   against ALE when the ``atari`` extra is installed).
+
+Names: every function that takes a task id (``get_task``, ``resolve_task`` and all that call
+them) also takes a bare name when it is unambiguous (``walker_walk`` is not: control suite and
+RWRL both have it) and TensorFlow Datasets' names for RL Unplugged (``TFDS_BUILDERS``):
+``rlu_control_suite/cartpole_swingup``, ``rlu_locomotion/rodent_gaps``, ``rlu_atari/Pong_run_1``
+(also ``rlu_atari_checkpoints_ordered/...``), ``rlu_rwrl/walker_walk_combined_challenge_easy_
+100_percent``, with or without a ``:VERSION`` suffix. A TFDS name also picks the dataset TFDS
+builds from: the release family it reads (``dm_control_suite_episodes``, the whole-episode
+files, for ``rlu_control_suite``) and the Atari run or RWRL challenge and size
+(``TaskRef.dataset_settings``).
 """
 
 from __future__ import annotations
 
 import difflib
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
@@ -103,6 +114,14 @@ class TaskSpec:
         """The task's Gymnasium id, ``rlu/DOMAIN-NAME-v0`` (registered by ``rlu.envs``; the
         domain is kept because RWRL and the control suite share task names)."""
         return f"{GYM_NAMESPACE}/{self.domain}-{self.name}-v{GYM_VERSION}"
+
+    def max_episode_steps(self, env_settings: Mapping[str, Any] | None = None) -> int:
+        """Agent steps after which the env made with ``env_settings`` truncates an episode
+        (Gymnasium's ``spec.max_episode_steps``): ``episode_length``, or Atari's
+        ``max_episode_steps`` setting."""
+        if self.domain == "atari" and env_settings and "max_episode_steps" in env_settings:
+            return int(env_settings["max_episode_steps"])
+        return self.episode_length
 
     @property
     def action_dim(self) -> int:
@@ -235,11 +254,15 @@ _LOCOMOTION = {
     # The paper lists rodent_bowl_escape with seq 40, but the original loader reads
     # rodent_bowl_escape/seq2; the release path follows the loader (the files), seq_length the
     # paper.
-    "humanoid_corridor": ("humanoid", 56, 4000, 2, "online", "humanoid_corridor", 2, 1000),
-    "humanoid_walls": ("humanoid", 56, 4000, 40, "online", "humanoid_walls", 40, 1000),
+    # Episode lengths are the env's, measured (tests/envs/test_locomotion.py): composer ends an
+    # episode once physics time >= the time limit, and for the humanoid 6000 additions of the
+    # 0.005 s timestep sum to 29.99999999999 s < 30 s, so its episodes last 1001 steps, not the
+    # 30 / 0.03 = 1000 the numbers suggest. The rodents' sums reach 20 s and 30 s on time.
+    "humanoid_corridor": ("humanoid", 56, 4000, 2, "online", "humanoid_corridor", 2, 1001),
+    "humanoid_walls": ("humanoid", 56, 4000, 40, "online", "humanoid_walls", 40, 1001),
     "rodent_gaps": ("rodent", 38, 2000, 2, "online", "rodent_gaps", 2, 1500),
     "rodent_two_touch": ("rodent", 38, 2000, 40, "online", "rodent_two_touch", 40, 1500),
-    "humanoid_gaps": ("humanoid", 56, 4000, 2, "offline", "humanoid_gaps", 2, 1000),
+    "humanoid_gaps": ("humanoid", 56, 4000, 2, "offline", "humanoid_gaps", 2, 1001),
     "rodent_bowl_escape": ("rodent", 38, 2000, 40, "offline", "rodent_bowl_escape", 2, 1000),
     "rodent_mazes": ("rodent", 38, 2000, 40, "offline", "rodent_mazes", 40, 1500),
 }
@@ -478,11 +501,6 @@ def _build() -> dict[str, TaskSpec]:
 TASKS: Mapping[str, TaskSpec] = MappingProxyType(_build())
 
 
-def rwrl_release_binding(challenge: str, size: str) -> str:
-    """The ``{challenge}``/``{size}`` fill of an RWRL release path (``size`` as in the bucket)."""
-    return f"{challenge}/{size}"
-
-
 def rwrl_observation_spec(task: TaskSpec, challenge: str) -> Mapping[str, ArraySpec]:
     """Observation spec of an RWRL task under a challenge (``easy`` adds 10 dummy scalars)."""
     spec = dict(task.observation_spec)  # type: ignore[arg-type]
@@ -493,27 +511,156 @@ def rwrl_observation_spec(task: TaskSpec, challenge: str) -> Mapping[str, ArrayS
     return MappingProxyType(spec)
 
 
-def get_task(task_id: str) -> TaskSpec:
-    """The TaskSpec of ``task_id``; an unknown id raises an error listing the closest ids."""
-    try:
-        return TASKS[task_id]
-    except KeyError:
-        pass
+# --- names: ids, bare names and TensorFlow Datasets' names --------------------------------------
+# TFDS builder -> (rlu domain, the release family the builder reads). Sources: tensorflow_datasets
+# rl_unplugged/<builder>/<builder>.py ``_INPUT_FILE_PREFIX`` and ``BUILDER_CONFIGS`` (config names
+# ``<task>``, ``<Game>_run_<N>``, ``<domain>_<task>_combined_challenge_<none|easy>_<P>_percent``).
+TFDS_BUILDERS: Mapping[str, tuple[str, str]] = MappingProxyType(
+    {
+        "rlu_control_suite": ("control_suite", "dm_control_suite_episodes"),
+        "rlu_locomotion": ("locomotion", "dm_locomotion_episodes"),
+        "rlu_atari": ("atari", "atari_episodes_ordered"),
+        "rlu_atari_checkpoints_ordered": ("atari", "atari_episodes_ordered"),
+        "rlu_rwrl": ("rwrl", "rwrl"),
+    }
+)
+_TFDS_VERSION = re.compile(r":\d+(\.\d+)*$")
+_TFDS_ATARI = re.compile(r"^(?P<game>[A-Za-z]+)_run_(?P<run>\d+)$")
+_TFDS_RWRL = re.compile(
+    r"^(?P<task>[a-z]+_[a-z]+)_combined_challenge_(?P<challenge>none|easy)_(?P<size>\d+_percent)$"
+)
+
+
+@dataclass(frozen=True)
+class TaskRef:
+    """A task as a name picked it, with the dataset settings the name carries (TFDS names do)."""
+
+    task: TaskSpec
+    name: str
+    """The name as given (``control_suite/cartpole_swingup``, ``rlu_atari/Pong_run_1``)."""
+    family: str | None = None
+    """The release family the name reads (TFDS names), None: the task's default."""
+    run: str | None = None
+    """Atari run ``run_N`` the name picks."""
+    challenge: str | None = None
+    """RWRL challenge (``none`` / ``easy``) the name picks."""
+    size: str | None = None
+    """RWRL dataset size in the paper's words (``small`` / ``medium`` / ``large``)."""
+
+    def dataset_settings(
+        self,
+        family: str | None = None,
+        run: str | int | None = None,
+        challenge: str | None = None,
+        size: str | None = None,
+    ) -> tuple[str | None, str | int | None, str | None, str | None]:
+        """(family, run, challenge, size): what was passed, filled in from the name; a value
+        that contradicts the name is an error naming both."""
+        given = {"family": family, "run": run, "challenge": challenge, "size": size}
+        named = {"family": self.family, "run": self.run, "challenge": self.challenge}
+        named["size"] = self.size
+        out = {}
+        for key, value in given.items():
+            mine = named[key]
+            if value is not None and mine is not None and _norm(key, value) != mine:
+                raise RluError(
+                    f"{self.name} names {key} {mine!r}, which contradicts {key}={value!r}; drop "
+                    f"the {key} or use the task id {self.task.id}"
+                )
+            out[key] = value if value is not None else mine
+        return out["family"], out["run"], out["challenge"], out["size"]
+
+
+def _norm(key: str, value: str | int) -> str:
+    if key == "run":
+        return str(value) if str(value).startswith("run_") else f"run_{value}"
+    if key == "size":
+        return {v: k for k, v in RWRL_SIZES.items()}.get(str(value), str(value))
+    return str(value)
+
+
+def resolve_task(name: str) -> TaskRef:
+    """The task ``name`` names (an id, an unambiguous bare name or a TFDS name), with the dataset
+    settings a TFDS name carries; an unknown name raises an error listing the closest ids."""
+    if name in TASKS:
+        return TaskRef(TASKS[name], name)
+    builder = name.split("/", 1)[0]
+    if builder in TFDS_BUILDERS or builder.startswith("rlu_"):
+        return _resolve_tfds(name)
     # Accept a bare name when it is unambiguous ("cartpole_swingup" -> control_suite/...).
-    bare = [t for t in TASKS.values() if t.name.lower() == task_id.lower()]
+    bare = [t for t in TASKS.values() if t.name.lower() == name.lower()]
     if len(bare) == 1:
-        return bare[0]
-    needle = task_id.split("/")[-1].lower()
+        return TaskRef(bare[0], name)
+    needle = name.split("/")[-1].lower()
     close = [t.id for t in TASKS.values() if needle and needle in t.id.lower()][:5]
     if not close:
-        close = difflib.get_close_matches(task_id, list(TASKS), n=5, cutoff=0.6)
+        close = difflib.get_close_matches(name, list(TASKS), n=5, cutoff=0.6)
     if not close:
         close = difflib.get_close_matches(
-            task_id.split("/")[-1], [t.name for t in TASKS.values()], n=5, cutoff=0.4
+            name.split("/")[-1], [t.name for t in TASKS.values()], n=5, cutoff=0.4
         )
         close = [t.id for t in TASKS.values() if t.name in close]
     hint = f" Closest: {', '.join(close)}." if close else ""
-    raise RluError(f"unknown task id {task_id!r}.{hint} `rlu list` prints every id.")
+    raise RluError(f"unknown task id {name!r}.{hint} `rlu list` prints every id.")
+
+
+_TFDS_EXAMPLES = {
+    "rlu_control_suite": "rlu_control_suite/cartpole_swingup",
+    "rlu_locomotion": "rlu_locomotion/rodent_gaps",
+    "rlu_atari": "rlu_atari/Pong_run_1",
+    "rlu_atari_checkpoints_ordered": "rlu_atari_checkpoints_ordered/Pong_run_1",
+    "rlu_rwrl": "rlu_rwrl/walker_walk_combined_challenge_none_100_percent",
+}
+
+
+def _resolve_tfds(name: str) -> TaskRef:
+    builder, _, config = _TFDS_VERSION.sub("", name).partition("/")
+    if builder not in TFDS_BUILDERS:
+        if builder == "rlu_atari_checkpoints":
+            why = (
+                "it reads the atari_episodes_v2 files, which rlu does not read; rlu reads the "
+                "files of rlu_atari and rlu_atari_checkpoints_ordered (atari_episodes_ordered), "
+                "e.g. rlu_atari/Pong_run_1"
+            )
+        elif builder.startswith("rlu_dmlab"):
+            why = "DMLab is not a registered task; rlu convert --family dmlab reads its files"
+        else:
+            why = f"rlu knows the TFDS builders {', '.join(TFDS_BUILDERS)}"
+        raise RluError(f"{name!r}: TFDS builder {builder!r} has no rlu task: {why}")
+    domain, family = TFDS_BUILDERS[builder]
+    fix = f"TFDS names read like {_TFDS_EXAMPLES[builder]} (`rlu list --domain {domain}`)"
+    if not config:
+        raise RluError(f"{name!r} names no config; {fix}")
+    if domain in ("control_suite", "locomotion"):
+        task = TASKS.get(f"{domain}/{config}")
+        if task is None:
+            raise RluError(f"{name!r}: {builder} has no config {config!r}; {fix}")
+        return TaskRef(task, name, family=family)
+    if domain == "atari":
+        m = _TFDS_ATARI.match(config)
+        games = {t.name.lower(): t for t in TASKS.values() if t.domain == "atari"}
+        task = games.get(m["game"].lower()) if m else None
+        run = f"run_{m['run']}" if m else ""
+        if task is None or run not in task.datasets:
+            raise RluError(f"{name!r}: {builder} has no config {config!r}; {fix}")
+        return TaskRef(task, name, family=family, run=run)
+    m = _TFDS_RWRL.match(config)
+    task = TASKS.get(f"rwrl/{m['task']}") if m else None
+    if m is None or task is None:
+        raise RluError(f"{name!r}: {builder} has no config {config!r}; {fix}")
+    size = {v: k for k, v in RWRL_SIZES.items()}.get(m["size"])
+    if size is None or f"{m['challenge']}/{size}" not in task.datasets:
+        have = ", ".join(f"{c}_{RWRL_SIZES[z]}" for c, z in (d.split("/") for d in task.datasets))
+        raise RluError(
+            f"{name!r}: TFDS's {m['challenge']} {m['size']} dataset is not one rlu reads; rlu "
+            f"has the paper's RWRL datasets (combined_challenge_...: {have})"
+        )
+    return TaskRef(task, name, family=family, challenge=m["challenge"], size=size)
+
+
+def get_task(task_id: str) -> TaskSpec:
+    """The TaskSpec of ``task_id`` (an id, a bare name or a TFDS name: ``resolve_task``)."""
+    return resolve_task(task_id).task
 
 
 def list_tasks(domain: str | None = None, selection: str | None = None) -> list[TaskSpec]:
@@ -526,3 +673,67 @@ def list_tasks(domain: str | None = None, selection: str | None = None) -> list[
         if (domain is None or t.domain == domain)
         and (selection is None or t.selection == selection)
     ]
+
+
+def check_challenge(task: str, challenge: str, keys: set[str], recorded: str, what: str) -> None:
+    """An RWRL policy runs only where the env gives the observation keys its data had (the easy
+    challenge adds dummy observations): refuse a challenge whose keys differ."""
+    wanted = set(rwrl_observation_spec(get_task(task), challenge))
+    if wanted != keys:
+        differ = sorted(wanted ^ keys)
+        raise RluError(
+            f"{what} was recorded under RWRL challenge {recorded!r}; challenge {challenge!r} gives "
+            f"other observations ({', '.join(differ[:4])}{' ...' if len(differ) > 4 else ''}), so "
+            f"its policies cannot run there: evaluate under {recorded!r} (drop --challenge)"
+        )
+
+
+def _spec_text(spec: ObservationSpec | ActionSpec) -> str:
+    if isinstance(spec, Mapping):
+        return "{" + ", ".join(f"{k}: {tuple(v.shape)}" for k, v in sorted(spec.items())) + "}"
+    if isinstance(spec, DiscreteSpec):
+        return f"{spec.num_values} discrete actions"
+    return str(tuple(spec.shape))
+
+
+def check_data_matches(
+    task_id: str,
+    observation_spec: ObservationSpec,
+    action_spec: ActionSpec,
+    what: str,
+    recorded_task: str | None = None,
+    challenge: str = "none",
+) -> None:
+    """Refuse, before any training step, a dataset whose observations or actions are not those
+    of ``task_id``'s env (``what`` names the dataset; ``recorded_task``: the task its manifest
+    names). Observations are compared as the agent sees them (Atari: stacked frames)."""
+    task = get_task(task_id)
+    fix = f"train --task {recorded_task} on it" if recorded_task else "pass the dataset's own task"
+    if recorded_task and recorded_task in TASKS and TASKS[recorded_task].id != task.id:
+        raise RluError(
+            f"{what} holds data of task {recorded_task}, not {task.id}: {fix}, or give a "
+            f"dataset of {task.id}"
+        )
+    want_obs = (
+        rwrl_observation_spec(task, challenge) if task.domain == "rwrl" else task.observation_spec
+    )
+
+    def shapes(spec: ObservationSpec) -> Any:
+        if isinstance(spec, Mapping):
+            return {k: tuple(v.shape) for k, v in spec.items()}
+        return tuple(spec.shape)
+
+    if shapes(observation_spec) != shapes(want_obs):
+        raise RluError(
+            f"{what}: its observations {_spec_text(observation_spec)} are not those of "
+            f"{task.id}'s env {_spec_text(want_obs)}; {fix}, or give a dataset of {task.id}"
+        )
+    want_act = task.action_spec
+    same = type(action_spec) is type(want_act) and tuple(action_spec.shape) == tuple(want_act.shape)
+    if same and isinstance(want_act, DiscreteSpec):
+        same = action_spec.num_values == want_act.num_values  # type: ignore[union-attr]
+    if not same:
+        raise RluError(
+            f"{what}: its actions ({_spec_text(action_spec)}) are not those of {task.id}'s env "
+            f"({_spec_text(want_act)}); {fix}, or give a dataset of {task.id}"
+        )

@@ -1,24 +1,25 @@
 """The one training loop: batch -> agent.update -> periodic evaluation in the env -> logs.
 
 The agent declares its batches (``agent.batch_spec``) and the loop samples exactly those
-(``rlu.data.make_sampler``); the run folder's layout and files belong to ``rlu.runs``.
+(``rlu.data.make_sampler``); the run folder's layout and files belong to ``rlu.runs``; how a run
+is run (preset, budget, evaluation, checkpoints, runtime) is one ``rlu.settings.RunSettings``.
 
 Resume is exact on the CPU: a checkpoint holds the agent's state, the sampler's generator, the
 global torch and numpy generators and the step; on ``resume`` the logs are cut back to the
 checkpoint's step and the loop goes on. Evaluation at step k uses env seeds derived from
 (seed, k) only, so it needs no state.
 
-Devices (``TrainConfig.runtime``, docs/devices.md): the agent lives on the runtime's device;
+Devices (``RunSettings.runtime``, docs/devices.md): the agent lives on the runtime's device;
 batches come from the sampler in line (the CPU default), from a background prefetcher (CUDA's
 default: pinned host batches copied on a side stream) or from the dataset held on the device;
 every update runs in the runtime's precision. All three data paths give the same batches. The
 runtime may differ between a run's sessions (train on a GPU, resume on a CPU): resume compares
 the run's config without it, and checkpoints load on any device.
 
-Agents are built by name through ``rlu.agents`` or, for a dotted module path
-(``tests.train.fake_agent``), from any module that follows the agent-module convention
-(``Config``, ``Agent``, ``PRESETS``, ``GRID``). Envs come from ``rlu.envs.make_env`` or from an
-env factory ``'module:function'`` with the same signature.
+Agents are built by name through ``rlu.agents``; a dotted module path in a ``TrainConfig``
+(``tests.train.fake_agent``: code or the command line named it) is imported and registered
+(``rlu.agents.trust_agent``). Envs come from ``rlu.envs.make_env`` or from an env factory
+``'module:function'`` given the same way. Names inside files are never imported.
 """
 
 from __future__ import annotations
@@ -27,9 +28,7 @@ import ast
 import dataclasses
 import json
 import os
-import sys
-import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -37,55 +36,39 @@ from typing import Any
 import numpy as np
 
 from rlu import runs
-from rlu.devices import Runtime, compile_modules, numerics
+from rlu.devices import compile_modules, numerics
+from rlu.files import bounds, check_output, shape_of
+from rlu.settings import RunSettings
 from rlu.types import ArraySpec, DiscreteSpec, RluError, derive_seed, observation_spec_to_json
 
 
 @dataclass(frozen=True)
 class TrainConfig:
+    """What one run trains, and how (``run``)."""
+
     task: str
     """Task id (the env to evaluate in), e.g. control_suite/cartpole_swingup."""
     agent: str
-    """Agent name (rlu.agents) or a dotted module path following the agent-module convention."""
+    """Agent name (bc, d4pg, ...; rlu list-agents) or a module path following the agent-module
+    convention (imported because you typed it; docs/agents.md)."""
     dataset: str
-    """Path of an rlu dataset (``rlu convert`` / ``rlu generate`` output)."""
-    preset: str = "small"
-    """Agent preset: small (CPU minutes) or paper."""
-    steps: int | None = None
-    """Gradient steps (None: the agent config's ``num_steps``, its full run)."""
-    seed: int = 0
+    """Path of an rlu dataset (rlu convert / rlu generate / rlu import output)."""
+    seed: int = field(default=0, metadata=bounds(min=0, max=2**63 - 1))
     """Seeds the agent, the sampler and the evaluation episodes."""
     overrides: Mapping[str, Any] = field(default_factory=dict)
     """Agent config fields to change from the preset."""
-    eval_every: int = 0
-    """Steps between evaluations in the env (0: only at the end; -1: never)."""
-    eval_episodes: int = 5
-    """Episodes per evaluation."""
-    eval_envs: int = 4
-    """Envs stepped in lockstep during evaluation."""
-    eval_max_steps: int | None = None
-    """Cap on an evaluation episode's steps on top of the env's own limit (None: the env's)."""
-    log_every: int = 100
-    """Steps between lines of metrics.jsonl."""
-    checkpoint_every: int = 1000
-    """Steps between checkpoints (one is always written at the end)."""
-    keep_checkpoints: int = 2
-    """Checkpoints kept on disk (the newest)."""
-    env: str | None = None
-    """Env factory 'module:function' taking (task_id, seed=...); None: rlu.envs.make_env."""
-    challenge: str | None = None
-    """RWRL tasks: the challenge to evaluate under ('none' / 'easy'); None: the one the dataset
-    was recorded under (its provenance's ``challenge``)."""
-    torch_threads: int | None = None
-    """torch.set_num_threads for this run (None: leave torch's default)."""
-    runtime: Runtime = field(default_factory=Runtime)
-    """Device, precision, TF32, compile and data path: how the run computes, which may change
-    between its sessions (``rlu.devices.Runtime``)."""
+    run: RunSettings = field(default_factory=RunSettings)
+    """How the run is run: preset, budget, evaluation, checkpoints, runtime."""
 
     def to_json(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
         d["overrides"] = dict(self.overrides)
         return d
+
+    @staticmethod
+    def shape() -> Any:
+        """The shape of ``to_json()`` in a run's config.json (``rlu.files``)."""
+        return shape_of(TrainConfig)
 
 
 # --- agents ---------------------------------------------------------------------------------
@@ -97,7 +80,7 @@ def agent_config(name: str, discrete: bool, preset: str, overrides: Mapping[str,
 
 def parse_overrides(items: list[str] | None) -> dict[str, Any]:
     """``["learning_rate=3e-4", "hidden=(256, 256)", "atari.batch_size=64"]`` -> typed values
-    (Python literals; bare words stay strings)."""
+    (Python literals; bare words stay strings; the agent config checks each against its field)."""
     out: dict[str, Any] = {}
     for item in items or []:
         key, sep, text = item.partition("=")
@@ -105,7 +88,7 @@ def parse_overrides(items: list[str] | None) -> dict[str, Any]:
             raise RluError(f"override {item!r}; write it as field=value, e.g. learning_rate=3e-4")
         try:
             out[key.strip()] = ast.literal_eval(text.strip())
-        except (ValueError, SyntaxError):
+        except (ValueError, SyntaxError, MemoryError, RecursionError):
             out[key.strip()] = text.strip()
     return out
 
@@ -121,6 +104,8 @@ def dataset_specs(ds: Any) -> tuple[Any, Any]:
 
 def env_settings(task: str, ds: Any, challenge: str | None = None) -> dict[str, Any]:
     """Keyword settings of the evaluation env: the data's RWRL challenge (or ``challenge``)."""
+    from rlu.tasks import check_challenge
+
     if not task.startswith("rwrl/"):
         if challenge not in (None, "none"):
             raise RluError(f"--challenge applies to rwrl tasks only; {task} has none")
@@ -129,21 +114,6 @@ def env_settings(task: str, ds: Any, challenge: str | None = None) -> dict[str, 
     chosen = challenge or recorded
     check_challenge(task, chosen, set(dataset_specs(ds)[0]), recorded, str(ds.path))
     return {"challenge": chosen}
-
-
-def check_challenge(task: str, challenge: str, keys: set[str], recorded: str, what: str) -> None:
-    """An RWRL policy runs only where the env gives the observation keys its data had (the easy
-    challenge adds dummy observations): refuse a challenge whose keys differ."""
-    from rlu.tasks import get_task, rwrl_observation_spec
-
-    wanted = set(rwrl_observation_spec(get_task(task), challenge))
-    if wanted != keys:
-        differ = sorted(wanted ^ keys)
-        raise RluError(
-            f"{what} was recorded under RWRL challenge {recorded!r}; challenge {challenge!r} gives "
-            f"other observations ({', '.join(differ[:4])}{' ...' if len(differ) > 4 else ''}), so "
-            f"its policies cannot run there: evaluate under {recorded!r} (drop --challenge)"
-        )
 
 
 def _jsonable(x: Any) -> Any:
@@ -158,29 +128,24 @@ def _jsonable(x: Any) -> Any:
     return x
 
 
-class _Progress:
-    """A one-line progress bar on stderr (only when it is a terminal)."""
-
-    def __init__(self, total: int, start: int, enabled: bool):
-        self.total, self.enabled, self.t0, self.start = total, enabled, time.monotonic(), start
-
-    def update(self, step: int, note: str = "") -> None:
-        if not self.enabled or (step % 50 and step != self.total):
-            return
-        frac = step / max(self.total, 1)
-        rate = (step - self.start) / max(time.monotonic() - self.t0, 1e-9)
-        bar = "#" * int(30 * frac)
-        sys.stderr.write(f"\r[{bar:<30}] {step}/{self.total} {rate:6.1f} steps/s {note}")
-        if step == self.total:
-            sys.stderr.write("\n")
-        sys.stderr.flush()
-
-
 def comparable(resolved: Mapping[str, Any]) -> dict[str, Any]:
     """A run's resolved config without its runtime: what must match for ``--resume``."""
     out = json.loads(json.dumps(resolved))
-    out.get("train", {}).pop("runtime", None)
+    out.get("train", {}).get("run", {}).pop("runtime", None)
     return out
+
+
+def trust(agent: str, env: str | None) -> None:
+    """Import and register what a config built by code or the command line names by module
+    path: a dotted agent, an env factory. Runs read back from files never come here."""
+    if "." in agent:
+        from rlu.agents import trust_agent
+
+        trust_agent(agent)
+    if env is not None:
+        from rlu.evaluation.rollout import trust_env_factory
+
+        trust_env_factory(env)
 
 
 # --- the loop -------------------------------------------------------------------------------
@@ -189,38 +154,63 @@ def train(
     out: str | os.PathLike,
     resume: bool = False,
     progress: bool = False,
-    tensorboard: bool = False,
+    loggers: Sequence[str] = (),
 ) -> dict[str, Any]:
     """Train ``config.agent`` on ``config.dataset``; returns the content of ``result.json``.
+    ``loggers``: where the metrics go besides the run's own logs (``rlu.loggers.LOGGERS``).
 
     One process per run folder: a second ``train`` into the same ``out`` fails with "in use by
     PID N" (:class:`rlu.locks.OutputLock`) while the first lives.
     """
     from rlu.locks import OutputLock
 
+    trust(config.agent, config.run.env)
     with OutputLock(Path(out), "run folder"):
-        return _train(config, out, resume, progress, tensorboard)
+        return _train(config, out, resume, progress, tuple(loggers))
 
 
 def _train(
-    config: TrainConfig, out: str | os.PathLike, resume: bool, progress: bool, tensorboard: bool
+    config: TrainConfig,
+    out: str | os.PathLike,
+    resume: bool,
+    progress: bool,
+    logger_names: tuple[str, ...],
 ) -> dict[str, Any]:
     import torch
 
     from rlu.agents import agent_module
+    from rlu.checkpoints import load_state
     from rlu.data import make_sampler, open_dataset
+    from rlu.data.provenance import data_source
     from rlu.data.torch import DeviceSampler, prefetched
     from rlu.evaluation.rollout import evaluate, task_env_factory
+    from rlu.progress import Progress
 
     run = Path(out)
-    runtime = config.runtime.resolve()
+    settings = config.run
+    runtime = settings.runtime.resolve()
     ds = open_dataset(config.dataset)
+    check_output(run, [ds.path], runs.CONFIG, "run folder")
     obs_spec, action_spec = dataset_specs(ds)
     discrete = isinstance(action_spec, DiscreteSpec)
-    agent_cfg = agent_config(config.agent, discrete, config.preset, config.overrides)
-    env_kwargs = env_settings(config.task, ds, config.challenge)
+    agent_cfg = agent_config(config.agent, discrete, settings.preset, config.overrides)
+    env_kwargs = env_settings(config.task, ds, settings.challenge)
+    if settings.env is None:
+        from rlu.tasks import check_data_matches
+
+        # an unknown task, or data of another task, fails here: before the run folder is touched
+        check_data_matches(
+            config.task,
+            obs_spec,
+            action_spec,
+            f"dataset {ds.path}",
+            ds.schema.task_id,
+            env_kwargs.get("challenge", "none"),
+        )
     resolved = {
-        "train": dataclasses.replace(config, runtime=runtime).to_json(),
+        "train": dataclasses.replace(
+            config, run=dataclasses.replace(settings, runtime=runtime)
+        ).to_json(),
         "env_settings": env_kwargs,
         "agent_config": _jsonable(agent_cfg),
         "observation_spec": observation_spec_to_json(obs_spec),
@@ -233,107 +223,101 @@ def _train(
             raise RluError(
                 f"{run} already holds a run; pass --resume to continue it or choose a new --out"
             )
-        old = runs.read_json(run / runs.CONFIG)
+        old = runs.read_config(run, TrainConfig.shape())
         if comparable(old) != comparable(resolved):
             raise RluError(
                 f"{run}/{runs.CONFIG} was written by a different configuration; resume with the "
                 "same arguments or choose a new --out"
             )
         if (run / runs.RESULT).exists():  # finished: nothing left to do
-            return runs.read_json(run / runs.RESULT)
-    if config.env is None and config.eval_every >= 0:
-        from rlu.tasks import get_task
+            return runs.read_result(run)
 
-        get_task(config.task)  # an unknown task fails here, before the run folder is touched
-
-    if config.torch_threads:
-        torch.set_num_threads(config.torch_threads)
+    torch.set_num_threads(settings.torch_threads)
     torch.manual_seed(config.seed)
-    np.random.seed(config.seed)
+    np.random.seed(config.seed % 2**32)
     module = agent_module(config.agent, discrete)
     agent = module.Agent(obs_spec, action_spec, agent_cfg, seed=config.seed, device=runtime.device)
     if runtime.data_on_device:  # a dataset that does not fit fails here, before any writing
         sampler = DeviceSampler(ds, agent.batch_spec, config.seed, runtime.device)
     else:
         sampler = make_sampler(ds, agent.batch_spec, seed=config.seed)
-    steps = agent.num_steps if config.steps is None else int(config.steps)
+    steps = agent.num_steps if settings.steps is None else int(settings.steps)
     total = agent.pretrain_steps + steps  # a pre-training phase comes on top of the budget
 
+    if agent.batch_spec.statistics:  # computed from the whole dataset, once, before any update
+        from rlu.data.statistics import dataset_statistics
+
+        agent.set_statistics(dataset_statistics(ds, agent.batch_spec.statistics))
     start = 0
     if resume and ckpts:
-        state = runs.load_checkpoint(
-            ckpts[-1], ("agent", "sampler", "torch_rng", "numpy_rng", "step")
-        )
-        agent.load_state_dict(state["agent"])
-        sampler.set_state(state["sampler"])
-        torch.set_rng_state(state["torch_rng"])
-        alg, keys, pos, has_gauss, cached = state["numpy_rng"]
-        np.random.set_state((alg, np.asarray(keys, np.uint32), pos, has_gauss, cached))
-        start = int(state["step"])
+        state = load_state(ckpts[-1], ("agent", "sampler", "torch_rng", "numpy_rng", "step"))
+        start = _restore(ckpts[-1], state, agent, sampler, total)
     # resolved before the first step (a missing rlu.envs fails fast); a run that never evaluates
     # needs no env
     env_fn = None
-    if config.eval_every >= 0:
-        env_fn = task_env_factory(config.task, config.env, **env_kwargs)
-    summary_writer: Any = None
-    if tensorboard:
-        try:
-            from torch.utils.tensorboard import SummaryWriter
+    eval_period = settings.eval_period(total)
+    if eval_period:
+        env_fn = task_env_factory(config.task, settings.env, **env_kwargs)
+    from rlu.loggers import LOGGERS
 
-            summary_writer = SummaryWriter
-        except ImportError:
-            raise RluError(
-                "TensorBoard logging needs the tensorboard package: pip install tensorboard"
-            ) from None
+    unknown = [n for n in logger_names if n not in LOGGERS]
+    if unknown:
+        raise RluError(f"logger {unknown[0]!r}; loggers are {', '.join(LOGGERS)}")
 
     # everything that can fail before the first step has run: only now is the run folder written
     run.mkdir(parents=True, exist_ok=True)
+    runs.clear_temporary(run)
+    runs.write_json(run / runs.CONFIG, resolved)  # first: a folder with files has its config
     (run / runs.CHECKPOINTS).mkdir(exist_ok=True)
-    for tmp in run.rglob("*.tmp"):
-        tmp.unlink()
-    runs.write_json(run / runs.CONFIG, resolved)
     metrics_path, eval_path = run / runs.METRICS, run / runs.EVAL
     for path in (metrics_path, eval_path):  # drop what was logged after the checkpoint
         runs.cut_log(path, start)
-    writer = summary_writer(str(run / "tensorboard")) if summary_writer is not None else None
+    from rlu.loggers import make_loggers
+
+    loggers = make_loggers(logger_names, run, start, resolved)
 
     if runtime.compile:
         compile_modules(agent.modules)
-    policy = runs.greedy_policy(agent)
-    eval_every = config.eval_every if config.eval_every > 0 else total
-    bar = _Progress(total, start, progress and sys.stderr.isatty())
-    last_eval: dict[str, Any] | None = None
+    policy = greedy_policy(agent)
+
+    def evaluate_at(step: int) -> dict[str, Any]:
+        result = evaluate(
+            policy,
+            env_fn,
+            settings.eval_episodes,
+            seed=derive_seed(config.seed, step),  # stream `step` of the run seed
+            num_envs=settings.eval_envs,
+            max_steps=settings.eval_max_steps,
+        )
+        record = {"step": step, **result.to_json()}
+        elog.write(json.dumps(record) + "\n")
+        elog.flush()
+        for logger in loggers:
+            logger.log("eval", record)
+        bar.set_postfix(eval=f"{result.mean:.1f}")
+        return record
+
     with (
-        open(metrics_path, "a") as mlog,
-        open(eval_path, "a") as elog,
+        Progress(total, f"train {config.agent}", "steps", quiet=not progress, initial=start) as bar,
+        runs.append_log(metrics_path) as mlog,
+        runs.append_log(eval_path) as elog,
         numerics(runtime) as update_context,
         prefetched(sampler, runtime.device, runtime.prefetch) as batches,
     ):
+        if eval_period and settings.eval_at_start and start == 0:
+            evaluate_at(0)
         for step in range(start + 1, total + 1):
             with update_context():
                 metrics = agent.update(batches.sample())
-            if step % config.log_every == 0 or step == total:
+            if step % settings.log_every == 0 or step == total:
                 rec = {"step": step, **{k: float(v) for k, v in metrics.items()}}
                 mlog.write(json.dumps(rec) + "\n")
                 mlog.flush()
-                if writer is not None:
-                    for k, v in metrics.items():
-                        writer.add_scalar(k, float(v), step)
-            if config.eval_every >= 0 and (step % eval_every == 0 or step == total):
-                result = evaluate(
-                    policy,
-                    env_fn,
-                    config.eval_episodes,
-                    seed=derive_seed(config.seed, step),  # stream `step` of the run seed
-                    num_envs=config.eval_envs,
-                    max_steps=config.eval_max_steps,
-                )
-                last_eval = {"step": step, **result.to_json()}
-                elog.write(json.dumps(last_eval) + "\n")
-                elog.flush()
-                if writer is not None:
-                    writer.add_scalar("eval/return", result.mean, step)
-            if step % config.checkpoint_every == 0 or step == total:
+                for logger in loggers:
+                    logger.log("metrics", rec)
+            if eval_period and (step % eval_period == 0 or step == total):
+                evaluate_at(step)
+            if step % settings.checkpoint_every == 0 or step == total:
                 alg, keys, pos, has_gauss, cached = np.random.get_state()
                 state = {
                     "step": step,
@@ -342,20 +326,65 @@ def _train(
                     "torch_rng": torch.get_rng_state(),
                     "numpy_rng": [alg, keys.tolist(), int(pos), int(has_gauss), float(cached)],
                 }
-                runs.save_checkpoint(run, step, state, config.keep_checkpoints)
-            bar.update(step, f"eval {last_eval['mean']:.1f}" if last_eval else "")
-    if writer is not None:
-        writer.close()
-    evals = runs.read_jsonl(eval_path, total)
+                runs.save_checkpoint(run, step, state, settings.keep_checkpoints)
+            bar.update(1)
+    for logger in loggers:
+        logger.close()
+    evals = runs.read_log(eval_path, total)
     result = {
         "task": config.task,
         "agent": config.agent,
         "seed": config.seed,
+        "preset": settings.preset,
         "steps": steps,
         "pretrain_steps": total - steps,
+        "eval_episodes": settings.eval_episodes,
+        "data": data_source(ds.manifest),
         "env_settings": env_kwargs,
         "final_eval": evals[-1] if evals else None,
         "score": evals[-1]["mean"] if evals else None,
     }
     runs.write_json(run / runs.RESULT, result)
     return result
+
+
+def greedy_policy(agent: Any) -> Any:
+    """The evaluation policy of an agent (a ``rlu.types.Policy``): ``act(obs, greedy=True)``."""
+
+    def policy(observation: Any, is_first: np.ndarray | None = None) -> np.ndarray:
+        return agent.act(observation, greedy=True, is_first=is_first)
+
+    return policy
+
+
+def _restore(path: Path, state: Mapping[str, Any], agent: Any, sampler: Any, total: int) -> int:
+    """Load a checkpoint's state into the agent, the sampler and the global generators; returns
+    its step. A checkpoint of another agent, of other shapes or with garbage generator states is
+    a FormatError naming the file."""
+    import torch
+
+    from rlu.types import FormatError
+
+    fix = "resume from a checkpoint this run wrote, or train into a new --out"
+    step = state["step"]
+    if isinstance(step, bool) or not isinstance(step, int) or not 0 <= step <= total:
+        raise FormatError(f"{path}: entry 'step' is {step!r}, not a step of this run; {fix}")
+    try:
+        agent.load_state_dict(state["agent"])
+    except (RuntimeError, KeyError, ValueError, TypeError, AttributeError) as e:
+        why = str(e).splitlines()[0][:200] if str(e) else type(e).__name__
+        raise FormatError(
+            f"{path}: its agent state does not fit this agent ({why}); {fix}"
+        ) from None  # noqa: E501
+    try:
+        sampler.set_state(state["sampler"])
+        torch.set_rng_state(state["torch_rng"])
+        alg, keys, pos, has_gauss, cached = state["numpy_rng"]
+        keys = np.asarray(keys, np.uint32)
+        np.random.set_state((alg, keys, int(pos), int(has_gauss), float(cached)))
+    except (RuntimeError, KeyError, ValueError, TypeError, AttributeError, OverflowError) as e:
+        why = str(e).splitlines()[0][:200] if str(e) else type(e).__name__
+        raise FormatError(
+            f"{path}: its sampler or generator state is damaged ({why}); {fix}"
+        ) from None  # noqa: E501
+    return step

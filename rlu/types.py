@@ -111,13 +111,6 @@ def observation_spec_from_json(d: Any) -> ObservationSpec:
     return {k: ArraySpec.from_json(v) for k, v in d.items()}
 
 
-def map_observation(fn, obs: Observation) -> Observation:
-    """Apply ``fn`` to every array of an observation (array or dict)."""
-    if isinstance(obs, Mapping):
-        return {k: fn(v) for k, v in obs.items()}
-    return fn(obs)
-
-
 class Transition(NamedTuple):
     """A batch of SARSA transitions (the paper's unified API), leading axis = batch.
 
@@ -162,6 +155,11 @@ class Policy(Protocol):
 
 
 BATCH_KINDS = ("transition", "sequence")
+STATISTICS = ("observation", "reward", "return")
+"""Dataset statistics an agent may ask for (``BatchSpec.statistics``; ``DataStatistics``)."""
+BATCH_LIMITS = {"batch_size": 1 << 20, "n_step": 1000, "sequence_length": 100_000}
+"""Largest values a BatchSpec takes (a batch of 1M rows already holds gigabytes of Atari
+frames; larger values are typing mistakes that would end in an out-of-memory kill)."""
 
 
 @dataclass(frozen=True)
@@ -189,16 +187,29 @@ class BatchSpec:
     reward_clip: float | None = None
     """Per-step rewards are clipped to [-reward_clip, reward_clip] before anything else (the
     paper's Atari agents learn from rewards clipped to [-1, 1]); None keeps them as stored."""
+    statistics: tuple[str, ...] = ()
+    """What the agent needs computed from the whole dataset before its first update, among
+    ``STATISTICS`` (TD3+BC's observation normalisation: ``("observation",)``). The loop computes
+    them once (``rlu.data.statistics``) and hands them to ``agent.set_statistics``, which an
+    agent that names any must have; the agent keeps them in its state."""
 
     def __post_init__(self) -> None:
         if self.kind not in BATCH_KINDS:
             raise SpecError(f"BatchSpec.kind={self.kind!r}; use one of {', '.join(BATCH_KINDS)}")
-        for name in ("batch_size", "n_step", "sequence_length"):
+        for name, most in BATCH_LIMITS.items():
             value = getattr(self, name)
-            if not isinstance(value, int | np.integer) or value < 1:
+            if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
                 raise SpecError(f"BatchSpec.{name}={value!r}; it must be an integer >= 1")
+            if value > most:
+                raise SpecError(f"BatchSpec.{name}={value!r}; at most {most:,} (a larger value "
+                                "would not fit in memory)")  # fmt: skip
         if not 0.0 <= float(self.gamma) <= 1.0:
             raise SpecError(f"BatchSpec.gamma={self.gamma!r}; a discount lies in [0, 1]")
+        unknown = sorted(set(self.statistics) - set(STATISTICS))
+        if unknown:
+            raise SpecError(
+                f"BatchSpec.statistics names {unknown}; the data gives {', '.join(STATISTICS)}"
+            )
         if self.reward_clip is not None and not float(self.reward_clip) > 0.0:
             raise SpecError(
                 f"BatchSpec.reward_clip={self.reward_clip!r}; use a positive bound or None"
@@ -208,6 +219,27 @@ class BatchSpec:
     def bootstrap_gamma(self) -> float:
         """The factor of ``discount * V(next_observation)`` in an n-step target: gamma^n."""
         return float(self.gamma) ** self.n_step
+
+
+@dataclass(frozen=True)
+class DataStatistics:
+    """Statistics of a whole dataset, computed once before training for an agent that asks for
+    them (``BatchSpec.statistics``); a field the agent did not ask for is None.
+
+    ``observation``: per-feature mean and standard deviation of every observation (a dict of
+    arrays for dict observations, float features only: image keys are left out), over every
+    step of the dataset. ``reward``: mean, standard deviation, minimum and maximum of the
+    per-step rewards. ``return``: minimum and maximum undiscounted return over the dataset's
+    whole episodes (IQL's and CORL's reward scaling, ``1000 / (max - min)``)."""
+
+    observation_mean: Observation | None = None
+    observation_std: Observation | None = None
+    reward_mean: float | None = None
+    reward_std: float | None = None
+    reward_min: float | None = None
+    reward_max: float | None = None
+    return_min: float | None = None
+    return_max: float | None = None
 
 
 class Agent(Protocol):
@@ -226,7 +258,9 @@ class Agent(Protocol):
     holds everything needed to resume bit for bit (plain tensors, numbers and
     dicts: checkpoints load with ``weights_only=True``), as a snapshot that later updates leave
     alone; ``load_state_dict`` copies what it is given, so agents loaded from one state in
-    memory share no tensor.
+    memory share no tensor. An agent whose ``batch_spec.statistics`` names any also has
+    ``set_statistics(stats: DataStatistics)``, called once before the first update of a new
+    run (a resumed run restores them with its state).
     """
 
     config: Any

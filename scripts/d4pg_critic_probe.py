@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from rlu.data import open_dataset
-from rlu.runs import load_agent, load_run
+from rlu.restore import load_agent, read_run
 from rlu.types import RluError, observation_spec_to_json
 
 
@@ -60,7 +60,7 @@ def main() -> None:
         raise SystemExit(f"error: --episodes {args.episodes}; use 1 or more")
     torch.set_num_threads(1)
     try:
-        resolved, _ = load_run(args.run)
+        resolved, _, _ = read_run(args.run)
         if resolved["train"]["agent"] != "d4pg":
             raise RluError(
                 f"{args.run} is a run of {resolved['train']['agent']!r}; this probe reads the "

@@ -5,7 +5,7 @@
 # Extra arguments go to pytest.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-bash scripts/install.sh control locomotion atari agents jax distributed report dev
+bash scripts/install.sh control locomotion atari agents jax distributed report video dev tensorboard wandb docs
 # MuJoCo renders offscreen through Mesa's EGL (in the base image); without MUJOCO_GL set,
 # rendering fails looking for an X display.
 export MUJOCO_GL=${MUJOCO_GL:-egl}
@@ -20,6 +20,14 @@ if [ "${RLU_SLOW:-0}" = "1" ] && ! command -v chromium >/dev/null; then
     echo "scripts/test.sh: no chromium and no root apt-get; the browser test will skip"
   fi
 fi
+# the linters run first, as in d3rlpy's CI: a lint failure fails the test command
+echo "scripts/test.sh: ruff check and ruff format --check"
+.venv/bin/ruff check .
+.venv/bin/ruff format --check rlu tests bench scripts
+# The documentation site (mkdocs.yml), warnings as errors: a broken link or anchor, a page left
+# out of the nav, a docstring mkdocstrings cannot read. Into build/site (git-ignored). Not
+# --quiet: with it, mkdocs 1.6 counts no warning and --strict passes whatever the site holds.
+NO_MKDOCS_2_WARNING=1 .venv/bin/mkdocs build --strict --site-dir build/site
 marker=(-m "not slow")
 [ "${RLU_SLOW:-0}" = "1" ] && marker=()
 set +e

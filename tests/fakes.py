@@ -80,3 +80,28 @@ def fake_sequence(
         is_last=is_last,
         mask=mask,
     )
+
+
+def train_config(**kw):
+    """An ``rlu.train.TrainConfig`` from flat keywords: the ``RunSettings`` fields (``steps``,
+    ``eval_every``, ``runtime``, ...) go into its ``run``, the rest stay its own."""
+    import dataclasses
+
+    from rlu.settings import RunSettings
+    from rlu.train import TrainConfig
+
+    names = {f.name for f in dataclasses.fields(RunSettings)}
+    run = RunSettings(**{k: kw.pop(k) for k in list(kw) if k in names})
+    return TrainConfig(**kw, run=run)
+
+
+def sweep_config(**kw):
+    """An ``rlu.sweep.SweepConfig`` from flat keywords, as :func:`train_config`."""
+    import dataclasses
+
+    from rlu.settings import RunSettings
+    from rlu.sweep import SweepConfig
+
+    names = {f.name for f in dataclasses.fields(RunSettings)}
+    run = RunSettings(**{k: kw.pop(k) for k in list(kw) if k in names})
+    return SweepConfig(**kw, run=run)

@@ -23,9 +23,12 @@ def test_quickstart_end_to_end_at_tiny_cost(tmp_path, capsys):
     data = result["dataset_returns"]["mean"]
     row = next(line for line in text.splitlines() if line.startswith("| d4pg |"))
     assert row.endswith("| yes |" if d4pg > data else "| no |")
-    assert f"Best offline RL agent: d4pg, {d4pg / bc:.2f} times BC's return" in text
+    assert f"Best offline RL agent here: d4pg, {d4pg / bc:.2f} times BC's return" in text
+    assert "| bc | small, 5 |" in text and "is not comparable to these runs" in text
     assert result["dataset_returns"]["episodes"] == 40
-    assert (out / "bc" / "result.json").exists() and (out / "report.md").exists()
+    runs = out / "sweep" / "control_suite__cartpole_swingup"
+    assert (runs / "bc" / "default" / "seed_0" / "result.json").exists()
+    assert (out / "report.md").exists()
     if __import__("importlib").util.find_spec("matplotlib") is not None:
         png = (out / "quickstart.png").read_bytes()
         assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
@@ -37,9 +40,42 @@ def test_quickstart_refuses_zero_workers_before_touching_out(tmp_path, capsys):
     pytest.importorskip("dm_control")
     out = tmp_path / "qs"
     argv = ["--steps", "5", "--eval-episodes", "1", "--agents", "bc"]  # cheap if not refused
-    assert main(["quickstart", "--out", str(out), "--workers", "0", *argv]) == 2
-    assert "--workers 0: give at least 1 process" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as stop:
+        main(["quickstart", "--out", str(out), "--workers", "0", *argv])
+    assert stop.value.code == 2
+    assert "--workers: 0 is out of range" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_quickstart_never_deletes_what_it_did_not_write(tmp_path, capsys):
+    """--out the dataset itself, a folder holding it, or a folder that is not a quick start's:
+    refused before anything is touched; an unknown agent is refused before --out is replaced."""
+    import shutil
+
+    pytest.importorskip("torch")
+    pytest.importorskip("dm_control")
+    from rlu.generate.recipe import bundled_dataset
+
+    data = tmp_path / "data"
+    shutil.copytree(bundled_dataset(), data)
+    before = sorted(p.relative_to(data) for p in data.rglob("*"))
+    cheap = ["--steps", "5", "--eval-episodes", "1", "--agents", "bc"]
+    for out in (data, tmp_path, data / "inside"):
+        assert main(["quickstart", "--dataset", str(data), "--out", str(out), *cheap]) == 2
+        assert "could destroy it" in capsys.readouterr().err
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "thesis.tex").write_text("years of work")
+    assert main(["quickstart", "--out", str(mine), *cheap]) == 2
+    assert "is not an rlu quick-start folder" in capsys.readouterr().err
+    earlier = tmp_path / "earlier"
+    earlier.mkdir()
+    (earlier / "results.json").write_text("{}")
+    assert main(["quickstart", "--out", str(earlier), "--agents", "nosuchagent"]) == 2
+    assert "unknown continuous agent 'nosuchagent'" in capsys.readouterr().err
+    assert (mine / "thesis.tex").read_text() == "years of work"
+    assert (earlier / "results.json").exists()
+    assert sorted(p.relative_to(data) for p in data.rglob("*")) == before
 
 
 def test_info_json_lists_every_episode_return(capsys):
@@ -61,38 +97,47 @@ def test_info_json_lists_every_episode_return(capsys):
 def test_train_and_evaluate_defaults_are_quick():
     """A short train evaluates once, at the end; long ones at most 10 times; one torch thread."""
     from rlu.cli import build_parser
-    from rlu.commands.train import EVAL_EVERY_MIN, _run_kwargs
+    from rlu.settings import RunSettings, from_args
 
     parser = build_parser()
     base = ["train", "--task", "t", "--agent", "bc", "--dataset", "d", "--out", "o"]
-    short = parser.parse_args([*base, "--steps", "20"])
-    assert _run_kwargs(short)["eval_every"] == EVAL_EVERY_MIN and short.threads == 1
-    long = parser.parse_args([*base, "--steps", "1000000"])
-    assert _run_kwargs(long)["eval_every"] == 100_000
-    assert _run_kwargs(parser.parse_args([*base, "--eval-every", "5"]))["eval_every"] == 5
+    short = from_args(RunSettings, parser.parse_args([*base, "--steps", "20"]))
+    assert short.eval_period(20) == 20 and short.torch_threads == 1  # once, at the end
+    assert short.eval_period(1_000_000) == 100_000  # ten times
+    assert short.eval_period(50_000) == 10_000  # never more often than every 10,000 steps
+    five = from_args(RunSettings, parser.parse_args([*base, "--eval-every", "5"]))
+    assert five.eval_period(20) == 5 and RunSettings().eval_period(20) == 20  # library = CLI
+    never = from_args(RunSettings, parser.parse_args([*base, "--eval-every", "-1"]))
+    assert never.eval_period(9) == 0
     assert parser.parse_args(["evaluate", "run"]).threads == 1
 
 
 def test_evaluate_sets_its_threads(tmp_path, capsys):
     torch = pytest.importorskip("torch")
     pytest.importorskip("gymnasium")
-    from rlu.train import TrainConfig, train
+    from rlu.train import train
+    from tests.fakes import train_config
     from tests.train.pendulum import write_dataset
 
     data = write_dataset(tmp_path / "data", "test/pendulum", episodes=4)
     env = "tests.train.pendulum:make_env"
-    cfg = TrainConfig(task="test/pendulum", agent="tests.train.fake_agent", dataset=str(data),
+    cfg = train_config(task="test/pendulum", agent="tests.train.fake_agent", dataset=str(data),
                       steps=3, eval_every=-1, checkpoint_every=3, env=env)  # fmt: skip
     train(cfg, tmp_path / "run", progress=False)
     before = torch.get_num_threads()
     try:
         torch.set_num_threads(2)
         argv = ["evaluate", str(tmp_path / "run"), "--episodes", "2", "--envs", "2", "--json"]
+        assert main(argv) == 2  # the run's env factory is named in its config.json only
+        assert f"if you trust it, name it yourself: --env {env}" in capsys.readouterr().err
+        argv += ["--env", env]
         assert main(argv) == 0
         assert torch.get_num_threads() == 1  # the default
         assert len(json.loads(capsys.readouterr().out)["returns"]) == 2
-        assert main([*argv, "--threads", "0"]) == 2
-        assert "--threads 0; use 1 or more" in capsys.readouterr().err
+        with pytest.raises(SystemExit) as stop:  # refused by the parser
+            main([*argv, "--threads", "0"])
+        assert stop.value.code == 2
+        assert "--threads: 0 is out of range; give a value >= 1" in capsys.readouterr().err
     finally:
         torch.set_num_threads(before)
 

@@ -56,18 +56,56 @@ CONTINUOUS_AGENTS: tuple[str, ...] = tuple(n for n, d in AGENTS if not d)
 DISCRETE_AGENTS: tuple[str, ...] = tuple(n for n, d in AGENTS if d)
 
 
+_TRUSTED: dict[str, Any] = {}
+"""Agent modules outside ``AGENTS`` that code or the command line named (:func:`trust_agent`)."""
+_CONVENTION = ("Config", "Agent", "PRESETS", "GRID")
+
+
+def trust_agent(path: str) -> Any:
+    """Import the agent module at dotted ``path`` (``mypkg.my_agent``, following the agent-module
+    convention: ``Config``, ``Agent``, ``PRESETS``, ``GRID``) and register it under ``path`` for
+    this process. Only code and the command line call this: a name read from a file (a run's
+    config.json, a policy's JSON) is looked up (:func:`agent_module`), never imported."""
+    if path in _TRUSTED:
+        return _TRUSTED[path]
+    if not all(part.isidentifier() for part in path.split(".")):
+        raise RluError(f"agent module {path!r} is not a dotted module path (mypkg.my_agent)")
+    try:
+        module = importlib.import_module(path)
+    except ImportError as e:
+        raise RluError(f"agent module {path!r} cannot be imported: {e}") from None
+    missing = [name for name in _CONVENTION if not hasattr(module, name)]
+    if missing:
+        raise RluError(
+            f"agent module {path!r} has no {', '.join(missing)}; an agent module defines "
+            f"{', '.join(_CONVENTION)} (docs/agents.md)"
+        )
+    _TRUSTED[path] = module
+    return module
+
+
+def trusted_agents() -> tuple[str, ...]:
+    """The agent modules registered in this process by :func:`trust_agent` (a process pool
+    registers them again in its workers)."""
+    return tuple(_TRUSTED)
+
+
 def agent_module(name: str, discrete: bool) -> Any:
-    """The module of agent ``name``; a dotted module path (``mypkg.my_agent``) is imported as is."""
-    if "." in name:
-        try:
-            return importlib.import_module(name)
-        except ImportError as e:
-            raise RluError(f"agent module {name!r} cannot be imported: {e}") from None
+    """The module of agent ``name``: one of ``AGENTS`` or a module registered with
+    :func:`trust_agent`; nothing is imported by a name alone."""
+    if name in _TRUSTED:
+        return _TRUSTED[name]
     try:
         path = AGENTS[(name, discrete)]
     except KeyError:
         names = sorted({n for n, d in AGENTS if d == discrete})
         kind = "discrete" if discrete else "continuous"
+        if "." in name:
+            raise RluError(
+                f"agent {name!r} is not one of rlu's {kind} agents, and a module path named in a "
+                f"file is never imported; if you trust that module, name it yourself: --agent "
+                f"{name} on the command line, or rlu.agents.trust_agent({name!r})"
+            ) from None
         raise RluError(
             f"unknown {kind} agent {name!r}; {kind} agents are: {', '.join(names) or 'none yet'}"
         ) from None
@@ -97,9 +135,26 @@ def _replace(config: Any, path: str, value: Any, agent: str) -> Any:
         value = _replace(current, rest, value, agent)
     elif dataclasses.is_dataclass(current) and isinstance(value, Mapping):
         value = config_from_json(type(current), {**dataclasses.asdict(current), **value})
-    elif isinstance(current, tuple) and isinstance(value, list):
-        value = tuple(value)  # JSON and the CLI give lists where configs hold tuples
+    else:
+        value = _checked(type(config), head, value, agent)
     return dataclasses.replace(config, **{head: value})
+
+
+def _checked(cls: type, name: str, value: Any, agent: str) -> Any:
+    """An override's value, checked against the field's type (lists as tuples): a string for a
+    number, a float for a count, a list of strings for layer widths are errors naming the
+    field, its type and the value."""
+    from rlu.files import Bad, field_shape
+
+    if isinstance(value, tuple):
+        value = list(value)
+    shape = field_shape(cls, name)
+    try:
+        return shape.check(value, name)
+    except Bad as e:
+        raise RluError(
+            f"agent {agent!r} config field {e.where!r} {e.what} (override {name}=...)"
+        ) from None
 
 
 def make_config(name: str, discrete: bool, preset: str = "small", **overrides: Any) -> Any:
@@ -156,3 +211,17 @@ def make_agent(
     if config is None:
         config = make_config(name, discrete, preset, **overrides)
     return module.Agent(observation_spec, action_spec, config, seed=seed, device=device)
+
+
+def paper_steps(name: str, discrete: bool) -> int | None:
+    """The learner budget of agent ``name``'s paper preset: what a run must reach for its score
+    to stand beside the paper's (None: no such agent, no paper preset, or torch missing, so
+    the agent module cannot be read). Continuous configs hold ``num_steps``; discrete ones
+    their shared Atari settings' (``config.atari.num_steps``)."""
+    try:
+        config = agent_module(name, discrete).PRESETS.get("paper")
+    except (RluError, ImportError):
+        return None
+    if config is None:
+        return None
+    return int(config.atari.num_steps if discrete else config.num_steps)

@@ -13,9 +13,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("export", help="export a stored dataset to another format")
     p.add_argument("path")
-    p.add_argument("--format", required=True, choices=["d4rl", "minari"])
+    p.add_argument("--format", required=True, choices=["d4rl", "d3rlpy", "minari"])
     p.add_argument(
-        "-o", "--out", help="d4rl: output file, X.hdf5 (D4RL's HDF5 layout) or X.npz (numpy)"
+        "-o",
+        "--out",
+        help="d4rl: output file, X.hdf5 (D4RL's HDF5 layout) or X.npz (numpy); d3rlpy: X.h5, "
+        "the file d3rlpy's ReplayBuffer.dump writes (ReplayBuffer.load reads it)",
     )
     p.add_argument("--id", help="Minari dataset id NAMESPACE/NAME-vN (minari)")
     p.add_argument(
@@ -66,6 +69,12 @@ def _export(args: argparse.Namespace) -> int:
         from rlu.data.d4rl import export_d4rl
 
         out = export_d4rl(ds, args.out)
+    elif args.format == "d3rlpy":
+        if not args.out:
+            raise RluError("--format d3rlpy needs -o/--out FILE.h5")
+        from rlu.data.d3rlpy_io import export_d3rlpy
+
+        out = export_d3rlpy(ds, args.out)
     else:
         if not args.id:
             raise RluError("--format minari needs --id NAMESPACE/NAME-vN")

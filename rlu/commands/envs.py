@@ -6,6 +6,8 @@ from __future__ import annotations
 import argparse
 import os
 
+from rlu.settings import checked
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("envs", help="environment tools")
@@ -16,8 +18,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     r.add_argument("--domain", action="append", help="a domain to measure (repeatable)")
     r.add_argument("--task", action="append", help="a task id to measure (repeatable)")
-    r.add_argument("--episodes", type=int, default=5, help="episodes per task (default 5)")
-    r.add_argument("--seed", type=int, default=0)
+    r.add_argument(
+        "--episodes",
+        type=checked(int, {"min": 1}, "--episodes"),
+        default=5,
+        help="episodes per task (default 5)",
+    )
+    r.add_argument("--seed", type=checked(int, {"min": 0}, "--seed"), default=0)
     r.add_argument(
         "--atari-max-steps",
         type=int,

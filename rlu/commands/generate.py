@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-from rlu.commands.train import add_device_option, add_gpus_per_run_option
+from rlu.commands.train import add_device_option
+from rlu.settings import add_options
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -54,7 +55,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     p.add_argument("--keep-work", action="store_true", help="keep the per-run parts afterwards")
-    add_gpus_per_run_option(p)
+    from rlu.workers import Backend
+
+    add_options(p, Backend, only=("gpus_per_job",))
     add_device_option(p)
     p.set_defaults(func=_run)
 
@@ -77,7 +80,7 @@ def _run(args: argparse.Namespace) -> int:
         keep_work=args.keep_work,
         policy=args.policy,
         device=args.device,
-        gpus_per_run=args.gpus_per_run,
+        gpus_per_run=args.gpus_per_job,
         workers=args.workers,
     )
     from pathlib import Path

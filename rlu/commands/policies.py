@@ -9,6 +9,7 @@ import json
 import math
 
 from rlu.commands.train import add_device_option
+from rlu.settings import checked
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -33,11 +34,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         "roll-outs are undiscounted: compare ranks).",
     )
     p.add_argument("dataset", help="dataset directory written by rlu generate")
-    p.add_argument("--run", type=int, default=None, help="run (default: every kept policy)")
-    p.add_argument("--checkpoint", type=int, default=None, help="checkpoint id (with --run)")
-    p.add_argument("--episodes", type=int, default=10, help="episodes rolled out per policy")
-    p.add_argument("--seed", type=int, default=0, help="seeds the env resets (and the noise)")
-    p.add_argument("--envs", type=int, default=4, help="envs stepped in lockstep")
+    p.add_argument("--run", type=_index, default=None, help="run (default: every kept policy)")
+    p.add_argument("--checkpoint", type=_index, default=None, help="checkpoint id (with --run)")
+    p.add_argument("--episodes", type=_count, default=10, help="episodes rolled out per policy")
+    p.add_argument("--seed", type=_index, default=0, help="seeds the env resets (and the noise)")
+    p.add_argument("--envs", type=_count, default=4, help="envs stepped in lockstep")
     p.add_argument(
         "--exploration",
         action="store_true",
@@ -49,17 +50,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     # FQE's own defaults (2000 steps, target copied every 100) bootstrap only ~20 times, too few
     # to reach the swing-up's rewards from the first observations (estimates all near 0,
     # Spearman -0.2); 20000 steps with a copy every 20 ranked the 6 policies exactly (1.0)
-    p.add_argument("--fqe-steps", type=int, default=20_000, help="FQE gradient steps")
+    p.add_argument("--fqe-steps", type=_count, default=20_000, help="FQE gradient steps")
     p.add_argument(
         "--fqe-target-period",
-        type=int,
+        type=_count,
         default=20,
         help="FQE steps between target-network copies",
     )
-    p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    p.add_argument("--threads", type=_count, default=1, help="torch threads (default 1)")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
+    p.add_argument("--quiet", action="store_true", help="no progress of the FQE steps (stderr)")
     add_device_option(p)
     p.set_defaults(func=_evaluate)
+
+
+_count = checked(int, {"min": 1}, "this option")
+_index = checked(int, {"min": 0}, "this option")
 
 
 def _fmt(x: float) -> str:
@@ -114,7 +120,8 @@ def _evaluate(args: argparse.Namespace) -> int:
         from rlu.evaluation.fqe import FQEConfig
 
         fqe = FQEConfig(steps=args.fqe_steps, target_period=args.fqe_target_period)
-        res = behaviour_ope(ds, which, args.episodes, fqe, args.seed, args.envs, device)
+        res = behaviour_ope(ds, which, args.episodes, fqe, args.seed, args.envs, device,
+                            quiet=args.quiet)  # fmt: skip
         if args.json:
             rho = res["spearman"]
             print(json.dumps({**res, "spearman": None if math.isnan(rho) else rho}))

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 
 
 def _dataset_args(p: argparse.ArgumentParser) -> None:
@@ -34,6 +33,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="follow redirects to other hosts (a mirror behind a CDN); same-host ones always are",
     )
     p.add_argument("--list", action="store_true", help="print the URLs and exit")
+    _quiet_arg(p)
     p.set_defaults(func=_download)
 
     p = sub.add_parser(
@@ -68,7 +68,18 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="store images raw or zlib-compressed (default: zlib for Atari)",
     )
     p.add_argument("--overwrite", action="store_true")
+    _quiet_arg(p)
     p.set_defaults(func=_convert)
+
+
+def _quiet_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--quiet",
+        "-q",
+        action="store_true",
+        help="no progress on stderr (default: a bar with rate and ETA on a terminal, a plain "
+        "line every 10 s otherwise; $RLU_PROGRESS=bar|lines|quiet picks one)",
+    )
 
 
 def _download(args: argparse.Namespace) -> int:
@@ -90,6 +101,7 @@ def _download(args: argparse.Namespace) -> int:
         retries=args.retries,
         timeout=args.timeout,
         allow_redirects=args.allow_redirects,
+        progress=not args.quiet,
     )
     got = d.fetch(sel.objects)
     reused = sum(f.reused for f in got)
@@ -105,32 +117,40 @@ def _download(args: argparse.Namespace) -> int:
 def _convert(args: argparse.Namespace) -> int:
     from rlu.data.release import catalog
     from rlu.data.release.convert import convert
+    from rlu.tasks import resolve_task
     from rlu.types import RluError
 
+    ref = resolve_task(args.task)  # a TFDS name carries its run or challenge and size
+    family, run, challenge, size = ref.dataset_settings(
+        args.family, args.run, args.challenge, args.size
+    )
     files = list(args.files)
     if args.src:
         if files:
             raise RluError("give either FILE... or --src ROOT, not both")
-        sel = catalog.select(args.task, args.family, args.run, args.challenge, args.size)
+        sel = catalog.select(ref.task.id, family, run, challenge, size)
         files = catalog.find_shards(args.src, sel, args.shards)
     elif args.shards:
         raise RluError("--shards picks shards under --src; with FILE... list the files instead")
-    challenge = args.challenge
-    if challenge is None and args.task.startswith("rwrl/"):
+    from rlu.files import check_output
+
+    # --out must not be or hold an input: --overwrite replaces it whole once written
+    check_output(args.out, [*files, *([args.src] if args.src else [])], "manifest.json", "dataset")
+    if challenge is None and ref.task.domain == "rwrl":
         challenge = _challenge_from_path(files)
     report = convert(
         files,
-        args.family,
-        args.task,
+        family,
+        ref.task.id,
         args.out,
         challenge=challenge,
-        run=args.run,
+        run=run,
         workers=args.workers,
         verify=not args.no_verify,
         on_error="skip" if args.skip_corrupt else "raise",
         image_encoding=args.image_encoding,
         overwrite=args.overwrite,
-        progress=os.isatty(2),
+        progress=not args.quiet,
     )
     print(
         f"wrote {report.out}: {report.segments:,} segments, {report.steps:,} steps from "

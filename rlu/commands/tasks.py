@@ -53,7 +53,7 @@ def _info(args: argparse.Namespace) -> int:
         if args.json:  # every whole episode's return, in order (too long for the tree print)
             info["returns"]["per_episode"] = ds.episode_returns().tolist()
     else:
-        from rlu.tasks import DOMAINS, get_task
+        from rlu.tasks import DOMAINS, resolve_task
 
         target = args.target
         if os.path.exists(target) or target.startswith((".", "~", os.sep)):  # a path
@@ -63,18 +63,47 @@ def _info(args: argparse.Namespace) -> int:
                 "manifest.json) or a task id such as control_suite/cartpole_swingup (rlu list)"
             )
         try:
-            info = get_task(target).to_json()
+            ref = resolve_task(target)
+            info = ref.task.to_json()
         except RluError as e:
-            if os.sep in target and target.split(os.sep)[0] not in DOMAINS:  # maybe a path
+            tfds = target.startswith("rlu_")
+            if os.sep in target and target.split(os.sep)[0] not in DOMAINS and not tfds:
                 raise RluError(
                     f"{e} Nor is {target} a dataset directory (no such folder)."
                 ) from None
             raise
+        if not args.json:
+            info = _readable_task(info, ref)
     if args.json:
         print(json.dumps(info, indent=1))
     else:
         _print_tree(info)
     return 0
+
+
+def _readable_task(info: dict, ref) -> dict:
+    """The task's JSON for reading: a task with one dataset has its counts without the ``""``
+    key that stands for it in JSON (``episodes: 40``, not ``episodes: {"": 40}``); a TFDS name
+    says what it names."""
+    out = {}
+    if ref.name != ref.task.id:
+        picks = {"family": ref.family, "run": ref.run, "challenge": ref.challenge}
+        picks["size"] = ref.size
+        chosen = ", ".join(f"{k} {v}" for k, v in picks.items() if v is not None)
+        out["alias"] = f"{ref.name} = {ref.task.id}" + (f" ({chosen})" if chosen else "")
+    single = list(info["datasets"]) == [""]
+    for k, v in info.items():
+        if k == "datasets" and single:
+            continue  # one dataset, unnamed
+        if k == "episodes":
+            if single:
+                v = v[""]
+            elif not v:
+                v = "not a paper number (episodes vary per run)"
+        if k == "release" and single:
+            v = [{**r, "shards": r["shards"][""]} for r in v]
+        out[k] = v
+    return out
 
 
 def _print_tree(d: object, indent: int = 0) -> None:

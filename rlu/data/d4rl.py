@@ -22,15 +22,26 @@ window), so that import cuts the rows back into the same segments.
 Import cuts episodes at terminals and timeouts, and also wherever ``next_observations[i]`` differs
 from ``observations[i + 1]`` (files in the wild miss some timeouts); a trailing run with neither
 counts as truncated. D4RL's own .hdf5 files (flat ``observations``, ``infos/...`` and
-``metadata/...`` groups, which are ignored) are read as they are; those without
-``next_observations`` are cut at terminals and timeouts only (see ``_segments_without_next``).
+``metadata/...`` groups, which are never read) are read as they are; those without
+``next_observations`` are cut at terminals and timeouts only and read as d3rlpy reads them: after
+a terminal the final observation is zeros; a timeout row (or a trailing run's last row) holds the
+final observation, and its action and reward, which no transition uses, stay in the episode's
+final step (d3rlpy counts that reward in the return and the returns-to-go; it used to be dropped).
+
+Import is wary of the file (rlu.data.foreign): every array's declared shape is checked against
+the others and against the task's schema before a row is read, then the rows are read, cut and
+written a block at a time, so memory holds one block and one episode (at most
+``EPISODE_LENGTH_FACTOR`` times the task's episode length, and ``MAX_EPISODE_BYTES``) whatever a
+small compressed file inflates to.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import math
 import os
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -38,13 +49,21 @@ import numpy as np
 
 from rlu.data.episode import Segment, make_episode
 from rlu.data.foreign import (
+    EPISODE_LENGTH_FACTOR,
+    MAX_EPISODE_BYTES,
+    ArrayColumn,
+    Column,
+    NpzFile,
+    episode_limit,
     finite_array,
     fits,
     flag_array,
-    read_hdf5,
-    read_npz,
+    hdf5_columns,
+    iter_blocks,
+    open_hdf5,
     real_array,
-    rows,
+    real_dtype,
+    with_final_step,
 )
 from rlu.data.store import Dataset, DatasetWriter, Schema
 from rlu.data.store.schema import action_problem
@@ -130,24 +149,32 @@ def export_d4rl(ds: Dataset, out: str | os.PathLike) -> Path:
         h5py = _require_h5py("writing D4RL .hdf5 files")
     if not out.parent.is_dir():
         raise RluError(f"{out}: the folder {out.parent} does not exist; create it first")
+    from rlu.files import interrupts_deferred
+    from rlu.locks import OutputLock
+
     arrays = d4rl_file_arrays(ds)
     tmp = out.with_name(f".{out.name}.partial{suffix}")
-    try:
-        if suffix == ".npz":
-            np.savez(tmp, **arrays)
-        else:
-            with h5py.File(tmp, "w") as f:
-                for name, a in arrays.items():
-                    if a.dtype.kind == "U":  # h5py stores str as variable-length UTF-8
-                        data: Any = a.tolist()
-                        f.create_dataset(name, data=data)
-                    elif a.dtype == np.uint8 and a.ndim > 2:  # frames: gzip, as D4RL's own files
-                        f.create_dataset(name, data=a, compression="gzip", compression_opts=1)
-                    else:
-                        f.create_dataset(name, data=a)
-        os.replace(tmp, out)
-    finally:
-        tmp.unlink(missing_ok=True)
+    with OutputLock(out, "export file"):  # one writer per output file
+        try:
+            if suffix == ".npz":
+                np.savez(tmp, **arrays)
+            else:
+                f = h5py.File(tmp, "w")
+                try:
+                    for name, a in arrays.items():
+                        if a.dtype.kind == "U":  # h5py stores str as variable-length UTF-8
+                            data: Any = a.tolist()
+                            f.create_dataset(name, data=data)
+                        elif a.dtype == np.uint8 and a.ndim > 2:  # frames: gzip, as D4RL's
+                            f.create_dataset(name, data=a, compression="gzip", compression_opts=1)
+                        else:
+                            f.create_dataset(name, data=a)
+                finally:
+                    with interrupts_deferred():  # a Ctrl-C here is raised after the close
+                        f.close()
+            os.replace(tmp, out)
+        finally:
+            tmp.unlink(missing_ok=True)
     return out
 
 
@@ -159,134 +186,273 @@ def _require_h5py(what: str) -> Any:
     return h5py
 
 
-def _split_obs(d: Mapping[str, np.ndarray], prefix: str, n: int, where: str) -> Any:
-    """The ``prefix`` observations (one array, or ``prefix/<key>`` arrays), one real row per
-    step."""
-    if prefix in d:
-        return rows(real_array(d[prefix], prefix, where), prefix, where, n)
-    keys = {k[len(prefix) + 1 :]: k for k in d if k.startswith(prefix + "/")}
+# --- import: the file's arrays as columns, checked before a row is read -------------------------
+@dataclasses.dataclass
+class _Layout:
+    """The columns of a D4RL file, their shapes checked against each other (and the schema)."""
+
+    n: int
+    obs: dict[str, Column]
+    """'' -> the one ``observations`` array, or key -> ``observations/<key>``."""
+    nxt: dict[str, Column] | None
+    actions: Column
+    rewards: Column
+    terminals: Column
+    timeouts: Column
+
+    @property
+    def row_bytes(self) -> int:
+        cols = [*self.obs.values(), *(self.nxt or {}).values()]
+        cols += [self.actions, self.rewards, self.terminals, self.timeouts]
+        return sum(c.row_bytes for c in cols)
+
+
+def _obs_columns(cols: Mapping[str, Column], prefix: str, n: int, where: str) -> dict:
+    if prefix in cols:
+        return {"": _checked_rows(cols[prefix], prefix, where, n)}
+    keys = {k[len(prefix) + 1 :]: k for k in cols if k.startswith(prefix + "/")}
     if not keys:
         raise FormatError(f"{where}: no {prefix!r} array and no '{prefix}/<key>' arrays")
-    return {k: rows(real_array(d[full], full, where), full, where, n) for k, full in keys.items()}
+    return {k: _checked_rows(cols[full], full, where, n) for k, full in sorted(keys.items())}
 
 
-def _rows(obs: Any, sl: slice | np.ndarray) -> Any:
-    if isinstance(obs, dict):
-        return {k: v[sl] for k, v in obs.items()}
-    return obs[sl]
+def _checked_rows(c: Column, name: str, where: str, n: int) -> Column:
+    real_dtype(c.dtype, name, where)
+    if not c.shape or c.shape[0] != n:
+        raise FormatError(
+            f"{where}: {name!r} has {c.shape[0] if c.shape else 0} rows where the other arrays "
+            f"have {n}; every array needs one row per step"
+        )
+    return c
 
 
-def _step_columns(d: Mapping[str, np.ndarray], where: str) -> tuple[np.ndarray, ...]:
-    """actions, rewards, terminals, timeouts of a D4RL dict: real numbers, finite rewards, flags
-    of 0 or 1, one row each (at least one)."""
-    rewards = finite_array(d["rewards"], "rewards", where)
-    if rewards.ndim == 2 and rewards.shape[1] == 1:
-        rewards = rewards[:, 0]  # (n, 1), as d3rlpy and some D4RL copies store them
-    if rewards.ndim != 1:
+def _layout(cols: Mapping[str, Column], where: str) -> _Layout:
+    """Shapes and dtypes as declared, before anything is read (see the module docstring)."""
+    missing = [k for k in REQUIRED if k not in cols]
+    if missing:
+        raise FormatError(
+            f"{where}: missing array(s) {missing}; a D4RL dict has {', '.join(REQUIRED)}"
+        )
+    rewards = cols["rewards"]
+    real_dtype(rewards.dtype, "rewards", where)
+    if len(rewards.shape) not in (1, 2) or math.prod(rewards.shape[1:]) != 1:
         raise FormatError(f"{where}: 'rewards' has shape {rewards.shape}; one reward per row")
-    n = len(rewards)
+    n = rewards.shape[0]
     if n == 0:
         raise FormatError(f"{where}: 'rewards' has no rows; there is nothing to import")
-    actions = rows(real_array(d["actions"], "actions", where), "actions", where, n)
-    terminals = rows(flag_array(d["terminals"], "terminals", where), "terminals", where, n)
-    timeouts = rows(flag_array(d["timeouts"], "timeouts", where), "timeouts", where, n)
-    return actions, rewards, terminals, timeouts
+    actions = _checked_rows(cols["actions"], "actions", where, n)
+    flags = {}
+    for name in ("terminals", "timeouts"):
+        flags[name] = _checked_rows(cols[name], name, where, n)
+        if flags[name].row_bytes != flags[name].dtype.itemsize:
+            raise FormatError(f"{where}: {name!r} has shape {flags[name].shape}; one flag per row")
+    obs = _obs_columns(cols, "observations", n, where)
+    nxt = None
+    if "next_observations" in cols or any(k.startswith("next_observations/") for k in cols):
+        nxt = _obs_columns(cols, "next_observations", n, where)
+        if set(obs) != set(nxt):
+            raise FormatError(
+                f"{where}: 'observations' and 'next_observations' differ in their keys"
+            )
+        if any(obs[k].shape != nxt[k].shape for k in obs):
+            raise FormatError(f"{where}: 'observations' and 'next_observations' differ in shape")
+    return _Layout(n, obs, nxt, actions, rewards, flags["terminals"], flags["timeouts"])
+
+
+def _check_schema(lay: _Layout, schema: Schema, where: str) -> None:
+    """Every row's declared size is the task's: nothing of another shape is read."""
+    k = schema.frame_stack
+    task = schema.task_id or "the schema"
+
+    def want(c: Column, name: str, size: int, shape: Any) -> None:
+        if math.prod(c.shape[1:]) != size:
+            raise FormatError(
+                f"{where}: {name!r} has rows of shape {c.shape[1:]}; task {task} stores {shape}"
+            )
+
+    want(lay.actions, "actions", schema.action.size, schema.action.shape)
+    spec = schema.observation
+    if isinstance(spec, ArraySpec):
+        if "" not in lay.obs:
+            raise FormatError(
+                f"{where}: 'observations/<key>' arrays (dict observations); task {task} stores "
+                "one 'observations' array"
+            )
+        if k > 1 and (len(lay.obs[""].shape) < 3 or lay.obs[""].shape[-1] != k):
+            raise FormatError(
+                f"{where}: frame-stacked import needs one 'observations' array of stacks "
+                f"(..., {k}), newest frame last; it has rows of {lay.obs[''].shape[1:]}"
+            )
+        want(lay.obs[""], "observations", spec.size * k, (*spec.shape, k) if k > 1 else spec.shape)
+        return
+    if "" in lay.obs:
+        size = sum(s.size for s in spec.values())
+        if len(lay.obs[""].shape) != 2 or lay.obs[""].shape[1] != size:
+            raise FormatError(
+                f"{where}: 'observations' has rows of shape {lay.obs[''].shape[1:]}; task {task} "
+                f"stores its keys {list(spec)} flattened to ({size},)"
+            )
+        return
+    unknown, absent = sorted(set(lay.obs) - set(spec)), sorted(set(spec) - set(lay.obs))
+    if unknown or absent:
+        raise FormatError(
+            f"{where}: observation keys differ from task {task}'s: unknown "
+            f"{['observations/' + u for u in unknown]}, missing "
+            f"{['observations/' + a for a in absent]}"
+        )
+    for key, c in lay.obs.items():
+        want(c, f"observations/{key}", spec[key].size, spec[key].shape)
+
+
+class _Episode:
+    """The rows of the episode being cut, gathered block by block (bounded in steps and bytes)."""
+
+    def __init__(self, where: str, max_steps: int | None, frame_stack: int):
+        self.where, self.max_steps, self.k = where, max_steps, frame_stack
+        self.start = 0
+        self.parts: dict[str, list[np.ndarray]] = {}
+        self.steps = self.bytes = 0
+        self.prefix: np.ndarray | None = None
+
+    def add(self, row0: int, block: Mapping[str, np.ndarray], a: int, b: int) -> None:
+        if b <= a:
+            return
+        if not self.steps:
+            self.start = row0 + a
+            if self.k > 1:  # the first stack's older frames: the segment's frame prefix
+                self.prefix = np.moveaxis(block["obs/"][a, ..., : self.k - 1], -1, 0).copy()
+        for name, v in block.items():
+            if name.startswith("obs/") and self.k > 1:
+                v = v[..., -1]
+            part = np.array(v[a:b])  # a copy: a view would keep the whole block alive
+            self.parts.setdefault(name, []).append(part)
+            self.bytes += part.nbytes
+        self.steps += b - a
+        if self.max_steps is not None and self.steps > self.max_steps:
+            raise FormatError(
+                f"{self.where}: the episode starting at row {self.start} runs past "
+                f"{self.max_steps} steps without a terminal or timeout ({EPISODE_LENGTH_FACTOR} "
+                "times its task's episode length): the file lacks its episode ends (D4RL's "
+                "'timeouts') or is not what it claims"
+            )
+        if self.bytes > MAX_EPISODE_BYTES:
+            raise FormatError(
+                f"{self.where}: the episode starting at row {self.start} holds more than "
+                f"{MAX_EPISODE_BYTES} bytes without a terminal or timeout: the file lacks its "
+                "episode ends (D4RL's 'timeouts') or is not what it claims"
+            )
+
+    def take(self) -> tuple[dict[str, np.ndarray], np.ndarray | None]:
+        out = {k: np.concatenate(v) if len(v) > 1 else v[0] for k, v in self.parts.items()}
+        prefix = self.prefix
+        self.parts, self.steps, self.bytes, self.prefix = {}, 0, 0, None
+        return out, prefix
+
+
+def _iter_segments(
+    lay: _Layout, where: str, frame_stack: int = 1, max_steps: int | None = None
+) -> Iterator[Segment]:
+    """Cut the rows into whole episodes (module docstring), reading a block of rows at a time:
+    one block and one episode are held, whatever the file's length."""
+    if frame_stack > 1 and lay.nxt is None:
+        raise FormatError(f"{where}: frame-stacked import needs 'next_observations'")
+    n, ep = lay.n, _Episode(where, max_steps, frame_stack)
+    single = "" in lay.obs
+    for a, b in iter_blocks(n, lay.row_bytes):
+        block = {
+            "rewards": finite_array(lay.rewards.rows(a, b), "rewards", where).reshape(-1),
+            "actions": real_array(lay.actions.rows(a, b), "actions", where),
+            "terminals": flag_array(lay.terminals.rows(a, b), "terminals", where),
+        }
+        ends = block["terminals"] | flag_array(lay.timeouts.rows(a, b), "timeouts", where)
+        hi = min(n, b + 1) if lay.nxt is not None else b  # one row ahead: does it continue?
+        for key, c in lay.obs.items():
+            name = "observations" + (f"/{key}" if key else "")
+            block[f"obs/{key}"] = real_array(c.rows(a, hi), name, where)
+        if lay.nxt is not None:
+            cont = np.ones(hi - a - 1, bool)
+            for key, c in lay.nxt.items():
+                name = "next_observations" + (f"/{key}" if key else "")
+                nxt = block[f"next/{key}"] = real_array(c.rows(a, b), name, where)
+                m = len(cont)
+                if m:
+                    succ = block[f"obs/{key}"][1:]
+                    cont &= (nxt[:m].reshape(m, -1) == succ.reshape(m, -1)).all(axis=1)
+                block[f"obs/{key}"] = block[f"obs/{key}"][: b - a]
+            ends[: len(cont)] |= ~cont  # a row its successor does not continue ends an episode
+        if b == n:
+            ends[-1] = True
+        stored = {k: v for k, v in block.items() if not k.startswith("next/")}
+        s = 0
+        for e in np.flatnonzero(ends).tolist():
+            ep.add(a, stored, s, e + 1)
+            last = {k[5:]: v[e : e + 1] for k, v in block.items() if k.startswith("next/")}
+            yield _segment(*ep.take(), last, single, lay.nxt is not None, frame_stack)
+            s = e + 1
+        ep.add(a, stored, s, b - a)
+
+
+def _segment(
+    rows: dict[str, np.ndarray],
+    prefix: np.ndarray | None,
+    last_next: dict[str, np.ndarray],
+    single: bool,
+    has_next: bool,
+    frame_stack: int,
+) -> Segment:
+    """One episode's rows as a segment: with next observations, the last one ends it; without,
+    a terminal ends in zeros, and a timeout row holds the final observation, its action and
+    reward kept in the final step (see ``with_final_step``)."""
+    obs = {k[4:]: v for k, v in rows.items() if k.startswith("obs/")}
+    actions, rewards = rows["actions"], rows["rewards"]
+    terminal = bool(rows["terminals"][-1])
+
+    def one(d: dict[str, np.ndarray]) -> Any:
+        return d[""] if single else d
+
+    if has_next:
+        if frame_stack > 1:
+            last_next = {k: v[..., -1] for k, v in last_next.items()}
+        full = {k: np.concatenate([v, last_next[k]]) for k, v in obs.items()}
+        return make_episode(one(full), actions, rewards, terminal, frame_prefix=prefix)
+    if terminal:
+        full = {k: np.concatenate([v, np.zeros_like(v[:1])]) for k, v in obs.items()}
+        return make_episode(one(full), actions, rewards, True)
+    seg = make_episode(one(obs), actions[:-1], rewards[:-1], False)
+    return with_final_step(seg, actions[-1], float(rewards[-1]))
 
 
 def d4rl_segments(
     d: Mapping[str, np.ndarray], frame_stack: int = 1, where: str = "D4RL dict"
 ) -> list[Segment]:
     """Cut a D4RL-style dict into whole episodes (see the module docstring)."""
-    missing = [k for k in REQUIRED if k not in d]
-    if missing:
-        raise FormatError(
-            f"{where}: missing array(s) {missing}; a D4RL dict has {', '.join(REQUIRED)}"
-        )
-    actions, rewards, terminals, timeouts = _step_columns(d, where)
-    n = len(rewards)
-    obs = _split_obs(d, "observations", n, where)
-    if "next_observations" not in d and not any(k.startswith("next_observations/") for k in d):
-        return _segments_without_next(obs, actions, rewards, terminals, timeouts, frame_stack)
-    nxt = _split_obs(d, "next_observations", n, where)
-    if isinstance(obs, dict) != isinstance(nxt, dict) or (
-        isinstance(obs, dict) and set(obs) != set(nxt)
-    ):
-        raise FormatError(f"{where}: 'observations' and 'next_observations' differ in their keys")
-    pairs = [(obs[k], nxt[k]) for k in obs] if isinstance(obs, dict) else [(obs, nxt)]
-    if any(a.shape != b.shape for a, b in pairs):
-        raise FormatError(f"{where}: 'observations' and 'next_observations' differ in shape")
-    ends = terminals | timeouts
-    if n > 1:
-        # a row whose successor does not continue from its next observation ends an episode
-        if isinstance(obs, dict):
-            cont = np.ones(n - 1, bool)
-            for k in obs:
-                a, b = nxt[k][:-1].reshape(n - 1, -1), obs[k][1:].reshape(n - 1, -1)
-                cont &= (a == b).all(axis=1)
-        else:
-            cont = (nxt[:-1].reshape(n - 1, -1) == obs[1:].reshape(n - 1, -1)).all(axis=1)
-        ends[:-1] |= ~cont
-    if n:
-        ends[-1] = True
-    stops = np.flatnonzero(ends) + 1
-    starts = np.concatenate([[0], stops[:-1]])
-    segments = []
-    for a, b in zip(starts.tolist(), stops.tolist(), strict=True):
-        o = _rows(obs, slice(a, b))
-        last_next = _rows(nxt, slice(b - 1, b))
-        if isinstance(o, dict):
-            ep_obs = {k: np.concatenate([o[k], last_next[k]]) for k in o}
-        else:
-            ep_obs = np.concatenate([o, last_next])
-        prefix = None
-        if frame_stack > 1:  # stacked Atari observations -> frames stored once
-            if isinstance(ep_obs, dict) or ep_obs.ndim < 2 or ep_obs.shape[-1] != frame_stack:
-                raise FormatError(
-                    f"{where}: frame-stacked import needs one 'observations' array of stacks "
-                    f"(..., {frame_stack}), newest frame last"
-                )
-            prefix = np.moveaxis(ep_obs[0, ..., : frame_stack - 1], -1, 0)
-            ep_obs = ep_obs[..., -1]
-        segments.append(
-            make_episode(
-                ep_obs, actions[a:b], rewards[a:b], bool(terminals[b - 1]), frame_prefix=prefix
-            )
-        )
-    return segments
+    cols = {k: ArrayColumn(v, k, where) for k, v in d.items()}
+    return list(_iter_segments(_layout(cols, where), where, frame_stack))
 
 
-def _segments_without_next(
-    obs: Any,
-    actions: np.ndarray,
-    rewards: np.ndarray,
-    terminals: np.ndarray,
-    timeouts: np.ndarray,
-    frame_stack: int,
-) -> list[Segment]:
-    """Files without ``next_observations`` (several of D4RL's, AntMaze among them): cut at
-    terminals and timeouts only, and read as d3rlpy does: after a terminal the final observation is
-    zeros;
-    a timeout row (or a trailing run) holds the final observation, its action and reward unused."""
-    n = len(rewards)
-    if frame_stack > 1:
-        raise FormatError("frame-stacked import needs 'next_observations'")
-    ends = terminals | timeouts
-    if n:
-        ends[-1] = True
-    stops = np.flatnonzero(ends) + 1
-    starts = np.concatenate([[0], stops[:-1]])
-    segments = []
-    for a, b in zip(starts.tolist(), stops.tolist(), strict=True):
-        o = _rows(obs, slice(a, b))
-        if terminals[b - 1]:
-            if isinstance(o, dict):
-                o = {k: np.concatenate([v, np.zeros_like(v[:1])]) for k, v in o.items()}
-            else:
-                o = np.concatenate([o, np.zeros_like(o[:1])])
-            segments.append(make_episode(o, actions[a:b], rewards[a:b], True))
-        else:
-            segments.append(make_episode(o, actions[a : b - 1], rewards[a : b - 1], False))
-    return segments
+def _want(name: str) -> bool:
+    """The step arrays of a D4RL file (``infos/``, ``metadata/`` and the rest are never read)."""
+    top = name.split("/", 1)[0]
+    return top in ("observations", "next_observations") or name in REQUIRED
+
+
+@contextlib.contextmanager
+def _columns(src: str | os.PathLike | Mapping[str, np.ndarray]) -> Iterator[dict[str, Column]]:
+    """The step arrays of ``src`` (a D4RL .npz or .hdf5 file, or a dict) as columns."""
+    if isinstance(src, Mapping):
+        yield {k: ArrayColumn(v, k, "D4RL dict") for k, v in src.items()}
+        return
+    path = Path(src)
+    if not path.is_file():
+        raise RluError(f"{path}: no such file; give a D4RL .npz or .hdf5 file")
+    if path.suffix == ".npz":
+        with NpzFile(path) as z:
+            yield {k: z.column(k) for k in z.infos if _want(k)}
+    elif path.suffix.lower() in HDF5_SUFFIXES:
+        with open_hdf5(path, "D4RL's .hdf5 or an .npz") as f:
+            yield hdf5_columns(f, path, _want, "D4RL's .hdf5 or an .npz")
+    else:
+        raise RluError(f"{path}: unknown D4RL file type; give a .npz or .hdf5 file")
 
 
 def import_d4rl(
@@ -295,43 +461,34 @@ def import_d4rl(
     task_id: str,
     provenance: Mapping[str, Any] | None = None,
 ) -> Path:
-    """Import a D4RL-style .npz (or dict) for ``task_id`` into a new dataset at ``dest``."""
+    """Import a D4RL-style .npz / .hdf5 file (or dict) for ``task_id`` into a new dataset at
+    ``dest``. Every array's declared shape is checked against the others and the task's schema
+    before a row is read; the rows are then read and written a block at a time (memory: one
+    block and one episode, see rlu.data.foreign)."""
     from rlu.tasks import get_task
 
     task = get_task(task_id)
-    if isinstance(src, (str, os.PathLike)):
-        path = Path(src)
-        if not path.is_file():
-            raise RluError(f"{path}: no such file; give a D4RL .npz or .hdf5 file")
-        if path.suffix == ".npz":
-            data = _read_npz(path)
-        elif path.suffix.lower() in HDF5_SUFFIXES:
-            data = _read_hdf5(path)
-        else:
-            raise RluError(f"{path}: unknown D4RL file type; give a .npz or .hdf5 file")
-    else:
-        data = dict(src)
     where = str(src) if not isinstance(src, Mapping) else "D4RL dict"
     schema = Schema.for_task(task)
-    if task.domain == "rwrl" and "observations/dummy-0" in data:
-        from rlu.tasks import rwrl_observation_spec
-
-        schema = Schema.for_task(task, observation=rwrl_observation_spec(task, "easy"))
-    segments = d4rl_segments(data, frame_stack=schema.frame_stack, where=where)
     prov = {"source": "d4rl", "file": str(src) if not isinstance(src, Mapping) else None}
     prov.update(provenance or {})
-    with DatasetWriter(dest, schema, prov) as w:
-        for i, seg in enumerate(segments):
-            if isinstance(schema.observation, Mapping) and not isinstance(seg.observation, Mapping):
-                obs = split_flat(seg.observation, schema.observation, f"{src}: 'observations'")
-                seg = dataclasses.replace(seg, observation=obs)
-            append_checked(w, seg, schema, i, where)
+    with _columns(src) as cols:
+        if task.domain == "rwrl" and "observations/dummy-0" in cols:
+            from rlu.tasks import rwrl_observation_spec
+
+            schema = Schema.for_task(task, observation=rwrl_observation_spec(task, "easy"))
+        lay = _layout(cols, where)
+        _check_schema(lay, schema, where)
+        segments = _iter_segments(lay, where, schema.frame_stack, episode_limit(task))
+        with DatasetWriter(dest, schema, prov) as w:
+            for i, seg in enumerate(segments):
+                if isinstance(schema.observation, Mapping) and not isinstance(
+                    seg.observation, Mapping
+                ):
+                    obs = split_flat(seg.observation, schema.observation, f"{src}: 'observations'")
+                    seg = dataclasses.replace(seg, observation=obs)
+                append_checked(w, seg, schema, i, where)
     return Path(dest)
-
-
-def _read_npz(path: Path) -> dict[str, np.ndarray]:
-    """The arrays of an .npz file; object arrays (pickles) are refused, never unpickled."""
-    return read_npz(path)
 
 
 def append_checked(w: DatasetWriter, seg: Segment, schema: Schema, index: int, where: str) -> None:
@@ -389,13 +546,3 @@ def split_flat(obs: np.ndarray, spec: Mapping[str, Any], where: str) -> dict[str
         )
     parts = np.split(obs, np.cumsum(sizes)[:-1], axis=1)
     return {k: p.reshape(len(obs), *s.shape) for (k, s), p in zip(spec.items(), parts, strict=True)}
-
-
-def _read_hdf5(path: Path) -> dict[str, np.ndarray]:
-    """The step arrays of a D4RL .hdf5 file (``infos/`` and ``metadata/`` are never read)."""
-
-    def want(name: str) -> bool:
-        top = name.split("/", 1)[0]
-        return top in ("observations", "next_observations") or name in REQUIRED
-
-    return read_hdf5(path, want, "D4RL's .hdf5 or an .npz")

@@ -9,8 +9,10 @@ Step semantics (RLDS, SPEC §3), for step t of a segment of T steps:
 - ``discount[t]`` is 0 when the transition t -> t+1 ends the episode in a terminal state, 1
   otherwise (a time-limit truncation keeps 1);
 - the last step of an episode (``is_last``) holds the final observation; its action, reward and
-  discount carry no information (stored as zeros; a terminal final step has ``is_terminal`` and
-  discount 0);
+  discount belong to no transition (stored as zeros; a terminal final step has ``is_terminal`` and
+  discount 0), except that imports from d3rlpy dumps and D4RL files without next observations
+  keep the last row of a truncated episode there, its action and reward (d3rlpy counts that
+  reward in the episode's return; so does ``episode_return``);
 - so a segment of T steps holds T - 1 transitions.
 
 Atari data is stored as single frames ``(T, 84, 84)`` and stacked at sample time; such a segment

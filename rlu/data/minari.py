@@ -29,17 +29,21 @@ encoding off so that image observations stay exact):
   ``rlu_is_first`` / ``rlu_is_last`` so that release windows (segments that are not whole
   episodes) come back as windows; a window's last step (which starts the next, unstored,
   transition) keeps its action, reward and discount in ``rlu_final_action`` / ``_reward`` /
-  ``_discount``.
+  ``_discount``; so does a whole episode's final step that holds an action or reward (the last
+  row of a truncated episode imported from d3rlpy or D4RL: no transition's, kept);
+- dataset metadata: ``rlu_task_id``, the schema's task, which import reads back.
 
 Import (``import_minari``) reads any Minari dataset (an id in ``MINARI_DATASETS_PATH`` or a
 dataset directory) with Minari's own iteration; an episode that ends with neither a termination
 nor a truncation (a recording cut short) counts as truncated. The final step of each imported
-episode holds no action or reward (rlu's step semantics). rlu's segments, windows included,
-round-trip column for column.
+episode holds no action or reward (rlu's step semantics) unless rlu's export kept one there.
+Without ``--task``, the task rlu's export recorded is the dataset's (if its schema gives the
+dataset's spaces). rlu's segments, windows included, round-trip column for column.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
@@ -52,7 +56,15 @@ from typing import Any
 import numpy as np
 
 from rlu.data.episode import METADATA_FIELDS, Segment, make_episode
-from rlu.data.foreign import finite_array, fits, flag_array, h5_check, open_hdf5, real_array
+from rlu.data.foreign import (
+    finite_array,
+    fits,
+    flag_array,
+    h5_check,
+    open_hdf5,
+    real_array,
+    with_final_step,
+)
 from rlu.data.store import Dataset, DatasetWriter, Schema
 from rlu.types import (
     ArraySpec,
@@ -212,7 +224,10 @@ def env_spec_for(schema: Schema, provenance: Mapping[str, Any]) -> Any:
     if task.id != schema.task_id:
         return None
     kwargs = {"task_id": task.id, **env_settings(provenance)}
-    return EnvSpec(id=task.gym_id, entry_point=GYM_ENTRY_POINT, kwargs=kwargs)
+    steps = task.max_episode_steps(kwargs)
+    return EnvSpec(
+        id=task.gym_id, entry_point=GYM_ENTRY_POINT, kwargs=kwargs, max_episode_steps=steps
+    )
 
 
 def describe_provenance(provenance: Mapping[str, Any], task_id: str | None) -> str:
@@ -306,6 +321,9 @@ def _episode_attrs(seg: Segment) -> dict[str, Any]:
         attrs["rlu_final_action"] = np.asarray(seg.action[-1])
         attrs["rlu_final_reward"] = np.float32(seg.reward[-1])
         attrs["rlu_final_discount"] = np.float32(seg.discount[-1])
+    elif seg.reward[-1] != 0 or np.any(seg.action[-1]):  # a truncated end's last row, imported
+        attrs["rlu_final_action"] = np.asarray(seg.action[-1])  # from d3rlpy or D4RL
+        attrs["rlu_final_reward"] = np.float32(seg.reward[-1])
     return attrs
 
 
@@ -333,10 +351,13 @@ def export_minari(
         raise RluError(f"--id {dataset_id!r}: {e}; use NAMESPACE/NAME-vN") from None
     if "-v" not in dataset_id.rsplit("/", 1)[-1]:
         raise RluError(f"--id {dataset_id!r} has no version; use NAMESPACE/NAME-vN")
-    with _datasets_root(root), warnings.catch_warnings():
+    from rlu.locks import OutputLock
+
+    with _datasets_root(root), warnings.catch_warnings(), contextlib.ExitStack() as stack:
         from minari.storage import get_dataset_path
 
         path = Path(get_dataset_path(dataset_id))
+        stack.enter_context(OutputLock(path, "Minari dataset"))  # one writer per dataset
         if path.exists():
             raise RluError(f"{path}: Minari dataset {dataset_id} already exists; use another --id")
         obs_space, act_space = spaces_for(ds.schema)
@@ -375,6 +396,8 @@ def export_minari(
             # the spec goes in after creation: given to create_dataset_from_buffers, Minari would
             # build the env (and need the env's extra) just to read spaces rlu already gives it
             meta: dict[str, Any] = {"rlu_provenance": json.dumps(prov, sort_keys=True)}
+            if ds.schema.task_id:
+                meta["rlu_task_id"] = ds.schema.task_id
             if spec is not None:
                 meta["env_spec"] = spec.to_json()
             mds.storage.update_metadata(meta)
@@ -618,6 +641,18 @@ def _segment(ep: Any, meta: Mapping[str, Any], schema: Schema, source: str = "Mi
         raise FormatError(f"{where}: {e}") from None
     is_first = bool(np.asarray(meta.get("rlu_is_first", True)))
     is_last = bool(np.asarray(meta.get("rlu_is_last", True)))
+    if is_last and "rlu_final_reward" in meta:
+        seg = with_final_step(
+            seg,
+            fits(
+                np.asarray(meta.get("rlu_final_action", 0)), str(seg.action.dtype), "final", where
+            ),
+            float(finite_array(meta["rlu_final_reward"], "final reward", where)),
+        )
+        if "rlu_episode_return" in meta:  # the stored return, as exported
+            seg = dataclasses.replace(
+                seg, metadata={**seg.metadata, "episode_return": meta_out["episode_return"]}
+            )
     if not (is_first and is_last):
         flags_first = seg.is_first.copy()
         flags_first[0] = is_first
@@ -666,7 +701,9 @@ def import_minari(
     """Import a Minari dataset into a new rlu dataset at ``dest``.
 
     With ``task_id`` the task's schema is used (observations cast to its dtypes); without, the
-    schema comes from the Minari dataset's spaces.
+    task rlu's export recorded (``rlu_task_id``, or the task of an ``env_spec`` with rlu's entry
+    point) when its schema gives the dataset's spaces, else a schema from the spaces alone (no
+    task). The recorded id is only looked up in rlu's task registry: no env is built.
     """
     from rlu.data.d4rl import append_checked
 
@@ -682,8 +719,47 @@ def import_minari(
             raise SpecError(
                 f"{id_or_path}: {e}; import it with --task for a known schema"
             ) from None
+        schema = _recorded_schema(mds, schema)
     prov = {"source": "minari", "minari_id": str(mds.id), "from": str(id_or_path)}
     with DatasetWriter(dest, schema, prov) as w:
         for i, seg in enumerate(minari_segments(mds, schema)):
             append_checked(w, seg, schema, i, str(id_or_path))
     return Path(dest)
+
+
+def recorded_task(meta: Mapping[str, Any]) -> str | None:
+    """The task id rlu's export wrote into Minari metadata ``meta`` (``rlu_task_id``; for older
+    exports, the ``task_id`` of an ``env_spec`` whose entry point is rlu's), if it names a
+    registered task; only parsed and looked up, never built."""
+    from rlu.tasks import GYM_ENTRY_POINT, TASKS
+
+    task = meta.get("rlu_task_id")
+    if not isinstance(task, str) and isinstance(meta.get("env_spec"), str):
+        try:
+            spec = json.loads(meta["env_spec"])
+        except (ValueError, RecursionError):
+            spec = None
+        if isinstance(spec, dict) and spec.get("entry_point") == GYM_ENTRY_POINT:
+            kwargs = spec.get("kwargs")
+            task = kwargs.get("task_id") if isinstance(kwargs, dict) else None
+    return task if isinstance(task, str) and task in TASKS else None
+
+
+def _recorded_schema(mds: Any, from_spaces: Schema) -> Schema:
+    """The schema of the task rlu's export recorded, where exporting it gives the dataset's
+    spaces (a dataset of another shape keeps the schema of its spaces, without a task)."""
+    from rlu.tasks import TASKS, rwrl_observation_spec
+
+    meta = json.loads((Path(mds.storage.data_path) / "metadata.json").read_bytes())
+    task_id = recorded_task(meta)
+    if task_id is None:
+        return from_spaces
+    task = TASKS[task_id]
+    candidates = [Schema.for_task(task)]
+    if task.domain == "rwrl":
+        candidates.append(Schema.for_task(task, observation=rwrl_observation_spec(task, "easy")))
+    spaces = (mds.observation_space, mds.action_space)
+    for schema in candidates:
+        if spaces_for(schema) == spaces:
+            return schema
+    return from_spaces

@@ -5,18 +5,18 @@ Checks: manifest fields, files inside the folder and their sizes, the segment in
 flags (RLDS; stored as bytes 0 or 1), discounts, actions inside the action space, stored episode
 returns against the rewards, NaN / inf in float columns, and every compressed frame inflating to
 exactly one frame; attachments (the behaviour policies under ``policies/``) by size and sha256 and,
-for each policy's ``.npz``, that numpy opens it without pickle and finds its ``.json`` beside it.
-Whatever sampling could trip on, validate reports first.
+for each policy's ``.npz``, that it holds what the ``.json`` beside it declares and loads without
+pickle. Whatever sampling could trip on, validate reports first.
 """
 
 from __future__ import annotations
 
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from rlu.data.foreign import MAX_POLICY_BYTES, NpzFile, iter_blocks
 from rlu.data.store import (
     FLAG_COLUMNS,
     Dataset,
@@ -27,7 +27,8 @@ from rlu.data.store import (
     verify_checksums,
 )
 from rlu.data.store.schema import action_problem
-from rlu.types import BoundedSpec, RluError, observation_spec_to_json
+from rlu.files import Int, ListOf, MapOf, Record, Str, read_json
+from rlu.types import BoundedSpec, FormatError, RluError, observation_spec_to_json
 
 _CHUNK = 1 << 20  # steps per chunk when scanning columns
 
@@ -73,7 +74,10 @@ def validate(path: str | Path, checksums: bool = True) -> Report:
 
 
 def _check_attachments(ds: Dataset, manifest: dict, report: Report) -> None:
-    """Behaviour policies (``policies/**.npz`` + ``.json``): each array loads without pickle."""
+    """Behaviour policies (``policies/**.npz`` + ``.json``): each ``.npz`` holds exactly the
+    arrays its JSON's ``arrays`` field declares (names, shapes, dtypes; checked from the headers
+    before a byte is inflated) and each inflates to them without pickle (read in bounded
+    blocks, so a member that inflates to gigabytes costs one block)."""
     rels = sorted(r for r in manifest["files"] if is_attachment(r))
     if not rels:
         return
@@ -81,18 +85,59 @@ def _check_attachments(ds: Dataset, manifest: dict, report: Report) -> None:
     for rel in rels:
         if not rel.endswith(".npz"):
             continue
-        if rel.removesuffix(".npz") + ".json" not in manifest["files"]:
+        jrel = rel.removesuffix(".npz") + ".json"
+        if jrel not in manifest["files"]:
             report.add(f"{ds.path / rel}: no {Path(rel).stem}.json beside it (the policy's config)")
+            continue
         try:
-            with np.load(ds.path / rel, allow_pickle=False) as z:
-                for key in z.files:
-                    z[key]
-        except (ValueError, OSError, EOFError, KeyError, zipfile.BadZipFile) as e:
-            report.add(f"{ds.path / rel}: not a numpy .npz of plain arrays ({e})")
+            _check_npz_against_json(ds.path / rel, ds.path / jrel)
+        except RluError as e:
+            report.add(str(e))
     if len(report.problems) == bad:
         report.checked.append(
-            f"{len(rels)} attached file(s) under policies/ (arrays load without pickle)"
+            f"{len(rels)} attached file(s) under policies/ (each .npz as its .json declares, "
+            "loading without pickle)"
         )
+
+
+MAX_ATTACHMENT_JSON_BYTES = 1 << 20
+_ARRAYS = Record(
+    {
+        "arrays": MapOf(
+            Record({"shape": ListOf(Int(0), max_len=8), "dtype": Str(max_len=16)}), max_len=256
+        )
+    }
+)
+"""What validate reads of a policy's ``.json``: the arrays its ``.npz`` holds (the whole file's
+shape is rlu.generate.policies.POLICY_SHAPE, checked when a policy is loaded)."""
+
+
+def _check_npz_against_json(npz: Path, jpath: Path) -> None:
+    fix = "re-generate the dataset"
+    declared = read_json(jpath, _ARRAYS, fix, max_bytes=MAX_ATTACHMENT_JSON_BYTES)["arrays"]
+    with NpzFile(npz, "a plain-array .npz is what rlu generate writes: " + fix) as z:
+        if set(z.infos) != set(declared):
+            raise FormatError(
+                f"{npz}: arrays {sorted(z.infos)[:8]} differ from {jpath.name}'s field 'arrays' "
+                f"{sorted(declared)[:8]}; {fix}"
+            )
+        for key in sorted(declared):
+            m, want = z.member(key), declared[key]
+            if list(m.shape) != want["shape"] or m.dtype.name != want["dtype"]:
+                raise FormatError(
+                    f"{npz}: array {key!r} is {m.dtype}{list(m.shape)}; {jpath.name} field "
+                    f"'arrays.{key}' says {want['dtype']}{want['shape']}; {fix}"
+                )
+        size = sum(z.member(key).nbytes for key in declared)
+        if size > MAX_POLICY_BYTES:
+            raise FormatError(
+                f"{npz}: its arrays declare {size} bytes, more than a kept policy may hold "
+                f"({MAX_POLICY_BYTES}); {fix}"
+            )
+        for key in sorted(declared):
+            col = z.column(key)
+            for a, b in iter_blocks(col.shape[0] if col.shape else 1, col.row_bytes):
+                col.rows(a, b)  # inflated and dropped: the zip's CRC is checked at the end
 
 
 def _check_task(ds: Dataset, report: Report) -> None:

@@ -15,7 +15,9 @@ schema): a flat dict keyed as the release without its ``observation/`` prefix fo
 domains, one uint8 array for Atari. The factory checks the first observation against the spec.
 MuJoCo envs also offer ``env.dm_env``, a dm_env view of the same environment.
 
-Settings per domain (keyword arguments of ``make_env``):
+Every domain takes ``render_mode="rgb_array"`` (``env.render()`` returns the frame; MuJoCo's
+offscreen renderer or the ALE's screen, see ``rlu.envs.core``), and ``env.spec.max_episode_steps``
+is the episode's real step limit. Settings per domain (keyword arguments of ``make_env``):
 
 - control suite: none.
 - locomotion: ``camera`` (default True: the 64x64x3 egocentric camera rendered every step, as
@@ -36,7 +38,7 @@ import importlib
 import os
 from typing import Any
 
-from rlu.tasks import get_task
+from rlu.tasks import resolve_task
 from rlu.types import RluError, install_hint
 
 _FACTORIES = {
@@ -73,21 +75,42 @@ def _factory(domain: str):
         ) from e
 
 
-def make_env(task_id: str, seed: int | None = None, challenge: str = "none", **settings: Any):
-    """A Gymnasium env for ``task_id`` (see the module docstring for ``settings``)."""
-    task = get_task(task_id)
+def make_env(
+    task_id: str,
+    seed: int | None = None,
+    challenge: str | None = None,
+    *,
+    render_mode: str | None = None,
+    render_size: tuple[int, int] | None = None,
+    render_camera: str | int | None = None,
+    **settings: Any,
+):
+    """A Gymnasium env for ``task_id`` (see the module docstring for ``settings``).
+
+    ``render_mode="rgb_array"`` makes ``env.render()`` return frames (see ``rlu.envs.core``);
+    ``challenge`` (RWRL) defaults to the one a TFDS name carries, else ``"none"``.
+    """
+    from rlu.envs.core import render_settings
+    from rlu.envs.registration import env_spec
+
+    ref = resolve_task(task_id)
+    task = ref.task
+    if challenge is None:
+        challenge = ref.challenge or "none"
+    render = render_settings(task.id, render_mode, render_size, render_camera)
     module = _factory(task.domain)
     if task.domain == "rwrl":
-        env = module.make(task, seed=seed, challenge=challenge, **settings)
+        env = module.make(task, seed=seed, challenge=challenge, render=render, **settings)
     elif challenge != "none":
         raise RluError(f"{task.id}: `challenge` applies to rwrl tasks only; drop it")
     else:
-        env = module.make(task, seed=seed, **settings)
-    from rlu.envs.registration import env_spec
+        env = module.make(task, seed=seed, render=render, **settings)
 
-    kwargs = {"seed": seed} if seed is not None else {}
+    kwargs: dict[str, Any] = {"seed": seed} if seed is not None else {}
     if challenge != "none":
         kwargs["challenge"] = challenge
+    given = {"render_mode": render_mode, "render_size": render_size, "render_camera": render_camera}
+    kwargs.update({k: v for k, v in given.items() if v is not None})
     env.spec = env_spec(task, {**kwargs, **settings})
     return env
 
@@ -103,7 +126,7 @@ def make_vector_env(
     task_id: str,
     num_envs: int | None = None,
     seed: int | None = None,
-    challenge: str = "none",
+    challenge: str | None = None,
     **kwargs: Any,
 ):
     """N copies of the task stepping in worker processes (see rlu.envs.vector)."""

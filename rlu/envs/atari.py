@@ -25,6 +25,10 @@ This env re-implements Dopamine's ``AtariPreprocessing`` directly over ``ale_py.
   wrapper truncated after 108,000 *agent* steps (432K frames);
   ``max_episode_steps=rlu.envs.ATARI_ORIGINAL_EVAL_STEPS`` gives that.
 
+Rendering: ``render_mode="rgb_array"`` makes ``render()`` return the ALE's full-colour screen,
+(210, 160, 3) uint8, of the last emulated frame (what a player sees; the observation is its
+pooled grey 84x84 version), at 60 / frame_skip = 15 frames per second, one per agent step.
+
 Seeding follows ale_py's own env: ``SeedSequence(seed)`` gives the ALE's ``random_seed`` (which
 drives sticky actions) and the ROM is reloaded; ``reset(seed=s)`` is ``make_env(seed=s).reset()``.
 """
@@ -36,13 +40,14 @@ from typing import Any
 
 import numpy as np
 
-from rlu.envs.core import check_observation, gym, observation_space, spaces
+from rlu.envs.core import RENDER_MODES, Render, check_observation, gym, observation_space, spaces
 from rlu.tasks import ATARI_MAX_AGENT_STEPS, TaskSpec
 from rlu.types import RluError
 
 SCREEN_SIZE = 84
 STICKY_ACTION_PROB = 0.25
 FRAME_SKIP = 4
+ALE_FPS = 60  # the Atari 2600's NTSC frame rate
 
 
 def rom_id(game: str) -> str:
@@ -53,7 +58,7 @@ def rom_id(game: str) -> str:
 class AtariEnv(gym.Env):
     """One Atari game with Dopamine's preprocessing; see the module docstring."""
 
-    metadata = {"render_modes": []}
+    metadata = {"render_modes": list(RENDER_MODES), "render_fps": ALE_FPS / FRAME_SKIP}
 
     def __init__(
         self,
@@ -65,6 +70,7 @@ class AtariEnv(gym.Env):
         sticky_action_prob: float = STICKY_ACTION_PROB,
         frame_skip: int = FRAME_SKIP,
         frame_stack: int = 4,
+        render_mode: str | None = None,
     ) -> None:
         import ale_py
         import cv2
@@ -73,6 +79,8 @@ class AtariEnv(gym.Env):
             raise RluError(f"atari/{game}: frame_skip must be >= 2 (max-pool of two frames)")
         self._cv2 = cv2
         self.game = game
+        self.render_mode = render_mode
+        self.metadata = {**self.metadata, "render_fps": ALE_FPS / frame_skip}
         self._rom = ale_py.roms.get_rom_path(rom_id(game))
         if self._rom is None:
             raise RluError(f"atari/{game}: ale-py has no ROM {rom_id(game)!r}")
@@ -142,18 +150,35 @@ class AtariEnv(gym.Env):
         out = max(-1.0, min(1.0, reward)) if self.clip_rewards else reward
         return obs, out, game_over, truncated, {"raw_reward": reward, "lives": ale.lives()}
 
+    def render(self) -> np.ndarray:
+        """The ALE's colour screen of the last emulated frame, (210, 160, 3) uint8."""
+        if self.render_mode is None:
+            raise RluError(
+                f"atari/{self.game}: render() needs the env made with render_mode='rgb_array' "
+                "(rlu.make_env(..., render_mode='rgb_array') or gymnasium.make(..., same))"
+            )
+        return self.ale.getScreenRGB()
+
     def check(self) -> None:
         check_observation(self._stack, self._spec, f"atari/{self.game}")
 
 
-def make(task: TaskSpec, seed: int | None = None, **settings: Any) -> AtariEnv:
+def make(
+    task: TaskSpec, seed: int | None = None, render: Render | None = None, **settings: Any
+) -> AtariEnv:
     allowed = {"max_episode_steps", "clip_rewards", "sticky_action_prob", "frame_skip"}
     if set(settings) - allowed:
         raise RluError(
             f"{task.id}: unknown env settings {sorted(set(settings) - allowed)}; "
             f"Atari takes {sorted(allowed)}"
         )
-    env = AtariEnv(task.env["game"], seed, **settings)
+    render = render or Render()
+    if render.size is not None or render.camera is not None:
+        raise RluError(
+            f"{task.id}: render_size / render_camera are MuJoCo settings; Atari renders the "
+            "ALE's own 210x160 screen"
+        )
+    env = AtariEnv(task.env["game"], seed, render_mode=render.mode, **settings)
     env.check()
     if env.action_space.n != task.action_dim:
         raise RluError(

@@ -13,16 +13,25 @@ to [-1, 1] -> clip -> float32 -> keep the dataset's observation keys) and nothin
 
 ``env.dm_env`` is a dm_env view of the same processed environment (same observations, same
 action convention) for code written against dm_env.
+
+Rendering (every domain): ``make_env(task, render_mode="rgb_array")`` makes ``env.render()`` return
+the current frame as a (H, W, 3) uint8 array, what Gymnasium's ``RecordVideo`` and
+``rlu.evaluation.video`` record. MuJoCo envs draw through dm_control's offscreen
+``physics.render`` (``MUJOCO_GL=egl`` on a headless machine); ``render_size=(height, width)``
+(default 480x640, MuJoCo's offscreen framebuffer) and ``render_camera`` (a camera name or index
+of the model) choose the view. ``env.metadata["render_fps"]`` is the real-time rate, one frame
+per agent step.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from rlu.types import ArraySpec, BoundedSpec, DiscreteSpec, SpecError, install_hint
+from rlu.types import ArraySpec, BoundedSpec, DiscreteSpec, RluError, SpecError, install_hint
 
 try:  # gymnasium is in every env extra; rlu.envs is never imported by the numpy-only core.
     import gymnasium as gym
@@ -32,6 +41,51 @@ except ImportError as e:  # pragma: no cover - exercised only without the extras
         f"rlu.envs needs gymnasium; install an env extra: {install_hint('control')} "
         "(or locomotion, atari)"
     ) from e
+
+
+RENDER_MODES = ("rgb_array",)
+RENDER_SIZE = (480, 640)
+"""Default (height, width) of a MuJoCo frame: the models' offscreen framebuffer (640x480)."""
+
+
+@dataclass(frozen=True)
+class Render:
+    """How an env renders: ``make_env``'s ``render_mode`` / ``render_size`` / ``render_camera``."""
+
+    mode: str | None = None
+    """None (no frames; ``render()`` refuses) or ``"rgb_array"``."""
+    size: tuple[int, int] | None = None
+    """(height, width) of a MuJoCo frame; None: ``RENDER_SIZE``. Atari frames are the ALE's."""
+    camera: str | int | None = None
+    """A MuJoCo camera name or index; None: the domain's default view."""
+
+
+def render_settings(
+    where: str,
+    render_mode: str | None = None,
+    render_size: Any = None,
+    render_camera: str | int | None = None,
+) -> Render:
+    """Checked render settings of ``make_env`` (``where`` names the task in errors)."""
+    if render_mode not in (None, *RENDER_MODES):
+        raise RluError(
+            f"{where}: render_mode={render_mode!r} is not offered; rlu envs render "
+            "'rgb_array' (each frame an (H, W, 3) uint8 array) or nothing (None)"
+        )
+    size = None
+    if render_size is not None:
+        try:
+            h, w = (int(x) for x in render_size)
+        except (TypeError, ValueError):
+            raise RluError(
+                f"{where}: render_size={render_size!r}; give (height, width), e.g. (480, 640)"
+            ) from None
+        if h < 1 or w < 1:
+            raise RluError(f"{where}: render_size={render_size!r} must be positive")
+        size = (h, w)
+    if render_mode is None and (size is not None or render_camera is not None):
+        raise RluError(f"{where}: render_size / render_camera need render_mode='rgb_array'")
+    return Render(render_mode, size, render_camera)
 
 
 def array_space(spec: ArraySpec) -> spaces.Space:
@@ -82,10 +136,13 @@ class DmControlEnv(gym.Env):
 
     ``keys`` maps each observation key of the spec to the key dm_env uses for it (the same for
     every rlu task; kept as a map so that a builder may rename). ``reseed(seed)`` must make the
-    wrapped environment's next ``reset()`` a function of ``seed`` only.
+    wrapped environment's next ``reset()`` a function of ``seed`` only. ``physics()`` returns
+    the MuJoCo physics being stepped now (a locomotion env rebuilds it on a seeded reset), whose
+    ``render`` draws the frames; ``control_timestep`` (seconds per agent step) sets the frame
+    rate; ``camera`` is the default render view.
     """
 
-    metadata = {"render_modes": []}
+    metadata = {"render_modes": list(RENDER_MODES)}  # each env adds its render_fps
 
     def __init__(
         self,
@@ -93,10 +150,27 @@ class DmControlEnv(gym.Env):
         obs_spec: Mapping[str, ArraySpec],
         reseed: Callable[[int], None],
         *,
+        physics: Callable[[], Any],
+        control_timestep: float,
         name: str = "",
         keys: Mapping[str, str] | None = None,
+        render: Render | None = None,
+        camera: str | int = 0,
     ) -> None:
+        render = render or Render()
         self._env = environment
+        self._physics = physics
+        self._closed = False
+        self.render_mode = render.mode
+        self.metadata = {**self.metadata, "render_fps": 1.0 / float(control_timestep)}
+        self._render_size = render.size or RENDER_SIZE
+        self._camera = render.camera if render.camera is not None else camera
+        if render.mode is not None:
+            try:
+                self._check_view(name or type(environment).__name__)
+            except RluError:
+                environment.close()  # built already: free its physics before refusing
+                raise
         self._spec = dict(obs_spec)
         self._keys = [(k, (keys or {}).get(k, k)) for k in self._spec]
         self._shapes = {k: (s.shape, np.dtype(s.dtype)) for k, s in self._spec.items()}
@@ -169,10 +243,43 @@ class DmControlEnv(gym.Env):
         terminated = bool(last and discount == 0.0)
         return obs, reward, terminated, bool(last and not terminated), {"discount": discount}
 
+    def render(self) -> np.ndarray:
+        """The current frame, (H, W, 3) uint8, drawn offscreen by MuJoCo."""
+        if self.render_mode is None:
+            raise RluError(
+                f"{self._name}: render() needs the env made with render_mode='rgb_array' "
+                "(rlu.make_env(..., render_mode='rgb_array') or gymnasium.make(..., same))"
+            )
+        h, w = self._render_size
+        return self._physics().render(h, w, camera_id=self._camera)
+
+    def _check_view(self, name: str) -> None:
+        """Refuse a camera the model lacks or a frame larger than its offscreen buffer now,
+        not at the first render() of a long rollout."""
+        model = self._physics().model
+        cameras = [model.id2name(i, "camera") for i in range(model.ncam)]
+        cam = self._camera
+        if isinstance(cam, str) and cam not in cameras:
+            raise RluError(f"{name}: no camera {cam!r}; the model has {cameras} (or an index)")
+        if not isinstance(cam, str) and not -1 <= int(cam) < len(cameras):
+            raise RluError(
+                f"{name}: camera index {cam} out of range; the model has {len(cameras)} "
+                f"cameras {cameras} (-1: the free camera)"
+            )
+        g = model.vis.global_
+        h, w = self._render_size
+        if h > g.offheight or w > g.offwidth:
+            raise RluError(
+                f"{name}: render_size=({h}, {w}) exceeds the model's offscreen framebuffer "
+                f"({g.offheight}, {g.offwidth}); pick a smaller one"
+            )
+
     def close(self) -> None:
-        close = getattr(self._env, "close", None)
-        if close is not None:
-            close()
+        """Release the physics and its GL context; a second call does nothing."""
+        if self._closed:
+            return
+        self._closed = True
+        self._env.close()
 
     @property
     def raw_env(self) -> Any:

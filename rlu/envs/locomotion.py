@@ -9,7 +9,9 @@ keep the dataset's observation keys; ``rlu.envs.core.DmControlEnv`` does the sam
 Rendering: the camera is rendered offscreen on every step through MuJoCo's GL backend
 (``MUJOCO_GL=egl`` or ``osmesa``; rlu sets ``egl`` when unset) with the default renderer
 settings, which is what made the dataset frames. ``camera=False`` removes the camera from the
-observations (for speed; random-policy returns and other proprio-only uses).
+observations (for speed; random-policy returns and other proprio-only uses). ``render_mode=
+"rgb_array"`` draws a third-person view (the walker's ``walker/side`` tracking camera) for
+videos; it is separate from the egocentric observation and changes nothing in it.
 
 Seeding: ``make_env(task, seed=s)`` passes ``random_state=s`` to ``composer.Environment`` and
 seeds the global-numpy draws some tasks make (see ``_Seeded``); ``reset(seed=s)`` rebuilds the
@@ -21,7 +23,7 @@ from __future__ import annotations
 import functools
 from typing import Any
 
-from rlu.envs.core import DmControlEnv
+from rlu.envs.core import DmControlEnv, Render
 from rlu.tasks import TaskSpec
 from rlu.types import RluError
 
@@ -281,11 +283,23 @@ class _Seeded:
         return self.env.discount_spec()
 
     def close(self) -> None:
-        self.env.close()
+        # composer.Environment.close frees its physics and fails when called again.
+        if self.env is not None:
+            self.env.close()
+            self.env = None
+
+
+# The render view: the walker's tracking camera from the side (both walkers have one), so the
+# whole body stays in the frame as it runs down a 100 m corridor.
+RENDER_CAMERA = "walker/side"
 
 
 def make(
-    task: TaskSpec, seed: int | None = None, camera: bool = True, **settings: Any
+    task: TaskSpec,
+    seed: int | None = None,
+    camera: bool = True,
+    render: Render | None = None,
+    **settings: Any,
 ) -> DmControlEnv:
     if settings:
         raise RluError(
@@ -295,4 +309,13 @@ def make(
     spec = dict(task.observation_spec)  # type: ignore[arg-type]
     if not camera:
         del spec[CAMERA_KEY]
-    return DmControlEnv(env, spec, env.rebuild, name=task.id)
+    return DmControlEnv(
+        env,
+        spec,
+        env.rebuild,
+        physics=lambda: env.env.physics,
+        control_timestep=env.env.control_timestep(),
+        name=task.id,
+        render=render,
+        camera=RENDER_CAMERA,
+    )

@@ -16,11 +16,15 @@ to JSON (Minari stores one with each dataset) makes the same env again.
 Gymnasium 1.x has no plugin entry points (they went in 1.0), so the ids exist once ``rlu.envs``
 is imported; ``import rlu`` alone stays numpy-only.
 
-Time limits are the env's own, as the data were recorded (dm_control's 1000 steps with its
-discount, Atari's ``max_episode_steps`` setting in agent steps), so the spec's
-``max_episode_steps`` is None and Gymnasium adds no ``TimeLimit`` of its own. ``gymnasium.make``
-takes ``max_episode_steps`` for itself: it wraps a ``TimeLimit`` that can shorten episodes, not
-lengthen them; for a longer Atari limit use ``rlu.make_env(..., max_episode_steps=N)``.
+Time limits are the env's own, as the data were recorded (dm_control's time limit with its
+discount, Atari's ``max_episode_steps`` setting in agent steps); the spec's ``max_episode_steps``
+says what that limit is in agent steps (``TaskSpec.episode_length``, or the Atari setting), so
+the ``TimeLimit`` that ``gymnasium.make`` wraps around the env ends an episode at the very step
+the env itself does, and code that reads ``env.spec.max_episode_steps`` (Gymnasium's wrappers,
+Minari, replay buffers) sees the real length. ``gymnasium.make`` takes ``max_episode_steps`` for
+itself: its ``TimeLimit`` can shorten episodes, not lengthen them, since the env keeps its own
+limit; for a longer Atari limit use ``rlu.make_env(..., max_episode_steps=N)`` (and
+``gymnasium.make(that_env.spec)`` makes it again).
 """
 
 from __future__ import annotations
@@ -65,7 +69,7 @@ def env_spec(task: TaskSpec | str, settings: Mapping[str, Any] | None = None) ->
         id=task.gym_id,
         entry_point=GYM_ENTRY_POINT,
         kwargs=kwargs,
-        max_episode_steps=None,
+        max_episode_steps=task.max_episode_steps(kwargs),
         disable_env_checker=False,
     )
 
@@ -74,4 +78,9 @@ def register_envs() -> None:
     """Register every task's id (idempotent: ids already registered are left alone)."""
     for task in list_tasks():
         if task.gym_id not in gym.registry:
-            gym.register(id=task.gym_id, entry_point=GYM_ENTRY_POINT, kwargs={"task_id": task.id})
+            gym.register(
+                id=task.gym_id,
+                entry_point=GYM_ENTRY_POINT,
+                kwargs={"task_id": task.id},
+                max_episode_steps=task.max_episode_steps(),
+            )

@@ -5,7 +5,7 @@ walk, each with no challenge and with the ``easy`` combined challenge (Dulac-Arn
 "An empirical investigation of the challenges of real-world reinforcement learning"). The
 original evaluation env was ``realworldrl_suite.environments.load(domain, 'realworld_' + task,
 combined_challenge=...)`` (``rl_unplugged/rwrl.py``) plus float32. realworldrl_suite is not on
-PyPI; this module re-implements it. Every number carries its source; "rwrl/<file>" below means
+PyPI; this module re-implements it. Every number carries its source; ``rwrl/<file>`` below means
 ``google-research/realworldrl_suite/realworldrl_suite/environments/<file>``.
 
 What a challenge does, in the original's order (rwrl/realworld_env.py ``Base``):
@@ -44,7 +44,7 @@ from typing import Any
 
 import numpy as np
 
-from rlu.envs.core import DmControlEnv
+from rlu.envs.core import DmControlEnv, Render
 from rlu.tasks import TaskSpec, _f32, rwrl_observation_spec
 from rlu.types import ArraySpec, RluError
 
@@ -609,6 +609,7 @@ def make(
     task: TaskSpec,
     seed: int | None = None,
     challenge: str | Challenge = "none",
+    render: Render | None = None,
     **settings: Any,
 ) -> DmControlEnv:
     """The RWRL env of ``task`` under ``challenge`` (a name of CHALLENGES or a Challenge)."""
@@ -637,5 +638,12 @@ def make(
     domain = task.env["suite_domain"]
     env = _make_environment(domain, task.env["suite_task"], s, seed)
     return DmControlEnv(
-        env, observation_spec(task, s), env.restart, name=f"{task.id} ({name} challenge)"
+        env,
+        observation_spec(task, s),
+        env.restart,
+        physics=lambda: env.physics,
+        control_timestep=env.control_timestep(),
+        name=f"{task.id} ({name} challenge)",
+        render=render,
+        camera=0,  # as the control suite: each model's first camera
     )

@@ -47,7 +47,7 @@ from rlu.types import RluError, available_cores
 _AUTO = {"atari": "ale", "locomotion": "process", "control_suite": "sync", "rwrl": "sync"}
 
 
-def _make_one(task_id: str, seed: int | None, challenge: str, settings: dict[str, Any]):
+def _make_one(task_id: str, seed: int | None, challenge: str | None, settings: dict[str, Any]):
     from rlu.envs import make_env
 
     return make_env(task_id, seed=seed, challenge=challenge, **settings)
@@ -57,7 +57,7 @@ def make_vector_env(
     task_id: str,
     num_envs: int | None = None,
     seed: int | None = None,
-    challenge: str = "none",
+    challenge: str | None = None,
     backend: str = "auto",
     num_workers: int | None = None,
     **settings: Any,
@@ -75,7 +75,7 @@ def make_vector_env(
         return AleVectorEnv(task.env["game"], n, seed, **settings)
     fns = [
         functools.partial(
-            _make_one, task.id, None if seed is None else seed + i, challenge, settings
+            _make_one, task_id, None if seed is None else seed + i, challenge, settings
         )
         for i in range(n)
     ]

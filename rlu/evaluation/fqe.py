@@ -15,7 +15,7 @@ depends on the device.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -31,11 +31,11 @@ class FQEConfig:
     """MLP hidden layer sizes."""
     learning_rate: float = 1e-3
     """Adam learning rate."""
-    steps: int = 2000
-    """Gradient steps."""
-    batch_size: int = 256
+    steps: int = field(default=2000, metadata={"min": 1, "metavar": "N"})
+    """FQE gradient steps."""
+    batch_size: int = field(default=256, metadata={"min": 1, "metavar": "N"})
     """Transitions per gradient step."""
-    target_period: int = 100
+    target_period: int = field(default=100, metadata={"min": 1, "metavar": "N"})
     """Steps between copies of the online network into the target network."""
     seed: int = 0
     """Seeds the network initialisation and the minibatch order."""
@@ -47,12 +47,6 @@ def _flat(obs: Any) -> np.ndarray:
         return np.concatenate(parts, axis=1)
     obs = np.asarray(obs)
     return obs.reshape(len(obs), -1).astype(np.float32)
-
-
-def _slice(obs: Any, idx: np.ndarray) -> Any:
-    if isinstance(obs, Mapping):
-        return {k: v[idx] for k, v in obs.items()}
-    return obs[idx]
 
 
 def _all_first(x: Any) -> np.ndarray:
@@ -67,11 +61,13 @@ def fqe_estimate(
     action_spec: Any,
     config: FQEConfig = FQEConfig(),
     device: Any = "cpu",
+    progress: Any = None,
 ) -> float:
     """FQE estimate of ``policy``'s value at the data's initial observations.
 
     ``transitions`` is an ``rlu.types.Transition`` batch holding the whole (or a subsample of
     the) dataset; ``initial_observations`` are the first observations of its episodes.
+    ``progress``: an ``rlu.progress.Progress`` counting the gradient steps (or None).
     """
     import torch
 
@@ -132,6 +128,8 @@ def fqe_estimate(
     target.load_state_dict(net.state_dict())
     opt = torch.optim.Adam(net.parameters(), lr=config.learning_rate)
     for step in range(config.steps):
+        if progress is not None:
+            progress.update(1)
         if step % config.target_period == 0:
             target.load_state_dict(net.state_dict())
         idx = torch.from_numpy(rng.integers(0, n, size=min(config.batch_size, n))).to(dev)
@@ -165,16 +163,19 @@ def fqe_selection(
     policy_of: Callable[[str], tuple[Policy, Any]],
     config: FQEConfig = FQEConfig(),
     device: Any = "cpu",
+    quiet: bool = False,
 ) -> dict[str, Any]:
     """Offline policy selection by FQE: per (task, agent), every configuration's policies (one
     per seed, from ``policy_of(run) -> (policy, action_spec)``) are valued by FQE on the task's
     dataset (data only); the configuration with the best mean estimate is chosen and scored
-    against the true returns (Spearman rank correlation, regret@1)."""
+    against the true returns (Spearman rank correlation, regret@1). Progress (FQE gradient
+    steps over every run) on stderr unless ``quiet``."""
     from collections import defaultdict
     from dataclasses import asdict
 
     from rlu.data import open_dataset
     from rlu.evaluation.protocols import select_by_estimate
+    from rlu.progress import Progress
 
     groups: dict[tuple[str, str], dict[str, list[Mapping[str, Any]]]] = defaultdict(
         lambda: defaultdict(list)
@@ -183,6 +184,7 @@ def fqe_selection(
         groups[(r["task"], r["agent"])][r["config"]].append(r)
     inputs: dict[str, Any] = {}
     selections = []
+    bar = Progress(len(records) * config.steps, "FQE", "steps", quiet=quiet)
     for (task, agent), by_config in sorted(groups.items()):
         if task not in datasets:
             raise RluError(f"no dataset recorded for task {task!r}; FQE needs the sweep's data")
@@ -194,7 +196,8 @@ def fqe_selection(
             values = []
             for r in runs:
                 policy, action_spec = policy_of(r["run"])
-                values.append(fqe_estimate(transitions, init, policy, action_spec, config, device))
+                values.append(fqe_estimate(transitions, init, policy, action_spec, config, device,
+                                           progress=bar))  # fmt: skip
             estimates[label] = float(np.mean(values))
             true[label] = float(np.mean([r["score"] for r in runs]))
         selection = select_by_estimate(estimates, true)
@@ -207,4 +210,5 @@ def fqe_selection(
                 **asdict(selection),
             }  # fmt: skip
         )
+    bar.close()
     return {"selections": selections}

@@ -48,22 +48,34 @@ def episode_seed(seed: int, episode: int) -> int:
     return derive_seed(seed, episode)
 
 
-def resolve_env_fn(spec: str) -> Callable[..., Any]:
-    """``"package.module:function"`` -> the function (an env factory taking (task_id, seed))."""
+_TRUSTED_ENVS: dict[str, Callable[..., Any]] = {}
+
+
+def trust_env_factory(spec: str) -> Callable[..., Any]:
+    """``"package.module:function"`` -> the function (an env factory taking (task_id, seed)),
+    imported. Only code and the command line call this: an env factory named in a file (a run's
+    config.json) is never imported (``rlu.restore``)."""
+    if spec in _TRUSTED_ENVS:
+        return _TRUSTED_ENVS[spec]
     module, _, attr = spec.partition(":")
-    if not module or not attr:
+    if not module or not attr or not all(p.isidentifier() for p in (*module.split("."), attr)):
         raise RluError(f"env factory {spec!r}; write it as 'package.module:function'")
     try:
-        return getattr(importlib.import_module(module), attr)
+        fn = getattr(importlib.import_module(module), attr)
     except (ImportError, AttributeError) as e:
         raise RluError(f"env factory {spec!r} cannot be imported: {e}") from None
+    if not callable(fn):
+        raise RluError(f"env factory {spec!r} is not a function")
+    _TRUSTED_ENVS[spec] = fn
+    return fn
 
 
 def task_env_factory(
     task_id: str, make_env: str | Callable[..., Any] | None = None, **kwargs: Any
 ) -> EnvFactory:
     """A zero-argument factory for ``task_id``'s env: ``rlu.envs.make_env`` unless ``make_env``
-    (a callable or 'module:function' with the same signature) is given."""
+    (a callable, or 'module:function' with the same signature, which code or the command line
+    named: :func:`trust_env_factory`) is given."""
     if make_env is None:
         try:
             mod = importlib.import_module("rlu.envs")
@@ -74,7 +86,7 @@ def task_env_factory(
             ) from None
         fn = mod.make_env
     elif isinstance(make_env, str):
-        fn = resolve_env_fn(make_env)
+        fn = trust_env_factory(make_env)
     else:
         fn = make_env
 

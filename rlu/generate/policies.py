@@ -43,6 +43,21 @@ from typing import Any
 
 import numpy as np
 
+from rlu.data.foreign import MAX_POLICY_BYTES
+from rlu.files import (
+    AnyJSON,
+    Bool,
+    Float,
+    Int,
+    ListOf,
+    MapOf,
+    Record,
+    Shape,
+    Str,
+    check_value,
+    read_json,
+    shape_of,
+)
 from rlu.types import Policy, RluError
 
 FORMAT = "rlu-behaviour-policy"
@@ -169,6 +184,108 @@ def snapshot_files(work: Path, kept: Sequence[tuple[int, int]]) -> dict[str, Pat
     return out
 
 
+# ----------------------------------------------------------------- the files' shapes (reading)
+# Every field of a policy's ``.json`` rlu reads, with its type and range, in one place, written as
+# rlu.files shapes: checked before anything is built from the file (the network, the env), so a
+# value of the wrong type or an absurd size is a one-line error naming the file and the field.
+_WIDTH = Int(1, 4096)
+_LAYERS = ListOf(_WIDTH, max_len=16, min_len=1, as_tuple=True)
+ENV_SETTINGS = Record(
+    {},
+    {
+        "camera": Bool(),
+        "max_episode_steps": Int(1, 10**7),
+        "clip_rewards": Bool(),
+        "sticky_action_prob": Float(0, 1),
+        "frame_skip": Int(1, 64),
+        "challenge": Str(("none", "easy", "medium", "hard")),
+        "safety": Bool(),
+        "safety_coeff": Float(0, 1),
+        "multiobj_reward": Bool(),
+        "multiobj_coeff": Float(0, 1),
+        "multiobj_observed": Bool(),
+    },
+    extra=False,
+)
+"""The env settings a policy may name (``rlu.envs.make_env``'s keyword arguments): a file never
+hands anything else to the env factory."""
+POLICY_ARRAY_DTYPES = ("float16", "float32", "float64", "int64", "int32", "uint8", "bool")
+_U63, _STEPS = 2**63 - 1, 2**53
+POLICY_SHAPE = Record(
+    {
+        "format": Str((FORMAT,)),
+        "version": Int(VERSION, VERSION),
+        "task": Str(max_len=200),
+        "agent": Str(tuple(ACTING_MODULE)),
+        "module": Str(tuple(sorted(set(ACTING_MODULE.values())))),
+        "agent_config": MapOf(AnyJSON(depth=8), max_len=256),  # + AGENT_CONFIG_RANGES, below
+        "env_settings": ENV_SETTINGS,
+        "checkpoint_steps": Int(1, _STEPS),
+        "env_steps": Int(0, _STEPS),
+        "exploration": Record(
+            {}, {"epsilon": Float(0, 1), "sigma": Float(0, 100), "sample": Bool()}, extra=False
+        ),
+        "arrays": MapOf(
+            Record(
+                {
+                    "shape": ListOf(Int(0, 2**31), max_len=8),
+                    "dtype": Str(POLICY_ARRAY_DTYPES),
+                },
+                extra=False,
+            ),
+            max_len=256,
+        ),
+    },
+    {
+        "preset": Str(max_len=64),
+        "agent_overrides": MapOf(AnyJSON(depth=8), max_len=64),
+        "seed": Int(0, _U63),
+        "run": Int(0, 2**31),
+        "checkpoint": Int(0, 2**40),
+        "episode_index": Int(0, _STEPS),
+    },
+    extra=False,
+)
+"""A policy's ``.json`` (written by ``save_snapshot``)."""
+AGENT_CONFIG_RANGES: Mapping[str, Shape] = {
+    "policy_layers": _LAYERS,
+    "critic_layers": _LAYERS,
+    "torso_hidden": _WIDTH,
+    "num_atoms": Int(1, 1001),
+    "num_samples": Int(1, 1024),
+    "cpu_slice_rows": Int(1, 1 << 20),
+    "atari.channels": ListOf(Int(1, 1024), max_len=8, min_len=1, as_tuple=True),
+    "atari.kernel_sizes": ListOf(Int(1, 16), max_len=8, min_len=1, as_tuple=True),
+    "atari.strides": ListOf(Int(1, 8), max_len=8, min_len=1, as_tuple=True),
+    "atari.hidden_size": Int(1, 8192),
+}
+"""Ranges of the ``agent_config`` fields that size what building the agent allocates (its
+networks; the paper's widest behaviour network is 1024 units). Every other field is typed by the
+agent's config dataclass (``rlu.files.shape_of``): :func:`agent_config_shape`."""
+MAX_POLICY_JSON_BYTES = 1 << 20
+
+
+def agent_config_shape(cls: type) -> Record:
+    """The shape of ``agent_config`` for config dataclass ``cls``: ``shape_of(cls)`` with the
+    fields of ``AGENT_CONFIG_RANGES`` (dotted paths into composed configs) ranged."""
+
+    def ranged(record: Record, prefix: str) -> Record:
+        parts = []
+        for fields in (record.required, record.optional):
+            out = {}
+            for name, shape in fields.items():
+                path = prefix + name
+                if path in AGENT_CONFIG_RANGES:
+                    shape = AGENT_CONFIG_RANGES[path]
+                elif isinstance(shape, Record):
+                    shape = ranged(shape, path + ".")
+                out[name] = shape
+            parts.append(out)
+        return Record(parts[0], parts[1], extra=record.extra)
+
+    return ranged(shape_of(cls), "")
+
+
 # ----------------------------------------------------------------------------------- reading
 @dataclass(frozen=True)
 class PolicyInfo:
@@ -259,10 +376,8 @@ def _checked_file(ds: Any, rel: str, run: int, checkpoint: int) -> Path:
 
 def _read_meta(ds: Any, run: int, checkpoint: int) -> dict[str, Any]:
     path = _checked_file(ds, policy_stem(run, checkpoint) + ".json", run, checkpoint)
-    try:
-        meta = json.loads(path.read_text())
-    except (ValueError, UnicodeDecodeError) as e:
-        raise RluError(f"{path}: corrupt JSON ({e}); re-generate the dataset") from None
+    fix = "re-generate the dataset"
+    meta = read_json(path, AnyJSON(depth=16), fix, max_bytes=MAX_POLICY_JSON_BYTES)
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise RluError(f"{path}: field 'format' is not {FORMAT!r}; not an rlu behaviour policy")
     if meta.get("version") != VERSION:
@@ -270,38 +385,45 @@ def _read_meta(ds: Any, run: int, checkpoint: int) -> dict[str, Any]:
             f"{path}: field 'version' is {meta.get('version')!r}; this rlu reads version "
             f"{VERSION}: upgrade rlu"
         )
-    for key in ("task", "agent", "module", "agent_config", "arrays", "checkpoint_steps",
-                "env_steps", "exploration", "env_settings"):  # fmt: skip
-        if key not in meta:
-            raise RluError(f"{path}: field {key!r} is missing; re-generate the dataset")
-    return meta
+    agent = meta.get("agent")
+    if isinstance(agent, str) and agent not in ACTING_MODULE:
+        raise RluError(
+            f"{path}: field 'agent' is {agent[:80]!r}, not one of rlu's behaviour agents "
+            f"({', '.join(ACTING_MODULE)}); a name read from a file is looked up, never "
+            f"imported: {fix}"
+        )
+    return check_value(POLICY_SHAPE, meta, str(path), fix)
 
 
 def _read_arrays(path: Path, meta: Mapping[str, Any], json_path: Path) -> dict[str, np.ndarray]:
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in z.files}
-    except ValueError as e:
-        if "pickle" in str(e):
-            raise RluError(
-                f"{path}: holds an object array, which only pickle can load; rlu never unpickles "
-                "a policy (a plain-array .npz is what rlu generate writes): re-generate it"
-            ) from None
-        raise RluError(f"{path}: not a readable .npz ({e}); re-generate the dataset") from None
-    except (OSError, EOFError, KeyError, zipfile.BadZipFile) as e:
-        raise RluError(f"{path}: not a readable .npz ({e}); re-generate the dataset") from None
+    """The arrays of a policy's ``.npz``, each member's header checked against the ``arrays``
+    field of its JSON (and the total against ``MAX_POLICY_BYTES``) before a byte is inflated."""
+    from rlu.data.foreign import NpzFile
+
     want = meta["arrays"]
-    if set(arrays) != set(want):
+    declared = sum(math.prod(a["shape"]) * np.dtype(a["dtype"]).itemsize for a in want.values())
+    if declared > MAX_POLICY_BYTES:
         raise RluError(
-            f"{path}: arrays {sorted(arrays)} differ from {json_path.name}'s field 'arrays' "
-            f"{sorted(want)}; re-generate the dataset"
+            f"{json_path}: field 'arrays' declares {declared} bytes of weights, more than a "
+            f"behaviour policy holds ({MAX_POLICY_BYTES}); re-generate the dataset"
         )
-    for k, v in arrays.items():
-        if list(v.shape) != list(want[k]["shape"]) or v.dtype.kind not in "fiub":
+    fix = "a plain-array .npz is what rlu generate writes: re-generate the dataset"
+    with NpzFile(path, fix) as z:
+        if set(z.infos) != set(want):
             raise RluError(
-                f"{path}: array {k!r} is {v.dtype}{list(v.shape)}; {json_path.name} field "
-                f"'arrays.{k}' says {want[k]['dtype']}{want[k]['shape']}; re-generate the dataset"
+                f"{path}: arrays {sorted(z.infos)[:8]} differ from {json_path.name}'s field "
+                f"'arrays' {sorted(want)[:8]}; re-generate the dataset"
             )
+        for k in sorted(want):
+            m = z.member(k)
+            if list(m.shape) != list(want[k]["shape"]) or m.dtype != np.dtype(want[k]["dtype"]):
+                raise RluError(
+                    f"{path}: array {k!r} is {m.dtype}{list(m.shape)}; {json_path.name} field "
+                    f"'arrays.{k}' says {want[k]['dtype']}{want[k]['shape']}; re-generate the "
+                    "dataset"
+                )
+        arrays = {k: z.read(k, MAX_POLICY_BYTES) for k in sorted(want)}
+    for k, v in arrays.items():
         if v.dtype.kind == "f" and not np.isfinite(v).all():
             raise RluError(f"{path}: array {k!r} holds NaN or inf; re-generate the dataset")
     return arrays
@@ -337,7 +459,9 @@ def load_behaviour_policy(
             "re-generate the dataset"
         )
     module = agent_module(meta["agent"], task.discrete)
-    config = config_from_json(module.Config, meta["agent_config"])
+    shape = Record({"agent_config": agent_config_shape(module.Config)})
+    data = check_value(shape, meta, str(json_path), "re-generate the dataset")["agent_config"]
+    config = config_from_json(module.Config, data)
     agent = module.Agent(task.observation_spec, task.action_spec, config, seed=seed,
                          device=device)  # fmt: skip
     if meta["module"] not in agent.modules:
@@ -419,6 +543,7 @@ def behaviour_ope(
     seed: int = 0,
     num_envs: int = 4,
     device: Any = "cpu",
+    quiet: bool = False,
 ) -> dict[str, Any]:
     """An off-policy evaluation study on the dataset's own behaviour policies: per policy (all
     kept, or the (run, checkpoint) pairs ``which``), the FQE estimate from the data alone
@@ -440,14 +565,22 @@ def behaviour_ope(
             _checked_file(ds, policy_stem(*pair) + ".npz", *pair)  # raises, naming what is kept
     transitions, init = dataset_fqe_inputs(ds)
     action_spec = get_task(ds.schema.task_id).action_spec
+    from rlu.progress import Progress
+
     rows = []
-    for run, checkpoint in pairs:
-        policy = load_behaviour_policy(ds, run, checkpoint, seed=seed, device=device)
-        estimate = fqe_estimate(transitions, init, policy, action_spec, config, device)
-        result = rollout_behaviour(ds, run, checkpoint, episodes, seed, False, num_envs, device)
-        info = infos[(run, checkpoint)]
-        rows.append({**asdict(info), "fqe_estimate": float(estimate), "return": result.mean,
-                     "returns": list(result.returns)})  # fmt: skip
+    # FQE's gradient steps are the cost; each policy's roll-outs come after its steps
+    with Progress(len(pairs) * config.steps, "FQE", "steps", quiet=quiet) as bar:
+        for run, checkpoint in pairs:
+            policy = load_behaviour_policy(ds, run, checkpoint, seed=seed, device=device)
+            estimate = fqe_estimate(transitions, init, policy, action_spec, config, device,
+                                    progress=bar)  # fmt: skip
+            result = rollout_behaviour(ds, run, checkpoint, episodes, seed, False, num_envs,
+                                       device)  # fmt: skip
+            info = infos[(run, checkpoint)]
+            rows.append({**asdict(info), "fqe_estimate": float(estimate), "return": result.mean,
+                         "returns": list(result.returns)})  # fmt: skip
+            bar.note(f"run {run} checkpoint {checkpoint}: FQE {estimate:.2f}, return "
+                     f"{result.mean:.1f}")  # fmt: skip
     rho = math.nan
     if len(rows) >= 2:
         rho = spearman([r["fqe_estimate"] for r in rows], [r["return"] for r in rows])

@@ -35,6 +35,8 @@ def write_sweep(path: Path, recs) -> Path:
 
 def test_markdown_and_html_hold_every_number_of_the_json(tmp_path):
     pytest.importorskip("jinja2")
+    from rlu.evaluation.report import render
+
     recs = records(CONTROL, ["bc", "d4pg", "tests.train.fake|agent"])
     write_report(write_sweep(tmp_path / "s", recs), tmp_path / "r", figures=False)
     rep = json.loads((tmp_path / "r" / "report.json").read_text())
@@ -42,11 +44,12 @@ def test_markdown_and_html_hold_every_number_of_the_json(tmp_path):
     html = (tmp_path / "r" / "report.html").read_text()
     dom = rep["domains"]["control_suite"]
     assert dom["panels"] == ["online", "offline_naive", "aggregates", "task_bars"]
-    assert html.count("<table>") == 3 and html.count("<section") == 1
+    # what produced the numbers, the online and naive offline tables, the aggregates
+    assert html.count("<table>") == 4 and html.count("<section") == 1
     # each table scrolls in its own box: a wide one (five agents and the paper's columns) does
     # not push the page past the window
-    assert html.count('<div class="table"><table>') == 3 and "overflow-x: auto" in html
-    for row in dom["online"]["rows"]:
+    assert html.count('<div class="table"><table>') == 4 and "overflow-x: auto" in html
+    for row in dom["online"]["rows"] + dom["offline_naive"]["rows"]:
         for agent, c in row["cells"].items():
             text = f"{c['mean']:.1f} ± {c['std']:.1f}"
             assert (f"| **{text}** |" if c["bold"] else f"| {text} |") in md, (agent, text)
@@ -55,9 +58,12 @@ def test_markdown_and_html_hold_every_number_of_the_json(tmp_path):
     assert "tests.train.fake\\|agent" in md and "fake|agent" in html
     table_lines = [line for line in md.splitlines() if "| " in line]
     assert all(line.startswith("|") and line.endswith("|") for line in table_lines)
-    for agent, e in dom["aggregates"].items():
-        if agent != "statistic":
-            assert f"| {agent.replace('|', chr(92) + '|')} | 3 | {e['mean']:.1f} |" in md
+    agg = dom["aggregates"]
+    for split, tasks in (("online", 1), ("offline", 2)):
+        label = render.AGGREGATE_SPLITS[split]
+        for agent, e in agg[split]["agents"].items():
+            name = agent.replace("|", chr(92) + "|")
+            assert f"| {label} | {name} | {tasks} | {e['mean']:.1f} |" in md
 
 
 def test_html_escapes_what_it_shows(tmp_path):

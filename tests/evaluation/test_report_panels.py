@@ -22,7 +22,8 @@ REFS = {g: 0.0 for g in TUNING + HELD_OUT}, {g: 100.0 for g in TUNING + HELD_OUT
 
 
 def rec(task, agent, config, seed, score, overrides=None):
-    r = {"task": task, "agent": agent, "config": config, "seed": seed, "score": float(score)}
+    r = {"task": task, "agent": agent, "config": config, "seed": seed, "score": float(score),
+         "run": f"{task}/{agent}/{config}/seed_{seed}"}  # fmt: skip
     if overrides is not None:
         r["overrides"] = overrides
     return r
@@ -199,6 +200,7 @@ def test_panels_without_data_say_why_in_one_line(tmp_path):
     rep = json.loads((tmp_path / "r" / "report.json").read_text())
     absent = rep["domains"]["atari"]["absent"]
     assert set(absent) == {
+        "online",
         "offline_naive",
         "aggregates",
         "atari_median",
@@ -214,6 +216,8 @@ def test_panels_without_data_say_why_in_one_line(tmp_path):
         "IQN tau-samples sensitivity: left out, the sweep has no iqn runs.",
         "Offline policy selection (naive): left out, naive offline selection chooses a "
         "configuration on the online-selection tasks",
+        # the held-out games are never shown with their per-task best configuration
+        "Online policy selection: left out, the sweep has no online-selection task",
     ):
         assert md.count(title) == 1, title
     # normalised but held-out games only: the median figure has no half to draw
@@ -241,8 +245,10 @@ def test_task_bars_put_each_task_under_its_own_protocol():
     cell = row["cells"]["bc"]
     assert (cell["config"], cell["mean"], cell["std"]) == ("a", 305.0, 5.0)
     assert row["paper"]["bc"] == load_paper_results()["control_suite"]["Walker walk"]["BC"]
-    # the online table keeps online selection on every task (the oracle) as before
-    assert dom["online"]["rows"][1]["cells"]["bc"]["mean"] == 905.0
+    # the online table holds the online tasks only: never the offline task's per-task best (905)
+    assert [r["task"] for r in dom["online"]["rows"]] == [online]
+    off = dom["offline_naive"]["rows"]
+    assert [r["task"] for r in off] == [offline] and off[0]["cells"]["bc"]["mean"] == 305.0
     # no Atari figure panels outside Atari, no per-task bars in Atari
     assert not {"atari_median", "atari_per_game", "iqn_tau"} & set(dom["panels"] + [*dom["absent"]])
     atari = build_report(dqn_records(), random_scores=REFS[0], best_behaviour=REFS[1], reps=50)[

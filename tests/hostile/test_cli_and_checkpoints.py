@@ -107,12 +107,13 @@ class Planted:
 def run(tmp_path_factory):
     pytest.importorskip("torch")
     pytest.importorskip("gymnasium")
-    from rlu.train import TrainConfig, train
+    from rlu.train import train
+    from tests.fakes import train_config
     from tests.train.pendulum import write_dataset
 
     root = tmp_path_factory.mktemp("ck")
     dataset = write_dataset(root / "pendulum", "test/pendulum", seed=0)
-    cfg = TrainConfig(
+    cfg = train_config(
         task="test/pendulum",
         agent="tests.train.fake_agent",
         dataset=str(dataset),
@@ -156,7 +157,7 @@ HOW = ["python_object", "empty", "truncated", "junk", "a_tensor", "no_agent"]
 def test_damaged_checkpoint(run, tmp_path, how, capsys):
     import shutil
 
-    from rlu.checkpoints import load_checkpoint
+    from rlu.checkpoints import load_state as load_checkpoint
     from rlu.train import train
 
     path, cfg = run
@@ -170,10 +171,24 @@ def test_damaged_checkpoint(run, tmp_path, how, capsys):
     msg = str(info.value)
     assert str(ckpt) in msg and "weights_only" not in msg, msg
     # the commands that read checkpoints: evaluate (one line, exit 2) and resume
-    code = main(["evaluate", str(ckpt), "--episodes", "1", "--envs", "1"])
+    code = main(["evaluate", str(ckpt), "--episodes", "1", "--envs", "1",
+                 "--env", "tests.train.pendulum:make_env"])  # fmt: skip
     err = capsys.readouterr().err
     assert code == 2 and str(ckpt) in err and "weights_only" not in err, err
     (copy / "result.json").unlink()
     with pytest.raises(RluError, match="step_00000004.pt"):
         train(cfg, copy, resume=True)
     assert not marker.exists()
+
+
+def test_a_command_started_with_stdout_closed_ends_without_a_traceback():
+    root = Path(__file__).resolve().parents[2]
+    for args in (["list"], ["info", "control_suite/cartpole_swingup"]):
+        res = subprocess.run(
+            [sys.executable, "-m", "rlu", *args],
+            cwd=root,
+            stderr=subprocess.PIPE,
+            text=True,
+            preexec_fn=lambda: os.close(1),
+        )
+        assert res.returncode == 0 and "Traceback" not in res.stderr, res.stderr

@@ -280,3 +280,42 @@ def test_a_killed_sweeps_workers_die_with_it(pendulum, tmp_path):
                 os.kill(pid, signal.SIGKILL)
             except ProcessLookupError:
                 pass
+
+
+def test_a_second_sweep_into_a_folder_in_use_is_refused_at_once(tmp_path):
+    """Two ``rlu sweep`` into one --out: the second stops with "in use by PID N" before writing
+    anything (on main both went on and both failed)."""
+    from rlu.generate.recipe import bundled_dataset
+
+    out = tmp_path / "sweep"
+    data = f"{TASK}={bundled_dataset()}"
+    args = [sys.executable, "-m", "rlu", "sweep", "--tasks", TASK, "--agents", "bc",
+            "--dataset", data, "--steps", "1", "--out", str(out)]  # fmt: skip
+    with OutputLock(out, "sweep folder"):  # the first sweep, alive
+        res = subprocess.run(args, cwd=ROOT, capture_output=True, text=True)
+    assert res.returncode == 2, res.stderr
+    assert f"in use by PID {os.getpid()}" in res.stderr and "Traceback" not in res.stderr
+    assert not out.exists()
+
+
+def test_a_second_export_to_one_file_is_refused_and_an_interrupt_in_a_close_is_kept(tmp_path):
+    """Two ``rlu export`` to one file: the second stops with "in use" (on main both wrote the
+    same temporary file and both exited 0). A Ctrl-C while an HDF5 file closes is raised after
+    the close (h5py swallowed it, and the export exited 0)."""
+    pytest.importorskip("h5py")
+    from rlu.files import interrupts_deferred
+    from rlu.generate.recipe import bundled_dataset
+
+    out = tmp_path / "d4rl.hdf5"
+    args = [sys.executable, "-m", "rlu", "export", str(bundled_dataset()), "--format", "d4rl",
+            "-o", str(out)]  # fmt: skip
+    with OutputLock(out, "export file"):
+        res = subprocess.run(args, cwd=ROOT, capture_output=True, text=True)
+    assert res.returncode == 2 and "in use by PID" in res.stderr, res.stderr
+    assert not out.exists() and not list(tmp_path.iterdir())
+    done = []
+    with pytest.raises(KeyboardInterrupt):
+        with interrupts_deferred():
+            os.kill(os.getpid(), signal.SIGINT)
+            done.append("the block ran to its end")
+    assert done == ["the block ran to its end"]

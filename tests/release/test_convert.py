@@ -146,6 +146,23 @@ def test_batched_append_writes_the_same_bytes(tmp_path):
     assert ma == mb
 
 
+@pytest.mark.parametrize("family,task,make", CASES[::2], ids=lambda v: str(v)[:24])
+def test_decode_batches_bounded_in_bytes_write_the_same_bytes(
+    tmp_path, family, task, make, monkeypatch
+):
+    """Records are decoded in batches of at most ``_BATCH_BYTES`` (so long records never pile
+    up); where the batches end changes nothing in the dataset."""
+    path = _shard(tmp_path, family, make())
+    convert([path], family, task, tmp_path / "whole", workers=1)
+    monkeypatch.setattr(Fm, "_BATCH_BYTES", 1)  # every record its own batch
+    convert([path], family, task, tmp_path / "each", workers=1)
+    manifests = [
+        json.loads((tmp_path / d / "manifest.json").read_text()) for d in ("whole", "each")
+    ]
+    whole, each = manifests
+    assert whole["files"] == each["files"]
+
+
 PARALLEL_CASES = [
     (
         "dm_control_suite",

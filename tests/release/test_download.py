@@ -12,6 +12,7 @@ import http.server
 import os
 import socket
 import threading
+import urllib.error
 
 import google_crc32c
 import numpy as np
@@ -37,8 +38,8 @@ class _Handler(http.server.BaseHTTPRequestHandler):
             return
         plan = srv.plans.get(name, [])
         action = plan.pop(0) if plan else "ok"
-        if action == "500":
-            self.send_error(500, "try again")
+        if action in ("403", "500", "503"):
+            self.send_error(int(action), {"403": "Forbidden"}.get(action, "try again"))
             return
         if action.startswith("redirect:"):  # to the same path on another host name
             self.send_response(302)
@@ -85,6 +86,13 @@ class _Handler(http.server.BaseHTTPRequestHandler):
             self.connection.shutdown(2)
             return
         self.wfile.write(data)
+
+
+@pytest.fixture(autouse=True)
+def _direct(monkeypatch):
+    """No proxy from the environment: every request goes to 127.0.0.1 itself."""
+    for k in ("http_proxy", "https_proxy", "all_proxy", "HTTP_PROXY", "HTTPS_PROXY", "ALL_PROXY"):
+        monkeypatch.delenv(k, raising=False)
 
 
 @pytest.fixture
@@ -246,8 +254,12 @@ def test_html_page_with_200_is_never_recorded(tmp_path, server, kind):
     why = "web page" if kind == "html" else "not a gzip file"
     with pytest.raises(DownloadError, match=why):
         d.fetch([OBJ])
+    # a page that says it is one is no transfer error: refused at once; bytes that are not a
+    # shard could be a damaged transfer: tried again
+    assert len(server.requests) == (1 if kind == "html" else 3)
     assert not os.path.exists(d.path_of(OBJ)) and d.manifest.get(OBJ) is None
     _no_partials(d.root)
+    server.plans[OBJ] = []
     (f,) = _downloader(tmp_path, server).fetch([OBJ])  # the real file once the server is sane
     assert open(f.path, "rb").read() == body
 
@@ -321,3 +333,140 @@ def test_a_cache_entry_being_fetched_is_in_use(tmp_path, server):
     assert server.requests == []
     (f,) = d.fetch([OBJ])  # released: fetched
     assert f.size > 0
+
+
+# --- failing fast: permanent errors end the command at once, in one line -----------------------
+TASK = "control_suite/cartpole_swingup"
+SHARD0 = "dm_control_suite/cartpole_swingup/train-00000-of-00100"
+
+
+@pytest.fixture
+def refused():
+    """A port on 127.0.0.1 where nothing listens (bound, then closed)."""
+    sock = socket.socket()
+    sock.bind(("127.0.0.1", 0))
+    port = sock.getsockname()[1]
+    sock.close()
+    return f"http://127.0.0.1:{port}"
+
+
+def _cli(base, cache, capsys, *extra):
+    code = main(["download", TASK, "--base-url", base, "--cache-dir", str(cache), *extra])
+    out, err = capsys.readouterr()
+    return code, err.strip().split("\n") if err.strip() else []  # a bar's \r is no new line
+
+
+def test_refused_port_ends_the_download_in_one_line(tmp_path, refused, capsys):
+    code, lines = _cli(refused, tmp_path, capsys, "--shards", "0-7")
+    assert code == 2 and len(lines) == 1, lines
+    (line,) = lines
+    assert line.startswith(f"rlu: error: cannot download {refused}/dm_control_suite/")
+    assert "connection refused by 127.0.0.1" in line
+    assert "--base-url" in line and "HTTPS_PROXY" in line
+    assert "kept" not in line  # no byte arrived: nothing is kept
+    assert "0 of 8 files done" in line
+    _no_partials(tmp_path)
+
+
+@pytest.mark.parametrize("status", ["403", "404"])
+def test_http_403_and_404_end_the_download_in_one_line(tmp_path, server, capsys, status):
+    objs = [f"dm_control_suite/cartpole_swingup/train-{i:05d}-of-00100" for i in range(4)]
+    if status == "403":
+        for o in objs:
+            server.files[o] = b"never sent"
+            server.plans[o] = ["403"] * 10
+    code, lines = _cli(server.url, tmp_path, capsys, "--shards", "0-3", "--workers", "2")
+    assert code == 2 and len(lines) == 1, lines
+    want = "access denied by the server (HTTP 403" if status == "403" else "not found (HTTP 404)"
+    assert want in lines[0] and f"cannot download {server.url}/dm_control_suite/" in lines[0]
+    assert "--base-url" in lines[0]
+    assert len(server.requests) <= 2  # one per worker at most: nothing retried
+    _no_partials(tmp_path)
+
+
+def test_load_dataset_fails_fast_in_one_line(tmp_path, refused, server):
+    import rlu
+
+    kw = dict(source="release", cache_dir=tmp_path / "c", shards="0-3", progress=False)
+    for base, want in ((refused, "connection refused"), (server.url, "HTTP 404")):
+        with pytest.raises(DownloadError) as e:
+            rlu.load_dataset(TASK, base_url=base, **kw)
+        text = str(e.value)
+        assert "\n" not in text and want in text and f"cannot download {base}/" in text
+        assert "--base-url" in text
+    names = [r[0] for r in server.requests]
+    assert len(names) == len(set(names)) <= 4  # at most one request per shard: no retries
+    server.requests.clear()
+    server.files[SHARD0] = b"x"
+    server.plans[SHARD0] = ["403"] * 10
+    with pytest.raises(DownloadError, match="HTTP 403"):
+        rlu.load_dataset(TASK, base_url=server.url, **{**kw, "shards": "0"})
+    assert len(server.requests) == 1
+
+
+def test_tls_to_a_plain_http_server_is_permanent(tmp_path, server, capsys):
+    server.files[SHARD0] = _blob(seed=30)
+    https = server.url.replace("http://", "https://")
+    code, lines = _cli(https, tmp_path, capsys, "--shards", "0")
+    assert code == 2 and len(lines) == 1 and "TLS failed with 127.0.0.1" in lines[0], lines
+    assert len(server.requests) == 0  # the handshake failed before any request
+
+
+def test_dns_failure_is_permanent_and_names_the_fix():
+    from rlu.data.release.download import classify
+
+    err = urllib.error.URLError(socket.gaierror(socket.EAI_NONAME, "Name or service not known"))
+    fail = classify(err, "https://storage.googleapis.com/rl_unplugged/x")
+    assert fail.permanent
+    assert "storage.googleapis.com cannot be resolved" in fail.why and "--base-url" in fail.why
+    assert "HTTPS_PROXY" in fail.why
+    for transient in (TimeoutError("timed out"), ConnectionResetError(104, "reset")):
+        assert not classify(transient, "http://h/x").permanent
+    assert not classify(urllib.error.HTTPError("u", 503, "busy", {}, None), "http://h/x").permanent
+
+
+def test_a_proxy_is_named_in_the_error(tmp_path, refused, monkeypatch):
+    monkeypatch.setenv("http_proxy", refused)  # a proxy that is down
+    monkeypatch.setenv("no_proxy", "")
+    d = Downloader(cache_dir=tmp_path, base_url="http://mirror.invalid", progress=False)
+    with pytest.raises(DownloadError, match=rf"connection refused by the proxy {refused}"):
+        d.fetch([SHARD0])
+
+
+def test_5xx_is_retried_with_bounded_backoff_then_reported(tmp_path, server):
+    server.files[OBJ] = _blob(seed=31)
+    server.plans[OBJ] = ["503"] * 8
+    d = _downloader(tmp_path, server, retries=6, backoff=1.0)
+    with pytest.raises(DownloadError) as e:
+        d.fetch([OBJ])
+    assert d.sleeps == [1.0, 2.0, 4.0, 8.0, 10.0, 10.0]  # capped at MAX_BACKOFF
+    text = str(e.value)
+    assert "after 7 tries: HTTP 503" in text and "kept" not in text and "again later" in text
+    _no_partials(d.root)  # no byte arrived: no .part to resume from
+
+
+def test_cut_connections_keep_the_bytes_and_say_so(tmp_path, server):
+    server.files[OBJ] = _blob(seed=32)
+    server.plans[OBJ] = ["cut"] * 3
+    server.ranges = False  # every try starts over and is cut again
+    d = _downloader(tmp_path, server, retries=2)
+    with pytest.raises(DownloadError, match=r"bytes so far are kept in .*\.part: run the"):
+        d.fetch([OBJ])
+    assert os.path.getsize(d.path_of(OBJ) + ".part") > 0
+
+
+def test_failed_files_are_counted_as_failed(tmp_path, server, capsys, monkeypatch):
+    objs = [f"dm_control_suite/cartpole_swingup/train-{i:05d}-of-00100" for i in range(3)]
+    server.files[objs[0]] = _blob(seed=33)  # shard 1 is missing: 404
+    server.files[objs[2]] = _blob(seed=34)
+    monkeypatch.setenv("RLU_PROGRESS", "bar")
+    args = ["--shards", "0-2", "--workers", "1"]
+    code, lines = _cli(server.url, tmp_path, capsys, *args)
+    assert code == 2
+    bar = lines[0].split("\r")[-1]
+    assert "files=1/3" in bar and "failed=1" in bar, bar
+    assert lines[-1].startswith("rlu: error: cannot download") and "1 of 3 files done" in lines[-1]
+    assert [r[0] for r in server.requests] == objs[:2]  # shard 2 never started
+    server.files[objs[1]] = _blob(seed=35)
+    code, lines = _cli(server.url, tmp_path, capsys, *args, "--quiet")
+    assert code == 0 and lines == []  # --quiet: nothing on stderr

@@ -18,9 +18,9 @@ def pendulum_datasets(tmp_path_factory):
 
 def sweep_config(datasets):
     """2 tasks x 2 agents x 2 configurations (each agent's GRID) x 2 seeds, small and short."""
-    from rlu.sweep import SweepConfig
+    from tests.fakes import sweep_config as make
 
-    return SweepConfig(
+    return make(
         tasks=TASKS,
         agents=AGENTS,
         datasets=datasets,
@@ -40,5 +40,7 @@ def local_sweep(pendulum_datasets, tmp_path_factory):
     from rlu.sweep import sweep
 
     out = tmp_path_factory.mktemp("sweep_local")
-    records = sweep(sweep_config(pendulum_datasets), out, backend="local", workers=2)
+    from rlu.workers import Backend
+
+    records = sweep(sweep_config(pendulum_datasets), out, Backend("local", 2))
     return out, records

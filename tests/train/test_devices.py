@@ -5,6 +5,7 @@ generators CUDA's) is evaluated and resumed on the CPU."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -18,6 +19,7 @@ torch = pytest.importorskip("torch")
 from rlu.devices import Runtime  # noqa: E402
 from rlu.train import TrainConfig, train  # noqa: E402
 from rlu.types import RluError  # noqa: E402
+from tests.fakes import train_config  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 TASKS = {"dqn": "atari/Pong", "d4pg": "control_suite/cartpole_swingup"}
@@ -44,7 +46,7 @@ def datasets(tmp_path_factory):
 
 
 def _config(agent, datasets, **runtime) -> TrainConfig:
-    return TrainConfig(
+    return train_config(
         task=TASKS[agent], agent=agent, dataset=datasets[agent], steps=6, eval_every=-1,
         log_every=1, checkpoint_every=3, torch_threads=1, overrides=OVERRIDES[agent],
         runtime=Runtime(**runtime),
@@ -70,7 +72,7 @@ def test_prefetch_and_data_on_device_give_the_loops_numbers(agent, datasets, tmp
     train(_config(agent, datasets, data_on_device=True, prefetch=3), tmp_path / "both")
     for other in ("prefetch", "on_device", "both"):
         _same_run(tmp_path / "inline", tmp_path / other)
-    saved = json.loads((tmp_path / "both" / "config.json").read_text())["train"]["runtime"]
+    saved = json.loads((tmp_path / "both" / "config.json").read_text())["train"]["run"]["runtime"]
     assert saved == {"device": "cpu", "precision": "fp32", "tf32": False, "compile": False,
                      "prefetch": 3, "data_on_device": True}  # fmt: skip
 
@@ -123,7 +125,7 @@ def test_resume_accepts_a_new_runtime_but_not_a_new_config(datasets, tmp_path):
     again = train(_config("dqn", datasets, prefetch=1), tmp_path / "r", resume=True)
     assert again["steps"] == 6  # finished: nothing to do, but no refusal either
     other = _config("dqn", datasets)
-    other = TrainConfig(**{**other.__dict__, "seed": 1})
+    other = dataclasses.replace(other, seed=1)
     with pytest.raises(RluError, match="different configuration"):
         train(other, tmp_path / "r", resume=True)
 
@@ -131,7 +133,7 @@ def test_resume_accepts_a_new_runtime_but_not_a_new_config(datasets, tmp_path):
 def test_tf32_on_the_cpu_and_data_on_device_for_sequences_are_refused(datasets, tmp_path):
     with pytest.raises(RluError, match="--tf32 applies to CUDA"):
         train(_config("dqn", datasets, tf32=True), tmp_path / "a")
-    cfg = TrainConfig(
+    cfg = train_config(
         task=TASKS["d4pg"], agent="bc", dataset=datasets["d4pg"], steps=2, eval_every=-1,
         overrides={"recurrent": True, "hidden_size": 8, "num_layers": 2, "lstm_hidden": 4,
                    "sequence_length": 3, "batch_size": 4},
@@ -161,7 +163,8 @@ def _as_if_written_on_a_gpu(src: Path, dst: Path) -> None:
 
 def test_a_gpu_checkpoint_is_evaluated_and_resumed_on_the_cpu(datasets, tmp_path, monkeypatch):
     import rlu.data.views as views
-    from rlu.runs import evaluate_run, load_agent, load_checkpoint
+    from rlu.checkpoints import load_state as load_checkpoint
+    from rlu.restore import evaluate_run, load_agent
 
     if torch.cuda.is_available():
         pytest.skip("this machine has a GPU: the CPU side is what is checked here")

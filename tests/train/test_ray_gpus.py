@@ -21,7 +21,9 @@ pytest.importorskip("torch")
 def one_gpu_ray():
     if ray.is_initialized():
         pytest.skip("a Ray instance is already running in this process")
-    ray.init(num_cpus=4, num_gpus=1, include_dashboard=False, log_to_driver=False)
+    # address="local": a new instance, even where a Ray cluster already runs on this machine
+    ray.init(address="local", num_cpus=4, num_gpus=1, include_dashboard=False,
+             log_to_driver=False)  # fmt: skip
     yield ray
     ray.shutdown()
 
@@ -71,23 +73,25 @@ def test_requests_ray_cannot_serve_are_refused_first(one_gpu_ray):
 
 
 def test_a_sweeps_runs_get_the_gpu_share_they_ask_for(one_gpu_ray, pendulum_datasets, tmp_path):
-    from rlu.sweep import SweepConfig, sweep
+    from rlu.sweep import sweep
+    from rlu.workers import Backend
+    from tests.fakes import sweep_config
 
-    config = SweepConfig(
+    config = sweep_config(
         tasks=("test/pendulum",), agents=("tests.train.ray_probe_agent",),
         datasets=pendulum_datasets, seeds=(0, 1), steps=4, eval_episodes=1, eval_envs=1,
         eval_max_steps=5, log_every=1, checkpoint_every=4, max_configs=1,
-        env="tests.train.pendulum:make_env", runtime=Runtime(device="auto"), gpus_per_run=0.5,
+        env="tests.train.pendulum:make_env", runtime=Runtime(device="auto"),
     )  # fmt: skip
-    records = sweep(config, tmp_path / "s", backend="ray")
+    records = sweep(config, tmp_path / "s", Backend("ray", gpus_per_job=0.5))
     assert len(records) == 2
     for r in records:
         lines = (Path(r["run"]) / "metrics.jsonl").read_text().splitlines()
         assert {(m["probe/gpus"], m["probe/cpus"]) for m in map(json.loads, lines)} == {(0.5, 1.0)}
     with pytest.raises(RluError, match="has 1 GPU"):
-        sweep(SweepConfig(**{**config.__dict__, "gpus_per_run": 3}), tmp_path / "s", backend="ray")
+        sweep(config, tmp_path / "s", Backend("ray", gpus_per_job=3))
     with pytest.raises(RluError, match="--backend ray"):
-        sweep(config, tmp_path / "s", backend="local")
+        Backend("local", gpus_per_job=0.5)
 
 
 def test_generation_checks_its_gpu_request_before_any_run(one_gpu_ray, tmp_path):

@@ -51,15 +51,17 @@ def test_report_tables_match_the_run_files(local_sweep, tmp_path):
         ds_path = json.loads((Path(sweep_dir) / "sweep.json").read_text())["datasets"][task]
         assert p90 == pytest.approx(np.percentile(open_dataset(ds_path).episode_returns(), 90))
     agg = dom["aggregates"]
-    assert agg["statistic"] == "mean"
+    assert agg["statistic"] == "mean" and "offline" not in agg  # test tasks: online selection
     for agent in dom["agents"]:
         cells = [row["cells"][agent]["mean"] for row in dom["online"]["rows"]]
-        assert agg[agent]["mean"] == pytest.approx(np.mean(cells))
-        lo, hi = agg[agent]["interval_25_75"]
-        assert lo <= agg[agent]["mean"] <= hi or np.isclose(lo, hi)
+        e = agg["online"]["agents"][agent]
+        assert e["mean"] == pytest.approx(np.mean(cells))
+        lo, hi = e["interval_25_75"]
+        assert lo <= e["mean"] <= hi or np.isclose(lo, hi)
     html = (tmp_path / "report" / "report.html").read_text()
-    # the online table, the aggregates and the per-task figure's p90 lines as a table
-    assert html.count("<table>") == 3 and "<b>" in html and "other_tasks.png" in html
+    # what produced the numbers, the online table, the aggregates and the per-task figure's p90
+    # lines as a table
+    assert html.count("<table>") == 4 and "<b>" in html and "other_tasks.png" in html
     for task, p90 in dom["dataset_p90"].items():
         assert f"| {task} | online | {p90:.1f} |" in md
     # a cell far below the best is not bold; one overlapping it is
@@ -130,16 +132,20 @@ def test_iqm_says_how_many_seeds_and_claims_no_interval_from_one():
     scores = {(cp, 0): 400.0, (cp, 1): 500.0, (ws, 0): 800.0}
     recs = [{"task": t, "agent": "bcq", "config": "c", "seed": s, "score": v}
             for (t, s), v in scores.items()]  # fmt: skip
-    agg = build_report(recs, reps=50)["domains"]["control_suite"]["aggregates"]["bcq"]
+    agg = build_report(recs, reps=50)["domains"]["control_suite"]["aggregates"]
+    agg = agg["online"]["agents"]["bcq"]
     assert agg["iqm_seeds"] == 1 and agg["iqm_ci95"] is None
     assert agg["iqm"] == pytest.approx(600.0)  # seed 0 on both tasks, nothing trimmed
     rep = build_report(recs, reps=50)
     md = render.render("report.md.j2", "t", render.sections(rep, None))
-    line = next(x for x in md.splitlines() if x.startswith("| bcq"))
-    assert [c.strip() for c in line.strip("|").split("|")][4:] == ["600.0 (1 seed)", ""]
+    line = next(
+        x for x in md.splitlines() if x.startswith("| online policy selection") and "| bcq" in x
+    )
+    assert [c.strip() for c in line.strip("|").split("|")][5:] == ["600.0 (1 seed)", ""]
     # with the second seed on walker stand, both seeds count and the interval is real
     recs.append({"task": ws, "agent": "bcq", "config": "c", "seed": 1, "score": 900.0})
-    agg = build_report(recs, reps=200)["domains"]["control_suite"]["aggregates"]["bcq"]
+    agg = build_report(recs, reps=200)["domains"]["control_suite"]["aggregates"]
+    agg = agg["online"]["agents"]["bcq"]
     assert agg["iqm_seeds"] == 2
     lo, hi = agg["iqm_ci95"]
     assert lo < agg["iqm"] < hi
@@ -170,11 +176,18 @@ def test_atari_normalised_median_and_naive_offline_selection():
     assert dom["offline_naive"]["chosen"] == {"dqn": "a"}
     off = {r["task"]: r["cells"]["dqn"]["mean"] for r in dom["offline_naive"]["rows"]}
     assert off == {"atari/Breakout": 30.0, "atari/Pong": 0.0}
-    # online selection per game: Zaxxon a (50 %), Pong b (100 %), Breakout b (90 %) -> median 90
-    agg = dom["aggregates"]["dqn"]
-    assert agg["median"] == pytest.approx(90.0)
-    # IQM of the 6 (seed, game) values 50 50 90 90 100 100: cut 1 each end -> mean(50 90 90 100)
-    assert agg["iqm"] == pytest.approx(82.5)
+    # each split under its own protocol, never mixed: online selection on the tuning game
+    # Zaxxon (a, 50 %); naive selection (a) on the held-out games Pong 50 %, Breakout 30 %. The
+    # old mixed aggregate, online selection over every game (Zaxxon a 50, Pong b 100, Breakout
+    # b 90), gave a median of 90.
+    agg = dom["aggregates"]
+    assert agg["online"]["tasks"] == ["atari/Zaxxon"] and agg["online"]["agents"]["dqn"][
+        "median"
+    ] == pytest.approx(50.0)
+    off = agg["offline"]
+    assert off["chosen"] == {"dqn": "a"} and off["agents"]["dqn"]["median"] == pytest.approx(40.0)
+    # IQM of the 4 (seed, game) values 30 30 50 50: cut 1 of 4 at each end -> mean(30, 50)
+    assert off["agents"]["dqn"]["iqm"] == pytest.approx(40.0)
     # without reference scores for every game, no normalised aggregates are claimed
     rep = build_report(recs, random_scores={}, best_behaviour=best, reps=100)
     assert "aggregates" not in rep["domains"]["atari"]
@@ -184,7 +197,7 @@ def test_fqe_selection_over_a_sweep(local_sweep, tmp_path):
     import shutil
 
     from rlu.evaluation.fqe import FQEConfig
-    from rlu.runs import fqe_selection
+    from rlu.restore import fqe_selection
 
     sweep_dir = tmp_path / "sweep"
     shutil.copytree(local_sweep[0], sweep_dir)  # fqe.json must not leak into the shared sweep

@@ -3,6 +3,7 @@ instance give the same results table; completed runs are skipped on a second run
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -11,6 +12,7 @@ import pytest
 from rlu.runs import load_results
 from rlu.sweep import SweepConfig, expand, results_table, sweep
 from rlu.types import RluError
+from rlu.workers import Backend
 from tests.train.conftest import AGENTS
 from tests.train.conftest import sweep_config as _config
 
@@ -35,7 +37,7 @@ def test_local_sweep_then_skip_completed(local_sweep, pendulum_datasets):
         assert json.loads(evals[-1])["mean"] == r["score"]
     # running it again trains nothing: every run folder is left as it was
     stamps = {r["run"]: (Path(r["run"]) / "result.json").stat().st_mtime_ns for r in records}
-    again = sweep(_config(pendulum_datasets), out, backend="local", workers=1)
+    again = sweep(_config(pendulum_datasets), out, Backend("local", 1))
     assert again == records
     assert stamps == {
         r["run"]: (Path(r["run"]) / "result.json").stat().st_mtime_ns for r in records
@@ -45,7 +47,7 @@ def test_local_sweep_then_skip_completed(local_sweep, pendulum_datasets):
 def test_ray_sweep_gives_the_same_table(local_sweep, pendulum_datasets, tmp_path):
     pytest.importorskip("ray")
     _, local_records = local_sweep
-    records = sweep(_config(pendulum_datasets), tmp_path / "ray", backend="ray")
+    records = sweep(_config(pendulum_datasets), tmp_path / "ray", Backend("ray"))
     assert results_table(records) == results_table(local_records)
     assert [r["returns"] for r in records] == [r["returns"] for r in local_records]
 
@@ -53,7 +55,7 @@ def test_ray_sweep_gives_the_same_table(local_sweep, pendulum_datasets, tmp_path
 def test_sweep_refuses_a_different_config_in_the_same_folder(local_sweep, pendulum_datasets):
     out, _ = local_sweep
     cfg = _config(pendulum_datasets)
-    other = SweepConfig(**{**cfg.__dict__, "steps": 31})
+    other = dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, steps=31))
     with pytest.raises(RluError, match="different sweep configuration"):
         sweep(other, out)
 
@@ -79,7 +81,8 @@ def test_cli_sweep_and_report(pendulum_datasets, tmp_path):
     assert [r["overrides"] for r in records] == [{"learning_rate": 0.01}, {"learning_rate": 0.02}]
     cfg = json.loads((Path(records[1]["run"]) / "config.json").read_text())
     assert cfg["agent_config"]["learning_rate"] == 0.02
-    assert cfg["train"]["eval_every"] == 0  # a sweep evaluates at the end of each run
+    assert cfg["train"]["run"]["eval_every"] is None  # the default: 5 steps evaluate at the end
+    assert len((Path(records[1]["run"]) / "eval.jsonl").read_text().splitlines()) == 1
     res = subprocess.run(
         [sys.executable, "-m", "rlu", "report", str(out)], cwd=root, capture_output=True, text=True
     )
@@ -100,15 +103,15 @@ def test_an_interrupted_sweep_keeps_the_results_of_its_finished_runs(
     (tmp_path / "again" / "results.jsonl").unlink()
     real, done = sweep_module.run_one, []
 
-    def interrupted_after_three(spec, config, paths=()):
+    def interrupted_after_three(spec, config):
         if len(done) == 3:
             raise KeyboardInterrupt  # Ctrl-C during the fourth run
         done.append((spec.task, spec.agent, spec.config, spec.seed))
-        return real(spec, config, paths)
+        return real(spec, config)
 
     monkeypatch.setattr(sweep_module, "run_one", interrupted_after_three)
     with pytest.raises(KeyboardInterrupt):
-        sweep(_config(pendulum_datasets), tmp_path / "again", backend="local", workers=1)
+        sweep(_config(pendulum_datasets), tmp_path / "again", Backend("local", 1))
     kept = load_results(tmp_path / "again")  # what rlu report reads
     assert [(r["task"], r["agent"], r["config"], r["seed"]) for r in kept] == sorted(done)
     by_key = {(r["task"], r["agent"], r["config"], r["seed"]): r["score"] for r in records}
@@ -130,7 +133,38 @@ def test_a_failing_run_leaves_the_others_running_and_is_named_at_the_end(
     (Path(spec.run_dir) / "result.json").unlink()  # this run must train again...
     with OutputLock(spec.run_dir, "run folder"):  # ...but another process holds its folder
         with pytest.raises(RluError, match=r"1 of 16 runs failed") as err:
-            sweep(_config(pendulum_datasets), again, backend="local", workers=2)
+            sweep(_config(pendulum_datasets), again, Backend("local", 2))
     assert f"{spec.run_dir}: LockBusy" in str(err.value) and "run the sweep again" in str(err.value)
     kept = load_results(again)  # the 15 others finished and were recorded
     assert len(kept) == 15 and spec.run_dir not in {r["run"] for r in kept}
+
+
+def test_a_sweep_made_with_relative_paths_reports_from_anywhere(pendulum_datasets, tmp_path):
+    """sweep.json keeps its datasets resolved and results.jsonl its runs relative to the sweep
+    folder, so the sweep reports (and moves) independent of the folder it was started in."""
+    pytest.importorskip("matplotlib")
+    import os
+    import shutil
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[2]
+    work = tmp_path / "work"
+    shutil.copytree(Path(pendulum_datasets["test/pendulum"]), work / "data")
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    args = [sys.executable, "-m", "rlu", "sweep", "--tasks", "test/pendulum",
+            "--agents", "tests.train.fake_agent", "--grid", "learning_rate=0.01",
+            "--dataset", "test/pendulum=data", "--steps", "3", "--eval-episodes", "1",
+            "--eval-max-steps", "5", "--env", "tests.train.pendulum:make_env", "--workers", "1",
+            "--out", "sweep"]  # fmt: skip
+    res = subprocess.run(args, cwd=work, env=env, capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    saved = json.loads((work / "sweep" / "sweep.json").read_text())
+    assert saved["datasets"] == {"test/pendulum": str((work / "data").resolve())}
+    line = json.loads((work / "sweep" / "results.jsonl").read_text().splitlines()[0])
+    assert not Path(line["run"]).is_absolute()
+    shutil.move(work / "sweep", tmp_path / "moved")  # the sweep folder moved elsewhere
+    res = subprocess.run([sys.executable, "-m", "rlu", "report", str(tmp_path / "moved")],
+                         cwd=root, env=env, capture_output=True, text=True)  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    assert load_results(tmp_path / "moved")[0]["run"].startswith(str(tmp_path / "moved"))

@@ -14,9 +14,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rlu.runs import evaluate_run
+from rlu.restore import evaluate_run
 from rlu.train import TrainConfig, parse_overrides, train
 from rlu.types import RluError, derive_seed
+from tests.fakes import train_config
 
 ROOT = Path(__file__).resolve().parents[2]
 ENV = "tests.train.pendulum:make_env"
@@ -38,7 +39,7 @@ def _config(dataset: str, **kw) -> TrainConfig:
         torch_threads=1,
     )
     base.update(kw)
-    return TrainConfig(**base)
+    return train_config(**base)
 
 
 def _cli(args: list[str], env_extra: dict | None = None) -> subprocess.CompletedProcess:
@@ -54,7 +55,7 @@ def test_run_folder_contents(pendulum_datasets, tmp_path):
     run = tmp_path / "run"
     resolved = json.loads((run / "config.json").read_text())
     assert resolved["agent_config"]["learning_rate"] == 0.02
-    assert resolved["train"]["steps"] == 120
+    assert resolved["train"]["run"]["steps"] == 120
     metrics = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
     assert [m["step"] for m in metrics] == list(range(10, 121, 10))
     assert all(np.isfinite(m["actor/bc_loss"]) for m in metrics)
@@ -70,7 +71,7 @@ def test_run_folder_contents(pendulum_datasets, tmp_path):
     with pytest.raises(RluError, match="--resume"):
         train(cfg, run)
     # evaluate the checkpoint: same seeds, same returns as the loop's last evaluation
-    res = evaluate_run(run, episodes=3, seed=derive_seed(0, 120), num_envs=3)
+    res = evaluate_run(run, episodes=3, seed=derive_seed(0, 120), num_envs=3, env=ENV)
     assert list(res.returns) == evals[-1]["returns"]
 
 
@@ -129,16 +130,17 @@ def test_bad_inputs_name_the_fix(pendulum_datasets, tmp_path):
     run = tmp_path / "c"
     train(_config(dataset, steps=2, eval_every=-1), run)
     (run / "config.json").write_text('{"train": ')
-    with pytest.raises(RluError, match=r"config\.json: not a readable JSON file"):
+    with pytest.raises(RluError, match=r"config\.json: not valid JSON"):
         train(_config(dataset, steps=2, eval_every=-1), run, resume=True)
-    with pytest.raises(RluError, match=r"config\.json: not a readable JSON file"):
-        evaluate_run(run)
+    with pytest.raises(RluError, match=r"config\.json: not valid JSON"):
+        evaluate_run(run, env=ENV)
 
 
 def test_cli_evaluate(pendulum_datasets, tmp_path):
     train(_config(pendulum_datasets["test/pendulum"], steps=10, eval_every=-1), tmp_path / "r")
-    out = _cli(["evaluate", str(tmp_path / "r" / "checkpoints" / "step_00000010.pt"),
-                "--episodes", "2", "--envs", "2", "--json"])  # fmt: skip
+    ckpt = tmp_path / "r" / "checkpoints" / "step_00000010.pt"
+    out = _cli(["evaluate", str(ckpt), "--episodes", "2", "--envs", "2", "--json", "--env", ENV,
+                "--agent", AGENT])  # fmt: skip
     assert out.returncode == 0, out.stderr
     res = json.loads(out.stdout)
     assert len(res["returns"]) == 2 and res["lengths"] == [50, 50]
@@ -151,7 +153,6 @@ def test_rwrl_easy_shard_trains_and_evaluates_in_its_challenge(tmp_path):
     pytest.importorskip("torch")
     pytest.importorskip("dm_control")
     from rlu.data.release.convert import convert
-    from rlu.runs import evaluate_run
     from rlu.tasks import get_task
     from rlu.types import RluError
     from tests.release.test_convert import _shard
@@ -163,7 +164,7 @@ def test_rwrl_easy_shard_trains_and_evaluates_in_its_challenge(tmp_path):
                   "episodes.tfrecord-00000-of-00001")  # fmt: skip
     data = tmp_path / "easy"
     convert([path], "rwrl", task.id, data, challenge="easy", workers=1)
-    config = TrainConfig(task=task.id, agent="bc", dataset=str(data), steps=3, eval_every=0,
+    config = train_config(task=task.id, agent="bc", dataset=str(data), steps=3, eval_every=0,
                          eval_episodes=1, eval_envs=1, eval_max_steps=5, torch_threads=1,
                          overrides={"hidden_size": 16, "batch_size": 8})  # fmt: skip
     result = train(config, tmp_path / "run")
@@ -174,4 +175,26 @@ def test_rwrl_easy_shard_trains_and_evaluates_in_its_challenge(tmp_path):
     with pytest.raises(RluError, match="recorded under RWRL challenge 'easy'"):
         evaluate_run(tmp_path / "run", episodes=1, num_envs=1, challenge="none")
     with pytest.raises(RluError, match="drop --challenge"):
-        train(dataclasses.replace(config, challenge="none"), tmp_path / "run_none")
+        train(dataclasses.replace(config, run=dataclasses.replace(config.run, challenge="none")),
+              tmp_path / "run_none")  # fmt: skip
+
+
+def test_eval_at_start_adds_step_0_and_changes_nothing_else(pendulum_datasets, tmp_path):
+    """The option added to prove the run-settings value: one field in RunSettings and its use in
+    the loop; its flag and help come from the field."""
+    from rlu.cli import build_parser
+    from rlu.settings import RunSettings, from_args
+
+    data = pendulum_datasets["test/pendulum"]
+    train(_config(data), tmp_path / "plain")
+    train(_config(data, eval_at_start=True), tmp_path / "start")
+    plain = (tmp_path / "plain" / "eval.jsonl").read_text().splitlines()
+    start = (tmp_path / "start" / "eval.jsonl").read_text().splitlines()
+    assert json.loads(start[0])["step"] == 0 and start[1:] == plain
+    for name in ("metrics.jsonl", "result.json"):
+        assert (tmp_path / "start" / name).read_text() == (tmp_path / "plain" / name).read_text()
+    parser = build_parser()
+    args = ["train", "--task", "t", "--agent", "a", "--dataset", "d", "--out", "o"]
+    assert from_args(RunSettings, parser.parse_args([*args, "--eval-at-start"])).eval_at_start
+    help_text = parser._subparsers._group_actions[0].choices["train"].format_help()
+    assert "--eval-at-start" in help_text and "untrained agent" in help_text

@@ -19,7 +19,7 @@ from rlu.tasks import (
     ReleaseDataset,
     TaskSpec,
     _binding_fields,
-    get_task,
+    resolve_task,
 )
 from rlu.types import RluError
 
@@ -50,6 +50,18 @@ class ReleaseSelection:
 
 def object_url(obj: str, base_url: str | None = None) -> str:
     return f"{(base_url or BASE_URL).rstrip('/')}/{obj}"
+
+
+UNKNOWN_SHARD_BYTES = 16 << 30  # a name outside the release's families: no shard is larger
+
+
+def shard_limit(obj: str) -> int:
+    """The most bytes a file of ``obj`` may have: its family's ``max_shard_bytes`` (the top
+    folder of the name), :data:`UNKNOWN_SHARD_BYTES` for a name of no known family."""
+    from rlu.data.release.families import FAMILIES
+
+    fam = FAMILIES.get(obj.split("/", 1)[0])
+    return fam.max_shard_bytes if fam is not None else UNKNOWN_SHARD_BYTES
 
 
 def dataset_binding(
@@ -110,8 +122,11 @@ def select(
     size: str | None = None,
     shards: str | Sequence[int] | None = None,
 ) -> ReleaseSelection:
-    """The release objects of a task's dataset (all shards unless ``shards`` picks some)."""
-    task = get_task(task_id)
+    """The release objects of a task's dataset (all shards unless ``shards`` picks some); a TFDS
+    name (``rlu_atari/Pong_run_1``) fills in the family, run, challenge and size it carries."""
+    ref = resolve_task(task_id)
+    task = ref.task
+    family, run, challenge, size = ref.dataset_settings(family, run, challenge, size)
     rel = task.release_dataset(family)
     binding = dataset_binding(task, run, challenge, size)
     names = rel.shard_names(binding)

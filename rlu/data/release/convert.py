@@ -16,7 +16,6 @@ import multiprocessing as mp
 import os
 import queue
 import re
-import sys
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -26,9 +25,9 @@ from typing import Any
 import numpy as np
 
 from rlu.data.episode import METADATA_FIELDS
-from rlu.data.release.families import SegmentBatch, get_family, iter_segments
-from rlu.data.release.framing import RecordReader
+from rlu.data.release.families import SegmentBatch, get_family, iter_segments, reader_for
 from rlu.data.store import DatasetWriter, Deflated, Schema, SegmentColumns, segment_columns
+from rlu.progress import Progress
 from rlu.tasks import TaskSpec, get_task, rwrl_observation_spec
 from rlu.types import ArraySpec, FormatError, RluError, SpecError, available_cores
 from rlu.workers import die_with_parent
@@ -182,7 +181,7 @@ def _shard_batches(job: _Job, path: str, columns: bool = False):
     ``columns``: fast-path batches come as :class:`SegmentColumns` with image columns deflated
     (what a reader process sends: the parent then only writes bytes).
     """
-    reader = RecordReader(path, verify=job.verify, on_error=job.on_error)
+    reader = reader_for(path, job.family, verify=job.verify, on_error=job.on_error)
     for segments in iter_segments(path, job.family, reader=reader, on_error=job.on_error):
         batch = _with_meta(_fit(segments, job.schema, path), job.meta)
         if columns and fast_path(batch, job.schema):
@@ -327,7 +326,11 @@ def convert(
     progress: bool = False,
     provenance: Mapping[str, Any] | None = None,
 ) -> ConvertReport:
-    """Convert release shard files of one family into a new dataset at ``out``."""
+    """Convert release shard files of one family into a new dataset at ``out``.
+
+    ``progress``: show an :class:`rlu.progress.Progress` on stderr (a bar on a terminal, a line
+    every 10 s elsewhere) over the shards' bytes, with shards, steps and episodes so far.
+    """
     get_family(family)
     task = get_task(task_id)
     if family in ("bsuite", "dmlab"):
@@ -367,6 +370,9 @@ def convert(
     # columns in threads), so it shares a core with a reader rather than taking one.
     job = _Job(family, schema, meta, verify, on_error)
     pool = _Pool(paths, job, workers) if workers > 1 else None
+    sizes = [os.path.getsize(p) for p in paths]
+    bar = Progress(sum(sizes), "convert", "B", quiet=not progress)
+    ok = False
     try:
         with DatasetWriter(out, schema, provenance=prov, overwrite=overwrite) as writer:
             for i, path in enumerate(paths):
@@ -381,12 +387,17 @@ def convert(
                         writer.append_columns(batch)
                     else:
                         append_batch(writer, batch)
-                if progress:
-                    sys.stderr.write(
-                        f"\r{i + 1}/{len(paths)} shards  {writer.num_steps:,} steps  "
-                        f"{writer.num_episodes:,} episodes"
+                    bar.set_postfix(
+                        shards=f"{i}/{len(paths)}",
+                        steps=writer.num_steps,
+                        episodes=writer.num_episodes,
                     )
-                    sys.stderr.flush()
+                bar.update(sizes[i])
+                bar.set_postfix(
+                    shards=f"{i + 1}/{len(paths)}",
+                    steps=writer.num_steps,
+                    episodes=writer.num_episodes,
+                )
             writer.provenance["files"] = [
                 {
                     "name": os.path.basename(f["path"]),
@@ -399,11 +410,11 @@ def convert(
             writer.provenance["skipped_records"] = report.skipped
             report.segments = writer.num_segments
             report.steps = writer.num_steps
+        ok = True
     finally:
         if pool is not None:
             pool.close()
-        if progress:
-            sys.stderr.write("\n")
+        bar.close(failed=not ok)
     report.seconds = time.monotonic() - t0
     return report
 

@@ -3,36 +3,58 @@
 - Files land at ``CACHE/release/<object path>`` (bucket-shaped, so ``rlu convert --src`` finds
   them); bytes stream into ``<name>.part`` and are renamed only after every check passed, so a
   final name never holds a partial or unverified file.
-- A cut connection resumes from the bytes already on disk with an HTTP ``Range`` request (a
-  server that ignores Range makes the download start over); errors and 5xx answers are retried
-  with exponential backoff.
+- Errors that another try cannot mend end the whole command at once, with one line naming the
+  URL and the fix: an unknown host (DNS), a refused connection, an unreachable network, a TLS
+  failure, HTTP 4xx (403, 404, ...), a web page instead of a file, a body over its bound. Other
+  workers stop too, so an offline machine fails in a second, not after backoff on every shard.
+- Errors another try may mend (a timeout, a reset or cut connection, HTTP 5xx, 408 and 429, a
+  corrupt transfer) are retried with exponential backoff, capped at ``MAX_BACKOFF`` seconds a
+  wait; a cut connection resumes from the bytes already on disk with an HTTP ``Range`` request
+  (a server that ignores Range makes the download start over). A file that fails every try ends
+  the command too, the other files' progress kept for the next run.
 - Checks, all before a file is recorded as complete: the size against ``Content-Length`` /
-  ``Content-Range`` (a body longer than announced fails too, it is never cut to fit); where the
-  bucket sends them (Google Cloud Storage's ``x-goog-hash``), the object's MD5 and CRC-32C; and
-  what the catalog knows of the object: its family's framing (a gzip stream, or a plain TFRecord,
-  whose first record header carries a valid CRC), so an HTML page served with status 200 is
-  refused. The sha256 and size of each file go into ``CACHE/release/manifest.json``; a reused
-  file is verified again (size, sha256, framing) and fetched anew when it fails.
+  ``Content-Range`` (a body longer than announced fails too, it is never cut to fit); a body
+  without a length stops at its family's largest shard size (``Family.max_shard_bytes``), so an
+  endless body fails at that bound instead of filling the disk; where the bucket sends them
+  (Google Cloud Storage's ``x-goog-hash``), the object's MD5 and CRC-32C; and what the catalog
+  knows of the object: its family's framing (a gzip stream, or a plain TFRecord, whose first
+  record header carries a valid CRC), so an HTML page served with status 200 is refused. The
+  sha256 and size of each file go into ``CACHE/release/manifest.json``; a reused file is verified
+  again (size, sha256, framing) and fetched anew when it fails.
+- The cache never writes or reads through a link it did not make: ``.part`` files, their
+  ``.part.json`` resume notes, the manifest and its lock are opened with ``O_NOFOLLOW`` and
+  refused when they are a symbolic link or have a second hard link; temporary files are made
+  with ``O_EXCL``. (A linked *directory* is followed: a cache on another disk is a common set-up.)
 - Redirects to another host are refused unless ``allow_redirects=True`` (``--allow-redirects``);
   every socket operation has a ``timeout`` (``--timeout``, default 30 s), so a stalled server fails
   in seconds, not minutes.
 - One process per cache entry: fetching an object holds :class:`rlu.locks.OutputLock` on its
   file, so a second ``rlu download`` of the same object fails with "in use by PID N" instead of
   writing into the same ``.part``.
+- Progress: one :class:`rlu.progress.Progress` over the bytes to fetch (a bar with rate and ETA
+  on a terminal, a plain line every 10 s otherwise, nothing with ``progress=False`` /
+  ``--quiet``); files done, failed and reused are counted apart.
 - Cache directory: the ``cache_dir`` argument (``--cache-dir``), else ``$RLU_CACHE_DIR``, else
-  ``~/.cache/rlu``. ``base_url`` (``--base-url``) points at a mirror.
+  ``~/.cache/rlu``. ``base_url`` (``--base-url``) points at a mirror. Proxies come from the usual
+  ``HTTPS_PROXY`` / ``HTTP_PROXY`` / ``NO_PROXY`` variables (urllib's rules).
+
+:meth:`Downloader.fetch_one` is the whole life of one shard (lock, reuse check, download with
+retries, verification, manifest entry) with no shared state but the manifest file, so another
+backend can run it per shard.
 """
 
 from __future__ import annotations
 
 import base64
+import errno
 import fcntl
 import hashlib
 import http.client
 import json
 import os
+import socket
+import ssl
 import struct
-import sys
 import threading
 import time
 import urllib.error
@@ -40,20 +62,38 @@ import urllib.parse
 import urllib.request
 import zlib
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
-from rlu.data.release.catalog import object_url
+from rlu.data.release.catalog import object_url, shard_limit
+from rlu.files import open_private, write_atomic
 from rlu.locks import OutputLock
+from rlu.progress import Progress
 from rlu.types import RluError
 
 CHUNK = 1 << 20
 USER_AGENT = "rlu-release-downloader"
 DEFAULT_TIMEOUT = 30.0
+MAX_BACKOFF = 10.0  # seconds: the longest wait between two tries of one file
+_GRACE = 1.0  # seconds the other workers get to stop once the command fails
+_MIRROR = "point --base-url at a mirror you can reach"
+_PROXY = "set HTTPS_PROXY / HTTP_PROXY (and NO_PROXY) if you need a proxy"
 
 
 class DownloadError(RluError):
-    """A file could not be fetched intact after every retry."""
+    """A file could not be fetched intact: a permanent error, or a transient one every retry."""
+
+
+class _Fail(Exception):
+    """One try failed; ``permanent``: no other try can mend it (the command ends)."""
+
+    def __init__(self, why: str, permanent: bool = False):
+        super().__init__(why)
+        self.why = why
+        self.permanent = permanent
+
+
+class _Stopped(Exception):
+    """The command is ending (another file failed, or Ctrl-C): this file was left as it was."""
 
 
 def cache_root(cache_dir: str | os.PathLike | None = None) -> str:
@@ -74,19 +114,46 @@ class Fetched:
     reused: bool
 
 
+# --- files that refuse links ---------------------------------------------------------------
+
+
+def _read_private(path: str) -> bytes | None:
+    """The bytes of a cache file, None when missing; a link is refused (see open_private)."""
+    try:
+        fd = open_private(path, os.O_RDONLY, "cache file")
+    except FileNotFoundError:
+        return None
+    with os.fdopen(fd, "rb") as f:
+        return f.read()
+
+
+def _read_json(path: str) -> dict:
+    try:
+        raw = _read_private(path)
+        got = json.loads(raw) if raw is not None else {}
+    except (OSError, ValueError):
+        return {}
+    return got if isinstance(got, dict) else {}
+
+
+def _write_json_atomic(path: str, value: dict) -> None:
+    """The manifest's bytes as before (sorted, indent 1), written by rlu.files.write_atomic (a
+    temporary opened with ``O_EXCL | O_NOFOLLOW``, renamed over ``path``)."""
+    write_atomic(path, json.dumps(value, indent=1, sort_keys=True))
+
+
 class _Manifest:
     """``manifest.json``: object -> {size, sha256, url, md5?}; written atomically, thread-safe."""
 
     def __init__(self, root: str):
         self.path = os.path.join(root, "manifest.json")
         self._lock = threading.Lock()
-        try:
-            with open(self.path) as f:
-                self.entries: dict[str, dict] = json.load(f)
-        except FileNotFoundError:
-            self.entries = {}
-        except (OSError, ValueError):
-            self.entries = {}  # a damaged manifest only costs re-verification by download
+        # a damaged manifest only costs re-verification by download; a linked one is refused
+        self.entries: dict[str, dict] = self._load()
+
+    def _load(self) -> dict[str, dict]:
+        got = _read_json(self.path)
+        return {k: v for k, v in got.items() if isinstance(k, str) and isinstance(v, dict)}
 
     def get(self, obj: str) -> dict | None:
         with self._lock:
@@ -102,25 +169,31 @@ class _Manifest:
         """Change one entry of the file as it is now on disk: another process downloading other
         objects into the same cache keeps its entries (a short blocking ``flock``)."""
         os.makedirs(os.path.dirname(self.path), exist_ok=True)
-        with self._lock, open(self.path + ".lock", "w") as lock:
-            fcntl.flock(lock, fcntl.LOCK_EX)
-            current = _read_json(self.path)
-            if entry is None:
-                if current.pop(obj, None) is None:
-                    self.entries.pop(obj, None)
-                    return
-            else:
-                current[obj] = entry
-            self.entries = current
-            tmp = f"{self.path}.{os.getpid()}.{threading.get_ident()}.tmp"
-            with open(tmp, "w") as f:
-                json.dump(current, f, indent=1, sort_keys=True)
-            os.replace(tmp, self.path)
+        with self._lock:
+            fd = open_private(self.path + ".lock", os.O_RDWR | os.O_CREAT, "cache lock")
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX)
+                current = self._load()
+                if entry is None:
+                    if current.pop(obj, None) is None:
+                        self.entries.pop(obj, None)
+                        return
+                else:
+                    current[obj] = entry
+                self.entries = current
+                _write_json_atomic(self.path, current)
+            finally:
+                os.close(fd)
+
+
+def read_manifest(root: str) -> dict[str, dict]:
+    """The entries of ``root/manifest.json`` ({} when missing or damaged; a link is refused)."""
+    return _Manifest(root).entries
 
 
 def sha256_file(path: str) -> str:
     h = hashlib.sha256()
-    with open(path, "rb") as f:
+    with os.fdopen(open_private(path, os.O_RDONLY, "cache file"), "rb") as f:
         while chunk := f.read(CHUNK * 4):
             h.update(chunk)
     return h.hexdigest()
@@ -137,46 +210,155 @@ def _goog_hashes(headers) -> dict[str, str]:
     return out
 
 
-class _Progress:
-    """A one-line progress bar on stderr: files done, bytes, rate."""
+# --- what an error means -----------------------------------------------------------------
 
-    def __init__(self, total_files: int, enabled: bool):
-        self.enabled = enabled
-        self.total_files = total_files
-        self.files = 0
-        self.bytes = 0
-        self.start = time.monotonic()
-        self._last = 0.0
+
+def _proxy_for(url: str) -> str | None:
+    """The proxy urllib sends ``url`` through (from the environment), None when direct."""
+    parts = urllib.parse.urlsplit(url)
+    proxies = urllib.request.getproxies()
+    proxy = proxies.get(parts.scheme)
+    if not proxy or (parts.hostname and urllib.request.proxy_bypass(parts.hostname)):
+        return None
+    return proxy
+
+
+def classify(exc: BaseException, url: str, timeout: float = DEFAULT_TIMEOUT) -> _Fail:
+    """What a failed request means: why (one clause) and whether another try could mend it."""
+    parts = urllib.parse.urlsplit(url)
+    host = parts.hostname or url
+    port = parts.port or (443 if parts.scheme == "https" else 80)
+    proxy = _proxy_for(url)
+    via = f" (through the proxy {proxy})" if proxy else ""
+    if isinstance(exc, urllib.error.HTTPError):
+        return _http_status(exc.code, str(exc.reason), url)
+    reason: object = exc.reason if isinstance(exc, urllib.error.URLError) else exc
+    if isinstance(reason, str):  # urllib's own words: a URL it cannot use
+        return _Fail(f"{reason}; check --base-url", permanent=True)
+    if isinstance(reason, socket.gaierror):
+        where = f"the proxy's host in {proxy}" if proxy else f"the host {host}"
+        return _Fail(
+            f"{where} cannot be resolved (DNS: {reason.strerror or reason}); offline or "
+            f"behind a firewall? {_MIRROR}, or {_PROXY}",
+            permanent=True,
+        )
+    if isinstance(reason, ConnectionRefusedError):
+        target = f"the proxy {proxy}" if proxy else f"{host}:{port}"
+        return _Fail(
+            f"connection refused by {target} (nothing listens there); {_MIRROR}, or {_PROXY}",
+            permanent=True,
+        )
+    if isinstance(reason, (TimeoutError, socket.timeout)):
+        return _Fail(f"no answer within --timeout {timeout:g} s{via} ({reason})")
+    if isinstance(reason, ssl.SSLCertVerificationError):
+        return _Fail(
+            f"TLS certificate of {host} not trusted ({reason.verify_message or reason}){via}; a "
+            "proxy that inspects HTTPS needs its CA in SSL_CERT_FILE, or " + _MIRROR,
+            permanent=True,
+        )
+    if isinstance(reason, (ssl.SSLEOFError, ssl.SSLZeroReturnError)):
+        return _Fail(f"the TLS connection was cut ({reason})")
+    if isinstance(reason, ssl.SSLError):
+        return _Fail(
+            f"TLS failed with {host}:{port} ({reason.reason or reason}){via}; is it an HTTPS "
+            f"server? Check --base-url's scheme and port, or {_PROXY}",
+            permanent=True,
+        )
+    if isinstance(reason, OSError) and reason.errno in (
+        errno.ENETUNREACH,
+        errno.EHOSTUNREACH,
+        errno.ENETDOWN,
+        errno.EADDRNOTAVAIL,
+    ):
+        return _Fail(
+            f"{host} cannot be reached ({reason.strerror}): offline? {_MIRROR}, or {_PROXY}",
+            permanent=True,
+        )
+    if isinstance(reason, (ConnectionError, http.client.IncompleteRead)):
+        return _Fail(f"the connection broke ({type(reason).__name__}: {reason})")
+    if isinstance(reason, http.client.HTTPException):
+        return _Fail(
+            f"{host}:{port} does not answer in HTTP ({type(reason).__name__}: {reason}); "
+            "check --base-url",
+            permanent=True,
+        )
+    if isinstance(reason, ValueError):
+        return _Fail(f"{reason}; check --base-url", permanent=True)
+    return _Fail(f"{type(reason).__name__}: {reason}{via}")
+
+
+def _http_status(code: int, reason: str, url: str) -> _Fail:
+    if code >= 500 or code in (408, 425, 429):
+        return _Fail(f"HTTP {code} {reason} (the server is busy or failing)")
+    if code in (404, 410):
+        fix = "check the task, --shards and --base-url (a mirror keeps the bucket's paths)"
+        return _Fail(f"not found (HTTP {code}); {fix}", permanent=True)
+    if code in (401, 403, 407):
+        who = "a proxy" if code == 407 else "the server"
+        return _Fail(
+            f"access denied by {who} (HTTP {code} {reason}); the public bucket needs no login: "
+            f"{_MIRROR}, or {_PROXY}",
+            permanent=True,
+        )
+    return _Fail(f"HTTP {code} {reason}; check --base-url", permanent=True)
+
+
+class _Tally:
+    """Files done / failed / reused and the bytes fetched, shown by one Progress (thread-safe).
+
+    The total is an estimate: the sizes announced so far plus their mean for each file that has
+    not answered yet; reused files count for nothing (nothing to fetch).
+    """
+
+    def __init__(self, files: int, progress: bool):
+        self.files = files
+        self.done = self.failed = self.reused = 0
+        self.sizes: dict[str, int] = {}  # object -> bytes it announced it still had to send
+        self.bar = Progress(None, "download", "B", quiet=not progress)
         self._lock = threading.Lock()
+        self._show()
+
+    def announce(self, obj: str, remaining: int | None) -> None:
+        with self._lock:
+            if obj not in self.sizes or remaining is not None:
+                self.sizes[obj] = remaining or 0
+            self._estimate()
 
     def add(self, n: int) -> None:
-        with self._lock:
-            self.bytes += n
-            self._draw()
+        self.bar.update(n)
 
-    def done(self) -> None:
+    def finished(self, f: Fetched) -> None:
         with self._lock:
-            self.files += 1
-            self._draw(force=True)
+            self.done += 1
+            if f.reused:
+                self.reused += 1
+            self._estimate()
+            self._show()
 
-    def _draw(self, force: bool = False) -> None:
-        if not self.enabled:
-            return
-        now = time.monotonic()
-        if not force and now - self._last < 0.2:
-            return
-        self._last = now
-        rate = self.bytes / max(now - self.start, 1e-6) / 1e6
-        width = 30
-        filled = int(width * self.files / max(self.total_files, 1))
-        bar = "#" * filled + "-" * (width - filled)
-        sys.stderr.write(
-            f"\r[{bar}] {self.files}/{self.total_files} files  "
-            f"{self.bytes / 1e6:,.1f} MB  {rate:,.1f} MB/s"
-        )
-        if self.files == self.total_files:
-            sys.stderr.write("\n")
-        sys.stderr.flush()
+    def fail(self) -> None:
+        with self._lock:
+            self.failed += 1
+            self._show()
+
+    def _estimate(self) -> None:
+        known = sum(self.sizes.values())
+        waiting = self.files - len(self.sizes) - self.reused - self.failed
+        mean = known / len(self.sizes) if self.sizes else 0
+        self.bar.set_total(known + max(0, waiting) * mean or None)
+
+    def _show(self) -> None:
+        fields = {"files": f"{self.done}/{self.files}"}
+        if self.failed:
+            fields["failed"] = self.failed
+        if self.reused:
+            fields["reused"] = self.reused
+        self.bar.set_postfix(**fields)
+
+    def summary(self) -> str:
+        return f"{self.done} of {self.files} files done, {self.failed} failed"
+
+    def close(self, failed: bool) -> None:
+        self.bar.close(failed)
 
 
 class Downloader:
@@ -193,18 +375,23 @@ class Downloader:
         progress: bool | None = None,
         verify_reuse: bool = True,
         allow_redirects: bool = False,
+        max_bytes: int | None = None,
     ):
+        """``progress``: show one (False: nothing; None or True: a bar on a terminal, plain
+        lines elsewhere). ``max_bytes``: the bound of a body without a length (default: the
+        object's family's largest shard, :func:`rlu.data.release.catalog.shard_limit`)."""
         self.root = release_dir(cache_dir)
         self.base_url = base_url or os.environ.get("RLU_RELEASE_BASE_URL") or None
         self.workers = max(1, workers)
         self.retries = retries
         self.backoff = backoff
         self.timeout = timeout
-        self.progress = sys.stderr.isatty() if progress is None else progress
+        self.progress = progress is not False
         self.verify_reuse = verify_reuse
         self.allow_redirects = allow_redirects
+        self.max_bytes = max_bytes
         self.manifest = _Manifest(self.root)
-        self.sleep: Callable[[float], None] = time.sleep
+        self.sleep: Callable[[float], object] | None = None  # None: wait, unless stopped
         self._opener = urllib.request.build_opener(_Redirects(allow_redirects))
 
     def path_of(self, obj: str) -> str:
@@ -214,38 +401,112 @@ class Downloader:
         return os.path.join(self.root, *parts)
 
     def fetch(self, objects: Sequence[str]) -> list[Fetched]:
-        """Download (or reuse) every object; returns them in order. Raises on any failure."""
-        bar = _Progress(len(objects), self.progress)
+        """Download (or reuse) every object; returns them in order.
+
+        The first file that fails ends the command: the other workers stop at their next chunk
+        (given ``_GRACE`` seconds, then left to finish in the background, writing only their
+        ``.part``) and its error is raised, with how many files were done.
+        """
+        objects = list(objects)
+        stop = threading.Event()
+        tally = _Tally(len(objects), self.progress)
         results: list[Fetched | None] = [None] * len(objects)
         errors: list[BaseException] = []
+        todo = iter(range(len(objects)))
+        lock = threading.Lock()
 
-        def one(i: int) -> None:
-            try:
-                results[i] = self._fetch_one(objects[i], bar)
-            except BaseException as e:  # collected and re-raised below
-                errors.append(e)
-            finally:
-                bar.done()
+        def work() -> None:
+            while not stop.is_set():
+                with lock:
+                    i = next(todo, None)
+                if i is None:
+                    return
+                obj = objects[i]
+                try:
+                    results[i] = got = self.fetch_one(
+                        obj, tally.add, lambda n, o=obj: tally.announce(o, n), stop
+                    )
+                    tally.finished(got)
+                except _Stopped:
+                    return
+                except (KeyboardInterrupt, SystemExit):
+                    stop.set()
+                    raise
+                except BaseException as e:  # the first one ends the command
+                    tally.fail()
+                    with lock:
+                        errors.append(e)
+                    stop.set()
+                    return
 
-        if self.workers == 1 or len(objects) <= 1:
-            for i in range(len(objects)):
-                one(i)
-        else:
-            with ThreadPoolExecutor(self.workers) as pool:
-                list(pool.map(one, range(len(objects))))
+        ok = False
+        try:
+            if self.workers == 1 or len(objects) <= 1:
+                work()
+            else:
+                # daemon threads: one stuck in a silent socket read cannot hold the command
+                threads = [
+                    threading.Thread(target=work, name=f"rlu-download-{k}", daemon=True)
+                    for k in range(min(self.workers, len(objects)))
+                ]
+                for t in threads:
+                    t.start()
+                deadline = None
+                while any(t.is_alive() for t in threads):
+                    for t in threads:
+                        t.join(0.05)
+                    if stop.is_set():
+                        deadline = deadline or time.monotonic() + _GRACE
+                        if time.monotonic() > deadline:
+                            break
+            ok = not errors
+        except BaseException:
+            stop.set()  # Ctrl-C: the workers stop at their next chunk
+            raise
+        finally:
+            tally.close(failed=not ok)
         if errors:
             first = errors[0]
-            if isinstance(first, RluError):
-                if len(errors) > 1:
-                    raise DownloadError(f"{first} (and {len(errors) - 1} more files failed)")
-                raise first
+            if isinstance(first, DownloadError) and len(objects) > 1:
+                raise DownloadError(f"{first} ({tally.summary()})") from None
             raise first
         return [r for r in results if r is not None]
 
     # --- one file ---
 
-    def _reuse(self, obj: str, path: str) -> Fetched | None:
+    def fetch_one(
+        self,
+        obj: str,
+        on_bytes: Callable[[int], object] | None = None,
+        on_size: Callable[[int | None], object] | None = None,
+        stop: threading.Event | None = None,
+    ) -> Fetched:
+        """Reuse (verified) or download one object under its cache-entry lock.
+
+        ``on_bytes(n)``: n more bytes arrived; ``on_size(n)``: the server announced n bytes still
+        to come for this file (None: no length; a later call replaces an earlier one). ``stop``:
+        set by another thread to end the download at its next chunk (raises ``_Stopped``).
+        Raises :class:`DownloadError` when the file cannot be had intact.
+        """
+        stop = stop or threading.Event()
+        path = self.path_of(obj)
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        with OutputLock(path, "cache entry"):
+            got = self.verify_cached(obj, path)
+            if got is not None:
+                return got
+            return self._download(obj, path, on_bytes or _ignore, on_size or _ignore, stop)
+
+    def verify_cached(self, obj: str, path: str | None = None) -> Fetched | None:
+        """The cached file of ``obj`` when the manifest records it and it still verifies (size,
+        and with ``verify_reuse`` sha256 and framing); a damaged one is removed (None)."""
+        path = path or self.path_of(obj)
         entry = self.manifest.get(obj)
+        if os.path.islink(path):
+            raise DownloadError(
+                f"{path}: a symbolic link where rlu keeps a downloaded shard; rlu never reads its "
+                "cache through a link: remove it (and find out who made it)"
+            )
         if entry is None or not os.path.isfile(path):
             return None
         size = os.path.getsize(path)
@@ -259,58 +520,74 @@ class Downloader:
             return None
         return Fetched(obj, path, size, entry["sha256"], True)
 
-    def _fetch_one(self, obj: str, bar: _Progress) -> Fetched:
-        path = self.path_of(obj)
-        os.makedirs(os.path.dirname(path), exist_ok=True)
-        with OutputLock(path, "cache entry"):
-            got = self._reuse(obj, path)
-            if got is not None:
-                return got
-            return self._download(obj, path, bar)
-
-    def _download(self, obj: str, path: str, bar: _Progress) -> Fetched:
+    def _download(
+        self,
+        obj: str,
+        path: str,
+        on_bytes: Callable[[int], object],
+        on_size: Callable[[int | None], object],
+        stop: threading.Event,
+    ) -> Fetched:
         url = object_url(obj, self.base_url)
         part = path + ".part"
         meta_path = part + ".json"
-        last_error = ""
+        limit = self.max_bytes or shard_limit(obj)
+        sleep = self.sleep or stop.wait
+        last = ""
         for attempt in range(self.retries + 1):
             if attempt:
-                self.sleep(self.backoff * (2 ** (attempt - 1)))
+                sleep(min(self.backoff * 2 ** (attempt - 1), MAX_BACKOFF))
+            if stop.is_set():
+                raise _Stopped
             try:
-                ok, why = self._attempt(url, part, meta_path, bar)
-                if ok:
-                    why = release_framing(part, obj)
-                    ok = not why
-                    if not ok:
-                        _remove(part, meta_path)
-            except (urllib.error.URLError, http.client.HTTPException, OSError, ValueError) as e:
-                reason = e.reason if isinstance(e, urllib.error.URLError) else e
-                ok, why = False, f"{type(e).__name__}: {reason}"
-                if isinstance(reason, TimeoutError):
-                    why = f"no answer within --timeout {self.timeout:g} s ({reason})"
-            if ok:
-                digest = sha256_file(part)
-                size = os.path.getsize(part)
-                os.replace(part, path)
-                meta = _read_json(meta_path)
-                if os.path.exists(meta_path):
-                    os.remove(meta_path)
-                entry = {"size": size, "sha256": digest, "url": url}
-                if meta.get("md5"):
-                    entry["md5"] = meta["md5"]
-                self.manifest.put(obj, entry)
-                return Fetched(obj, path, size, digest, False)
-            last_error = why
+                self._attempt(url, part, meta_path, limit, on_bytes, on_size, stop)
+                why = release_framing(part, obj)
+                if why:
+                    _remove(part, meta_path)
+                    raise _Fail(why)
+            except (_Fail, urllib.error.URLError, http.client.HTTPException, OSError,
+                    ValueError) as e:  # fmt: skip
+                fail = e if isinstance(e, _Fail) else classify(e, url, self.timeout)
+                if fail.permanent:
+                    _remove_if_empty(part, meta_path)
+                    raise DownloadError(f"cannot download {url}: {fail.why}") from None
+                last = fail.why
+                continue
+            digest = sha256_file(part)
+            size = os.path.getsize(part)
+            os.replace(part, path)
+            meta = _read_json(meta_path)
+            _remove(meta_path)
+            entry = {"size": size, "sha256": digest, "url": url}
+            if meta.get("md5"):
+                entry["md5"] = meta["md5"]
+            self.manifest.put(obj, entry)
+            return Fetched(obj, path, size, digest, False)
+        _remove_if_empty(part, meta_path)
+        have = os.path.getsize(part) if os.path.isfile(part) else 0
+        kept = (
+            f"the {have:,} bytes so far are kept in {part}: run the command again to resume"
+            if have
+            else "run the command again later"
+        )
         raise DownloadError(
-            f"could not download {url} after {self.retries + 1} attempts: {last_error}. "
-            f"Run the command again to resume (the bytes so far are kept in {part}), or point "
-            f"--base-url at a mirror"
+            f"could not download {url} after {self.retries + 1} tries: {last}; {kept}, or {_MIRROR}"
         )
 
-    def _attempt(self, url: str, part: str, meta_path: str, bar: _Progress) -> tuple[bool, str]:
-        """One request; True when ``part`` now holds the whole object, checked against the
-        headers (length, hashes); the caller then checks its framing."""
-        have = os.path.getsize(part) if os.path.exists(part) else 0
+    def _attempt(
+        self,
+        url: str,
+        part: str,
+        meta_path: str,
+        limit: int,
+        on_bytes: Callable[[int], object],
+        on_size: Callable[[int | None], object],
+        stop: threading.Event,
+    ) -> None:
+        """One request; returns when ``part`` holds the whole object, checked against the
+        headers (length, hashes) and ``limit``; raises :class:`_Fail` (or a network error for
+        :func:`classify`) otherwise. The caller checks the framing."""
+        have = os.path.getsize(part) if os.path.isfile(part) and not os.path.islink(part) else 0
         meta = _read_json(meta_path)
         if have and not meta:
             have = 0  # bytes of unknown origin: start over
@@ -325,50 +602,71 @@ class Downloader:
             e.close()
             if e.code == 416:  # our part is no prefix of the object any more
                 _remove(part, meta_path)
-                return False, "HTTP 416 on resume; starting over"
-            if e.code == 404:
-                raise DownloadError(
-                    f"{url}: not found (HTTP 404); check the task and shards"
-                ) from None
-            return False, f"HTTP {e.code} {e.reason}"
+                raise _Fail("HTTP 416 on resume; starting over") from None
+            raise _http_status(e.code, str(e.reason), url) from None
         with resp:
             status = resp.status
             headers = resp.headers
             ctype = (headers.get("Content-Type") or "").split(";")[0].strip().lower()
             if ctype in ("text/html", "application/xhtml+xml"):
-                return False, (
-                    f"the server answered {url} with a web page ({ctype}), not a release file; "
-                    "check --base-url (a login or error page?)"
+                raise _Fail(
+                    f"the server answers with a web page ({ctype}), not a release file; check "
+                    "--base-url (a login, error or captive-portal page?)",
+                    permanent=True,
                 )
             if status == 206 and have:
                 total = _content_range_total(headers.get("Content-Range"))
-                mode = "ab"
+                append = True
             else:
                 have = 0
                 total = _int(headers.get("Content-Length"))
-                mode = "wb"
-                hashes = _goog_hashes(headers)
-                meta = {"etag": headers.get("ETag"), "size": total, **hashes}
-                with open(meta_path, "w") as f:
-                    json.dump(meta, f)
+                append = False
+                meta = {"etag": headers.get("ETag"), "size": total, **_goog_hashes(headers)}
             if total is None:
                 total = meta.get("size")
-            with open(part, mode) as f:
-                longer = _copy_body(resp, f, bar)
+            if total is not None and total > limit:
+                raise _Fail(
+                    f"the server announces {total:,} bytes, more than any shard of this family "
+                    f"({limit:,}): not a release file; check --base-url",
+                    permanent=True,
+                )
+            on_size(None if total is None else total - have)
+            flags = os.O_WRONLY | os.O_CREAT | (os.O_APPEND if append else os.O_TRUNC)
+            fd = open_private(part, flags, "partial download")
+            if not append:
+                _write_private(meta_path, json.dumps(meta).encode())
+            with os.fdopen(fd, "wb") as f:
+                longer = _copy_body(resp, f, part, limit - have, on_bytes, stop)
         size = os.path.getsize(part)
+        if longer == "over":
+            _remove(part, meta_path)
+            raise _Fail(
+                f"the body goes on past {limit:,} bytes without a length, more than any shard "
+                "of this family: a broken or hostile server; check --base-url",
+                permanent=True,
+            )
         if longer:
             _remove(part, meta_path)
-            return False, "the server sent more bytes than its Content-Length announced"
+            raise _Fail("the server sent more bytes than its Content-Length announced")
         if total is not None and size < total:
-            return False, f"connection closed after {size} of {total} bytes"
+            raise _Fail(f"connection closed after {size:,} of {total:,} bytes")
         if total is not None and size > total:
             _remove(part, meta_path)
-            return False, f"received {size} bytes, more than the {total} announced"
+            raise _Fail(f"received {size:,} bytes, more than the {total:,} announced")
         why = _check_hashes(part, meta)
         if why:
             _remove(part, meta_path)
-            return False, why
-        return True, ""
+            raise _Fail(why)
+
+
+def _ignore(*_: object) -> None:
+    pass
+
+
+def _write_private(path: str, data: bytes) -> None:
+    fd = open_private(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, "download note")
+    with os.fdopen(fd, "wb") as f:
+        f.write(data)
 
 
 class _Redirects(urllib.request.HTTPRedirectHandler):
@@ -389,32 +687,58 @@ class _Redirects(urllib.request.HTTPRedirectHandler):
         return super().redirect_request(req, fp, code, msg, headers, newurl)
 
 
-def _copy_body(resp: http.client.HTTPResponse, f, bar: _Progress) -> bool:
-    """Copy the body to ``f``; True when the server sent more than its Content-Length.
+def _copy_body(
+    resp: http.client.HTTPResponse,
+    f,
+    part: str,
+    limit: int,
+    on_bytes: Callable[[int], object],
+    stop: threading.Event,
+) -> str:
+    """Copy the body to ``f``: '' when whole, 'longer' when the server sent more than its
+    Content-Length, 'over' when a body without a length went past ``limit`` bytes.
 
     ``http.client`` stops reading at Content-Length and drops the rest silently, so with a length
     the body is read from the connection itself, then one more byte is asked for: the request
-    said ``Connection: close``, so an honest server has closed it (EOF) by then.
+    said ``Connection: close``, so an honest server has closed it (EOF) by then. Without a length
+    (chunked, or until close) at most ``limit + 1`` bytes are read.
     """
     declared = resp.length
     if resp.chunked or declared is None:
-        while chunk := resp.read(CHUNK):
-            f.write(chunk)
-            bar.add(len(chunk))
-        return False
+        left = limit + 1
+        while left > 0 and (chunk := resp.read(min(CHUNK, left))):
+            _write(f, chunk, part)
+            on_bytes(len(chunk))
+            left -= len(chunk)
+            if stop.is_set():
+                raise _Stopped
+        return "over" if left <= 0 else ""
     fp = resp.fp
     left = declared
     while left > 0:
         chunk = fp.read(min(CHUNK, left))
         if not chunk:
-            return False  # cut: the size check names it
-        f.write(chunk)
-        bar.add(len(chunk))
+            return ""  # cut: the size check names it
+        _write(f, chunk, part)
+        on_bytes(len(chunk))
         left -= len(chunk)
+        if stop.is_set():
+            raise _Stopped
     try:
-        return bool(fp.read1(1))
+        return "longer" if fp.read1(1) else ""
     except TimeoutError:
-        return False  # a server that keeps the connection open sent nothing more
+        return ""  # a server that keeps the connection open sent nothing more
+
+
+def _write(f, chunk: bytes, part: str) -> None:
+    """A failed write (a full disk) is this machine's, not the server's: it ends the command."""
+    try:
+        f.write(chunk)
+    except OSError as e:
+        raise DownloadError(
+            f"{part}: cannot write the download ({e.strerror or e}); free space or choose "
+            "another --cache-dir"
+        ) from None
 
 
 def release_framing(path: str, obj: str) -> str:
@@ -425,12 +749,12 @@ def release_framing(path: str, obj: str) -> str:
     error or a truncated first block fails here, before the file is recorded.
     """
     from rlu.data.release.families import FAMILIES
-    from rlu.data.release.framing import GZIP_MAGIC, MAX_RECORD_BYTES, masked_crc32c
+    from rlu.data.release.framing import GZIP_MAGIC, masked_crc32c
 
     fam = FAMILIES.get(obj.split("/", 1)[0])
     if fam is None:
         return ""  # not a catalog object: nothing is known to check
-    with open(path, "rb") as f:
+    with os.fdopen(open_private(path, os.O_RDONLY, "partial download"), "rb") as f:
         head = f.read(1 << 16)
     if fam.compression == "gzip":
         if head[:2] != GZIP_MAGIC:
@@ -442,8 +766,13 @@ def release_framing(path: str, obj: str) -> str:
     if len(head) < 12:
         return f"no TFRecord header in the first bytes ({len(head)} bytes): not a {fam.name} shard"
     (length,) = struct.unpack("<Q", head[:8])
-    if length > MAX_RECORD_BYTES or struct.unpack("<I", head[8:12])[0] != masked_crc32c(head[:8]):
+    if struct.unpack("<I", head[8:12])[0] != masked_crc32c(head[:8]):
         return f"its first record header is not TFRecord framing: not a {fam.name} shard"
+    if length > fam.max_record_bytes:
+        return (
+            f"its first record declares {length:,} bytes, over the {fam.max_record_bytes:,} a "
+            f"{fam.name} record may have ({fam.record_note}): not a {fam.name} shard"
+        )
     return ""
 
 
@@ -458,7 +787,7 @@ def _check_hashes(path: str, meta: dict) -> str:
         import google_crc32c
 
         c = google_crc32c.Checksum()
-    with open(path, "rb") as f:
+    with os.fdopen(open_private(path, os.O_RDONLY, "partial download"), "rb") as f:
         while chunk := f.read(CHUNK * 4):
             h.update(chunk)
             if c is not None:
@@ -470,18 +799,16 @@ def _check_hashes(path: str, meta: dict) -> str:
     return ""
 
 
-def _read_json(path: str) -> dict:
-    try:
-        with open(path) as f:
-            return json.load(f)
-    except (OSError, ValueError):
-        return {}
-
-
 def _remove(*paths: str) -> None:
     for p in paths:
-        if os.path.exists(p):
-            os.remove(p)
+        if os.path.lexists(p) and not os.path.isdir(p):
+            os.remove(p)  # a link is removed, never what it points to
+
+
+def _remove_if_empty(part: str, meta_path: str) -> None:
+    """Drop a ``.part`` that holds no byte (and its note): nothing to resume from."""
+    if os.path.isfile(part) and not os.path.islink(part) and os.path.getsize(part) == 0:
+        _remove(part, meta_path)
 
 
 def _int(v: str | None) -> int | None:

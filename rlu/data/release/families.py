@@ -8,6 +8,7 @@ Two views of each record (docs/release_format.md §3, §4):
 - ``segments``: the same data in rlu's model (:class:`rlu.data.episode.Segment`, RLDS steps). Each
   family's alignment rule, pinned by one test each in ``tests/release/test_families.py``:
 
+  ```text
   ============================  ==============================================================
   family                        reward_t / discount_t / final step
   ============================  ==============================================================
@@ -34,6 +35,7 @@ Two views of each record (docs/release_format.md §3, §4):
                                 every LAST is terminal (the notebook's loader)
   dmlab                         fixed-length episodes, values as stored; pixels BGR -> RGB
   ============================  ==============================================================
+  ```
 
 Where a segment's last step carries values the file holds (windows), they are kept, so that the
 transition view yields exactly the loader's ``(o_t, a_t, r_t, d_t, o_tp1, a_tp1)``.
@@ -52,6 +54,7 @@ from rlu.data.episode import Segment
 from rlu.data.release import example as ex
 from rlu.data.release.framing import RecordReader, RecordWriter
 from rlu.data.release.png import decode_png, encode_png
+from rlu.tasks import ATARI_MAX_AGENT_STEPS
 from rlu.types import FormatError
 
 FIRST, MID, LAST = 0, 1, 2
@@ -409,6 +412,12 @@ def parse_atari_episodes(cols: Mapping[str, Any], where: str = "record") -> list
             raise FormatError(f"{where}: 'observations' must be a bytes_list of PNG frames")
         t = _integers(_numeric(_need(row, "actions", where), "actions", where), "actions", where)
         t = t.shape[1]
+        if t > ATARI_MAX_AGENT_STEPS + 1:
+            # checked before a frame is decoded: 100 MB of tiny PNGs would inflate to gigabytes
+            raise FormatError(
+                f"{where}: an episode of {t:,} steps; the recording stopped episodes at "
+                f"{ATARI_MAX_AGENT_STEPS:,} agent steps (108,000 frames)"
+            )
         rec: Raw = {}
         for k in _ATARI_EP_LISTS:
             v = _numeric(_need(row, k, where), k, where)
@@ -682,27 +691,59 @@ class Family:
     encode: Callable[[Mapping[str, np.ndarray]], bytes]
     whole_episodes: bool
     """True when one record is one whole episode."""
+    max_record_bytes: int
+    """The longest record rlu reads in this family's files: a longer length header is damage or
+    a bomb and is refused before any of the record is held (see ``record_note``)."""
+    max_shard_bytes: int
+    """The largest file a download of one of its shards may be: an endless body stops here."""
+    record_note: str
+    """What the family's records are, for the error that refuses a longer one."""
 
 
+_MiB, _GiB = 1 << 20, 1 << 30
+# Limits: well above what the release holds (sizes from the TFDS catalog, which describe the same
+# data re-encoded; docs/release_format.md §5), well below what a machine cannot hold. Records: a
+# window of 2 or 40 steps is a few kB (a locomotion seq40 window with its 64x64x3 camera, 0.5
+# MB); a control-suite or RWRL episode is 1000 steps of at most ~90 floats (under 1 MB); a
+# locomotion episode keeps 12,288 camera bytes per step (about 12-18 MB); an Atari episode up to
+# 27,000 PNG frames (tens of MB); a DMLab episode of 72x96x3 PNG frames (3-14 MB on average).
+# Shards: a control-suite task is at most 1.21 GiB in 100 shards, a locomotion task 23.1 GiB in
+# 100, an Atari run about 75 GiB in 100 (or 50 episode shards), RWRL 6.78 GiB in 391, DMLab
+# shards 145-265 MB.
 FAMILIES: Mapping[str, Family] = {
     f.name: f
     for f in (
         Family("atari", "gzip", parse_atari_transitions, atari_transition_segments,
-               encode_atari_transition, False),
+               encode_atari_transition, False, 4 * _MiB, 4 * _GiB,
+               "an Atari transition is 8 PNG frames, tens of kB"),
         Family("atari_episodes_ordered", "gzip", parse_atari_episodes, atari_episode_segment,
-               encode_atari_episode, True),
+               encode_atari_episode, True, 128 * _MiB, 8 * _GiB,
+               "an Atari episode is at most 27,000 PNG frames, tens of MB"),
         Family("dm_control_suite", "gzip", parse_sequences, window_segments, encode_sequence,
-               False),
+               False, 4 * _MiB, 256 * _MiB, "a control-suite window of 2 steps is a few kB"),
         Family("dm_control_suite_episodes", "gzip", parse_sequences, episode_segments,
-               encode_sequence, True),
-        Family("dm_locomotion", "gzip", parse_sequences, window_segments, encode_sequence, False),
+               encode_sequence, True, 16 * _MiB, 256 * _MiB,
+               "a control-suite episode of 1000 steps is under 1 MB"),
+        Family("dm_locomotion", "gzip", parse_sequences, window_segments, encode_sequence, False,
+               16 * _MiB, 4 * _GiB, "a locomotion window of 2 or 40 steps is under 1 MB"),
         Family("dm_locomotion_episodes", "gzip", parse_sequences, episode_segments,
-               encode_sequence, True),
-        Family("rwrl", None, parse_rwrl, rwrl_segments, encode_rwrl, True),
-        Family("bsuite", "gzip", parse_bsuite, bsuite_segments, encode_bsuite, False),
-        Family("dmlab", "gzip", parse_dmlab, dmlab_segment, encode_dmlab, True),
+               encode_sequence, True, 128 * _MiB, 4 * _GiB,
+               "a locomotion episode with its camera is about 12-18 MB"),
+        Family("rwrl", None, parse_rwrl, rwrl_segments, encode_rwrl, True, 32 * _MiB, 1 * _GiB,
+               "an RWRL episode of 1000 steps is under 1 MB"),
+        Family("bsuite", "gzip", parse_bsuite, bsuite_segments, encode_bsuite, False, 4 * _MiB,
+               1 * _GiB, "a bsuite transition is a few kB"),
+        Family("dmlab", "gzip", parse_dmlab, dmlab_segment, encode_dmlab, True, 128 * _MiB,
+               4 * _GiB, "a DMLab episode of 72x96 PNG frames is 3-14 MB on average"),
     )
 }  # fmt: skip
+
+
+def reader_for(path: str | os.PathLike, family: str, **kw: Any) -> RecordReader:
+    """A :class:`RecordReader` of one of ``family``'s files, with the family's record limit."""
+    fam = get_family(family)
+    note = f"{fam.record_note}; a longer one is damage or a bomb, not a {fam.name} record"
+    return RecordReader(path, max_record_bytes=fam.max_record_bytes, limit_note=note, **kw)
 
 
 def get_family(name: str) -> Family:
@@ -716,6 +757,12 @@ def get_family(name: str) -> Family:
 
 def _batch_size(fam: Family) -> int:
     return 64 if fam.name in ("atari", "atari_episodes_ordered", "dmlab") else 4096
+
+
+# Records of one decode batch, in bytes: a batch is decoded as soon as it holds this much, so a
+# shard of long records (whole episodes, or a bomb of 100 MB records) costs one batch of memory
+# at a time, never the shard. Batches only group the work: the output is the same for any size.
+_BATCH_BYTES = 64 << 20
 
 
 # What a record that passed its CRC but is not what its family holds makes numpy and the parsers
@@ -780,12 +827,21 @@ def _read(
 
     pending: list[bytes] = []
     pending_at: list[int] = []
+    held = 0  # bytes in pending
     for batch, offsets in rd.batches_with_offsets():
+        # a reader batch is one inflated chunk's worth of records: held overshoots by one at most
         pending.extend(batch)
         pending_at.extend(offsets)
-        while len(pending) >= size:
-            yield from flush(pending[:size], pending_at[:size])
-            pending, pending_at = pending[size:], pending_at[size:]
+        held += sum(map(len, batch))
+        batch.clear()  # the reader's list too: a record lives on in pending only
+        while len(pending) >= size or (pending and held >= _BATCH_BYTES):
+            n = size if len(pending) >= size else len(pending)
+            recs, at = pending[:n], pending_at[:n]
+            pending, pending_at = pending[n:], pending_at[n:]
+            held -= sum(map(len, recs))
+            out = flush(recs, at)
+            del recs  # decoded: the raw records go before the consumer gets the batch
+            yield from out
     if pending:
         yield from flush(pending, pending_at)
 
@@ -800,7 +856,7 @@ def iter_raw(
 ) -> Iterator[Raw]:
     """Loader-shaped batches (dicts of arrays stacked on a record axis) of one shard, in order."""
     fam = get_family(family)
-    rd = reader or RecordReader(path, verify=verify, on_error=on_error)
+    rd = reader or reader_for(path, family, verify=verify, on_error=on_error)
     yield from _read(fam, rd, segments=False, skip=on_error == "skip")  # type: ignore[misc]
 
 
@@ -814,7 +870,7 @@ def iter_segments(
 ) -> Iterator[SegmentBatch]:
     """The shard's records as segment batches (each family's alignment rule), in order."""
     fam = get_family(family)
-    rd = reader or RecordReader(path, verify=verify, on_error=on_error)
+    rd = reader or reader_for(path, family, verify=verify, on_error=on_error)
     yield from _read(fam, rd, segments=True, skip=on_error == "skip")  # type: ignore[misc]
 
 

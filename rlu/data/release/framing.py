@@ -31,6 +31,7 @@ from typing import BinaryIO
 
 import numpy as np
 
+from rlu.files import open_private
 from rlu.types import FormatError
 
 GZIP_MAGIC = b"\x1f\x8b"
@@ -48,9 +49,11 @@ def _crc_impl():
     try:
         import google_crc32c
     except ImportError as e:  # pragma: no cover - the release extra installs it
-        raise ImportError(
+        # named, so that the command line prints the extra's install line (rlu.cli.EXTRA_OF)
+        raise ModuleNotFoundError(
             "reading RL Unplugged release files needs the C-backed CRC-32C: "
-            "pip install 'rlu[release]' (google-crc32c)"
+            "pip install 'rlu[release]' (google-crc32c)",
+            name="google_crc32c",
         ) from e
     return google_crc32c.value
 
@@ -218,6 +221,10 @@ class RecordReader:
 
     ``batches()`` yields lists of payloads (bytes), a chunk's worth at a time; ``__iter__`` yields
     payloads one by one. ``stats`` says what was read and skipped.
+
+    ``max_record_bytes`` (at most :data:`MAX_RECORD_BYTES`) refuses a longer record at its header,
+    before any of it is held: each family passes its own (``families.Family.max_record_bytes``),
+    with ``limit_note`` saying why in the error.
     """
 
     def __init__(
@@ -228,10 +235,14 @@ class RecordReader:
         on_error: str = "raise",
         compression: str | None = None,
         prefetch: bool = False,
+        max_record_bytes: int = MAX_RECORD_BYTES,
+        limit_note: str = "",
     ):
         if on_error not in ("raise", "skip"):
             raise ValueError("on_error must be 'raise' or 'skip'")
         self.path = os.fspath(path)
+        self.max_record_bytes = min(max_record_bytes, MAX_RECORD_BYTES)
+        self.limit_note = limit_note or "the release's records are tens of MB at most"
         self.verify = verify
         self.skip = on_error == "skip"
         self.compression = compression
@@ -259,7 +270,7 @@ class RecordReader:
 
     def _resync(self, buf: bytes, start: int) -> int:
         """First offset >= start where a plausible header with a valid length CRC begins."""
-        return _find_header(buf, start, len(buf) - 12)
+        return _find_header(buf, start, len(buf) - 12, self.max_record_bytes)
 
     def batches(self) -> Iterator[list[bytes]]:
         for payloads, _ in self.batches_with_offsets():
@@ -352,11 +363,11 @@ class RecordReader:
                 pos += 1
                 continue
             (length,) = struct.unpack("<Q", header)
-            if length > MAX_RECORD_BYTES:
+            if length > self.max_record_bytes:
                 self._bad(
                     base + pos,
-                    f"record length {length} is implausible (the release's records are under "
-                    f"{MAX_RECORD_BYTES} bytes)",
+                    f"record length {length:,} bytes is over the limit of "
+                    f"{self.max_record_bytes:,} ({self.limit_note})",
                 )
                 skipping = True
                 pos += 1
@@ -445,8 +456,8 @@ def _crc_table() -> np.ndarray:
     return _CRC_TABLE
 
 
-def _find_header(buf: bytes, start: int, last: int) -> int:
-    """First offset o in [start, last] where ``buf[o:o+8]`` is a length <= MAX_RECORD_BYTES and
+def _find_header(buf: bytes, start: int, last: int, limit: int = MAX_RECORD_BYTES) -> int:
+    """First offset o in [start, last] where ``buf[o:o+8]`` is a length <= ``limit`` and
     ``buf[o+8:o+12]`` its masked CRC-32C; -1 if none.
 
     Vectorised: the cheap necessary conditions first (a length up to 2^27 has its top four bytes
@@ -459,7 +470,7 @@ def _find_header(buf: bytes, start: int, last: int) -> int:
         return -1
     u = np.frombuffer(buf, np.uint8)
     table = _crc_table()
-    top = (MAX_RECORD_BYTES.bit_length() + 7) // 8  # bytes of the length that may be non-zero
+    top = (limit.bit_length() + 7) // 8  # bytes of the length that may be non-zero
     for a in range(start, last + 1, _SCAN):
         n = min(_SCAN, last + 1 - a)
         high = np.zeros(n, np.uint8)
@@ -480,7 +491,7 @@ def _find_header(buf: bytes, start: int, last: int) -> int:
         masked = ((crc >> np.uint32(15)) | (crc << np.uint32(17))) + np.uint32(_MASK_DELTA)
         stored = np.ascontiguousarray(win[:, 8:12]).view("<u4")[:, 0]
         length = np.ascontiguousarray(win[:, :8]).view("<u8")[:, 0]
-        hit = np.flatnonzero((masked == stored) & (length <= MAX_RECORD_BYTES))
+        hit = np.flatnonzero((masked == stored) & (length <= limit))
         if hit.size:
             return a + int(cand[hit[0]])
     return -1
@@ -520,7 +531,8 @@ class RecordWriter:
     def __init__(self, path: str | os.PathLike, compression: str | None = "gzip", level: int = 6):
         self.path = os.fspath(path)
         self._tmp = self.path + ".partial"
-        raw = open(self._tmp, "wb")
+        # never through a link planted at the temporary name
+        raw = os.fdopen(open_private(self._tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC), "wb")
         self._raw = raw
         if compression == "gzip":
             # mtime=0 keeps the bytes reproducible; one member, as TF writes it.

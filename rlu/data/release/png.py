@@ -32,8 +32,9 @@ def _pil():
         try:
             from PIL import Image
         except ImportError as e:
-            raise ImportError(
-                "decoding the release's PNG frames needs Pillow: pip install 'rlu[release]'"
+            raise ModuleNotFoundError(
+                "decoding the release's PNG frames needs Pillow: pip install 'rlu[release]'",
+                name="PIL",
             ) from e
         Image.MAX_IMAGE_PIXELS = max(Image.MAX_IMAGE_PIXELS or 0, 1 << 26)
         _Image = Image

@@ -295,6 +295,14 @@ class DatasetWriter:
             raise
 
     def _exists_check(self) -> None:
+        if self.dest.is_symlink() or (self.dest.exists() and not self.dest.is_dir()):
+            raise RluError(f"{self.dest} exists and is not a folder; choose another --out")
+        if self.dest.exists() and self.overwrite and any(self.dest.iterdir()):
+            if not (self.dest / MANIFEST).is_file():
+                raise RluError(
+                    f"{self.dest} exists and is not an rlu dataset (no {MANIFEST}); --overwrite "
+                    "replaces only an rlu dataset: choose another --out or empty it yourself"
+                )
         if self.dest.exists() and not self.overwrite:
             raise RluError(
                 f"{self.dest} already exists; choose another --out or remove it (overwrite=True)"

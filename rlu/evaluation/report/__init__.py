@@ -18,26 +18,34 @@ from typing import Any
 from rlu import runs
 from rlu.evaluation.report.numbers import (
     CHALLENGE_MARK,
+    DATA_SOURCES,
     PANELS,
     Absent,
     DomainContext,
+    PaperSteps,
     build_report,
     dataset_percentile,
     load_paper_results,
+    not_comparable,
     paper_entry,
     report_key,
+    run_provenance,
     task_info,
 )
 from rlu.types import RluError
 
 __all__ = [
+    "DATA_SOURCES",
     "PANELS",
     "Absent",
     "DomainContext",
+    "PaperSteps",
     "build_report",
     "dataset_percentile",
     "load_paper_results",
+    "not_comparable",
     "paper_entry",
+    "run_provenance",
     "task_info",
     "write_report",
 ]
@@ -49,12 +57,16 @@ def write_report(
     random_scores: Mapping[str, float] | None = None,
     best_behaviour: Mapping[str, float] | None = None,
     figures: bool = True,
+    paper_steps: PaperSteps | None = None,
 ) -> list[Path]:
     """Write report.md, report.html, report.json and figures/*.png; return their paths.
 
     ``sweep_dir`` is one sweep folder or several (an Atari sweep and a control suite sweep
     run different agents, so the paper's figures come from more than one sweep); their
-    records are reported together, and ``out`` is then required."""
+    records are reported together, and ``out`` is then required. ``paper_steps(agent,
+    discrete)`` is the learner budget of an agent's paper preset (``build_report``): the
+    caller's, since this package does not import the agents; without it no cell is comparable
+    with the paper's numbers."""
     from rlu.evaluation.report import render
 
     dirs = [Path(sweep_dir)] if isinstance(sweep_dir, str | os.PathLike) else [
@@ -65,7 +77,9 @@ def write_report(
     if out is None and len(dirs) > 1:
         raise RluError(f"{len(dirs)} sweep folders: pass --out for the report folder")
     records, datasets, fqe = _read_sweeps(dirs)
-    rep = build_report(records, datasets, random_scores, best_behaviour, fqe=fqe)
+    rep = build_report(
+        records, datasets, random_scores, best_behaviour, fqe=fqe, paper_steps=paper_steps
+    )
     out = Path(out) if out is not None else dirs[0] / "report"
     out.mkdir(parents=True, exist_ok=True)
     parts = render.sections(rep, render.Figures(out) if figures else None)
@@ -119,6 +133,6 @@ def _read_sweeps(
         fqe_path = d / runs.FQE
         if fqe_path.exists():
             any_fqe = True
-            selections += json.loads(fqe_path.read_text()).get("selections", [])
+            selections += runs.read_fqe(d)["selections"]
     fqe = {"selections": selections} if any_fqe else None
     return records, datasets if any_datasets else None, fqe

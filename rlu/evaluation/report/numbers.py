@@ -1,25 +1,39 @@
 """The numbers of ``rlu report``: a sweep's result records in, one JSON-serialisable dict out.
 
 Pure: no files written, nothing drawn (``rlu.evaluation.report.render`` turns this dict into
-Markdown, HTML and PNG). Per domain, the report holds the domain's ``agents`` and ``tasks`` and
-one entry per *panel*:
+Markdown, HTML and PNG). Per domain, the report holds the domain's ``agents`` and ``tasks``, the
+``provenance`` of its runs and one entry per *panel*.
 
-- ``online``: task x agent, mean ± std over seeds of the final evaluation score of the
-  configuration chosen by online policy selection (best per task), ``bold`` on the best mean of a
-  row and on every mean ± std that overlaps it (the paper's convention), and per row the paper's
-  number of every agent it has one for, whether rlu has that cell or not (``paper``;
-  ``rlu/resources/paper_results.json``, a copy of the appendix tables of Gulcehre et al. 2020);
-- ``offline_naive``: when a domain's sweep holds both online- and offline-selection tasks, the
-  naive offline policy selection (the configuration with the best mean, median for Atari, over
-  the online tasks, applied unchanged to the offline ones);
-- ``aggregates``: per agent, the mean (median for Atari, on normalised scores) over tasks with a
-  bootstrapped [25, 75] percentile interval, and the IQM with a 95 % stratified bootstrap
-  confidence interval over seeds (Agarwal et al. 2021, rliable);
+``provenance`` lists every distinct (preset, learner steps, pre-training steps, evaluation
+episodes, data source) of the domain's runs (``run_provenance``); every cell, aggregate and bar
+names the entries of the runs behind it (indices into that list) and says whether it is
+*comparable* with the paper's numbers: only a cell whose every run trained the ``paper`` preset
+for at least that preset's learner budget on the release's own data is (``not_comparable`` gives
+the reasons of the others). The paper preset's budget comes from the caller (``paper_steps``,
+``(agent, discrete) -> steps``: this package may not import the agents); without it no cell is
+comparable. The paper's numbers stay beside every cell, and the renderer heads them as not
+comparable wherever the cell is not.
+
+Each split follows its own protocol (the paper's §2.2 and §4), never mixed:
+
+- ``online``: the online-selection tasks, task x agent, mean ± std over seeds of the final
+  evaluation score of the configuration chosen by online policy selection (best per task),
+  ``bold`` on the best mean of a row and on every mean ± std that overlaps it (the paper's
+  convention), and per row the paper's number of every agent it has one for, whether rlu has that
+  cell or not (``paper``; ``rlu/resources/paper_results.json``, a copy of the appendix tables of
+  Gulcehre et al. 2020);
+- ``offline_naive``: the offline-selection tasks under the paper's naive offline policy selection
+  (per agent the configuration with the best mean, median for Atari, over the domain's online
+  tasks, applied unchanged to the offline ones; an agent that ran one configuration needs no
+  selection);
+- ``aggregates``: per split and agent, the mean (median for Atari, on normalised scores) over the
+  split's tasks under the split's protocol, with a bootstrapped [25, 75] percentile interval, and
+  the IQM with a 95 % stratified bootstrap confidence interval over seeds (Agarwal et al. 2021,
+  rliable);
 - ``fqe``: offline policy selection by FQE estimates, when ``fqe.json`` is given;
 - ``dataset_p90``: each task's dataset 90th-percentile episode return, when datasets are named;
 - ``task_bars`` (every domain but Atari; the paper's control suite and locomotion figures): per
-  task, the agents' scores under the task's own protocol, online policy selection on the online
-  tasks and naive offline selection on the offline ones (drawn with the ``dataset_p90`` line);
+  task, the agents' scores under the task's own protocol (drawn with the ``dataset_p90`` line);
 - ``atari_median`` (the paper's Atari figure, two panels): the median normalised score with a
   bootstrapped [25, 75] interval, online policy selection on the tuning games and naive offline
   selection on the held-out games the sweep covers;
@@ -47,7 +61,7 @@ from __future__ import annotations
 import json
 from collections import defaultdict
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from importlib import resources
 from typing import Any
 
@@ -142,10 +156,66 @@ PAPER_SENSITIVITY: dict[str, dict[str, Any]] = {
 }
 
 PAPER_FIGURE_ONLY = (
-    "the paper prints this figure without numbers; 'paper (table)' is the median of the paper's "
-    "per-game appendix table (raw scores) normalised with the reference scores used here, which "
-    "are not the paper's own (rlu/resources/atari_best_behaviour.json says where they come from)"
+    'the paper prints this figure without numbers; the "paper\'s table" columns hold the median '
+    "of the paper's per-game appendix table (raw scores) normalised with the reference scores "
+    "used here, which are not the paper's own (rlu/resources/atari_best_behaviour.json says where "
+    "they come from)"
 )
+
+
+# --- what produced a number -----------------------------------------------------------------
+DATA_SOURCES = ("release", "generated", "imported", "synthetic", "unknown")
+"""A run record's ``data.source``: the release's own files, data ``rlu generate`` made, data
+imported from another format, synthetic test data, or a record from before runs recorded it."""
+
+PaperSteps = Callable[[str, bool], "int | None"]
+"""``(agent, discrete) -> learner steps of the agent's paper preset`` (None: unknown)."""
+
+
+def run_provenance(record: Mapping[str, Any]) -> dict[str, Any]:
+    """What produced one run's score: its preset, learner steps (pre-training excluded),
+    pre-training steps, evaluation episodes and data (``{"source": ..., ...}``, as the sweep
+    recorded it). A field an older sweep did not record is None (data: source ``unknown``); the
+    evaluation episodes of such a run are its final evaluation's returns, where it kept them."""
+    data = record.get("data")
+    if data is None:
+        data = {"source": "unknown"}
+    if not isinstance(data, Mapping) or data.get("source") not in DATA_SOURCES:
+        got = data.get("source") if isinstance(data, Mapping) else data
+        raise RluError(
+            f"run {record.get('run')}: field data.source is {got!r}, not one of "
+            f"{', '.join(DATA_SOURCES)}; rerun the sweep to rewrite its results.jsonl"
+        )
+    episodes = record.get("eval_episodes")
+    if episodes is None and record.get("returns") is not None:
+        episodes = len(record["returns"])
+    return {
+        "preset": record.get("preset"),
+        "steps": record.get("steps"),
+        "pretrain_steps": record.get("pretrain_steps"),
+        "eval_episodes": episodes,
+        "data": {k: data[k] for k in sorted(data)},
+    }
+
+
+def not_comparable(provenance: Mapping[str, Any], budget: int | None) -> list[str]:
+    """Why a run of this provenance is not comparable with the paper's numbers (empty: it is):
+    the paper's numbers come from the paper's settings (rlu's ``paper`` preset), its full learner
+    budget (``budget``, the preset's ``num_steps``) and the release's data."""
+    why = []
+    if provenance["preset"] != "paper":
+        why.append(f"preset {provenance['preset'] or 'not recorded'}, not paper")
+    steps = provenance["steps"]
+    if budget is None:
+        why.append("the paper preset's learner budget was not given to the report")
+    elif steps is None:
+        why.append("learner steps not recorded")
+    elif steps < budget:
+        why.append(f"{steps:,} of the paper preset's {budget:,} learner steps")
+    source = provenance["data"]["source"]
+    if source != "release":
+        why.append(f"{source} data, not the release's")
+    return why
 
 
 # --- the numbers ----------------------------------------------------------------------------
@@ -180,36 +250,64 @@ class DomainContext:
     normalise: Normaliser | None = None
     """Atari: ``(task id, raw score) -> normalised score`` for any game with reference scores
     (the paper's numbers are normalised with it too); None where the domain is not normalised."""
+    provenance: tuple[Mapping[str, Any], ...] = ()
+    """Every distinct ``run_provenance`` of the domain's runs."""
+    run_provenance: Mapping[tuple[str, str, str, int], int] = field(default_factory=dict)
+    """(task, agent, config, seed) -> index of the run's entry in ``provenance``."""
+    budgets: Mapping[str, int | None] = field(default_factory=dict)
+    """Per agent, the learner steps of its paper preset (None: unknown)."""
+
+    def sources(self, s: Selection) -> list[int]:
+        """The ``provenance`` entries of a selection's runs."""
+        return sorted({self.run_provenance[(s.task, s.agent, s.config, x)] for x in s.seeds})
+
+    def why_not(self, s: Selection) -> list[str]:
+        """Why a selection's number is not comparable with the paper's (empty: it is)."""
+        why: list[str] = []
+        for i in self.sources(s):
+            why += [w for w in not_comparable(self.provenance[i], self.budgets.get(s.agent))
+                    if w not in why]  # fmt: skip
+        return why
 
 
-def online_panel(ctx: DomainContext) -> dict[str, Any]:
-    return _table(online_selection(ctx.records), ctx.tasks, ctx.agents, ctx.paper)
+def online_panel(ctx: DomainContext) -> dict[str, Any] | Absent:
+    if not ctx.online_tasks:
+        return Absent(
+            "the sweep has no online-selection task of this domain (its offline-selection tasks "
+            "are under naive offline selection, never the per-task best configuration)"
+        )
+    return _table(ctx, _online(ctx, ctx.records), ctx.online_tasks)
 
 
 def offline_naive_panel(ctx: DomainContext) -> dict[str, Any] | Absent | None:
     if not ctx.offline_tasks:
         return None
-    if not ctx.online_tasks:
-        return Absent(_NO_ONLINE_TASK)
-    chosen, skipped = _naive_choices(ctx)
-    if not chosen:
-        return Absent("; ".join(skipped.values()))
-    picked = [
-        r
-        for r in ctx.records
-        if r["task"] in ctx.offline_tasks and chosen.get(r["agent"]) == r["config"]
-    ]
-    return {
-        "chosen": chosen,
-        "skipped": skipped,
-        **_table(online_selection(picked), ctx.offline_tasks, ctx.agents, ctx.paper),
-    }
+    naive = _naive(ctx, ctx.records)
+    if not naive.chosen:
+        return Absent("; ".join(naive.skipped.values()))
+    return {**naive.chosen_json(), **_table(ctx, naive.sel, ctx.offline_tasks)}
 
 
 def aggregates_panel(ctx: DomainContext) -> dict[str, Any] | Absent:
+    """Per split, its protocol's aggregate over its tasks: online policy selection over the
+    online-selection tasks, naive offline selection over the offline-selection tasks."""
     if ctx.domain == "atari" and not ctx.normalised:
         return Absent(_NO_REFERENCE)  # Atari aggregates are over normalised scores only
-    return _aggregates(online_selection(ctx.scored), ctx.tasks, ctx.agents, ctx.domain, ctx.reps)
+    out: dict[str, Any] = {"statistic": domain_statistic(ctx.domain), "missing": {}}
+    if ctx.online_tasks:
+        out["online"] = _aggregates(ctx, _online(ctx, ctx.scored), ctx.online_tasks)
+    if ctx.offline_tasks:
+        naive = _naive(ctx, ctx.scored)
+        if naive.chosen:
+            out["offline"] = {
+                **_aggregates(ctx, naive.sel, ctx.offline_tasks),
+                **naive.chosen_json(),
+            }
+        else:
+            out["missing"]["offline"] = "; ".join(naive.skipped.values())
+    if "online" not in out and "offline" not in out:
+        return Absent("; ".join(out["missing"].values()))
+    return out
 
 
 def fqe_panel(ctx: DomainContext) -> list[dict[str, Any]] | None:
@@ -228,27 +326,10 @@ def task_bars_panel(ctx: DomainContext) -> dict[str, Any] | None:
     """The paper's control suite and locomotion figures: each task under its own protocol."""
     if ctx.domain == "atari":
         return None  # the paper draws Atari normalised: atari_median and atari_per_game
-    online = _table(
-        online_selection(r for r in ctx.records if r["task"] in ctx.online_tasks),
-        ctx.online_tasks,
-        ctx.agents,
-        ctx.paper,
-    )["rows"]
-    chosen, skipped = _naive_choices(ctx)
-    picked = [
-        r
-        for r in ctx.records
-        if r["task"] in ctx.offline_tasks and chosen.get(r["agent"]) == r["config"]
-    ]
-    offline = _table(online_selection(picked), ctx.offline_tasks, ctx.agents, ctx.paper)["rows"]
-    if ctx.offline_tasks and not ctx.online_tasks:
-        skipped = {"*": _NO_ONLINE_TASK}
-    return {
-        "online": online,
-        "offline": offline if chosen else [],
-        "chosen": chosen,
-        "skipped": skipped,
-    }
+    online = _table(ctx, _online(ctx, ctx.records), ctx.online_tasks)["rows"]
+    naive = _naive(ctx, ctx.records)
+    offline = _table(ctx, naive.sel, ctx.offline_tasks)["rows"]
+    return {"online": online, "offline": offline if naive.chosen else [], **naive.chosen_json()}
 
 
 def atari_median_panel(ctx: DomainContext) -> dict[str, Any] | Absent | None:
@@ -269,17 +350,13 @@ def atari_median_panel(ctx: DomainContext) -> dict[str, Any] | Absent | None:
         out["online"] = _median_half(ctx, sel, ctx.online_tasks, all_online, {})
     else:
         out["missing"]["online"] = "the sweep has none of the 9 tuning games"
-    if ctx.offline_tasks and ctx.online_tasks:
-        chosen, skipped = _naive_choices(ctx)
-        sel = online_selection(
-            r
-            for r in ctx.scored
-            if r["task"] in ctx.offline_tasks and chosen.get(r["agent"]) == r["config"]
-        )
-        half = _median_half(ctx, sel, ctx.offline_tasks, all_offline, skipped)
-        out["offline"] = {**half, "chosen": chosen}
-    elif ctx.offline_tasks:
-        out["missing"]["offline"] = _NO_ONLINE_TASK
+    if ctx.offline_tasks:
+        naive = _naive(ctx, ctx.scored)
+        if naive.chosen:
+            half = _median_half(ctx, naive.sel, ctx.offline_tasks, all_offline, naive.skipped)
+            out["offline"] = {**half, **naive.chosen_json()}
+        else:
+            out["missing"]["offline"] = "; ".join(naive.skipped.values())
     else:
         out["missing"]["offline"] = "the sweep has none of the 37 held-out games"
     if "online" not in out and "offline" not in out:
@@ -296,13 +373,9 @@ def atari_per_game_panel(ctx: DomainContext) -> dict[str, Any] | Absent | None:
         return None
     if ctx.normalise is None:
         return Absent(_NO_REFERENCE)
-    online = online_selection(r for r in ctx.scored if r["task"] in ctx.online_tasks)
-    chosen, skipped = _naive_choices(ctx)
-    offline = online_selection(
-        r
-        for r in ctx.scored
-        if r["task"] in ctx.offline_tasks and chosen.get(r["agent"]) == r["config"]
-    )
+    online = _online(ctx, ctx.scored)
+    naive = _naive(ctx, ctx.scored)
+    offline, skipped = naive.sel, naive.skipped
     agents: dict[str, list[dict[str, Any]]] = {}
     for agent in ctx.agents:
         bars = []
@@ -319,6 +392,7 @@ def atari_per_game_panel(ctx: DomainContext) -> dict[str, Any] | Absent | None:
                     "normalised": s.mean,
                     "improvement": s.mean - 100.0,
                     "paper_improvement": None if paper is None else paper - 100.0,
+                    **_sourced(ctx, s),
                 }
             )
         if bars:
@@ -361,18 +435,65 @@ _NO_ONLINE_TASK = (
 )
 
 
-def _naive_choices(ctx: DomainContext) -> tuple[dict[str, str], dict[str, str]]:
-    """Per agent, the configuration naive offline selection chooses (``{agent: config}``), and
-    ``{agent: why}`` for the agents it cannot choose for (no configuration run on every online
-    task of the sweep)."""
-    if not (ctx.online_tasks and ctx.offline_tasks):
-        return {}, {}
-    stat = domain_statistic(ctx.domain)
+def _online(
+    ctx: DomainContext, records: Sequence[Mapping[str, Any]]
+) -> dict[tuple[str, str], Selection]:
+    """Online policy selection over the online-selection tasks only."""
+    return online_selection(r for r in records if r["task"] in ctx.online_tasks)
+
+
+@dataclass(frozen=True)
+class _Naive:
+    """Naive offline selection over a domain's offline-selection tasks."""
+
+    sel: dict[tuple[str, str], Selection]
+    chosen: dict[str, str]
+    """Per agent, the configuration chosen (on the online tasks, or the only one it ran)."""
+    skipped: dict[str, str]
+    """Per agent it cannot choose for, why."""
+    only: list[str]
+    """The agents that ran one configuration: nothing to select."""
+
+    def chosen_json(self) -> dict[str, Any]:
+        return {"chosen": self.chosen, "skipped": self.skipped, "only_configuration": self.only}
+
+
+def _naive(ctx: DomainContext, records: Sequence[Mapping[str, Any]]) -> _Naive:
+    """Naive offline selection over the offline-selection tasks of ``records`` (raw or
+    normalised: the choice is made on ``ctx.scored`` either way)."""
+    chosen, skipped, only = _naive_choices(ctx)
+    picked = [
+        r
+        for r in records
+        if r["task"] in ctx.offline_tasks and chosen.get(r["agent"]) == r["config"]
+    ]
+    return _Naive(online_selection(picked), chosen, skipped, only)
+
+
+def _naive_choices(ctx: DomainContext) -> tuple[dict[str, str], dict[str, str], list[str]]:
+    """Per agent that ran an offline-selection task, the configuration naive offline selection
+    chooses (``{agent: config}``), ``{agent: why}`` for the agents it cannot choose for (no
+    configuration run on every online task of the sweep), and the agents that ran one
+    configuration in the domain: they need no selection, that configuration is the one."""
     chosen: dict[str, str] = {}
     skipped: dict[str, str] = {}
+    only: list[str] = []
+    if not ctx.offline_tasks:
+        return chosen, skipped, only
+    stat = domain_statistic(ctx.domain)
     for agent in ctx.agents:
         recs = [r for r in ctx.scored if r["agent"] == agent]
         if not any(r["task"] in ctx.offline_tasks for r in recs):
+            continue
+        configs = {r["config"] for r in recs}
+        if len(configs) == 1:
+            chosen[agent] = configs.pop()
+            only.append(agent)
+            continue
+        if not ctx.online_tasks:
+            skipped[agent] = (
+                f"{_NO_ONLINE_TASK} (agent {agent!r} ran {len(configs)} configurations)"
+            )
             continue
         try:
             pick, _ = offline_selection_naive(recs, ctx.online_tasks, ctx.offline_tasks, stat)
@@ -383,7 +504,25 @@ def _naive_choices(ctx: DomainContext) -> tuple[dict[str, str], dict[str, str]]:
             skipped[agent] = f"agent {agent!r} has no run on an online-selection task"
             continue
         chosen.update(pick)
-    return chosen, skipped
+    return chosen, skipped, only
+
+
+def _sourced(ctx: DomainContext, s: Selection) -> dict[str, Any]:
+    """A number's provenance entries and whether it is comparable with the paper's."""
+    why = ctx.why_not(s)
+    return {"provenance": ctx.sources(s), "comparable": not why, "not_comparable": why}
+
+
+def _merge_sourced(parts: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """The provenance of a number computed from several (an aggregate over cells)."""
+    why: list[str] = []
+    for p in parts:
+        why += [w for w in p["not_comparable"] if w not in why]
+    return {
+        "provenance": sorted({i for p in parts for i in p["provenance"]}),
+        "comparable": bool(parts) and all(p["comparable"] for p in parts),
+        "not_comparable": why,
+    }
 
 
 def _paper_normalised(ctx: DomainContext, task: str, agent: str) -> float | None:
@@ -429,6 +568,8 @@ def _median_half(
             "configs": {t: c.config for t, c in cells.items()},
             "paper_same_games": _paper_median(ctx, agent, list(cells)),
             "paper_all_games": _paper_median(ctx, agent, all_tasks),
+            "paper_budget": ctx.budgets.get(agent),
+            **_merge_sourced([_sourced(ctx, c) for c in cells.values()]),
         }
     return {
         "games": list(tasks),
@@ -479,6 +620,7 @@ def _sensitivity(ctx: DomainContext, name: str) -> dict[str, Any] | Absent | Non
                 "interval_25_75": [lo, hi],
                 "games": len(cells),
                 "configs": {t: c.config for t, c in cells.items()},
+                **_merge_sourced([_sourced(ctx, c) for c in cells.values()]),
             }
         )
     return {
@@ -511,9 +653,12 @@ def build_report(
     best_behaviour: Mapping[str, float] | None = None,
     reps: int = 2000,
     fqe: Mapping[str, Any] | None = None,
+    paper_steps: PaperSteps | None = None,
 ) -> dict[str, Any]:
     """Every number of the report (JSON-serialisable), from a sweep's result records (and, if
-    given, the FQE selections that ``rlu.train.fqe_selection`` wrote)."""
+    given, the FQE selections that ``rlu.train.fqe_selection`` wrote). ``paper_steps(agent,
+    discrete)`` is the learner budget of an agent's paper preset: a cell is comparable with the
+    paper's numbers only at that budget (None: no cell is)."""
     paper = load_paper_results()
     by_domain: dict[str, list[Mapping[str, Any]]] = defaultdict(list)
     for r in records:
@@ -533,6 +678,15 @@ def build_report(
             {**r, "score": float(norm(r["task"], r["score"])) if norm else float(r["score"])}
             for r in recs
         ]
+        sources: dict[str, int] = {}
+        run_source: dict[tuple[str, str, str, int], int] = {}
+        for r in sorted(recs, key=lambda r: json.dumps(run_provenance(r), sort_keys=True)):
+            key = json.dumps(run_provenance(r), sort_keys=True)
+            run_source[(r["task"], r["agent"], r["config"], int(r["seed"]))] = sources.setdefault(
+                key, len(sources)
+            )
+        discrete = domain == "atari"
+        budgets = {a: None if paper_steps is None else paper_steps(a, discrete) for a in agents}
         ctx = DomainContext(
             domain=domain,
             records=tuple(recs),
@@ -547,8 +701,13 @@ def build_report(
             fqe=fqe,
             reps=reps,
             normalise=norm,
+            provenance=tuple(json.loads(k) for k in sources),
+            run_provenance=run_source,
+            budgets=budgets,
         )
         dom: dict[str, Any] = {"agents": agents, "tasks": tasks, "normalised": norm is not None}
+        dom["provenance"] = _provenance_entries(ctx)
+        dom["paper_budgets"] = budgets
         if norm is not None:
             dom["reference_scores"] = refs
         dom["panels"] = []
@@ -561,6 +720,27 @@ def build_report(
                 dom[name] = data
                 dom["panels"].append(name)
         out["domains"][domain] = dom
+    return out
+
+
+def _provenance_entries(ctx: DomainContext) -> list[dict[str, Any]]:
+    """The domain's provenance entries, each with the runs behind it: how many, which agents and
+    tasks, and how many of them are comparable with the paper's numbers."""
+    out = []
+    for i, p in enumerate(ctx.provenance):
+        keys = [k for k, j in ctx.run_provenance.items() if j == i]
+        agents = sorted({k[1] for k in keys})
+        comparable = sum(not not_comparable(p, ctx.budgets.get(k[1])) for k in keys)
+        tasks = sorted({k[0] for k in keys})
+        out.append(
+            {
+                **p,
+                "runs": len(keys),
+                "agents": agents,
+                "tasks": tasks,
+                "comparable_runs": comparable,
+            }
+        )
     return out
 
 
@@ -607,57 +787,74 @@ def _atari_normaliser(tasks, random_scores, best_behaviour):
 
 
 def _table(
-    sel: Mapping[tuple[str, str], Selection],
-    tasks: Sequence[str],
-    agents: Sequence[str],
-    paper: Mapping[str, Any] | None,
+    ctx: DomainContext, sel: Mapping[tuple[str, str], Selection], tasks: Sequence[str]
 ) -> dict[str, Any]:
     rows = []
     for task in tasks:
         cells = {}
-        for agent in agents:
+        for agent in ctx.agents:
             s = sel.get((task, agent))
             if s is None:
                 continue
-            cell = {
+            cells[agent] = {
                 "config": s.config,
                 "mean": s.mean,
                 "std": s.std,
                 "seeds": list(s.seeds),
                 "scores": list(s.scores),
+                **_sourced(ctx, s),
             }
-            cells[agent] = cell
         # the paper's bold: the best mean, and every cell whose mean ± std overlaps the best's
         best = max(cells.values(), key=lambda c: c["mean"], default=None)
         for c in cells.values():
             c["bold"] = c["mean"] + c["std"] >= best["mean"] - best["std"]
         # the paper's number of every agent it has one for, rlu's cell or not (a sweep still
         # running, or an agent not run on this task, leaves the paper's column filled)
-        beside = {} if paper is None else {a: paper_entry(task, a, paper) for a in agents}
+        beside = {a: paper_entry(task, a, ctx.paper) for a in ctx.agents}
         rows.append({"task": task, "cells": cells,
                      "paper": {a: e for a, e in beside.items() if e is not None}})  # fmt: skip
-    return {"rows": rows}
+    return {"rows": rows, "paper_columns": _paper_columns(ctx, rows)}
 
 
-def _aggregates(sel, tasks, agents, domain, reps) -> dict[str, Any]:
-    stat = domain_statistic(domain)
-    out = {"statistic": stat}
-    for agent in agents:
+def _paper_columns(ctx: DomainContext, rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """Per agent with a paper number in the table: the paper preset's budget and whether the
+    paper's numbers are comparable with rlu's cells beside them: ``all``, ``some`` (the
+    ``comparable`` cells only) or ``none`` (also when no row has both)."""
+    out = {}
+    for agent in ctx.agents:
+        pairs = [r["cells"][agent] for r in rows if agent in r["paper"] and agent in r["cells"]]
+        if not any(agent in r["paper"] for r in rows):
+            continue
+        n = sum(c["comparable"] for c in pairs)
+        status = "all" if pairs and n == len(pairs) else "some" if n else "none"
+        out[agent] = {"budget": ctx.budgets.get(agent), "comparable": status}
+    return out
+
+
+def _aggregates(
+    ctx: DomainContext, sel: Mapping[tuple[str, str], Selection], tasks: Sequence[str]
+) -> dict[str, Any]:
+    """Per agent, the domain's statistic over ``tasks`` of the selected cells, its interval,
+    and the IQM over the seeds every task has."""
+    stat = domain_statistic(ctx.domain)
+    agents: dict[str, Any] = {}
+    for agent in ctx.agents:
         cells = [sel[(t, agent)] for t in tasks if (t, agent) in sel]
         if not cells:
             continue
         task_means = [c.mean for c in cells]
-        est, (lo, hi) = task_bootstrap_interval(task_means, stat, reps=reps)
+        est, (lo, hi) = task_bootstrap_interval(task_means, stat, reps=ctx.reps)
         entry: dict[str, Any] = {"tasks": len(cells), stat: est, "interval_25_75": [lo, hi]}
         common = sorted(set.intersection(*(set(c.seeds) for c in cells)))
         if common:
             matrix = np.array(
                 [[dict(zip(c.seeds, c.scores, strict=True))[s] for c in cells] for s in common]
             )
-            iqm, (ilo, ihi) = stratified_bootstrap_ci(matrix, "iqm", reps=reps)
+            iqm, (ilo, ihi) = stratified_bootstrap_ci(matrix, "iqm", reps=ctx.reps)
             # over the seeds every task has (a sweep still running may have fewer on some):
             # with one seed in common the bootstrap has nothing to resample, so no interval
             ci = [ilo, ihi] if len(common) > 1 else None
             entry.update({"iqm": iqm, "iqm_ci95": ci, "iqm_seeds": len(common)})
-        out[agent] = entry
-    return out
+        entry.update(_merge_sourced([_sourced(ctx, c) for c in cells]))
+        agents[agent] = entry
+    return {"tasks": list(tasks), "agents": agents}

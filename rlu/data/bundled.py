@@ -1,0 +1,29 @@
+"""The datasets shipped inside the package (``rlu/resources/datasets/<task id>``).
+
+rlu ships one: ``control_suite/cartpole_swingup``, the paper's 40 episodes made by ``rlu generate
+control_suite/cartpole_swingup --scale laptop --seeds 3 --seed 0`` (its manifest's provenance
+holds the command and seed).
+"""
+
+from __future__ import annotations
+
+from importlib import resources
+from pathlib import Path
+
+MANIFEST = "manifest.json"
+
+
+def _root() -> Path:
+    return Path(str(resources.files("rlu"))) / "resources" / "datasets"
+
+
+def bundled_dataset_path(task_id: str) -> Path | None:
+    """The folder of the dataset shipped for ``task_id`` (a registry id), or None."""
+    path = _root().joinpath(*task_id.split("/"))
+    return path if (path / MANIFEST).is_file() else None
+
+
+def bundled_tasks() -> list[str]:
+    """The task ids rlu ships a dataset for."""
+    root = _root()
+    return sorted(p.parent.relative_to(root).as_posix() for p in root.glob(f"*/*/{MANIFEST}"))
