@@ -6,10 +6,11 @@ penalty decoupled into one for the actor (beta_1) and one inside the critic's ta
 BRAC's value penalty), LayerNorm in the critics, deeper networks (3 x 256), a larger batch
 (1024) and learning rates 1e-3:
 
-    a'     =  clip(pi'(s') + clip(sigma eps, -c, c), -1, 1),      eps ~ N(0, I)
+    a'     =  clip(pi'(s') + clip(sigma eps, -c, c), -1, 1),    eps ~ N(0, I)
     y      =  r + gamma d (min_j Q'_j(s', a') - beta_2 ||a' - a'_D||^2)
     L_Q    =  sum_i E[(Q_i(s, a) - y)^2]
-    L_pi   =  E[beta_1 ||pi(s) - a||^2 - lambda min_j Q_j(s, pi(s))],  lambda = 1 / E|min_j Q_j|
+    L_pi   =  E[beta_1 ||pi(s) - a||^2 - lambda min_j Q_j(s, pi(s))]
+    lambda =  1 / E|min_j Q_j(s, pi(s))|
 
 with a'_D the data's next action, ||.||^2 summed over the action's dimensions and lambda held
 fixed (``normalize_q``; lambda = 1 without it). Original code: github.com/tinkoff-ai/ReBRAC

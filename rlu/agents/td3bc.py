@@ -3,10 +3,11 @@
 TD3 (Fujimoto et al. 2018) with two changes and nothing else: a behaviour-cloning term in the
 actor's loss, and observations standardised with the whole dataset's statistics:
 
-    s      <- (s - mean_D) / (std_D + 1e-3)                     (every feature, once per run)
-    a'     =  clip(pi'(s') + clip(sigma eps, -c, c), -1, 1),      eps ~ N(0, I)
+    s      <- (s - mean_D) / (std_D + 1e-3)                   (every feature, once per run)
+    a'     =  clip(pi'(s') + clip(sigma eps, -c, c), -1, 1),    eps ~ N(0, I)
     L_Q    =  sum_i E[(Q_i(s, a) - r - gamma d min_j Q'_j(s', a'))^2]
-    L_pi   =  -lambda E[Q_1(s, pi(s))] + E[(pi(s) - a)^2],       lambda = alpha / E|Q_1(s, pi(s))|
+    L_pi   =  -lambda E[Q_1(s, pi(s))] + E[(pi(s) - a)^2]
+    lambda =  alpha / E|Q_1(s, pi(s))|
 
 with lambda held fixed (no gradient) in each actor step. Original code: github.com/sfujim/TD3_BC
 (``TD3_BC.py``: networks and update; ``main.py``: settings; ``utils.py``: ``normalize_states``);
