@@ -13,9 +13,11 @@ The "R" of the paper: a categorical distributional critic (21 atoms on [0, 100],
 on the policy's own actions with target networks copied every 100 updates, and optional
 recurrence (two LSTM-1024 layers after the residual MLP). Prior, policy and critic use BC's
 torso (ResNet for cameras, residual MLP 8 x 1024); prior and policy end in one diagonal Gaussian
-(MPO's M-step is built for Gaussians). Adam 1e-4 for prior, policy and critic; MPO's dual
-variables use Adam 1e-2 and Acme's MPO defaults (eps 0.1, eps_mean 2.5e-3, eps_std 1e-6,
-20 samples).
+(MPO's M-step is built for Gaussians). Adam 1e-4 for prior, policy and critic. The paper keeps
+"most of the original hyper-parameters" of ABM without listing them; rlu takes Acme's TF MPO
+(``acme/agents/tf/mpo``): 20 samples, eps 0.1, eps_std 1e-6, initial log duals 1 (temperature,
+alpha_mean) and 10 (alpha_std), duals' Adam 1e-2, and later Acme versions' eps_mean 2.5e-3
+(1e-3 in the learner at acme a6d7199).
 
 Deviations: the critic concatenates the action after the observation torso (one torso pass
 serves all N sampled actions; with recurrence the LSTM then never sees sampled actions) where
@@ -73,7 +75,7 @@ class RABMConfig:
     critic_lr: float = 1e-4
     """Adam learning rate of the critic."""
     dual_lr: float = 1e-2
-    """Adam learning rate of MPO's temperature and KL multipliers."""
+    """Adam learning rate of MPO's temperature and KL multipliers (Acme's MPO: 1e-2)."""
     num_samples: int = 20
     """Actions sampled per state for the E-step, the advantage baseline and the critic target."""
     epsilon: float = 0.1
