@@ -52,7 +52,9 @@ def load_state(
     except Exception as e:  # noqa: BLE001 (torch raises UnpicklingError, RuntimeError, EOFError...)
         # torch's own text is not repeated: for a refused object it recommends unsafe loading
         text = str(e).lower().replace("_", " ")
-        if type(e).__name__ == "UnpicklingError" and "weights only" in text:
+        # "Unsupported operand": bytes that are no pickle at all, not a refused object
+        refused = "weights only" in text and "unsupported operand" not in text
+        if type(e).__name__ == "UnpicklingError" and refused:
             why = (
                 "it holds Python objects besides tensors and plain containers; rlu does not load "
                 "them (unpickling them would run code stored in the file)"

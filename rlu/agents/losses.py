@@ -12,19 +12,6 @@ import torch
 from torch.nn import functional as F
 
 
-def n_step_return(rewards: torch.Tensor, discounts: torch.Tensor, gamma: float):
-    """(B, n) per-step rewards / discounts -> the n-step Transition's (reward, discount).
-
-    reward = sum_k gamma^k (prod_{j<k} d_j) r_k and discount = prod_k d_k: the convention of
-    ``rlu.types.Transition`` (the data layer builds these; the agent adds gamma^n).
-    """
-    n = rewards.shape[-1]
-    before = torch.cat([torch.ones_like(discounts[..., :1]), discounts[..., :-1]], -1)
-    alive = torch.cumprod(before, -1)  # prod_{j<k} d_j
-    powers = gamma ** torch.arange(n, dtype=rewards.dtype, device=rewards.device)
-    return (rewards * alive * powers).sum(-1), discounts.prod(-1)
-
-
 def bootstrap_values(reward, discount, bootstrap_gamma: float, next_values):
     """r + gamma^n d v for every value v (atom or sample) of the next state: (B, N) -> (B, N);
     ``bootstrap_gamma`` is gamma^n (``BatchSpec.bootstrap_gamma``)."""

@@ -21,8 +21,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument(
         "--episodes",
         type=checked(int, {"min": 1}, "--episodes"),
-        default=5,
-        help="episodes per task (default 5)",
+        default=100,
+        help="episodes per task (default 100, what the shipped Atari scores hold)",
     )
     r.add_argument("--seed", type=checked(int, {"min": 0}, "--seed"), default=0)
     r.add_argument(
@@ -38,7 +38,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     r.add_argument("--out", default="random_scores.json", help="JSON file to write")
     r.add_argument(
-        "--resume", action="store_true", help="keep the tasks already in --out, measure the rest"
+        "--resume",
+        action="store_true",
+        help="keep the tasks of --out that already hold --episodes episodes of this --seed and "
+        "settings, measure the rest (an interrupted run loses one task per worker at most)",
+    )
+    r.add_argument(
+        "--workers",
+        type=checked(int, {"min": 1}, "--workers"),
+        default=1,
+        help="processes measuring tasks in parallel (default 1); the numbers do not depend on it",
     )
     r.set_defaults(func=_random_scores)
 
@@ -89,17 +98,34 @@ def _random_scores(args: argparse.Namespace) -> int:
         for challenge in ("none", "easy") if t.domain == "rwrl" else ("none",):
             jobs.append((t.id, challenge, settings))
     existing = scores.load(args.out) if args.resume and os.path.exists(args.out) else None
+    kept = []
+    if existing is not None:
+        file_seed, have = existing["provenance"].get("seed"), existing["scores"]
+        kept = [
+            k
+            for t, c, s in jobs
+            if (k := scores.score_key(t, c)) in have
+            and scores.is_complete(have[k], args.episodes, args.seed, s, file_seed)
+        ]
+        print(f"{args.out}: keeping {len(kept)} of {len(jobs)} tasks, measuring the rest")
+    total = len(jobs) - len(kept)
+    count = 0
 
     def progress(key: str, entry: dict) -> None:
+        nonlocal count
+        count += 1
         print(
-            f"{key}: mean {entry['mean']:.2f} ± {entry['std']:.2f} over {entry['episodes']} "
-            f"episodes (lengths {min(entry['lengths'])}-{max(entry['lengths'])})",
+            f"[{count}/{total}] {key}: mean {entry['mean']:.2f} ± {entry['std']:.2f} over "
+            f"{entry['episodes']} episodes (lengths {min(entry['lengths'])}-"
+            f"{max(entry['lengths'])}; {entry['cpu_seconds']:.0f} CPU s)",
             flush=True,
         )
-        scores.write(doc, args.out)  # after every task, so a crash loses one task at most
+        scores.write(doc, args.out)  # after every task, so a crash loses one task per worker
 
     doc = existing or scores.measure([], args.episodes, args.seed)
-    scores.measure(jobs, args.episodes, args.seed, progress=progress, existing=doc)
+    scores.measure(
+        jobs, args.episodes, args.seed, progress=progress, existing=doc, workers=args.workers
+    )
     scores.write(doc, args.out)
     print(f"wrote {len(doc['scores'])} tasks to {args.out}")
     return 0

@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import argparse
 
-from rlu.commands.train import add_device_option
-from rlu.settings import add_options
+from rlu.settings import add_options, checked, field_docs
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from rlu.generate.config import GenerateConfig
+    from rlu.workers import Backend
+
     p = sub.add_parser(
         "generate",
         help="record a dataset from online training runs (D4PG / DQN), the paper's recipe",
@@ -16,28 +18,17 @@ def register(sub: argparse._SubParsersAction) -> None:
         "keeps a third of the successful ones and sub-samples to the paper's episode count. "
         "Re-running an interrupted command resumes it (same seed, same bytes).",
     )
-    p.add_argument(
-        "task",
-        help="task id, e.g. control_suite/cartpole_swingup, atari/Pong or rwrl/cartpole_swingup "
-        "(rwrl writes OUT/{none,easy}_{small,medium,large})",
-    )
+    p.add_argument("task", help=field_docs(GenerateConfig)["task"])
     p.add_argument("--out", required=True, help="new dataset directory")
-    p.add_argument(
-        "--scale",
-        default="laptop",
-        choices=["tiny", "laptop", "paper"],
-        help="laptop (default): behaviour runs that learn in minutes of CPU; tiny: seconds, for "
-        "tests; paper: the paper's budgets (clusters)",
-    )
-    p.add_argument("--seeds", type=int, default=None, help="runs (default: the scale's)")
-    p.add_argument("--seed", type=int, default=0, help="base seed of every run")
-    p.add_argument("--backend", default="local", choices=["local", "ray"])
+    add_options(p, GenerateConfig, skip=("task", "backend", "progress"))
+    add_options(p, Backend, skip=("workers",))
     p.add_argument(
         "--workers",
-        type=int,
+        type=checked(int, {"min": 1}, "--workers"),
         default=None,
-        help="local backend: processes running the runs (default: one per run); the bytes do "
-        "not depend on it",
+        metavar="N",
+        help="local backend: processes running the runs at once (default: one per run; 3 runs "
+        "on 2 cores then take the time of 1.5); the bytes do not depend on it",
     )
     p.add_argument(
         "--curves",
@@ -46,47 +37,29 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="also draw the runs' learning curves (return vs env steps, one line per run) into "
         "PNG and print each run's level",
     )
-    p.add_argument(
-        "--policy",
-        default=None,
-        metavar="MODULE:FACTORY",
-        help="record this policy instead of training D4PG/DQN (required for locomotion): "
-        "factory(task_id, seed) -> policy(observation) -> action",
-    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
-    p.add_argument("--keep-work", action="store_true", help="keep the per-run parts afterwards")
-    from rlu.workers import Backend
-
-    add_options(p, Backend, only=("gpus_per_job",))
-    add_device_option(p)
     p.set_defaults(func=_run)
 
 
 def _run(args: argparse.Namespace) -> int:
+    import dataclasses
     import time
 
     from rlu.data import open_dataset
-    from rlu.generate import generate
+    from rlu.generate import GenerateConfig, generate, run_count
+    from rlu.generate.rwrl import SUMMARY
+    from rlu.settings import from_args
+    from rlu.workers import Backend
 
     t0 = time.perf_counter()
-    path = generate(
-        args.task,
-        args.out,
-        scale=args.scale,
-        runs=args.seeds,
-        seed=args.seed,
-        backend=args.backend,
-        progress=not args.no_progress,
-        keep_work=args.keep_work,
-        policy=args.policy,
-        device=args.device,
-        gpus_per_run=args.gpus_per_job,
-        workers=args.workers,
-    )
+    config = from_args(GenerateConfig, args, task=args.task, progress=not args.no_progress)
+    workers = args.workers or (run_count(config) if args.kind == "local" else 1)
+    backend = Backend(args.kind, workers, args.address, args.gpus_per_job)
+    path = generate(dataclasses.replace(config, backend=backend), args.out)
     from pathlib import Path
 
     paths = [path]
-    if (Path(path) / "rwrl.json").exists():  # rwrl: one dataset per challenge and size
+    if (Path(path) / SUMMARY).exists():  # rwrl: one dataset per challenge and size
         paths = sorted(p for p in Path(path).iterdir() if (p / "manifest.json").exists())
     for p in paths:
         ds = open_dataset(p)

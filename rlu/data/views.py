@@ -33,12 +33,66 @@ from rlu.types import ArraySpec, BatchSpec, RluError, Sequence, Transition
 
 def _take(col, rows: np.ndarray) -> np.ndarray:
     """``col[rows]`` along the first axis (``rows`` of any shape). ``np.take`` gathers the same
-    rows as fancy indexing, faster: a 256-transition SARSA batch of dict features samples in
-    71 us instead of 111 (n-step 5: 138 vs 201, windows of 40: 249 vs 303; stacked frames, where
-    the copy dominates, alike)."""
+    rows as fancy indexing, faster on every batch kind but stacked frames, where the copy
+    dominates (bench/sampling.py; the figures: bench/README.md, "Design choices")."""
     if isinstance(col, ZlibColumn):
         return col.take(rows)
     return np.take(col, rows, axis=0)
+
+
+# --- the maths every transition source shares (the online replay of rlu.generate too) -------
+def n_step_counts(length: np.ndarray, terminal_end: np.ndarray, n: int) -> np.ndarray:
+    """How many n-step transitions start in each segment of ``length`` steps: every step but the
+    last when the segment ends in a terminal state (``terminal_end``), else only the steps whose
+    window of ``n`` transitions fits before its end (a window never crosses a truncation)."""
+    length = np.asarray(length, np.int64)
+    if n == 1:
+        return np.maximum(length - 1, 0)
+    return np.maximum(np.where(terminal_end, length - 1, length - n), 0)
+
+
+def n_step_targets(
+    reward: np.ndarray,
+    discount: np.ndarray,
+    t: np.ndarray,
+    last: np.ndarray,
+    n: int,
+    gamma: float,
+    reward_clip: float | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(reward, discount, next step)`` of the n-step transitions that start at steps ``t`` of
+    the step columns ``reward`` and ``discount``, each in a segment whose last step is ``last``
+    (same shape as ``t``).
+
+    ``reward = sum_i gamma^i (prod_{j<i} d_{t+j}) r_{t+i}`` and ``discount = prod_i d_{t+i}``
+    over ``i < n``, the convention of :class:`rlu.types.Transition` (the agent bootstraps with
+    ``gamma^n``); steps past the segment's last transition count as reward 0 and discount 0
+    (they follow a terminal state); the next step is ``min(t + n, last)``. Rewards are clipped to
+    ``+-reward_clip`` per step, before the sum (``BatchSpec.reward_clip``).
+    """
+
+    def rewards(steps: np.ndarray) -> np.ndarray:
+        r = np.take(reward, steps, axis=0)
+        return r if reward_clip is None else np.clip(r, -reward_clip, reward_clip)
+
+    if n == 1:
+        return rewards(t), np.take(discount, t, axis=0), t + 1
+    window = t[:, None] + np.arange(n)
+    valid = window < last[:, None]  # steps that hold a transition
+    window = np.minimum(window, last[:, None])
+    r = np.where(valid, rewards(window), 0.0)
+    d = np.where(valid, np.take(discount, window, axis=0), 0.0)
+    # weight of r_{t+i}: gamma^i * prod_{j<i} d_{t+j}
+    alive = np.cumprod(np.concatenate([np.ones((len(t), 1)), d[:, :-1]], axis=1), axis=1)
+    out_reward = (r * alive * gamma ** np.arange(n)).sum(axis=1).astype(np.float32)
+    return out_reward, np.prod(d, axis=1).astype(np.float32), np.minimum(t + n, last)
+
+
+def stack_frames(frames, first: np.ndarray, k: int) -> np.ndarray:
+    """Frame stacks from frames stored once: the stack whose oldest frame is row ``first`` (any
+    shape of indices) holds rows ``first .. first + k - 1`` on a new last axis, newest last. An
+    episode's frames are stored after ``k - 1`` frames of zeros, so a stack never mixes two."""
+    return np.moveaxis(_take(frames, first[..., None] + np.arange(k)), -3, -1)
 
 
 class _Index:
@@ -52,7 +106,8 @@ class _Index:
         self.stride = stride
         self.size = int(self.cum[-1])
         # Guide table: the segment holding id b * width, so that locating an id is one gather
-        # plus a few vectorised steps forward instead of a binary search (4x faster on 1M steps).
+        # plus a few vectorised steps forward instead of a binary search (faster on large
+        # datasets: bench/README.md, "Design choices").
         self.width = max(1, self.size // max(1, len(self.counts)))
         buckets = np.arange(0, max(self.size, 1), self.width)
         self.guide = np.searchsorted(self.cum, buckets, side="right") - 1
@@ -87,12 +142,10 @@ class DatasetView:
     def observation(self, seg: np.ndarray, steps: np.ndarray):
         """Observations at global ``steps`` (any shape) lying in segments ``seg`` (same shape)."""
         if self.schema.frame_stack > 1:
-            k = self.schema.frame_stack
             first = self.frame_start[seg] + (steps - self.start[seg])  # frame row of step - k + 1
-            rows = first[..., None] + np.arange(k)
-            frames = _take(self.ds.column("observation"), rows)  # (..., k, H, W)
+            out = stack_frames(self.ds.column("observation"), first, self.schema.frame_stack)
             self.ds.release_pages("observation")
-            return np.moveaxis(frames, -3, -1)
+            return out
         if not isinstance(self.schema.observation, ArraySpec):
             out = {}
             for key in self.schema.observation:
@@ -142,42 +195,23 @@ class TransitionView(DatasetView):
             raise RluError(f"n_step={n_step}; use 1 or more")
         self.n_step, self.gamma = int(n_step), float(gamma)
         self.reward_clip = None if reward_clip is None else float(reward_clip)
-        if self.n_step == 1:
-            counts = self.length - 1
-        else:
-            terminal_end = np.asarray(ds.column("is_terminal"))[self.last]
-            counts = np.where(
-                terminal_end, self.length - 1, np.maximum(self.length - self.n_step, 0)
-            )
-        self.index = _Index(ds, np.maximum(counts, 0))
+        terminal_end = np.asarray(ds.column("is_terminal"))[self.last] if self.n_step > 1 else None
+        self.index = _Index(ds, n_step_counts(self.length, terminal_end, self.n_step))
 
     def __len__(self) -> int:
         return self.index.size
 
-    def _reward(self, steps: np.ndarray) -> np.ndarray:
-        r = self.column("reward", steps)
-        if self.reward_clip is not None:
-            r = np.clip(r, -self.reward_clip, self.reward_clip)
-        return r
-
     def batch(self, ids: np.ndarray) -> Transition:
         seg, t = self.index.locate(ids)
-        if self.n_step == 1:
-            nxt = t + 1
-            reward = self._reward(t)
-            discount = self.column("discount", t)
-        else:
-            n = self.n_step
-            window = t[:, None] + np.arange(n)
-            valid = window < self.last[seg][:, None]  # steps that hold a transition
-            window = np.minimum(window, self.last[seg][:, None])
-            r = np.where(valid, self._reward(window), 0.0)
-            d = np.where(valid, self.column("discount", window), 0.0)
-            # weight of r_{t+i}: gamma^i * prod_{j<i} d_{t+j}
-            alive = np.cumprod(np.concatenate([np.ones((len(t), 1)), d[:, :-1]], axis=1), axis=1)
-            reward = (r * alive * self.gamma ** np.arange(n)).sum(axis=1).astype(np.float32)
-            discount = np.prod(d, axis=1).astype(np.float32)
-            nxt = np.minimum(t + n, self.last[seg])
+        reward, discount, nxt = n_step_targets(
+            self.ds.column("reward"),
+            self.ds.column("discount"),
+            t,
+            self.last[seg],
+            self.n_step,
+            self.gamma,
+            self.reward_clip,
+        )
         if self.schema.frame_stack > 1:
             observation, next_observation = self.stacked_pair(seg, t, nxt)
         else:

@@ -9,14 +9,18 @@ random_scores.json``. ``rlu envs random-scores`` re-measures and writes such a f
 File layout::
 
     {"format": "rlu.random_scores/1",
-     "provenance": {"date", "code_version", "seed", "episodes", "settings", "packages", ...},
-     "scores": {"atari/Pong": {"mean", "std", "returns", "lengths", "challenge", "settings",
-                               "date", "code_version"},
+     "provenance": {"date", "code_version", "seed", "episodes", "settings", "packages", ...,
+                    "runs": [{"date", "code_version", "episodes", "seed", "workers",
+                              "tasks", "cpu_seconds", "wall_seconds", "steps"}, ...]},
+     "scores": {"atari/Pong": {"mean", "std", "episodes", "returns", "lengths", "challenge",
+                               "settings", "seed", "date", "code_version", "cpu_seconds",
+                               "steps"},
                 "rwrl/walker_walk@easy": {...}, ...}}
 
-The file-level provenance is the first run's; an entry's own ``date`` / ``code_version``, when
-present, say which run measured it (``--resume`` adds tasks to an existing file). Entries
-without them were measured by the first run.
+The file-level fields are the first run's; ``runs`` lists every run that measured entries
+(``--resume`` adds tasks to an existing file), and an entry's own ``date`` / ``code_version`` /
+``seed`` / ``cpu_seconds`` (process CPU time of the measurement) say which run measured it and
+at what cost. Entries without them were measured by the first run, with its seed.
 
 Keys are task ids, with ``@<challenge>`` for RWRL challenges other than ``none``.
 """
@@ -27,6 +31,7 @@ import datetime as _dt
 import json
 import os
 import subprocess
+import time
 from collections.abc import Callable, Iterable
 from importlib import resources
 from pathlib import Path
@@ -104,18 +109,64 @@ def _packages() -> dict[str, str]:
     return out
 
 
+def measure_task(
+    task_id: str, challenge: str, settings: dict[str, Any], episodes: int, seed: int
+) -> dict[str, Any]:
+    """One task's entry: ``episodes`` random episodes with their cost (process CPU seconds)."""
+    cpu0 = time.process_time()
+    returns, lengths = random_returns(task_id, episodes, seed, challenge, **settings)
+    return {
+        "mean": float(np.mean(returns)),
+        "std": float(np.std(returns)),
+        "episodes": len(returns),
+        "returns": returns,
+        "lengths": lengths,
+        "challenge": challenge,
+        "settings": settings,
+        "seed": seed,
+        # A resumed file gathers tasks measured by different runs: each entry says its own.
+        "date": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+        "code_version": code_version(),
+        "cpu_seconds": round(time.process_time() - cpu0, 2),
+        "steps": int(sum(lengths)),
+    }
+
+
+def is_complete(entry: dict[str, Any], episodes: int, seed: int, settings: dict[str, Any],
+                file_seed: int | None = None) -> bool:  # fmt: skip
+    """Whether a stored entry already holds ``episodes`` or more episodes of the same measurement
+    (seed and settings): ``--resume`` keeps those and re-measures the rest."""
+    return (
+        int(entry.get("episodes", 0)) >= episodes
+        and entry.get("seed", file_seed) == seed
+        and dict(entry.get("settings", {})) == dict(settings)
+    )
+
+
+def _init_worker(parent: int) -> None:
+    from rlu.workers import die_with_parent
+
+    die_with_parent(parent)  # a killed measurement leaves no game playing on
+
+
 def measure(
     tasks: Iterable[tuple[str, str, dict[str, Any]]],
     episodes: int,
     seed: int = 0,
     progress: Callable[[str, dict[str, Any]], None] | None = None,
     existing: dict[str, Any] | None = None,
+    workers: int = 1,
 ) -> dict[str, Any]:
     """Measure every ``(task_id, challenge, settings)``; returns the file's dict.
 
-    ``existing`` (a loaded file) is extended: tasks already in it are kept, not re-measured,
-    so an interrupted measurement resumes.
+    ``existing`` (a loaded file) is extended: a task already in it with at least ``episodes``
+    episodes of the same seed and settings is kept, the others are (re-)measured, so an
+    interrupted measurement resumes task by task. ``workers`` > 1 measures tasks in that many
+    spawned processes; an entry is a function of (task, episodes, seed, settings) alone, so the
+    numbers do not depend on it. ``progress(key, entry)`` runs in this process after each task.
     """
+    if workers < 1:
+        raise RluError(f"workers={workers}: give at least 1 process")
     doc = existing or {
         "format": FORMAT,
         "provenance": {
@@ -129,26 +180,58 @@ def measure(
         },
         "scores": {},
     }
-    for task_id, challenge, settings in tasks:
-        key = score_key(task_id, challenge)
-        if key in doc["scores"]:
-            continue
-        returns, lengths = random_returns(task_id, episodes, seed, challenge, **settings)
-        entry = {
-            "mean": float(np.mean(returns)),
-            "std": float(np.std(returns)),
-            "episodes": len(returns),
-            "returns": returns,
-            "lengths": lengths,
-            "challenge": challenge,
-            "settings": settings,
-            # A resumed file gathers tasks measured by different runs: each entry says its own.
-            "date": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
-            "code_version": code_version(),
-        }
+    file_seed = doc["provenance"].get("seed")
+    todo = [
+        (score_key(t, c), t, c, s)
+        for t, c, s in tasks
+        if score_key(t, c) not in doc["scores"]
+        or not is_complete(doc["scores"][score_key(t, c)], episodes, seed, s, file_seed)
+    ]
+    if not todo:
+        return doc
+    run = {
+        "date": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+        "code_version": code_version(),
+        "episodes": episodes,
+        "seed": seed,
+        "workers": workers,
+        "tasks": [],
+        "cpu_seconds": 0.0,
+        "wall_seconds": 0.0,
+        "steps": 0,
+    }
+    doc["provenance"].setdefault("runs", []).append(run)
+    start = time.monotonic()
+
+    def done(key: str, entry: dict[str, Any]) -> None:
         doc["scores"][key] = entry
+        run["tasks"].append(key)
+        run["cpu_seconds"] = round(run["cpu_seconds"] + entry["cpu_seconds"], 2)
+        run["steps"] += entry["steps"]
+        run["wall_seconds"] = round(time.monotonic() - start, 1)
         if progress is not None:
             progress(key, entry)
+
+    if workers == 1 or len(todo) == 1:
+        for key, t, c, s in todo:
+            done(key, measure_task(t, c, s, episodes, seed))
+        return doc
+    import multiprocessing as mp
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+
+    # Spawned, not forked: a fork of a process whose OpenMP pool has run can hang.
+    ctx = mp.get_context("spawn")
+    with ProcessPoolExecutor(min(workers, len(todo)), ctx, _init_worker, (os.getpid(),)) as pool:
+        pending = {pool.submit(measure_task, t, c, s, episodes, seed): key
+                   for key, t, c, s in todo}  # fmt: skip
+        try:
+            while pending:
+                finished, _ = wait(pending, return_when=FIRST_COMPLETED)
+                for f in finished:
+                    done(pending.pop(f), f.result())
+        except BaseException:
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise
     return doc
 
 

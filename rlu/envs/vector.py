@@ -38,12 +38,11 @@ from rlu.envs.core import gym, spaces
 from rlu.tasks import ATARI_MAX_AGENT_STEPS, get_task
 from rlu.types import RluError, available_cores
 
-# Chosen from bench/envs.py on the 2-core machine (quiet, 2026-11-23): ALE's C++ threads beat
-# processes for Atari (1.56x at N=2, 2.00x at N=8, vs 0.86x for worker processes); worker
-# processes pay off for the slow camera envs of locomotion (1.58x at N=2); control-suite and
-# RWRL steps (40-400 us) are cheaper than a message round trip to a worker (0.16-0.64x at
-# N=2, 0.4-1.2x at N=8 measured), so their N envs step in this process, where the batched policy
-# forward (PyTorch's intra-op threads) is what uses the second core.
+# Chosen by measurement (bench/envs.py; the figures and their machine: bench/README.md, "Design
+# choices"): ALE's C++ threads beat processes for Atari; worker processes pay off for the slow
+# camera envs of locomotion; control-suite and RWRL steps are cheaper than a message round trip
+# to a worker, so their N envs step in this process, where the batched policy forward (PyTorch's
+# intra-op threads) is what uses the second core.
 _AUTO = {"atari": "ale", "locomotion": "process", "control_suite": "sync", "rwrl": "sync"}
 
 
@@ -210,8 +209,8 @@ def _concat(parts: list) -> Any:
 def _frames_last(obs: np.ndarray) -> np.ndarray:
     """(N, 4, 84, 84) -> a new contiguous (N, 84, 84, 4) array.
 
-    One strided copy per frame plane: about 3x faster than ``ascontiguousarray(transpose)``
-    for uint8 (70 vs 200 us for 8 envs), which matters beside ALE's own ~150 us per step.
+    One strided copy per frame plane, faster than ``ascontiguousarray(transpose)`` for uint8
+    by enough to matter beside ALE's own step (bench/README.md, "Design choices").
     """
     out = np.empty((obs.shape[0], *obs.shape[2:], obs.shape[1]), obs.dtype)
     for c in range(obs.shape[1]):

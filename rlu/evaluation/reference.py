@@ -10,9 +10,11 @@ File layout (``FORMAT``)::
 
     {"format": "rlu.atari_best_behaviour/1",
      "provenance": {"source", "statistic", "why", ...},
-     "scores": {"atari/Pong": {"mean": 18.68, ...}, ...}}
+     "scores": {"atari/Pong": {"mean": 17.4, "runs": {"1": {"iteration", "mean"}, ...}, ...}}
 
-``mean`` is the reference score; the other fields of an entry say where it came from.
+``mean`` is the reference score; ``runs`` holds each run's best, the other fields of an entry say
+where it came from. The shipped file is built from Dopamine's five published sticky-action DQN
+runs per game (``scripts/atari_best_behaviour_from_dopamine.py``; docs/atari_references.md).
 
 Recomputing from the release (``best_behaviour_from_release``; the command
 ``rlu envs best-behaviour``): the ``atari_episodes_ordered`` files hold one shard per checkpoint
@@ -20,6 +22,10 @@ Recomputing from the release (``best_behaviour_from_release``; the command
 ``checkpoint_idx``. A run's best snapshot is the checkpoint with the highest mean raw episode
 return; a game's reference is that number averaged over the runs given (one run: that run's).
 Only the small scalar fields of each record are decoded, never the PNG frames.
+
+Small denominators (``denominator_check``): where ``best - random`` is small against the spread
+of random play's episode returns, a normalised score measures the luck of a few episodes more
+than the agent; the report flags such games (the rule and why: ``SPREAD_K``).
 """
 
 from __future__ import annotations
@@ -38,6 +44,14 @@ import numpy as np
 from rlu.types import FormatError, RluError
 
 FORMAT = "rlu.atari_best_behaviour/1"
+SPREAD_K = 2.0
+"""A game's denominator ``best - random`` is small when it is under ``SPREAD_K`` standard
+deviations of random play's episode returns: the best snapshot's mean then lies inside the
+range a single random episode reaches (mean +- 2 std holds about 95 % of a normal spread), and
+a random episode 2 std above its mean already scores 100 %. k = 2 is the conventional two-sigma
+line. On the shipped references the separations ``(best - random) / std`` are 1.51 or less for
+four games (TimePilot, Centipede, Gravitar, IceHockey) and 4.68 or more for the other 42, so any
+k from 1.6 to 4.6 flags the same four (docs/atari_references.md)."""
 RESOURCE = "rlu/resources/atari_best_behaviour.json"
 _RUN_RE = re.compile(r"run_(\d+)")
 
@@ -180,3 +194,95 @@ def write(path: str | os.PathLike, doc: Mapping[str, Any]) -> None:
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(json.dumps(doc, indent=1) + "\n")
     os.replace(tmp, path)
+
+
+# --- small denominators ---------------------------------------------------------------------
+def small_denominator(
+    random_mean: float, random_std: float, best: float, k: float = SPREAD_K
+) -> bool:
+    """Whether ``best - random_mean`` is under ``k`` random-return standard deviations (always
+    when it is not positive: the normalisation is then meaningless)."""
+    denom = float(best) - float(random_mean)
+    return denom <= 0.0 or denom < k * float(random_std)
+
+
+def denominator_check(
+    random_mean: float,
+    random_std: float,
+    random_episodes: int,
+    best: float,
+    best_runs: Sequence[float] = (),
+    k: float = SPREAD_K,
+) -> dict[str, Any]:
+    """The numbers behind a game's flag.
+
+    ``separation``: ``(best - random) / random_std`` (inf for a random score without spread);
+    ``reference_se``: the standard error the two references put on every normalised score, in
+    normalised points, ``100 * sqrt(random_std**2 / random_episodes + sd(best_runs)**2 /
+    len(best_runs)) / |best - random|`` (the runs' term only with two runs or more);
+    ``flagged``: ``small_denominator``.
+    """
+    denom = float(best) - float(random_mean)
+    var = float(random_std) ** 2 / max(int(random_episodes), 1)
+    runs = np.asarray(best_runs, np.float64)
+    if runs.size > 1:
+        var += float(np.var(runs, ddof=1)) / runs.size
+    return {
+        "denominator": denom,
+        "random_std": float(random_std),
+        "separation": denom / float(random_std) if random_std > 0 else float("inf"),
+        "reference_se": 100.0 * float(np.sqrt(var)) / abs(denom) if denom else float("inf"),
+        "flagged": small_denominator(random_mean, random_std, best, k),
+        "rule": f"best - random < {k:g} x the random returns' standard deviation",
+    }
+
+
+def denominator_flags(
+    refs: Mapping[str, Mapping[str, float] | None],
+    random_std: Mapping[str, float],
+    k: float = SPREAD_K,
+) -> dict[str, bool]:
+    """``{task: flagged}`` for references ``{task: {"random", "best_behaviour"}}`` (the report's
+    ``reference_scores``) and each game's random-return standard deviation; a game without a
+    reference or a spread is left out."""
+    return {
+        task: small_denominator(r["random"], random_std[task], r["best_behaviour"], k)
+        for task, r in refs.items()
+        if r is not None and task in random_std
+    }
+
+
+def random_spread(path: str | os.PathLike | None = None) -> dict[str, float]:
+    """``{task: standard deviation of random-play returns}`` from the random-scores file (the
+    shipped one by default): the spread belongs to the game and env, so it serves any
+    reference."""
+    from rlu.envs.scores import load as load_random
+
+    return {k: float(e["std"]) for k, e in load_random(path)["scores"].items() if "std" in e}
+
+
+# --- the paper's table, normalised ----------------------------------------------------------
+def paper_medians(
+    paper: Mapping[str, Mapping[str, Mapping[str, float]]],
+    random: Mapping[str, float],
+    best: Mapping[str, float],
+    online: Sequence[str],
+    offline: Sequence[str],
+) -> dict[str, dict[str, float]]:
+    """Per agent, the median normalised score of the paper's per-game table (``{game: {agent:
+    {"mean"}}}``, raw scores) over the ``online`` and over the ``offline`` selection games;
+    ``random`` and ``best`` are keyed by game name. Every game of both lists must be in all
+    three tables."""
+    agents = sorted({a for g in (*online, *offline) for a in paper[g]})
+    out: dict[str, dict[str, float]] = {}
+    for agent in agents:
+        row = {}
+        for split, games in (("online", online), ("offline", offline)):
+            norm = [
+                100.0 * (paper[g][agent]["mean"] - random[g]) / (best[g] - random[g])
+                for g in games
+                if agent in paper[g]
+            ]
+            row[split] = float(np.median(norm))
+        out[agent] = row
+    return out

@@ -1,14 +1,16 @@
 """The data-generation recipes: online behaviour agents, the episode recorder, sub-sampling.
 
-    from rlu.generate import generate
-    generate("control_suite/cartpole_swingup", "data/cartpole", scale="laptop", seed=0)
+    from rlu.generate import GenerateConfig, generate
+    generate(GenerateConfig("control_suite/cartpole_swingup", scale="laptop", seed=0), "data/cp")
 
-``generate`` picks one of three peer recipes: ``recipe`` (D4PG / DQN training runs: the control
+One frozen :class:`GenerateConfig` (``config``) says what to record and how to run; ``generate``
+passes it whole to one of three peer recipes: ``recipe`` (D4PG / DQN training runs: the control
 suite and Atari), ``rwrl`` (fixed behaviour snapshots, D4PG or at the paper scale DMPO, rolled
 out with and without challenges) and ``policy`` (a policy the user supplies: locomotion). They
-share ``common`` (success rule, selection, merge, progress) and ``scales``; ``online`` is the
-actor-learner loop and ``recorder`` turns env steps into store segments. Heavy dependencies
-(torch, the simulators) load only when a run starts.
+share ``common`` (seeds, success rule, selection, work folder, the runner, merge, progress) and
+``scales``; ``online`` is the actor-learner loop and its replay (the store's n-step and frame
+stack maths), ``recorder`` turns env steps into store segments. Heavy dependencies (torch, the
+simulators) load only when a run starts.
 """
 
 from __future__ import annotations
@@ -16,62 +18,100 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
-from rlu.devices import check_gpus_per_run
-from rlu.generate.common import select_episodes, success_rule
-from rlu.generate.scales import SCALES, check_scale
-from rlu.tasks import get_task
+from rlu.generate.common import claim_work, select_episodes, success_rule, work_folder
+from rlu.generate.config import SCALES, GenerateConfig
+from rlu.tasks import TaskSpec, get_task
 from rlu.types import RluError
 
 
-def generate(
-    task_id: str,
-    out: str | Path,
-    scale: str = "laptop",
-    runs: int | None = None,
-    seed: int = 0,
-    backend: str = "local",
-    progress: bool = True,
-    on_chunk: Callable[[int, int], None] | None = None,
-    keep_work: bool = False,
-    policy: str | None = None,
-    workers: int | None = None,
-    device: str = "cpu",
-    gpus_per_run: float = 0.0,
-) -> Path:
-    """Record a dataset for ``task_id`` into ``out``; returns its path (for RWRL, the folder of
-    its ``{challenge}_{size}`` datasets). ``runs``: independent runs (default: the scale's);
-    ``policy`` ('module:factory', see ``rlu.generate.policy``) records a user policy instead of
-    training the behaviour agent (required for locomotion); ``on_chunk(run, chunk)`` is called
-    after every saved chunk (tests interrupt there); ``workers``: processes for the runs (the
-    D4PG / DQN recipe; default one per run). The behaviour agents learn on ``device``; on Ray
-    each run asks for ``gpus_per_run`` GPUs (a fraction shares one)."""
-    task = get_task(task_id)
-    check_scale(scale)
-    check_gpus_per_run(gpus_per_run)
-    if gpus_per_run and backend != "ray":
-        raise RluError("--gpus-per-run asks Ray for GPUs; use it with --backend ray")
-    out = Path(out)
-    if policy is not None or task.domain == "locomotion":
-        from rlu.generate.policy import generate_with_policy
-
-        if policy is None:
+def _recipe(config: GenerateConfig, task: TaskSpec) -> str:
+    if config.policy is not None or task.domain == "locomotion":
+        if config.policy is None:
             raise RluError(
                 f"{task.id}: locomotion data comes from a policy you supply: pass --policy "
                 "package.module:factory, factory(task_id, seed) -> policy(observation) -> action"
             )
-        if backend != "local":
-            raise RluError("--policy runs with --backend local only")
-        return generate_with_policy(task, out, scale, runs, seed, policy, progress, keep_work)
-    if task.domain == "rwrl":
-        from rlu.generate.rwrl import generate_rwrl
-
-        if backend != "local":
-            raise RluError("rwrl generation runs with --backend local only")
-        return generate_rwrl(task, out, scale, runs, seed, progress, keep_work, device)
-    from rlu.generate.recipe import generate_runs
-
-    return generate_runs(task, out, scale, runs, seed, backend, progress, on_chunk, keep_work,
-                         workers, device, gpus_per_run)  # fmt: skip
+        return "policy"
+    return "rwrl" if task.domain == "rwrl" else "runs"
 
 
-__all__ = ["SCALES", "generate", "select_episodes", "success_rule"]
+def run_count(config: GenerateConfig) -> int:
+    """The runs ``config`` plays: its ``runs``, else its scale's."""
+    if config.runs is not None:
+        return config.runs
+    task = get_task(config.task)
+    if _recipe(config, task) == "policy":
+        from rlu.generate.policy import policy_scale
+
+        return policy_scale(task, config.scale).runs
+    from rlu.generate.scales import get_scale
+
+    return get_scale(task, config.scale).runs
+
+
+def _check_out(out: Path, kind: str) -> None:
+    """Refuse, before anything is touched, an ``out`` that is not a new dataset folder (RWRL:
+    a folder its own interrupted generation started)."""
+    if out.is_symlink() or (out.exists() and not out.is_dir()):
+        raise RluError(f"--out {out} exists and is not a folder; choose another --out")
+    if kind == "rwrl":
+        from rlu.generate.rwrl import SUMMARY
+
+        if (out / SUMMARY).exists():
+            raise RluError(f"{out} already holds RWRL datasets; choose another --out or remove it")
+        if (
+            out.is_dir()
+            and any(out.iterdir())
+            and not (work_folder(out) / "settings.json").exists()
+        ):
+            raise RluError(
+                f"--out {out} exists and is not an interrupted rlu generate of RWRL datasets; "
+                "choose a new --out or empty that folder yourself"
+            )
+        return
+    if (out / "manifest.json").exists():
+        raise RluError(f"{out} already holds a dataset; choose another --out or remove it")
+    if out.exists():
+        raise RluError(
+            f"--out {out} already exists; rlu generate writes a new dataset folder: choose "
+            "another --out or remove it"
+        )
+
+
+def generate(
+    config: GenerateConfig,
+    out: str | Path,
+    on_chunk: Callable[[int, int], None] | None = None,
+) -> Path:
+    """Record the dataset ``config`` describes into ``out``; returns its path (for RWRL, the
+    folder of its ``{challenge}_{size}`` datasets). Re-running an interrupted generation with
+    the same config resumes it to the same bytes. One generation per ``out`` at a time: a
+    second one fails at once with "in use by PID N". ``on_chunk(run, chunk)`` is called after
+    every saved chunk of the D4PG / DQN recipe, in this process (tests interrupt there)."""
+    if not isinstance(config, GenerateConfig):
+        raise RluError(
+            f"generate takes a rlu.generate.GenerateConfig, got {type(config).__name__}; build "
+            "one with GenerateConfig(task_id, scale=..., runs=..., seed=...)"
+        )
+    task = get_task(config.task)
+    kind = _recipe(config, task)
+    if on_chunk is not None and kind != "runs":
+        raise RluError("on_chunk is called by the D4PG / DQN recipe only")
+    out = Path(out)
+    _check_out(out, kind)
+    with claim_work(out) as work:
+        _check_out(out, kind)  # one that finished between the check and the claim
+        if kind == "policy":
+            from rlu.generate.policy import generate_with_policy
+
+            return generate_with_policy(config, task, out, work)
+        if kind == "rwrl":
+            from rlu.generate.rwrl import generate_rwrl
+
+            return generate_rwrl(config, task, out, work)
+        from rlu.generate.recipe import generate_runs
+
+        return generate_runs(config, task, out, work, on_chunk)
+
+
+__all__ = ["SCALES", "GenerateConfig", "generate", "run_count", "select_episodes", "success_rule"]

@@ -1,4 +1,5 @@
-"""What the three recipes share: success rule, selection, work folder, merge, progress, provenance.
+"""What the three recipes share: seeds, success rule, selection, work folder, runs, merge,
+progress, provenance.
 
 The recipes (``recipe``: D4PG / DQN training runs; ``policy``: a user's policy; ``rwrl``: fixed
 snapshots) are peers that import this module, never each other. The paper's selection (SPEC §4):
@@ -13,13 +14,20 @@ Success, per domain (``success_rule``):
   calls solved lie above it;
 - Atari: no episode counts as successful: the paper keeps DQN's whole replay (no reduction);
 - locomotion: the episode reached its time limit (the walker did not fall).
+
+Seeds: every random stream of a generation is one of ``rlu.types.seed_stream`` under the
+command's ``--seed``, keyed by what it is for (``run_seed``, ``run_rng``, ``stream_rng``): one
+subtree per run, so no two streams coincide whatever the counts of runs, episodes or chunks.
+
+The work folder ``.<out>.generate`` beside ``out`` holds ``settings.json`` and each run's parts
+and state; one generation at a time owns it (:func:`claim_work`: a second one into the same
+``--out`` fails with "in use by PID N"), and what it holds is read back checked.
 """
 
 from __future__ import annotations
 
-import json
-import sys
-import time
+import contextlib
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -27,11 +35,33 @@ import numpy as np
 
 from rlu.data import DatasetWriter, open_dataset
 from rlu.data.episode import Segment
+from rlu.files import AnyJSON, MapOf, read_json, write_json
+from rlu.generate.config import GenerateConfig
 from rlu.generate.recorder import schema_for
 from rlu.tasks import TaskSpec
-from rlu.types import RluError
+from rlu.types import RluError, derive_seed, seed_stream
 
 CONTROL_SUCCESS_RETURN = 800.0
+
+# --- seeds ----------------------------------------------------------------------------------
+RUN, SELECTION, ROLLOUT = 0, 1, 2
+"""The top-level streams under ``--seed``: the runs, the selection, RWRL's roll-outs."""
+AGENT, ACTOR, EPISODE, ENV, POLICY = range(5)
+"""A run's streams: the agent's initialisation, the actor's exploration, each episode's reset,
+the env, each chunk's user policy."""
+
+
+def run_seed(seed: int, run: int, stream: int, *key: int) -> int:
+    """The int seed of stream ``stream`` (and ``key``, e.g. the episode) of run ``run``."""
+    return derive_seed(seed, RUN, run, stream, *key)
+
+
+def run_rng(seed: int, run: int, stream: int) -> np.random.Generator:
+    return np.random.default_rng(seed_stream(seed, RUN, run, stream))
+
+
+def stream_rng(seed: int, *key: int) -> np.random.Generator:
+    return np.random.default_rng(seed_stream(seed, *key))
 
 
 def success_rule(task: TaskSpec) -> str:
@@ -80,11 +110,6 @@ def paper_count(task: TaskSpec) -> int | None:
     return int(task.episodes[""]) if "" in task.episodes else None
 
 
-def command_line(task_id: str, scale: str, runs: int, seed: int) -> str:
-    """The command recorded in the manifest (``--out`` left out: it does not change the data)."""
-    return f"rlu generate {task_id} --scale {scale} --seeds {runs} --seed {seed}"
-
-
 def versions(task: TaskSpec) -> dict[str, str]:
     """Versions of the packages the bytes depend on (recorded in the provenance)."""
     from importlib import metadata
@@ -99,51 +124,105 @@ def versions(task: TaskSpec) -> dict[str, str]:
     return out
 
 
+def work_folder(out: Path) -> Path:
+    """Where a generation into ``out`` keeps its work until the dataset is written."""
+    return out.parent / f".{out.name}.generate"
+
+
+@contextlib.contextmanager
+def claim_work(out: Path) -> Iterator[Path]:
+    """Own the work folder of the generation into ``out`` while the block runs: a second
+    generation into the same ``out`` fails at once with "in use by PID N" (a killed one's
+    claim ends with it: :class:`rlu.locks.OutputLock`)."""
+    from rlu.locks import OutputLock
+
+    work = work_folder(out)
+    with OutputLock(work, f"work folder of the generation into {out}"):
+        yield work
+
+
 def open_work(work: Path, settings: dict[str, Any], resume_command: str) -> None:
     """Create the work folder with ``settings.json``, or check that the interrupted generation
     there used the same settings (a resumed run must give the bytes of an uninterrupted one)."""
     path = work / "settings.json"
     if path.exists():
-        before = json.loads(path.read_text())
+        fix = f"remove {work} to start the generation afresh"
+        before = read_json(path, MapOf(AnyJSON()), fix)
         if before != settings:
-            diff = sorted(k for k in settings.keys() | before.keys()
-                          if before.get(k) != settings.get(k))  # fmt: skip
+            diff = sorted(
+                k for k in settings.keys() | before.keys() if before.get(k) != settings.get(k)
+            )
             raise RluError(
                 f"{work} holds an interrupted generation with other settings ({', '.join(diff)}); "
                 f"re-run its command ({resume_command}) to resume it, or remove {work}"
             )
         return
     work.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(".settings.json.tmp")
-    tmp.write_text(json.dumps(settings, indent=1, sort_keys=True))
-    tmp.replace(path)
+    write_json(path, settings, indent=1)
 
 
-def merge_runs(task: TaskSpec, work: Path, runs: int, settings: dict[str, Any],
-               target: int | None, seed: int, out: Path, command: str,
-               policies: str | None = None) -> Path:  # fmt: skip
-    """Select episodes from every run's parts under ``work`` and write the final dataset. The
+def play_runs(
+    config: GenerateConfig,
+    play: Callable[..., None],
+    jobs: Sequence[tuple[Any, ...]],
+    bar: Progress,
+) -> None:
+    """``play(*job)`` for every run's job on ``config.backend`` (the one runner,
+    ``rlu.workers.run_jobs``): each run is a function of its seeds alone, so the bytes do not
+    depend on the backend or the number of workers. A run reports its episodes with
+    :func:`report_episode`; they reach ``bar``."""
+    from rlu.devices import check_ray_gpus
+    from rlu.workers import run_jobs
+
+    def ray_check(ray: Any) -> None:
+        check_ray_gpus(ray, config.backend.gpus_per_job, config.device)
+
+    run_jobs(
+        play,
+        jobs,
+        config.backend,
+        on_result=lambda i, r: None,
+        on_message=lambda m: bar.report(*m),
+        ray_check=ray_check,
+    )
+
+
+def report_episode(run: int, episode: int, seg: Segment) -> None:
+    """From inside a run: its ``episode``-th episode ended (the parent's progress bar)."""
+    from rlu.workers import send
+
+    send((run, episode, float(seg.metadata["episode_return"])))
+
+
+def merge_runs(
+    task: TaskSpec,
+    work: Path,
+    out: Path,
+    settings: dict[str, Any],
+    command: str,
+    policies: str | None = None,
+) -> Path:
+    """Select episodes from every run's parts under ``work`` and write the final dataset to
+    ``out`` (``settings``: the generation's, with its runs, seed and target episodes). The
     provenance keeps every recorded episode's return and length per run (``runs``): the runs'
     learning curves, of which the dataset keeps a sub-sample (``rlu.generate.curves``).
     ``policies`` (the weights' dtype; None: the recipe keeps none): attach the behaviour policy
     of every (run, checkpoint) the kept episodes name, from ``work/run_*/policies/``."""
     parts, curves = [], []
-    for r in range(runs):
+    for r in range(settings["runs"]):
         run_parts = sorted((work / f"run_{r:03d}").glob("part_*"))
         mine = [open_dataset(p) for p in run_parts if (p / "manifest.json").exists()]
         parts += mine
-        curves.append({
-            "run": r,
-            "episode_return": [round(float(x), 3) for p in mine
-                               for x in np.asarray(p.metadata("episode_return"))],
-            "episode_steps": [int(n) - 1 for p in mine for n in np.asarray(p.length)],
-        })  # fmt: skip
+        curve = [round(float(x), 3) for p in mine for x in np.asarray(p.metadata("episode_return"))]
+        lengths = [int(n) - 1 for p in mine for n in np.asarray(p.length)]
+        curves.append({"run": r, "episode_return": curve, "episode_steps": lengths})
     returns = np.concatenate([np.asarray(p.metadata("episode_return")) for p in parts])
     terminal = np.concatenate(
         [np.asarray(p.column("is_terminal"))[p.start + p.length - 1] for p in parts]
     )
     where = [(i, j) for i, p in enumerate(parts) for j in range(len(p))]
-    rng = np.random.default_rng([seed, 3])
+    rng = stream_rng(settings["seed"], SELECTION)
+    target = settings["target_episodes"]
     keep, counts = select_episodes(is_success(task, returns, terminal), target, rng)
     provenance = {
         "generator": "rlu generate",
@@ -178,13 +257,16 @@ def merge_runs(task: TaskSpec, work: Path, runs: int, settings: dict[str, Any],
 
 
 class Progress:
-    """A one-line progress bar on stderr (one line per run when stderr is not a terminal)."""
+    """Generation's progress on the one display (``rlu.progress``): episodes played over every
+    run, with the latest run, episode and return after the counts."""
 
     def __init__(self, total: int, label: str, enabled: bool = True):
-        self.total, self.label, self.enabled = total, label, enabled
-        self.done, self.t0 = 0, time.perf_counter()
+        from rlu.progress import Progress as Display
+
         self.latest: dict[int, int] = {}  # run -> its last episode number (1-based)
-        self.tty = sys.stderr.isatty()
+        self.done = 0
+        # a budget in env steps has no episode count: total 0 shows counts without a bar
+        self.display = Display(total or None, label, "episodes", quiet=not enabled)
 
     def update(self, run: int, episode: int, seg: Segment) -> None:
         self.report(run, episode, float(seg.metadata["episode_return"]))
@@ -192,23 +274,10 @@ class Progress:
     def report(self, run: int, episode: int, episode_return: float) -> None:
         # episodes played, counted from each run's episode number: a resumed run's first report
         # counts the episodes it played before the interruption too
-        first = run not in self.latest  # this run's first episode here, fresh or resumed
         self.latest[run] = episode
         self.done = sum(self.latest.values())
-        if not self.enabled:
-            return
-        frac = self.done / self.total if self.total else 0.0  # 0: a budget in env steps
-        bar = "#" * int(30 * min(1.0, frac))
-        el = time.perf_counter() - self.t0
-        msg = (
-            f"{self.label} [{bar:<30}] {self.done}/{self.total or '?'} episodes  run {run} "
-            f"ep {episode} return {episode_return:8.1f}  {el:6.0f}s"
-        )
-        if self.tty:
-            print("\r" + msg, end="", file=sys.stderr, flush=True)
-        elif first or self.done == self.total or self.done % 10 == 0:
-            print(msg, file=sys.stderr, flush=True)
+        self.display.set_postfix(run=run, episode=episode, ret=f"{episode_return:.1f}")
+        self.display.update_to(self.done)
 
     def close(self) -> None:
-        if self.enabled and self.tty:
-            print(file=sys.stderr)
+        self.display.close()

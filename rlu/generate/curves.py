@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from rlu.files import atomic_path
 from rlu.types import RluError
 
 WINDOW = 10
@@ -57,10 +58,13 @@ def read_curves(provenance: Mapping[str, Any], where: str = "manifest") -> list[
             "rlu generate record them: regenerate it with its recorded command"
         )
     return [
-        RunCurve(int(r["run"]), np.asarray(r["episode_return"], np.float64),
-                 np.cumsum(np.asarray(r["episode_steps"], np.int64)))
+        RunCurve(
+            int(r["run"]),
+            np.asarray(r["episode_return"], np.float64),
+            np.cumsum(np.asarray(r["episode_steps"], np.int64)),
+        )
         for r in runs
-    ]  # fmt: skip
+    ]
 
 
 def dataset_curves(path: str | Path) -> tuple[list[RunCurve], Mapping[str, Any]]:
@@ -90,10 +94,16 @@ def summarise(curves: Sequence[RunCurve], window: int = WINDOW) -> list[RunSumma
         m = moving_mean(c.episode_return, window)
         i = int(np.argmax(m))
         end = min(i + window, c.env_steps.size) - 1
-        out.append(RunSummary(
-            c.run, int(c.episode_return.size), int(c.env_steps[-1]), float(m[i]),
-            int(c.env_steps[end]), float(c.episode_return[-window:].mean()),
-        ))  # fmt: skip
+        out.append(
+            RunSummary(
+                c.run,
+                int(c.episode_return.size),
+                int(c.env_steps[-1]),
+                float(m[i]),
+                int(c.env_steps[end]),
+                float(c.episode_return[-window:].mean()),
+            )
+        )
     return out
 
 
@@ -105,16 +115,19 @@ def markdown_table(summaries: Sequence[RunSummary], target: float | None = None)
         sep += "---|"
     lines = [head, sep]
     for s in summaries:
-        row = (f"| {s.run} | {s.episodes} | {s.env_steps:,} | {s.best_mean:.1f} "
-               f"({s.best_at_steps:,}) | {s.final_mean:.1f} |")  # fmt: skip
+        row = (
+            f"| {s.run} | {s.episodes} | {s.env_steps:,} | {s.best_mean:.1f} "
+            f"({s.best_at_steps:,}) | {s.final_mean:.1f} |"
+        )
         if target is not None:
             row += f" {'yes' if s.best_mean >= target else 'no'} |"
         lines.append(row)
     return "\n".join(lines)
 
 
-def plot(curves: Sequence[RunCurve], png: str | Path, title: str,
-         target: float | None = None) -> Path:  # fmt: skip
+def plot(
+    curves: Sequence[RunCurve], png: str | Path, title: str, target: float | None = None
+) -> Path:
     """Return against env steps, one line per run: each episode faint, the ``WINDOW``-episode
     moving mean solid; a dashed line at ``target``."""
     try:
@@ -133,8 +146,7 @@ def plot(curves: Sequence[RunCurve], png: str | Path, title: str,
         ax.plot(c.env_steps, c.episode_return, color=color, alpha=0.25, linewidth=0.8)
         m = moving_mean(c.episode_return)
         if c.episode_return.size >= WINDOW:
-            ax.plot(c.env_steps[WINDOW - 1 :], m, color=color, linewidth=1.8,
-                    label=f"run {c.run}")  # fmt: skip
+            ax.plot(c.env_steps[WINDOW - 1 :], m, color=color, linewidth=1.8, label=f"run {c.run}")
         else:
             ax.plot(c.env_steps, c.episode_return, color=color, label=f"run {c.run}")
     if target is not None:
@@ -145,8 +157,9 @@ def plot(curves: Sequence[RunCurve], png: str | Path, title: str,
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="lower right")
     fig.tight_layout()
-    tmp = png.with_name(f".{png.name}.tmp")
-    fig.savefig(tmp, dpi=110, format="png", metadata={"Software": None})
-    plt.close(fig)
-    tmp.replace(png)
+    try:
+        with atomic_path(png) as tmp:
+            fig.savefig(tmp, dpi=110, format="png", metadata={"Software": None})
+    finally:
+        plt.close(fig)
     return png

@@ -13,10 +13,16 @@ decayed epsilon (1.0 -> ``epsilon_end`` over ``epsilon_decay_steps``), the agent
 stored steps, one ``agent.update`` every ``update_every`` env steps on a batch sampled uniformly
 from the replay (n-step transitions for D4PG, as Acme's adder; 1-step for DQN, as Dopamine).
 
-Determinism and resumption: every episode resets the env with a seed derived from
-``(seed, run, episode)``, so the env carries no state across episodes; the agent, the replay and
-the actor's random generator are saved after every chunk of episodes (``RunState``), so a run
-resumed from its last chunk produces the same bytes as an uninterrupted one. Torch runs on one
+The replay holds whole episodes and builds its n-step transitions and Atari frame stacks with
+the store's own maths (``rlu.data.views``: ``n_step_targets``, ``stack_frames``), so the online
+agent learns from the transitions an offline agent would sample from the recorded data.
+
+Determinism and resumption: every seed is a stream of ``rlu.types.seed_stream`` under the run
+(``rlu.generate.common``); every episode resets the env with its own, so the env carries no
+state across episodes; the agent, the replay and the actor's random generator are saved after
+every chunk of episodes (``state.pt``, through ``rlu.checkpoints``), so a run resumed from its
+last chunk produces the same bytes as an uninterrupted one, and a damaged state file is an error
+naming it. Torch runs on one
 thread here: reductions then do not depend on the machine's core count. The agent may live on a
 GPU (``device``); its state is saved device-independently, so a run may resume on another
 device (the bytes then follow that device's arithmetic).
@@ -24,7 +30,6 @@ device (the bytes then follow that device's arithmetic).
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -33,9 +38,13 @@ from typing import Any
 import numpy as np
 
 from rlu.data.episode import Segment
-from rlu.generate.recorder import EpisodeRecorder, episode_id
-from rlu.tasks import TaskSpec
-from rlu.types import ArraySpec, BatchSpec, RluError, Transition
+from rlu.data.views import n_step_counts, n_step_targets, stack_frames
+from rlu.files import bounds, check_value, shape_of
+from rlu.generate.common import ACTOR, AGENT, ENV, EPISODE, run_rng, run_seed
+from rlu.generate.config import GenerateConfig
+from rlu.generate.recorder import EpisodeRecorder, episode_id, schema_for
+from rlu.tasks import TaskSpec, get_task
+from rlu.types import ArraySpec, BatchSpec, FormatError, RluError, Transition
 
 
 @dataclass(frozen=True)
@@ -45,56 +54,57 @@ class OnlineConfig:
     agent: str
     """The behaviour agent: 'd4pg' (continuous control) or 'dopamine_dqn' (Atari); any registered
     agent whose batch spec samples transitions can play."""
-    episodes: int
+    episodes: int = field(metadata=bounds(min=1))
     """Episodes played (and recorded) per run, at most."""
-    env_steps: int | None = None
+    env_steps: int | None = field(default=None, metadata=bounds(min=1))
     """If set, a run also ends with the first episode that reaches this many env steps (Atari's
     budget is in steps: 50M per run in the paper)."""
     preset: str = "small"
     """The agent's preset (rlu.agents); ``agent_overrides`` are applied on top."""
     agent_overrides: Mapping[str, Any] = field(default_factory=dict)
     """Config fields replacing the preset's (e.g. smaller networks at tiny scale)."""
-    replay_capacity: int = 100_000
+    replay_capacity: int = field(default=100_000, metadata=bounds(min=1))
     """Steps the replay holds (oldest whole episodes are dropped first)."""
-    min_replay: int = 1_000
+    min_replay: int = field(default=1_000, metadata=bounds(min=0))
     """Stored steps before the first update."""
-    update_every: int = 8
+    update_every: int = field(default=8, metadata=bounds(min=1))
     """Env steps per learner update (Acme's D4PG: samples_per_insert 32 at batch 256)."""
-    sigma: float | None = 0.3
+    sigma: float | None = field(default=0.3, metadata=bounds(min=0.0))
     """D4PG behaviour noise: standard deviation of the Gaussian added to the action. None: the
     agent's own ``act(greedy=False)`` explores (DMPO samples its Gaussian policy, as Acme's
     behaviour network); either way the action is clipped to the bounds."""
-    epsilon_end: float = 0.01
+    epsilon_end: float = field(default=0.01, metadata=bounds(min=0.0, max=1.0))
     """DQN: final exploration epsilon (Dopamine)."""
-    epsilon_decay_steps: int = 250_000
+    epsilon_decay_steps: int = field(default=250_000, metadata=bounds(min=1))
     """DQN: env steps over which epsilon decays linearly from 1 (Dopamine: 1M frames)."""
-    checkpoint_steps: int = 10_000
+    checkpoint_steps: int = field(default=10_000, metadata=bounds(min=1))
     """Env steps per checkpoint index (the ``checkpoint`` metadata; Atari's release: 1M)."""
-    chunk_episodes: int = 5
+    chunk_episodes: int = field(default=5, metadata=bounds(min=1))
     """Episodes per saved part; a crashed run resumes from its last complete chunk."""
     env_settings: Mapping[str, Any] = field(default_factory=dict)
     """Keyword settings of ``rlu.make_env`` (e.g. Atari ``max_episode_steps`` at tiny scale)."""
-    policy_dtype: str = "float16"
+    policy_dtype: str = field(default="float16", metadata=bounds(choices=("float16", "float32")))
     """How the behaviour policies kept at each checkpoint store their weights
     (``rlu.generate.policies``): float16 halves them (the bundled cartpole dataset's 18 D4PG
     policies: 2.5 MB, not 4.9 MB, inside its 5 MB budget); 'float32' keeps them exact."""
+
+    def __post_init__(self) -> None:
+        fix = "give every field a value of its type and range (rlu.generate.online.OnlineConfig)"
+        check_value(shape_of(OnlineConfig), self.to_json(), "OnlineConfig", fix)
 
     def to_json(self) -> dict[str, Any]:
         return {k: (dict(v) if isinstance(v, Mapping) else v) for k, v in asdict(self).items()}
 
 
-def derive_seed(*keys: int) -> int:
-    """A 31-bit seed from a tuple of non-negative ints (numpy's SeedSequence hashing)."""
-    return int(np.random.SeedSequence([int(k) for k in keys]).generate_state(1)[0] >> 1)
-
-
 # --------------------------------------------------------------------------------- replay
 class Replay:
-    """Whole episodes in a ring of steps, sampled as (n-step) Transitions by index arithmetic.
+    """Whole episodes in a ring of rows, sampled as (n-step) Transitions by index arithmetic.
 
-    Episodes are stored contiguously (the write position wraps to 0 when one does not fit), so
-    ``next`` indices stay inside their episode; an episode any of whose steps is overwritten is
-    invalidated whole. Atari frames are stored once and stacked at sample time.
+    An episode is stored as the store stores it: its frame prefix (Atari: ``frame_stack - 1``
+    frames of zeros), then its steps, contiguously (the write position wraps to 0 when one does
+    not fit), so ``next`` indices and frame stacks stay inside their episode; an episode any of
+    whose rows is overwritten is invalidated whole. The n-step targets are computed once per
+    episode with the store view's function, and frames are stacked at sample time as it does.
     """
 
     def __init__(self, task: TaskSpec, capacity: int, spec: BatchSpec):
@@ -104,22 +114,21 @@ class Replay:
             )
         self.capacity, self.n_step, self.gamma = int(capacity), spec.n_step, spec.gamma
         self.reward_clip = spec.reward_clip
-        self.frame_stack = 4 if task.domain == "atari" else 1
-        spec = task.observation_spec
+        schema = schema_for(task)  # the recorder's: Atari stores single frames, stacked here
+        self.frame_stack = schema.frame_stack
         c = self.capacity
-        if isinstance(spec, ArraySpec):
-            shape = spec.shape[:-1] if self.frame_stack > 1 else spec.shape
-            self.obs: Any = np.zeros((c, *shape), spec.dtype)
+        obs = schema.observation
+        if isinstance(obs, ArraySpec):
+            self.obs: Any = np.zeros((c, *obs.shape), obs.dtype)
         else:
-            self.obs = {k: np.zeros((c, *s.shape), s.dtype) for k, s in spec.items()}
+            self.obs = {k: np.zeros((c, *s.shape), s.dtype) for k, s in obs.items()}
         a = task.action_spec
         self.action = np.zeros((c, *a.shape), a.dtype)
-        self.reward = np.zeros(c, np.float32)
+        self.reward = np.zeros(c, np.float32)  # the n-step reward of the transition at a row
         self.discount = np.zeros(c, np.float32)
         self.next = np.zeros(c, np.int64)
         self.valid = np.zeros(c, bool)
         self.episode = np.full(c, -1, np.int64)
-        self.start = np.zeros(c, np.int64)
         self.pos = 0
         self.num_episodes = 0
         self._eligible = np.zeros(0, np.int64)
@@ -129,58 +138,57 @@ class Replay:
         return int(self._eligible.size)
 
     def add(self, seg: Segment) -> None:
-        n = len(seg)
-        if n > self.capacity:
+        n, pad = len(seg), self.frame_stack - 1
+        if pad + n > self.capacity:
             raise RluError(f"replay_capacity={self.capacity} is smaller than one episode ({n})")
-        if self.pos + n > self.capacity:
+        if self.pos + pad + n > self.capacity:
             self.pos = 0
-        sl = slice(self.pos, self.pos + n)
-        gone = np.unique(self.episode[sl])
+        block = slice(self.pos, self.pos + pad + n)
+        gone = np.unique(self.episode[block])
         gone = gone[gone >= 0]
         if gone.size:
             self.valid[np.isin(self.episode, gone)] = False
+        first = self.pos + pad  # the row of the episode's step 0
+        steps = slice(first, first + n)
         if isinstance(self.obs, Mapping):
             for k, buf in self.obs.items():
-                buf[sl] = seg.observation[k]
+                buf[steps] = seg.observation[k]
         else:
-            self.obs[sl] = seg.observation
-        self.action[sl] = seg.action
-        # n-step targets of every transition t < n - 1, by k-loop over the window (n is small)
-        r = np.zeros(n - 1 + self.n_step, np.float64)
-        d = np.zeros(n - 1 + self.n_step, np.float64)
-        r[: n - 1], d[: n - 1] = seg.reward[: n - 1], seg.discount[: n - 1]
-        if self.reward_clip is not None:  # the agent's BatchSpec: clip per step, then sum
-            r = np.clip(r, -self.reward_clip, self.reward_clip)
-        terminal = bool(seg.is_terminal[-1])
-        ret = np.zeros(n - 1)
-        disc = np.ones(n - 1)
-        for k in range(self.n_step):
-            ret += self.gamma**k * disc * r[k : k + n - 1]
-            disc *= d[k : k + n - 1]
+            if pad:
+                prefix = seg.frame_prefix
+                self.obs[self.pos : first] = 0 if prefix is None else prefix
+            self.obs[steps] = seg.observation
+        self.action[steps] = seg.action
         t = np.arange(n - 1)
-        ok = (t + self.n_step <= n - 1) | terminal
-        self.reward[sl] = 0.0
-        self.discount[sl] = 0.0
-        self.reward[self.pos : self.pos + n - 1] = ret
-        self.discount[self.pos : self.pos + n - 1] = disc
-        self.next[sl] = self.pos + np.minimum(np.arange(n) + self.n_step, n - 1)
-        self.valid[sl] = False
-        self.valid[self.pos : self.pos + n - 1] = ok
-        self.episode[sl] = self.num_episodes
-        self.start[sl] = self.pos
+        reward, discount, nxt = n_step_targets(
+            seg.reward,
+            seg.discount,
+            t,
+            np.full(n - 1, n - 1),
+            self.n_step,
+            self.gamma,
+            self.reward_clip,
+        )
+        count = int(n_step_counts(np.array([n]), seg.is_terminal[-1:], self.n_step)[0])
+        self.reward[block] = 0.0
+        self.discount[block] = 0.0
+        self.next[block] = first + n - 1
+        self.valid[block] = False
+        self.reward[first : first + n - 1] = reward
+        self.discount[first : first + n - 1] = discount
+        self.next[first : first + n - 1] = first + nxt
+        self.valid[first : first + count] = True
+        self.episode[block] = self.num_episodes
         self.num_episodes += 1
-        self.pos += n
+        self.pos += pad + n
         self._eligible = np.flatnonzero(self.valid)
 
-    def _observation(self, idx: np.ndarray) -> Any:
+    def _observation(self, rows: np.ndarray) -> Any:
         if isinstance(self.obs, Mapping):
-            return {k: v[idx] for k, v in self.obs.items()}
+            return {k: v[rows] for k, v in self.obs.items()}
         if self.frame_stack == 1:
-            return self.obs[idx]
-        rows = idx[:, None] + np.arange(1 - self.frame_stack, 1)
-        keep = rows >= self.start[idx][:, None]
-        frames = self.obs[np.maximum(rows, 0)] * keep[:, :, None, None].astype(np.uint8)
-        return np.ascontiguousarray(np.moveaxis(frames, 1, -1))
+            return self.obs[rows]
+        return stack_frames(self.obs, rows - (self.frame_stack - 1), self.frame_stack)
 
     def sample(self, rng: np.random.Generator, batch_size: int) -> Transition:
         idx = self._eligible[rng.integers(0, self._eligible.size, batch_size)]
@@ -194,32 +202,73 @@ class Replay:
             next_action=self.action[nxt],
         )
 
+    _ARRAYS = ("obs", "action", "reward", "discount", "next", "valid", "episode")
+
     def state(self) -> dict[str, Any]:
-        """Plain tensors, dicts and numbers: loadable with ``torch.load(weights_only=True)``."""
-        return {k: _to_tensors(v) for k, v in vars(self).items()}
+        """Tensors and ints only: loadable with ``torch.load(weights_only=True)``."""
+        import torch
 
-    def load(self, state: Mapping[str, Any]) -> None:
-        vars(self).update({k: _from_tensors(v) for k, v in state.items()})
+        def tensor(v: np.ndarray) -> Any:
+            return torch.from_numpy(np.ascontiguousarray(v))
 
+        arrays = {}
+        for name in self._ARRAYS:
+            v = getattr(self, name)
+            arrays[name] = (
+                {k: tensor(x) for k, x in v.items()} if isinstance(v, Mapping) else tensor(v)
+            )
+        return {"arrays": arrays, "pos": self.pos, "num_episodes": self.num_episodes}
 
-def _to_tensors(v: Any) -> Any:
-    import torch
+    def load(self, state: Any, where: str, fix: str) -> None:
+        """Restore :meth:`state`; anything that is not this replay's (other entries, shapes,
+        dtypes, indices outside the ring) is a FormatError naming ``where`` and ``fix``."""
+        import torch
 
-    if isinstance(v, np.ndarray):
-        return ("ndarray", torch.from_numpy(np.ascontiguousarray(v)))
-    if isinstance(v, Mapping):
-        return {k: _to_tensors(x) for k, x in v.items()}
-    if isinstance(v, np.generic):
-        return v.item()
-    return v
+        def bad(what: str) -> FormatError:
+            return FormatError(f"{where}: the replay's {what}; {fix}")
 
+        def array(v: Any, like: np.ndarray, name: str) -> np.ndarray:
+            if not isinstance(v, torch.Tensor):
+                raise bad(f"entry {name!r} is a {type(v).__name__}, not a tensor")
+            out = v.numpy()
+            if out.shape != like.shape or out.dtype != like.dtype:
+                raise bad(
+                    f"entry {name!r} is {out.dtype}{list(out.shape)}; this replay holds "
+                    f"{like.dtype}{list(like.shape)}"
+                )
+            return out
 
-def _from_tensors(v: Any) -> Any:
-    if isinstance(v, tuple) and len(v) == 2 and v[0] == "ndarray":
-        return v[1].numpy()
-    if isinstance(v, Mapping):
-        return {k: _from_tensors(x) for k, x in v.items()}
-    return v
+        if not isinstance(state, Mapping) or set(state) != {"arrays", "pos", "num_episodes"}:
+            raise bad("state is not the one rlu generate saves")
+        arrays = state["arrays"]
+        if not isinstance(arrays, Mapping) or set(arrays) != set(self._ARRAYS):
+            raise bad(f"arrays are not {', '.join(self._ARRAYS)}")
+        loaded: dict[str, Any] = {}
+        for name in self._ARRAYS:
+            mine, theirs = getattr(self, name), arrays[name]
+            if isinstance(mine, Mapping):
+                if not isinstance(theirs, Mapping) or set(theirs) != set(mine):
+                    raise bad(f"observation keys differ from the task's ({', '.join(mine)})")
+                loaded[name] = {k: array(theirs[k], mine[k], f"{name}/{k}") for k in mine}
+            else:
+                loaded[name] = array(theirs, mine, name)
+        pos, count = state["pos"], state["num_episodes"]
+        for key, value, top in (("pos", pos, self.capacity), ("num_episodes", count, None)):
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, int)
+                or value < 0
+                or (top is not None and value > top)
+            ):
+                raise bad(f"entry {key!r} is {value!r}, not a count of this replay")
+        nxt, episode = loaded["next"], loaded["episode"]
+        if nxt.size and (nxt.min() < 0 or nxt.max() >= self.capacity):
+            raise bad(f"'next' holds rows outside the ring of {self.capacity}")
+        if episode.size and (episode.min() < -1 or episode.max() >= count):
+            raise bad("'episode' holds episodes it never stored")
+        vars(self).update(loaded)
+        self.pos, self.num_episodes = pos, count
+        self._eligible = np.flatnonzero(self.valid)
 
 
 # --------------------------------------------------------------------------------- a run
@@ -227,67 +276,73 @@ def make_behaviour_agent(task: TaskSpec, cfg: OnlineConfig, seed: int, device: A
     from rlu.agents import make_agent
 
     return make_agent(
-        cfg.agent, task.observation_spec, task.action_spec, cfg.preset, seed, device=device,
+        cfg.agent,
+        task.observation_spec,
+        task.action_spec,
+        cfg.preset,
+        seed,
+        device=device,
         **cfg.agent_overrides,
-    )  # fmt: skip
+    )
 
 
-def _save_atomic(obj: Any, path: Path) -> None:
-    import torch
+@dataclass(frozen=True)
+class RunHooks:
+    """What a run hands its episodes, chunks and agent to (the recipes differ only here)."""
 
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb") as fh:
-        torch.save(obj, fh)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+    write_chunk: Callable[[int, list[Segment]], None]
+    """``write_chunk(chunk_index, segments)``: a finished chunk of recorded episodes."""
+    on_episode: Callable[[int, int, Segment], None] | None = None
+    """``on_episode(run, episodes_played, segment)`` after every episode (progress)."""
+    on_chunk: Callable[[int, int], None] | None = None
+    """``on_chunk(run, chunk_index)`` once a chunk and the run's state are on disk (tests
+    interrupt there)."""
+    on_snapshot: Callable[[int, Any, list[Segment]], None] | None = None
+    """``on_snapshot(chunk_index, agent, segments)`` after each chunk (RWRL keeps policy
+    snapshots this way)."""
+    on_checkpoint: Callable[[int, int, int, Any], None] | None = None
+    """``on_checkpoint(checkpoint, env_steps, episode, agent)`` before the first episode of every
+    checkpoint id (the recipe keeps the behaviour policies this way; a run resumed from its last
+    chunk calls it again for the checkpoints after that chunk, with the same agent)."""
+
+
+STATE_KEYS = ("done", "agent", "replay", "rng", "episode", "env_steps", "last_checkpoint")
+"""The entries of a run's ``state.pt``."""
 
 
 def run_online(
-    task: TaskSpec,
-    cfg: OnlineConfig,
-    seed: int,
-    run: int,
-    run_dir: Path,
-    write_chunk: Callable[[int, list[Segment]], None],
-    on_episode: Callable[[int, int, Segment], None] | None = None,
-    on_chunk: Callable[[int, int], None] | None = None,
-    on_snapshot: Callable[[int, Any, list[Segment]], None] | None = None,
-    device: Any = "cpu",
-    on_checkpoint: Callable[[int, int, int, Any], None] | None = None,
+    config: GenerateConfig, online: OnlineConfig, run: int, run_dir: Path, hooks: RunHooks
 ) -> None:
-    """Play run ``run`` of ``cfg`` (resuming from ``run_dir/state.pt``), handing each finished
-    chunk of recorded episodes to ``write_chunk(chunk_index, segments)``, then saving its state
-    and calling ``on_chunk(run, chunk_index)``. ``on_snapshot(chunk_index, agent, segments)``
-    sees the agent after each chunk (RWRL keeps policy snapshots this way);
-    ``on_checkpoint(checkpoint, env_steps, episode, agent)`` sees it before the first episode of
-    every checkpoint id (the recipe keeps the behaviour policies this way; a run resumed from
-    its last chunk calls it again for the checkpoints after that chunk, with the same agent)."""
+    """Play run ``run`` of ``config`` with the behaviour agent ``online``, resuming from
+    ``run_dir/state.pt``; every finished chunk of recorded episodes goes to
+    ``hooks.write_chunk``, then the run's state is saved (see :class:`RunHooks`)."""
     import torch
 
+    from rlu.checkpoints import load_state, save_state
     from rlu.envs import make_env
 
+    task, seed, cfg = get_task(config.task), config.seed, online
     run_dir.mkdir(parents=True, exist_ok=True)
     state_path = run_dir / "state.pt"
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        run_seed = derive_seed(seed, run)
-        agent = make_behaviour_agent(task, cfg, run_seed, device)
+        agent = make_behaviour_agent(task, cfg, run_seed(seed, run, AGENT), config.device)
         batch_size = agent.batch_spec.batch_size
-        env = make_env(task.id, seed=run_seed, **cfg.env_settings)
+        env = make_env(task.id, seed=run_seed(seed, run, ENV), **cfg.env_settings)
         max_steps = int(cfg.env_settings.get("max_episode_steps", task.episode_length))
         recorder = EpisodeRecorder(task, max_steps)
         replay = Replay(task, cfg.replay_capacity, agent.batch_spec)
-        rng = np.random.default_rng([seed, run, 1])
+        rng = run_rng(seed, run, ACTOR)
         episode, env_steps, last_checkpoint = 0, 0, -1
         if state_path.exists():
-            st = torch.load(state_path, weights_only=True, map_location="cpu")
-            if st["done"]:
+            fix = (
+                f"remove {run_dir} to play run {run} again from its start (the other runs keep "
+                "their work), or the whole work folder to start afresh"
+            )
+            st = load_state(state_path, STATE_KEYS, fix)
+            if _restore(state_path, st, fix, agent, replay, rng, cfg):
                 return
-            agent.load_state_dict(st["agent"])
-            replay.load(st["replay"])
-            rng.bit_generator.state = st["rng"]
             episode, env_steps = st["episode"], st["env_steps"]
             last_checkpoint = st["last_checkpoint"]
         discrete = task.discrete
@@ -313,10 +368,10 @@ def run_online(
                 "episode_id": episode_id(run, episode),
             }
             if checkpoint > last_checkpoint:
-                if on_checkpoint is not None:
-                    on_checkpoint(checkpoint, env_steps, episode, agent)
+                if hooks.on_checkpoint is not None:
+                    hooks.on_checkpoint(checkpoint, env_steps, episode, agent)
                 last_checkpoint = checkpoint
-            obs, _ = env.reset(seed=derive_seed(seed, run, 2, episode))
+            obs, _ = env.reset(seed=run_seed(seed, run, EPISODE, episode))
             recorder.begin(obs)
             while True:
                 if discrete:
@@ -344,29 +399,68 @@ def run_online(
             replay.add(seg)
             chunk.append(seg)
             episode += 1
-            if on_episode is not None:
-                on_episode(run, episode, seg)
+            if hooks.on_episode is not None:
+                hooks.on_episode(run, episode, seg)
             if len(chunk) == cfg.chunk_episodes or finished():
                 chunk_index = (episode - 1) // cfg.chunk_episodes
-                write_chunk(chunk_index, chunk)
-                if on_snapshot is not None:
-                    on_snapshot(chunk_index, agent, chunk)
+                hooks.write_chunk(chunk_index, chunk)
+                if hooks.on_snapshot is not None:
+                    hooks.on_snapshot(chunk_index, agent, chunk)
                 chunk = []
                 done = finished()
-                _save_atomic(
-                    {
-                        "done": done,
-                        "agent": None if done else agent.state_dict(),
-                        "replay": None if done else replay.state(),
-                        "rng": rng.bit_generator.state,
-                        "episode": episode,
-                        "env_steps": env_steps,
-                        "last_checkpoint": last_checkpoint,
-                    },
-                    state_path,
-                )
-                if on_chunk is not None:
-                    on_chunk(run, chunk_index)
+                state = {
+                    "done": done,
+                    "agent": None if done else agent.state_dict(),
+                    "replay": None if done else replay.state(),
+                    "rng": rng.bit_generator.state,
+                    "episode": episode,
+                    "env_steps": env_steps,
+                    "last_checkpoint": last_checkpoint,
+                }
+                save_state(state_path, state)
+                if hooks.on_chunk is not None:
+                    hooks.on_chunk(run, chunk_index)
         env.close()
     finally:
         torch.set_num_threads(threads)
+
+
+def _restore(
+    path: Path,
+    st: Mapping[str, Any],
+    fix: str,
+    agent: Any,
+    replay: Replay,
+    rng: np.random.Generator,
+    cfg: OnlineConfig,
+) -> bool:
+    """Load a run's saved state into its agent, replay and generator; True if the run had
+    finished. Anything that is not a state this run could have saved is a FormatError naming
+    the file and ``fix`` (never a traceback from deep inside torch or numpy)."""
+    if not isinstance(st["done"], bool):
+        raise FormatError(f"{path}: entry 'done' is {st['done']!r}, not true or false; {fix}")
+    if st["done"]:
+        return True
+    for key, low in (("episode", 0), ("env_steps", 0), ("last_checkpoint", -1)):
+        v = st[key]
+        if isinstance(v, bool) or not isinstance(v, int) or v < low:
+            raise FormatError(f"{path}: entry {key!r} is {v!r}, not a count of this run; {fix}")
+    if (
+        st["episode"] >= cfg.episodes
+        or st["last_checkpoint"] > st["env_steps"] // cfg.checkpoint_steps
+    ):
+        raise FormatError(f"{path}: its counters do not belong to a run of these settings; {fix}")
+    try:
+        agent.load_state_dict(st["agent"])
+    except (RuntimeError, KeyError, ValueError, TypeError, AttributeError, IndexError) as e:
+        why = str(e).splitlines()[0][:200] if str(e) else type(e).__name__
+        raise FormatError(
+            f"{path}: its agent state does not fit the behaviour agent ({why}); {fix}"
+        ) from None
+    replay.load(st["replay"], str(path), fix)
+    try:
+        rng.bit_generator.state = st["rng"]
+    except (KeyError, ValueError, TypeError, AttributeError, OverflowError) as e:
+        why = str(e).splitlines()[0][:200] if str(e) else type(e).__name__
+        raise FormatError(f"{path}: its random generator state is damaged ({why}); {fix}") from None
+    return False

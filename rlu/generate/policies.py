@@ -57,6 +57,7 @@ from rlu.files import (
     check_value,
     read_json,
     shape_of,
+    write_atomic,
 )
 from rlu.types import Policy, RluError
 
@@ -87,17 +88,8 @@ def write_npz(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
             arr = np.ascontiguousarray(arrays[name])
             with zf.open(info, "w") as fh:
                 np.lib.format.write_array(fh, arr, allow_pickle=False)
-    _write_atomic(path, buf.getvalue())
-
-
-def _write_atomic(path: Path, data: bytes) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb") as fh:
-        fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+    write_atomic(path, buf.getvalue())
 
 
 def _stored(value: np.ndarray, dtype: str) -> np.ndarray:
@@ -166,7 +158,7 @@ def save_snapshot(
     name = f"checkpoint_{int(checkpoint):05d}"
     write_npz(folder / f"{name}.npz", arrays)
     text = json.dumps(json.loads(json.dumps(meta)), indent=1, sort_keys=True) + "\n"
-    _write_atomic(folder / f"{name}.json", text.encode())
+    write_atomic(folder / f"{name}.json", text)
 
 
 def snapshot_files(work: Path, kept: Sequence[tuple[int, int]]) -> dict[str, Path]:

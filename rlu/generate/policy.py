@@ -10,7 +10,8 @@ then sub-sampled to the paper's episode count.
 Determinism and resumption: the policy is built again for every chunk of episodes with a seed
 derived from ``(seed, run, chunk)`` and every episode resets the env with its own derived seed,
 so a chunk is a function of its seeds alone (the policy must be a function of its seed and the
-observations); finished chunks are skipped on resume.
+observations); finished chunks are skipped on resume. The runs play through the one runner, as
+the recipe's (a worker process imports the factory again: it must be importable there).
 """
 
 from __future__ import annotations
@@ -22,10 +23,22 @@ from pathlib import Path
 from typing import Any
 
 from rlu.data import DatasetWriter
-from rlu.generate.common import Progress, merge_runs, open_work, paper_count, success_rule
-from rlu.generate.online import derive_seed
-from rlu.generate.recorder import EpisodeRecorder, episode_id, schema_for
-from rlu.tasks import TaskSpec
+from rlu.generate.common import (
+    ENV,
+    EPISODE,
+    POLICY,
+    Progress,
+    merge_runs,
+    open_work,
+    paper_count,
+    play_runs,
+    report_episode,
+    run_seed,
+    success_rule,
+)
+from rlu.generate.config import GenerateConfig
+from rlu.generate.recorder import EpisodeRecorder, episode_id, record_policy, schema_for
+from rlu.tasks import TaskSpec, get_task
 from rlu.types import RluError
 
 
@@ -68,59 +81,71 @@ def load_factory(spec: str) -> Any:
         raise RluError(f"--policy {spec!r} cannot be imported: {e}") from None
 
 
-def generate_with_policy(task: TaskSpec, out: Path, scale: str, runs: int | None, seed: int,
-                         policy: str, progress: bool = True, keep_work: bool = False,
-                         env_settings: dict | None = None) -> Path:  # fmt: skip
+def play_policy_run(config: GenerateConfig, scale: PolicyScale, run: int, work: Path) -> None:
+    """One run's job: record its unfinished chunks into ``work/run_RRR``."""
     from rlu.envs import make_env
 
-    sc = policy_scale(task, scale)
-    runs = sc.runs if runs is None else int(runs)
-    factory = load_factory(policy)
-    out = Path(out)
-    if (out / "manifest.json").exists():
-        raise RluError(f"{out} already holds a dataset; choose another --out or remove it")
+    task = get_task(config.task)
+    seed, schema = config.seed, schema_for(task)
+    episodes, chunk_episodes = scale.episodes, scale.chunk_episodes
+    factory = load_factory(config.policy)
+    env = None
+    for c in range(-(-episodes // chunk_episodes)):
+        part = work / f"run_{run:03d}" / f"part_{c:05d}"
+        if (part / "manifest.json").exists():
+            continue
+        if env is None:
+            env = make_env(task.id, seed=run_seed(seed, run, ENV))
+        pi = factory(task.id, run_seed(seed, run, POLICY, c))
+        rec = EpisodeRecorder(task)
+        with DatasetWriter(part, schema, overwrite=True) as w:
+            first = c * chunk_episodes
+            for e in range(first, min(episodes, first + chunk_episodes)):
+                meta = {
+                    "run": run,
+                    "seed": seed,
+                    "checkpoint": c,
+                    "episode_index": e,
+                    "episode_id": episode_id(run, e),
+                }
+                seg = record_policy(env, pi, rec, run_seed(seed, run, EPISODE, e), meta)
+                w.append(seg)
+                report_episode(run, e + 1, seg)
+    if env is not None:
+        env.close()
+
+
+def generate_with_policy(config: GenerateConfig, task: TaskSpec, out: Path, work: Path) -> Path:
+    """Record ``config.policy`` (see the module docstring) into the claimed ``work`` folder;
+    returns the dataset's path."""
+    sc = policy_scale(task, config.scale)
+    runs = sc.runs if config.runs is None else config.runs
+    load_factory(config.policy)  # a typo fails here, before any run
     target = paper_count(task)
-    settings = json.loads(json.dumps({
-        "task": task.id, "scale": scale, "runs": runs, "seed": seed, "policy": policy,
-        "episodes_per_run": sc.episodes, "chunk_episodes": sc.chunk_episodes,
-        "env_settings": env_settings or {}, "target_episodes": target,
-        "success_rule": success_rule(task),
-    }))  # fmt: skip
-    work = out.parent / f".{out.name}.generate"
-    cmd = f"rlu generate {task.id} --scale {scale} --seeds {runs} --seed {seed} --policy {policy}"
+    settings = json.loads(
+        json.dumps(
+            {
+                "task": task.id,
+                "scale": config.scale,
+                "runs": runs,
+                "seed": config.seed,
+                "policy": config.policy,
+                "episodes_per_run": sc.episodes,
+                "chunk_episodes": sc.chunk_episodes,
+                "env_settings": {},
+                "target_episodes": target,
+                "success_rule": success_rule(task),
+            }
+        )
+    )
+    cmd = config.command(runs)
     open_work(work, settings, f"{cmd} --out {out}")
-    schema = schema_for(task)
-    bar = Progress(runs * sc.episodes, task.id, progress)
-    for r in range(runs):
-        env = None
-        for c in range(-(-sc.episodes // sc.chunk_episodes)):
-            part = work / f"run_{r:03d}" / f"part_{c:05d}"
-            if (part / "manifest.json").exists():
-                continue
-            if env is None:
-                env = make_env(task.id, seed=derive_seed(seed, r), **(env_settings or {}))
-            pi = factory(task.id, derive_seed(seed, r, 6, c))
-            rec = EpisodeRecorder(task, env_settings and env_settings.get("max_episode_steps"))
-            with DatasetWriter(part, schema, overwrite=True) as w:
-                first = c * sc.chunk_episodes
-                for e in range(first, min(sc.episodes, first + sc.chunk_episodes)):
-                    meta = {"run": r, "seed": seed, "checkpoint": c, "episode_index": e,
-                            "episode_id": episode_id(r, e)}  # fmt: skip
-                    obs, _ = env.reset(seed=derive_seed(seed, r, 2, e))
-                    rec.begin(obs)
-                    while True:
-                        a = pi(obs)
-                        obs, rew, term, trunc, info = env.step(a)
-                        seg = rec.step(a, rew, obs, term, trunc, info, meta)
-                        if seg is not None:
-                            break
-                    w.append(seg)
-                    bar.update(r, e + 1, seg)
-        if env is not None:
-            env.close()
+    bar = Progress(runs * sc.episodes, task.id, config.progress)
+    jobs = [(config, sc, r, work) for r in range(runs)]
+    play_runs(config, play_policy_run, jobs, bar)
     bar.close()
-    path = merge_runs(task, work, runs, settings, target, seed, out, cmd + " --out DIR")
-    if not keep_work:
+    path = merge_runs(task, work, out, settings, cmd + " --out DIR")
+    if not config.keep_work:
         shutil.rmtree(work)
     return path
 

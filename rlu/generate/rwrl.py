@@ -14,13 +14,15 @@ run i mod runs), acting as the behaviour did (D4PG: the snapshot's policy plus t
 Under the easy challenge the env adds ten ``dummy-i`` observation keys (as released); the
 snapshot policy sees only the task's own keys. Episode counts: the paper's (TaskSpec.episodes,
 e.g. cartpole 100 / 200 / 500) times the scale's ``size_fraction``. Resumption: the training
-runs resume like ``rlu generate``; a finished dataset is skipped; snapshots are saved per run.
+runs resume like ``rlu generate`` and play through the same runner (local processes or Ray); a
+finished dataset is skipped; snapshots are saved per run (``rlu.checkpoints``) and read back
+checked. The roll-outs draw from the ``ROLLOUT`` streams of ``--seed``: the env's resets are
+shared by every dataset (episode e starts alike in each), the noise is each dataset's own.
 """
 
 from __future__ import annotations
 
 import json
-import os
 import shutil
 from pathlib import Path
 from typing import Any
@@ -28,16 +30,31 @@ from typing import Any
 import numpy as np
 
 from rlu.data import DatasetWriter, Schema
-from rlu.generate.common import Progress, command_line, open_work, versions
-from rlu.generate.online import derive_seed, make_behaviour_agent, run_online
+from rlu.files import write_atomic
+from rlu.generate.common import (
+    AGENT,
+    ROLLOUT,
+    Progress,
+    open_work,
+    play_runs,
+    report_episode,
+    run_seed,
+    stream_rng,
+    versions,
+)
+from rlu.generate.config import GenerateConfig
+from rlu.generate.online import OnlineConfig, RunHooks, make_behaviour_agent, run_online
 from rlu.generate.recorder import EpisodeRecorder, episode_id
 from rlu.generate.scales import get_scale
 from rlu.tasks import RWRL_SIZES, TaskSpec, rwrl_observation_spec
+from rlu.types import FormatError, derive_seed
 
 SNAPSHOT_FRACTION = 0.75
 CHALLENGES = ("none", "easy")
 SIZE_FRACTION = {"tiny": None, "laptop": 0.1, "paper": 1.0}
 TINY_EPISODES = {"small": 1, "medium": 1, "large": 2}
+SUMMARY = "rwrl.json"
+"""The file that marks a finished RWRL generation's folder (its datasets and settings)."""
 
 
 def episodes_for(task: TaskSpec, challenge: str, size: str, scale: str) -> int:
@@ -55,60 +72,113 @@ def _choose(returns: list[float]) -> tuple[int, float]:
     return int(hit[0]), converged
 
 
-def generate_rwrl(task: TaskSpec, out: Path, scale: str, runs: int | None, seed: int,
-                  progress: bool = True, keep_work: bool = False,
-                  device: str = "cpu") -> Path:  # fmt: skip
+def _damaged(path: Path, what: str, run_dir: Path) -> FormatError:
+    return FormatError(
+        f"{path}: {what}, not a snapshot rlu generate saved; remove {run_dir} to train run "
+        f"{run_dir.name} again"
+    )
+
+
+def _load_history(path: Path, run_dir: Path) -> dict[int, Any]:
+    from rlu.checkpoints import load_state
+
+    history = load_state(path, fix=f"remove {run_dir} to train this run again")
+    for chunk, entry in history.items():
+        if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 0:
+            raise _damaged(path, f"key {chunk!r} is not a chunk index", run_dir)
+        if not (
+            isinstance(entry, tuple | list)
+            and len(entry) == 2
+            and isinstance(entry[0], float)
+            and isinstance(entry[1], dict)
+        ):
+            raise _damaged(
+                path, f"chunk {chunk}'s entry is not (mean return, agent state)", run_dir
+            )
+    return history
+
+
+def train_snapshot(config: GenerateConfig, online: OnlineConfig, run: int, work: Path) -> None:
+    """One run's job: train it (resuming), keeping each chunk's policy and mean return, then
+    save its snapshot (``run_RRR/snapshot.pt``)."""
+    from rlu.checkpoints import save_state
+
+    run_dir = work / f"run_{run:03d}"
+    if (run_dir / "snapshot.pt").exists():
+        return
+    # chunk -> (mean return, agent state), saved per chunk so a resumed run sees them all
+    hist_path = run_dir / "snapshots.pt"
+    history = _load_history(hist_path, run_dir) if hist_path.exists() else {}
+
+    def keep(chunk: int, agent: Any, segs: list) -> None:
+        ret = float(np.mean([s.metadata["episode_return"] for s in segs]))
+        history[chunk] = (ret, agent.state_dict())
+        save_state(hist_path, history)
+
+    # the run's own recorded episodes are not part of the RWRL datasets
+    hooks = RunHooks(lambda c, s: None, report_episode, on_snapshot=keep)
+    run_online(config, online, run, run_dir, hooks)
+    chunks = sorted(history)
+    i, converged = _choose([history[c][0] for c in chunks])
+    snap = {
+        "chunk": chunks[i],
+        "return": history[chunks[i]][0],
+        "converged": converged,
+        "agent": history[chunks[i]][1],
+    }
+    save_state(run_dir / "snapshot.pt", snap)
+
+
+def _load_snapshot(path: Path, agent: Any) -> dict[str, Any]:
+    from rlu.checkpoints import load_state
+
+    run_dir = path.parent
+    snap = load_state(path, ("chunk", "return", "converged", "agent"), f"remove {run_dir}")
+    if isinstance(snap["chunk"], bool) or not isinstance(snap["chunk"], int):
+        raise _damaged(path, f"entry 'chunk' is {snap['chunk']!r}", run_dir)
+    if not all(isinstance(snap[k], float) for k in ("return", "converged")):
+        raise _damaged(path, "its returns are not numbers", run_dir)
+    try:
+        agent.load_state_dict(snap["agent"])
+    except (RuntimeError, KeyError, ValueError, TypeError, AttributeError, IndexError) as e:
+        why = str(e).splitlines()[0][:200] if str(e) else type(e).__name__
+        raise _damaged(
+            path, f"its agent state does not fit the behaviour agent ({why})", run_dir
+        ) from None
+    return {k: v for k, v in snap.items() if k != "agent"}
+
+
+def generate_rwrl(config: GenerateConfig, task: TaskSpec, out: Path, work: Path) -> Path:
+    """Train the runs, snapshot them and roll out every dataset into ``out`` (see the module
+    docstring), working in the claimed ``work`` folder; returns ``out``."""
     import torch
 
     from rlu.envs import make_env
 
     # the control suite's D4PG settings at this scale: the same agent, the same budget
-    sc = get_scale(task, scale)
-    runs, online = sc.runs if runs is None else int(runs), sc.online
-    out.mkdir(parents=True, exist_ok=True)
-    work = out / ".work"
-    settings = {"task": task.id, "scale": scale, "runs": runs, "seed": seed,
-                "online": online.to_json(), "snapshot_fraction": SNAPSHOT_FRACTION}  # fmt: skip
+    sc = get_scale(task, config.scale)
+    runs, online, seed = sc.runs if config.runs is None else config.runs, sc.online, config.seed
+    settings = {
+        "task": task.id,
+        "scale": config.scale,
+        "runs": runs,
+        "seed": seed,
+        "online": online.to_json(),
+        "snapshot_fraction": SNAPSHOT_FRACTION,
+    }
     settings = json.loads(json.dumps(settings))
-    command = command_line(task.id, scale, runs, seed)
+    command = config.command(runs)
     open_work(work, settings, f"{command} --out {out}")
+    out.mkdir(parents=True, exist_ok=True)
 
     # 1. training runs, keeping each chunk's policy and mean return
-    snapshots = []
-    bar = Progress(runs * online.episodes, task.id + " (training)", progress)
-    for r in range(runs):
-        run_dir = work / f"run_{r:03d}"
-        snap_path = run_dir / "snapshot.pt"
-        if not snap_path.exists():
-            # chunk -> (mean return, agent state), saved per chunk so a resumed run sees them all
-            hist_path = run_dir / "snapshots.pt"
-            history: dict[int, Any] = {}
-            if hist_path.exists():
-                history = torch.load(hist_path, weights_only=True, map_location="cpu")
-
-            def keep(chunk: int, agent: Any, segs: list, history=history, path=hist_path) -> None:
-                ret = float(np.mean([s.metadata["episode_return"] for s in segs]))
-                history[chunk] = (ret, agent.state_dict())
-                tmp = path.with_name(".snapshots.pt.tmp")
-                torch.save(history, tmp)
-                os.replace(tmp, path)
-
-            # the run's own recorded episodes are not part of the RWRL datasets
-            run_online(task, online, seed, r, run_dir, lambda c, s: None, bar.update,
-                       on_snapshot=keep, device=device)  # fmt: skip
-            chunks = sorted(history)
-            i, converged = _choose([history[c][0] for c in chunks])
-            snap = {"chunk": chunks[i], "return": history[chunks[i]][0], "converged": converged,
-                    "agent": history[chunks[i]][1]}  # fmt: skip
-            tmp = snap_path.with_name(".snapshot.pt.tmp")
-            torch.save(snap, tmp)
-            os.replace(tmp, snap_path)
-        snapshots.append(torch.load(snap_path, weights_only=True, map_location="cpu"))
+    bar = Progress(runs * online.episodes, task.id + " (training)", config.progress)
+    play_runs(config, train_snapshot, [(config, online, r, work) for r in range(runs)], bar)
     bar.close()
-    agents = []
-    for r, snap in enumerate(snapshots):
-        agent = make_behaviour_agent(task, online, derive_seed(seed, r), device)
-        agent.load_state_dict(snap["agent"])
+    agents, snapshots = [], []
+    for r in range(runs):
+        agent = make_behaviour_agent(task, online, run_seed(seed, r, AGENT), config.device)
+        snapshots.append(_load_snapshot(work / f"run_{r:03d}" / "snapshot.pt", agent))
         agents.append(agent)
 
     # 2. roll out every dataset from the snapshots
@@ -122,11 +192,12 @@ def generate_rwrl(task: TaskSpec, out: Path, scale: str, runs: int | None, seed:
                 dest = out / f"{challenge}_{size}"
                 if (dest / "manifest.json").exists():
                     continue
-                n = episodes_for(task, challenge, size, scale)
-                env = make_env(task.id, seed=seed, challenge=challenge)
+                n = episodes_for(task, challenge, size, scale=config.scale)
+                env = make_env(task.id, seed=derive_seed(seed, ROLLOUT, 0), challenge=challenge)
                 rec = EpisodeRecorder(task, observation_spec=obs_spec)
-                rng = np.random.default_rng([seed, 4, CHALLENGES.index(challenge),
-                                             list(RWRL_SIZES).index(size)])  # fmt: skip
+                rng = stream_rng(
+                    seed, ROLLOUT, 2, CHALLENGES.index(challenge), list(RWRL_SIZES).index(size)
+                )
                 keys = list(task.observation_spec)
                 prov = {
                     "generator": "rlu generate (rwrl snapshots)",
@@ -134,15 +205,20 @@ def generate_rwrl(task: TaskSpec, out: Path, scale: str, runs: int | None, seed:
                     "settings": settings,
                     "challenge": challenge,
                     "size": size,
-                    "snapshots": [{k: v for k, v in s.items() if k != "agent"} for s in snapshots],
+                    "snapshots": snapshots,
                     "versions": versions(task),
                 }
                 with DatasetWriter(dest, schema, provenance=prov, overwrite=True) as w:
                     for e in range(n):
                         r = e % runs
-                        meta = {"run": r, "seed": seed, "checkpoint": snapshots[r]["chunk"],
-                                "episode_index": e, "episode_id": episode_id(r, e)}  # fmt: skip
-                        obs, _ = env.reset(seed=derive_seed(seed, 5, e))
+                        meta = {
+                            "run": r,
+                            "seed": seed,
+                            "checkpoint": snapshots[r]["chunk"],
+                            "episode_index": e,
+                            "episode_id": episode_id(r, e),
+                        }
+                        obs, _ = env.reset(seed=derive_seed(seed, ROLLOUT, 1, e))
                         rec.begin(obs)
                         while True:
                             o = {k: obs[k][None] for k in keys}
@@ -161,12 +237,15 @@ def generate_rwrl(task: TaskSpec, out: Path, scale: str, runs: int | None, seed:
                 env.close()
     finally:
         torch.set_num_threads(threads)
-    if not keep_work:
+    summary = {
+        "task": task.id,
+        "datasets": sorted(p.name for p in out.iterdir() if p.is_dir()),
+        "settings": settings,
+    }
+    write_atomic(out / SUMMARY, json.dumps(summary, indent=1, sort_keys=True))
+    if not config.keep_work:
         shutil.rmtree(work)
-    summary = {"task": task.id, "datasets": sorted(p.name for p in out.iterdir() if p.is_dir()),
-               "settings": settings}  # fmt: skip
-    (out / "rwrl.json").write_text(json.dumps(summary, indent=1, sort_keys=True))
     return out
 
 
-__all__ = ["generate_rwrl", "SNAPSHOT_FRACTION"]
+__all__ = ["SNAPSHOT_FRACTION", "generate_rwrl"]

@@ -42,39 +42,9 @@ def test_categorical_projection_of_a_shifted_support_on_atoms_of_width_two():
     close(out, [[0.0, 0.5 + 0.125, 0.125 + 0.25]])
 
 
-def test_n_step_return_discounts_and_stops_at_a_terminal():
-    reward, discount = L.n_step_return(t([[1.0, 2.0, 3.0]]), t([[1.0, 1.0, 1.0]]), gamma=0.5)
-    close(reward, [1 + 0.5 * 2 + 0.25 * 3])  # 2.75
-    close(discount, [1.0])
-    reward, discount = L.n_step_return(t([[1.0, 2.0, 3.0]]), t([[1.0, 0.0, 1.0]]), gamma=0.5)
-    close(reward, [2.0])  # the reward after the terminal transition does not count
-    close(discount, [0.0])
-
-
 def test_n_step_target_bootstraps_with_gamma_to_the_n():
     values = L.bootstrap_values(t([2.75, 1.0]), t([1.0, 0.0]), 0.5**3, t([[4.0, 8.0], [4.0, 8.0]]))
     close(values, [[2.75 + 0.125 * 4, 2.75 + 0.125 * 8], [1.0, 1.0]])
-
-
-def test_n_step_reward_matches_the_data_layers_n_step_transitions(tmp_path):
-    from rlu.data import DatasetWriter, Schema, make_episode, open_dataset
-    from rlu.data.views import TransitionView
-    from rlu.types import ArraySpec, BoundedSpec
-
-    schema = Schema({"x": ArraySpec((1,), "float32")}, BoundedSpec((1,), "float32"))
-    rewards = np.array([1.0, 2.0, 3.0, 4.0, 5.0], np.float32)
-    obs = {"x": np.arange(6, dtype=np.float32)[:, None]}
-    with DatasetWriter(tmp_path / "d", schema) as w:
-        w.append(make_episode(obs, np.zeros((5, 1), np.float32), rewards, terminal=True))
-    view = TransitionView(open_dataset(tmp_path / "d"), n_step=3, gamma=0.9)
-    batch = view.batch(np.arange(len(view)))
-    starts = batch.observation["x"][:, 0].astype(int)
-    padded_r = np.concatenate([rewards, np.zeros(3, np.float32)])
-    padded_d = np.concatenate([np.ones(4), np.zeros(4)]).astype(np.float32)  # terminal after 4
-    win = np.stack([np.arange(s, s + 3) for s in starts])
-    reward, discount = L.n_step_return(t(padded_r[win]), t(padded_d[win]), gamma=0.9)
-    close(batch.reward, reward, 1e-5)
-    close(batch.discount, discount)
 
 
 def test_d4pg_critic_loss_is_cross_entropy_to_the_projected_target():

@@ -44,3 +44,31 @@ def test_readme_python_runs(tmp_path, monkeypatch):
         exec(compile(block, str(README), "exec"), scope)  # noqa: S102 - the README's own code
     assert scope["batch"].observation["position"].shape == (256, 3)
     assert scope["seqs"].mask.shape[:2] == (16, 40)
+
+
+@pytest.mark.slow
+def test_the_readme_set_up_commands_run_as_written():
+    """The README's first command, as written, in the checkout CI cloned fresh (the second is
+    the command that runs this test): it installs what the quick start needs and runs the quick
+    start, whose finding must hold (the best offline RL agent at 1.5 times BC or more, and 600
+    or more)."""
+    import json
+    import shutil
+    import subprocess
+
+    pytest.importorskip("dm_control")
+    text = README.read_text()
+    block = re.search(r"^```bash\n(.*?)^```", text, flags=re.S | re.M).group(1)
+    commands = [line for line in block.splitlines() if line and not line.startswith("#")]
+    assert commands[1] == "bash scripts/test.sh"  # this test runs inside it
+    out = ROOT / "runs" / "quickstart"
+    shutil.rmtree(out, ignore_errors=True)
+    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    res = subprocess.run(["bash", "-c", commands[0]], cwd=ROOT, env=env, capture_output=True,
+                         text=True)  # fmt: skip
+    assert res.returncode == 0, res.stderr[-2000:]
+    result = json.loads((out / "results.json").read_text())
+    means = {p["policy"]: p["mean"] for p in result["policies"]}
+    best = max(v for k, v in means.items() if k not in ("random", "bc"))
+    assert best >= 1.5 * means["bc"] and best >= 600, means
+    assert (out / "quickstart.png").stat().st_size > 10_000  # the report extra draws it

@@ -69,3 +69,41 @@ def test_shipped_scores_cover_the_suite_with_provenance():
         assert f"{t.id}@easy" in have
     for t in list_tasks("atari"):
         assert have[t.id]["settings"].get("max_episode_steps", 27_000) == 27_000
+
+
+def test_workers_and_resume_by_episode_count(tmp_path, capsys):
+    pytest.importorskip("ale_py")
+    jobs = [("atari/Breakout", "none", {}), ("atari/Asterix", "none", {})]
+    one = scores.measure(jobs, 2, seed=0)
+    two = scores.measure(jobs, 2, seed=0, workers=2)
+    for key in ("atari/Breakout", "atari/Asterix"):
+        # an entry is a function of (task, episodes, seed, settings): workers change nothing
+        assert one["scores"][key]["returns"] == two["scores"][key]["returns"]
+        e = two["scores"][key]
+        assert e["seed"] == 0 and e["steps"] == sum(e["lengths"]) and e["cpu_seconds"] > 0
+    run = two["provenance"]["runs"][0]
+    assert sorted(run["tasks"]) == ["atari/Asterix", "atari/Breakout"] and run["workers"] == 2
+    assert run["steps"] == sum(e["steps"] for e in two["scores"].values())
+    # resuming with more episodes re-measures a task (its first episodes come out the same),
+    # with fewer keeps it, with another seed re-measures it
+    before = one["scores"]["atari/Breakout"]["returns"]
+    scores.measure(jobs[:1], 3, seed=0, existing=one)
+    after = one["scores"]["atari/Breakout"]
+    assert after["episodes"] == 3 and after["returns"][:2] == before
+    assert len(one["provenance"]["runs"]) == 2 and one["provenance"]["runs"][1]["episodes"] == 3
+    scores.measure(jobs, 1, seed=0, existing=one)
+    assert one["scores"]["atari/Breakout"] == after and len(one["provenance"]["runs"]) == 2
+    scores.measure(jobs[1:], 2, seed=1, existing=one)
+    assert one["scores"]["atari/Asterix"]["seed"] == 1
+    # the CLI: progress per task, a resumed run says what it keeps, a bad --workers is an error
+    out = tmp_path / "rs.json"
+    argv = ["envs", "random-scores", "--task", "atari/Breakout", "--episodes", "1", "--out"]
+    assert main([*argv, str(out)]) == 0
+    assert "[1/1] atari/Breakout: mean" in capsys.readouterr().out
+    assert main([*argv, str(out), "--resume"]) == 0
+    assert "keeping 1 of 1 tasks" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as stop:  # refused by the parser
+        main([*argv, str(out), "--workers", "0"])
+    assert stop.value.code == 2 and "--workers: 0 is out of range" in capsys.readouterr().err
+    with pytest.raises(RluError, match="workers=0"):
+        scores.measure(jobs, 1, workers=0)

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -24,13 +25,25 @@ def test_shipped_reference_covers_every_atari_game_above_random():
     random = load_reference_scores("random_scores")
     for tid, entry in doc["scores"].items():
         assert entry["mean"] > random[tid], tid  # a normaliser must exceed the random score
-        assert entry["file"].startswith("baselines/data/") and entry["run"] == 1
+        # five Dopamine runs per game, each with its best iteration; the reference is their mean
+        assert entry["file"].startswith("baselines/atari/data/"), tid
+        runs = entry["runs"]
+        assert sorted(runs) == ["1", "2", "3", "4", "5"], tid
+        for r in runs.values():
+            assert 0 <= r["iteration"] < entry["iterations"] == 199
+        bests = [r["mean"] for r in runs.values()]
+        assert entry["mean"] == pytest.approx(np.mean(bests)), tid
+        assert entry["runs_std"] == pytest.approx(np.std(bests, ddof=1)), tid
     prov = doc["provenance"]
-    for key in ("source", "agent", "statistic", "why", "caveats"):
+    for key in ("source", "layout", "value", "agent", "statistic", "why", "caveats"):
         assert prov[key], key
-    # the numbers the report normalises with are these, on the raw score scale
+    assert "github.com/google/dopamine" in prov["source"]
+    assert re.search(r"commit [0-9a-f]{40}", prov["source"])
+    # the numbers the report normalises with are these, on the raw score scale; Pong's five
+    # runs' bests (Dopamine's baselines/atari/data/pong.json): 18.68, 17.17, 17.60, 14.76, 18.98
     best = load_reference_scores("atari_best_behaviour")
-    assert best["atari/Pong"] == pytest.approx(18.6814, abs=1e-3)
+    assert best["atari/Pong"] == pytest.approx(17.437, abs=1e-3)
+    assert doc["scores"]["atari/Pong"]["runs"]["1"]["mean"] == pytest.approx(18.6814, abs=1e-3)
     assert reference.best_behaviour("atari/Breakout") == best["atari/Breakout"]
 
 

@@ -11,14 +11,17 @@ import pytest
 from rlu.generate.scales import get_scale
 from rlu.tasks import get_task
 
-TINY_DMPO = {"policy_layers": (32, 32), "critic_layers": (32, 32), "batch_size": 32,
-             "num_samples": 4}  # fmt: skip
+TINY_DMPO = {
+    "policy_layers": (32, 32),
+    "critic_layers": (32, 32),
+    "batch_size": 32,
+    "num_samples": 4,
+}
 
 
 def tiny_dmpo_scale(task_id: str):
     tiny = get_scale(get_task(task_id), "tiny")
-    online = dataclasses.replace(tiny.online, agent="dmpo", sigma=None,
-                                 agent_overrides=TINY_DMPO)  # fmt: skip
+    online = dataclasses.replace(tiny.online, agent="dmpo", sigma=None, agent_overrides=TINY_DMPO)
     return dataclasses.replace(tiny, online=online)
 
 
@@ -41,13 +44,14 @@ def test_dmpo_recipe_samples_its_policy_and_keeps_it(tmp_path, monkeypatch):
     import json
 
     from rlu.data import open_dataset
-    from rlu.generate import generate, recipe
+    from rlu.generate import GenerateConfig, generate, recipe
     from rlu.generate.policies import list_policies, load_behaviour_policy
 
     task = "control_suite/cartpole_swingup"
     monkeypatch.setattr(recipe, "get_scale", lambda t, s: tiny_dmpo_scale(task))
-    out = generate(task, tmp_path / "a", scale="tiny", runs=1, seed=3, progress=False)
-    again = generate(task, tmp_path / "b", scale="tiny", runs=1, seed=3, progress=False)
+    config = GenerateConfig(task, scale="tiny", runs=1, seed=3, progress=False)
+    out = generate(config, tmp_path / "a")
+    again = generate(config, tmp_path / "b")
     ds = open_dataset(out)
     assert ds.manifest["provenance"]["settings"]["online"]["sigma"] is None
     for p in sorted(q for q in out.rglob("*") if q.is_file()):  # deterministic
@@ -55,8 +59,9 @@ def test_dmpo_recipe_samples_its_policy_and_keeps_it(tmp_path, monkeypatch):
     actions = np.concatenate([ep.action for ep in ds.segments()])
     assert np.abs(actions).max() <= 1.0 and actions.std() > 0.3  # a sampled, clipped Gaussian
     info = list_policies(ds)[0]
-    meta = json.loads((out / f"policies/run_{info.run:03d}/checkpoint_{info.checkpoint:05d}.json")
-                      .read_text())  # fmt: skip
+    meta = json.loads(
+        (out / f"policies/run_{info.run:03d}/checkpoint_{info.checkpoint:05d}.json").read_text()
+    )
     assert meta["agent"] == "dmpo" and meta["exploration"] == {"sample": True}
     obs = {k: v[:4] for k, v in ds.segment(0).observation.items()}
     greedy = load_behaviour_policy(ds, info.run, info.checkpoint)
@@ -71,11 +76,11 @@ def test_rwrl_rollouts_with_a_dmpo_behaviour_agent(tmp_path, monkeypatch):
     pytest.importorskip("dm_control")
     from rlu.data import open_dataset
     from rlu.data.validate import validate
-    from rlu.generate import generate, rwrl
+    from rlu.generate import GenerateConfig, generate, rwrl
 
     monkeypatch.setattr(rwrl, "get_scale", lambda t, s: tiny_dmpo_scale("rwrl/cartpole_swingup"))
-    out = generate("rwrl/cartpole_swingup", tmp_path / "rw", scale="tiny", runs=1, seed=1,
-                   progress=False)  # fmt: skip
+    config = GenerateConfig("rwrl/cartpole_swingup", scale="tiny", runs=1, seed=1, progress=False)
+    out = generate(config, tmp_path / "rw")
     none = open_dataset(out / "none_large")
     assert validate(out / "none_large").ok
     assert none.manifest["provenance"]["settings"]["online"]["agent"] == "dmpo"

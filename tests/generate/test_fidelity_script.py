@@ -19,10 +19,17 @@ def test_the_study_script_runs_end_to_end_and_resumes(tmp_path):
     pytest.importorskip("dm_control")
     pytest.importorskip("jinja2")
     env = {
-        **os.environ, "OUT": str(tmp_path / "study"), "TASKS": "cartpole_swingup", "SEEDS": "0",
-        "SCALE": "tiny", "STEPS": "30", "EVAL_EPISODES": "1", "WORKERS": "1",
-        "RLU": f"{sys.executable} -m rlu", "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"),
-    }  # fmt: skip
+        **os.environ,
+        "OUT": str(tmp_path / "study"),
+        "TASKS": "cartpole_swingup",
+        "SEEDS": "0",
+        "SCALE": "tiny",
+        "STEPS": "30",
+        "EVAL_EPISODES": "1",
+        "WORKERS": "1",
+        "RLU": f"{sys.executable} -m rlu",
+        "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"),
+    }
     script = ["bash", str(ROOT / "scripts" / "fidelity_study.sh")]
     first = subprocess.run(script, env=env, cwd=ROOT, capture_output=True, text=True, timeout=900)
     assert first.returncode == 0, first.stderr[-3000:]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import signal
 import subprocess
@@ -52,19 +53,22 @@ def test_curve_summary_by_hand():
 
 
 def test_progress_counts_a_resumed_runs_earlier_episodes(capsys):
-    """A resumed generate's bar starts where the runs stopped, not at 0."""
+    """A resumed generate's count starts where the runs stopped, not at 0 (on the one display,
+    rlu.progress: a non-terminal stderr gets its final line at the end)."""
     from rlu.generate.common import Progress
 
     bar = Progress(2 * 400, "t")
     bar.report(0, 1, 0.0)  # a fresh run's first episode
+    assert bar.done == 1
     bar.report(1, 210, 5.0)  # run 1 resumed after 209 episodes
+    assert bar.done == 211  # every report is 1-based per run
     for ep in range(211, 220):
         bar.report(1, ep, 5.0)
+    bar.close()
     lines = capsys.readouterr().err.splitlines()
-    assert lines[0].startswith("t [") and " 1/800 episodes  run 0 ep 1 " in lines[0]
-    assert " 211/800 episodes  run 1 ep 210 " in lines[1]  # every report is 1-based per run
-    assert " 220/800 episodes  run 1 ep 219 " in lines[-1]
-    assert len(lines) == 3  # a non-terminal stderr: each run's first episode here, every tenth
+    assert bar.done == 220 and len(lines) == 1, lines
+    assert lines[0].startswith("t:") and "220/800 episodes" in lines[0]
+    assert "run=1 episode=219 ret=5.0" in lines[0]
 
 
 def test_replay_n_step_targets_by_hand():
@@ -75,8 +79,10 @@ def test_replay_n_step_targets_by_hand():
 
     task = get_task(TASK)
     replay = Replay(task, 10, BatchSpec(4, n_step=2, gamma=0.5))
-    obs = {k: np.arange(5, dtype=np.float32)[:, None].repeat(s.shape[0], 1) for k, s in
-           task.observation_spec.items()}  # fmt: skip
+    obs = {
+        k: np.arange(5, dtype=np.float32)[:, None].repeat(s.shape[0], 1)
+        for k, s in task.observation_spec.items()
+    }
     # 4 transitions ending in a terminal state: rewards 1, 2, 3, 4
     ep = make_episode(obs, np.zeros((4, 1), np.float32), [1, 2, 3, 4], terminal=True)
     replay.add(ep)
@@ -116,14 +122,14 @@ def test_recorder_terminal_and_truncation():
 _CHILD = textwrap.dedent(
     """
     import sys
-    from rlu.generate import generate
+    from rlu.generate import GenerateConfig, generate
     TASK, OUT = sys.argv[1:3]
 
     def on_chunk(run, chunk):
         print("chunk", run, chunk, flush=True)
         sys.stdin.read()  # block until the parent kills us
 
-    generate(TASK, OUT, scale="tiny", runs=1, seed=7, progress=False, on_chunk=on_chunk)
+    generate(GenerateConfig(TASK, scale="tiny", runs=1, seed=7, progress=False), OUT, on_chunk)
     """
 )
 
@@ -134,7 +140,7 @@ def test_tiny_generation_is_deterministic_and_resumes_after_sigkill(tmp_path, ca
     from rlu.cli import main
     from rlu.data import open_dataset
     from rlu.data.validate import validate
-    from rlu.generate import generate
+    from rlu.generate import GenerateConfig, generate
 
     # the reference through the CLI, its learning curves drawn
     ref, png = tmp_path / "ref", tmp_path / "curves" / "ref.png"
@@ -150,18 +156,23 @@ def test_tiny_generation_is_deterministic_and_resumes_after_sigkill(tmp_path, ca
     prov = ds.manifest["provenance"]
     assert prov["command"].startswith(f"rlu generate {TASK} --scale tiny")
     # every recorded episode's return and length, per run (all kept at this scale)
-    assert prov["runs"] == [{
-        "run": 0,
-        "episode_return": [round(float(r), 3) for r in ds.metadata("episode_return")],
-        "episode_steps": [1000, 1000],
-    }]  # fmt: skip
+    assert prov["runs"] == [
+        {
+            "run": 0,
+            "episode_return": [round(float(r), 3) for r in ds.metadata("episode_return")],
+            "episode_steps": [1000, 1000],
+        }
+    ]
 
     out = tmp_path / "crashed"
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
     child = subprocess.Popen(
         [sys.executable, "-c", _CHILD, TASK, str(out)],
-        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env,
-    )  # fmt: skip
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
     line = child.stdout.readline()  # the child has written run 0's first chunk and its state
     assert line.strip() == "chunk 0 0", line
     child.send_signal(signal.SIGKILL)
@@ -172,17 +183,15 @@ def test_tiny_generation_is_deterministic_and_resumes_after_sigkill(tmp_path, ca
     assert (work / "run_000" / "state.pt").exists() and not out.exists()
 
     resumed_chunks = []
-    got = generate(
-        TASK, out, scale="tiny", runs=1, seed=7, progress=False,
-        on_chunk=lambda r, c: resumed_chunks.append((r, c)),
-    )  # fmt: skip
+    config = GenerateConfig(TASK, scale="tiny", runs=1, seed=7, progress=False)
+    got = generate(config, out, on_chunk=lambda r, c: resumed_chunks.append((r, c)))
     assert resumed_chunks == [(0, 1)]  # chunk 0 was not played again
     assert _files(got) == _files(ref)
     assert not work.exists()
 
 
 def test_resume_with_other_settings_is_refused(tmp_path):
-    from rlu.generate import generate
+    from rlu.generate import GenerateConfig, generate
     from rlu.types import RluError
 
     work = tmp_path / ".d.generate"
@@ -191,7 +200,7 @@ def test_resume_with_other_settings_is_refused(tmp_path):
         '{"task": "control_suite/cartpole_swingup", "scale": "laptop", "runs": 3, "seed": 1}'
     )
     with pytest.raises(RluError, match="other settings"):
-        generate(TASK, tmp_path / "d", scale="tiny", runs=1, seed=7, progress=False)
+        generate(GenerateConfig(TASK, scale="tiny", runs=1, seed=7, progress=False), tmp_path / "d")
 
 
 def _record(task_id: str, episodes: int, settings: dict, tmp_path: Path):
@@ -243,8 +252,16 @@ def test_atari_frames_stack_back_to_the_envs_observations_in_store_and_replay(tm
         replay.add(s)
     got = replay._observation(replay._eligible)
     np.testing.assert_array_equal(got, view.observation)
-    np.testing.assert_array_equal(replay._observation(replay.next[replay._eligible]),
-                                  view.next_observation)  # fmt: skip
+    np.testing.assert_array_equal(
+        replay._observation(replay.next[replay._eligible]), view.next_observation
+    )
+    # stored as the store does, after 3 frames of zeros: a ring that wraps (the third episode
+    # overwrites the first) still stacks inside each episode
+    ring = Replay(task, 3 + len(segs[0]) + 2 * (3 + len(segs[1])) - 1, BatchSpec(4, gamma=0.99))
+    for s in (segs[1], segs[1], segs[0]):
+        ring.add(s)
+    assert ring.size == len(segs[0]) - 1 + len(segs[1]) - 1
+    np.testing.assert_array_equal(ring._observation(ring._eligible), view.observation)
     assert (
         ds.segment(0).metadata["clipped_episode_return"] == ds.segment(0).metadata["episode_return"]
     )
@@ -263,9 +280,12 @@ def test_replay_n_step_transitions_equal_the_store_view(tmp_path):
         replay.add(s)
     idx = replay._eligible
     assert idx.size == len(view.reward)
-    np.testing.assert_allclose(replay.reward[idx], view.reward, rtol=1e-6)
+    # one n-step implementation (rlu.data.views): the same numbers to the bit
+    np.testing.assert_array_equal(replay.reward[idx], view.reward)
     np.testing.assert_array_equal(replay.discount[idx], view.discount)
+    np.testing.assert_array_equal(replay.action[replay.next[idx]], view.next_action)
     for k in task.observation_spec:
+        np.testing.assert_array_equal(replay.obs[k][idx], view.observation[k])
         np.testing.assert_array_equal(replay.obs[k][replay.next[idx]], view.next_observation[k])
 
 
@@ -276,11 +296,11 @@ def test_rwrl_snapshot_rollouts_at_tiny_scale(tmp_path):
 
     from rlu.data import open_dataset
     from rlu.data.validate import validate
-    from rlu.generate import generate
+    from rlu.generate import GenerateConfig, generate
     from rlu.tasks import RWRL_EASY_DUMMY_KEYS
 
-    out = generate("rwrl/cartpole_swingup", tmp_path / "rw", scale="tiny", runs=1, seed=1,
-                   progress=False)  # fmt: skip
+    config = GenerateConfig("rwrl/cartpole_swingup", scale="tiny", runs=1, seed=1, progress=False)
+    out = generate(config, tmp_path / "rw")
     names = json.loads((out / "rwrl.json").read_text())["datasets"]
     assert names == [f"{c}_{s}" for c in ("easy", "none") for s in ("large", "medium", "small")]
     for name in names:
@@ -291,17 +311,18 @@ def test_rwrl_snapshot_rollouts_at_tiny_scale(tmp_path):
     assert len(none) == 2 and len(open_dataset(out / "none_small")) == 1
     snap = none.manifest["provenance"]["snapshots"][0]
     assert snap["return"] >= 0.75 * snap["converged"]
-    assert not (out / ".work").exists()
+    assert not (tmp_path / ".rw.generate").exists()
 
 
 def test_runs_in_worker_processes_give_the_one_process_bytes(tmp_path):
     pytest.importorskip("torch")
     pytest.importorskip("dm_control")
-    from rlu.generate import generate
+    from rlu.generate import GenerateConfig, generate
+    from rlu.workers import Backend
 
-    kw = dict(scale="tiny", runs=2, seed=3, progress=False)
-    one = generate(TASK, tmp_path / "one", workers=1, **kw)
-    two = generate(TASK, tmp_path / "two", workers=2, **kw)
+    config = GenerateConfig(TASK, scale="tiny", runs=2, seed=3, progress=False)
+    one = generate(config, tmp_path / "one")
+    two = generate(dataclasses.replace(config, backend=Backend(workers=2)), tmp_path / "two")
     assert _files(two) == _files(one)
 
 
@@ -310,45 +331,46 @@ def test_ray_backend_gives_the_local_bytes(tmp_path):
     pytest.importorskip("ray")
     pytest.importorskip("torch")
     pytest.importorskip("dm_control")
-    from rlu.generate import generate
+    from rlu.generate import GenerateConfig, generate
+    from rlu.workers import Backend
 
-    kw = dict(scale="tiny", runs=2, seed=3, progress=False)
-    local = generate(TASK, tmp_path / "local", backend="local", **kw)
-    ray = generate(TASK, tmp_path / "ray", backend="ray", **kw)
+    config = GenerateConfig(TASK, scale="tiny", runs=2, seed=3, progress=False)
+    local = generate(config, tmp_path / "local")
+    ray = generate(dataclasses.replace(config, backend=Backend("ray")), tmp_path / "ray")
     assert _files(ray) == _files(local)
 
 
 def test_user_policy_recipe_is_deterministic_and_skips_finished_chunks(tmp_path):
     pytest.importorskip("dm_control")
     from rlu.data import open_dataset
-    from rlu.generate import generate
+    from rlu.generate import GenerateConfig, generate
     from tests.generate import policies
 
     spec = "tests.generate.policies:uniform"
-    kw = dict(scale="tiny", runs=1, seed=5, progress=False, policy=spec)
-    ref = generate(TASK, tmp_path / "ref", **kw)
+    config = GenerateConfig(TASK, scale="tiny", runs=1, seed=5, progress=False, policy=spec)
+    ref = generate(config, tmp_path / "ref")
     ds = open_dataset(ref)
     assert len(ds) == 2
     assert ds.manifest["provenance"]["command"].endswith(f"--policy {spec} --out DIR")
     # an interrupted run: chunk 0 finished, chunk 1 lost
-    again = generate(TASK, tmp_path / "again", keep_work=True, **kw)
+    again = generate(dataclasses.replace(config, keep_work=True), tmp_path / "again")
     work = tmp_path / ".again.generate"
     import shutil
 
     shutil.rmtree(again)
     shutil.rmtree(work / "run_000" / "part_00001")
     policies.BUILT.clear()
-    again = generate(TASK, tmp_path / "again", **kw)
+    again = generate(config, tmp_path / "again")
     assert len(policies.BUILT) == 1  # only the lost chunk was played again
     assert _files(again) == _files(ref)
 
 
 def test_locomotion_needs_a_policy(tmp_path):
-    from rlu.generate import generate
+    from rlu.generate import GenerateConfig, generate
     from rlu.types import RluError
 
     with pytest.raises(RluError, match="--policy"):
-        generate("locomotion/rodent_gaps", tmp_path / "x", scale="tiny", progress=False)
+        generate(GenerateConfig("locomotion/rodent_gaps", scale="tiny"), tmp_path / "x")
 
 
 @pytest.mark.slow  # ~75 s CPU: rodent episodes of 1500 steps with the camera rendered
@@ -356,10 +378,15 @@ def test_locomotion_records_a_user_policy_with_its_camera(tmp_path):
     pytest.importorskip("dm_control")
     from rlu.data import open_dataset
     from rlu.data.validate import validate
-    from rlu.generate import generate
+    from rlu.generate import GenerateConfig, generate
 
-    out = generate("locomotion/rodent_gaps", tmp_path / "loco", scale="tiny", progress=False,
-                   policy="tests.generate.policies:uniform")  # fmt: skip
+    config = GenerateConfig(
+        "locomotion/rodent_gaps",
+        scale="tiny",
+        progress=False,
+        policy="tests.generate.policies:uniform",
+    )
+    out = generate(config, tmp_path / "loco")
     assert validate(out).ok
     ds = open_dataset(out)
     sel = ds.manifest["provenance"]["selection"]
@@ -376,11 +403,10 @@ def test_atari_tiny_generation_trains_dopamines_dqn_deterministically_and_resume
     import json
 
     from rlu.data import open_dataset
-    from rlu.generate import generate
+    from rlu.generate import GenerateConfig, generate
 
-    task = "atari/Pong"
-    kw = dict(scale="tiny", runs=1, seed=5, progress=False)
-    ref = generate(task, tmp_path / "ref", **kw)
+    config = GenerateConfig("atari/Pong", scale="tiny", runs=1, seed=5, progress=False)
+    ref = generate(config, tmp_path / "ref")
     settings = json.loads((ref / "manifest.json").read_text())["provenance"]["settings"]
     assert settings["online"]["agent"] == "dopamine_dqn"
     assert settings["agent_config"]["rmsprop_epsilon"] == 1e-5  # Dopamine's optimiser
@@ -393,9 +419,9 @@ def test_atari_tiny_generation_trains_dopamines_dqn_deterministically_and_resume
         raise Interrupted  # after run 0's first chunk and its state are on disk
 
     with pytest.raises(Interrupted):
-        generate(task, tmp_path / "again", on_chunk=stop, **kw)
+        generate(config, tmp_path / "again", on_chunk=stop)
     assert (tmp_path / ".again.generate" / "run_000" / "state.pt").exists()
     resumed: list[tuple[int, int]] = []
-    again = generate(task, tmp_path / "again", on_chunk=lambda r, c: resumed.append((r, c)), **kw)
+    again = generate(config, tmp_path / "again", on_chunk=lambda r, c: resumed.append((r, c)))
     assert resumed == [(0, 1)]  # chunk 0 was not played again; the agent and replay resumed
     assert _files(again) == _files(ref)

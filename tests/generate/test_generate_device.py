@@ -25,7 +25,8 @@ def _retag_as_cuda(path) -> None:
 
 def test_device_reaches_the_behaviour_agents(tmp_path, monkeypatch):
     import rlu.generate.online as online
-    from rlu.generate import generate
+    from rlu.generate import GenerateConfig, generate
+    from rlu.workers import Backend
 
     asked = []
     make = online.make_behaviour_agent
@@ -36,26 +37,34 @@ def test_device_reaches_the_behaviour_agents(tmp_path, monkeypatch):
 
     monkeypatch.setattr(online, "make_behaviour_agent", recording)
     # workers=1: the runs play in this process, where the patch is
-    generate(TASK, tmp_path / "d", scale="tiny", runs=2, seed=1, progress=False, workers=1,
-             device="cuda:1")  # fmt: skip
+    config = GenerateConfig(
+        TASK,
+        scale="tiny",
+        runs=2,
+        seed=1,
+        device="cuda:1",
+        backend=Backend(workers=1),
+        progress=False,
+    )
+    generate(config, tmp_path / "d")
     assert asked == ["cuda:1", "cuda:1"]
 
 
 def test_a_run_saved_on_a_gpu_resumes_on_the_cpu(tmp_path):
     if torch.cuda.is_available():
         pytest.skip("this machine has a GPU: the CPU side is what is checked here")
-    from rlu.generate import generate
+    from rlu.generate import GenerateConfig, generate
 
-    kw = dict(scale="tiny", runs=1, seed=7, progress=False)
-    ref = generate(TASK, tmp_path / "ref", **kw)
+    config = GenerateConfig(TASK, scale="tiny", runs=1, seed=7, progress=False)
+    ref = generate(config, tmp_path / "ref")
 
     def stop(run, chunk):
         raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        generate(TASK, tmp_path / "out", on_chunk=stop, **kw)
+        generate(config, tmp_path / "out", on_chunk=stop)
     state = tmp_path / ".out.generate" / "run_000" / "state.pt"
     _retag_as_cuda(state)
     with pytest.raises(RuntimeError, match="CUDA"):
         torch.load(state, weights_only=True)
-    assert _files(generate(TASK, tmp_path / "out", **kw)) == _files(ref)
+    assert _files(generate(config, tmp_path / "out")) == _files(ref)

@@ -16,12 +16,18 @@ pytest.importorskip("torch")
 pytest.importorskip("dm_control")
 
 TASK = "control_suite/cartpole_swingup"
-KW = dict(scale="tiny", runs=2, seed=7, progress=False, workers=1)
+
+
+def _config():
+    from rlu.generate import GenerateConfig
+
+    return GenerateConfig(TASK, scale="tiny", runs=2, seed=7, progress=False)
 
 
 def _files(root: Path) -> dict[str, bytes]:
-    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*"))
-            if p.is_file()}  # fmt: skip
+    return {
+        str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()
+    }
 
 
 @pytest.fixture(scope="module")
@@ -29,7 +35,7 @@ def tiny(tmp_path_factory) -> Path:
     """Two tiny D4PG runs of two 1000-step episodes: checkpoints 0 and 1 of each run."""
     from rlu.generate import generate
 
-    return generate(TASK, tmp_path_factory.mktemp("policies") / "ds", **KW)
+    return generate(_config(), tmp_path_factory.mktemp("policies") / "ds")
 
 
 @pytest.fixture
@@ -54,12 +60,14 @@ def test_every_named_checkpoint_keeps_its_policy_listed_in_the_manifest(tiny):
     from rlu.generate.policies import list_policies
 
     ds = open_dataset(tiny)
-    named = {(int(r), int(c)) for r, c in zip(ds.metadata("run"), ds.metadata("checkpoint"),
-                                              strict=True)}  # fmt: skip
+    named = {
+        (int(r), int(c)) for r, c in zip(ds.metadata("run"), ds.metadata("checkpoint"), strict=True)
+    }
     assert named == {(0, 0), (0, 1), (1, 0), (1, 1)}
     rels = sorted(r for r in ds.manifest["files"] if r.startswith("policies/"))
-    assert rels == sorted(f"policies/run_{r:03d}/checkpoint_{c:05d}{s}"
-                          for r, c in named for s in (".npz", ".json"))  # fmt: skip
+    assert rels == sorted(
+        f"policies/run_{r:03d}/checkpoint_{c:05d}{s}" for r, c in named for s in (".npz", ".json")
+    )
     prov = ds.manifest["provenance"]["policies"]
     assert prov["dtype"] == "float16" and prov["count"] == 4
     report = validate(tiny)
@@ -71,9 +79,9 @@ def test_every_named_checkpoint_keeps_its_policy_listed_in_the_manifest(tiny):
     with np.load(tiny / "policies/run_001/checkpoint_00001.npz", allow_pickle=False) as z:
         assert {z[k].dtype for k in z.files} == {np.dtype(np.float16)}
     rows = list_policies(tiny)
-    assert [(p.run, p.checkpoint, p.env_steps, p.recorded_episodes, p.kept_episodes)
-            for p in rows] == [(0, 0, 0, 1, 1), (0, 1, 1000, 1, 1), (1, 0, 0, 1, 1),
-                               (1, 1, 1000, 1, 1)]  # fmt: skip
+    assert [
+        (p.run, p.checkpoint, p.env_steps, p.recorded_episodes, p.kept_episodes) for p in rows
+    ] == [(0, 0, 0, 1, 1), (0, 1, 1000, 1, 1), (1, 0, 0, 1, 1), (1, 1, 1000, 1, 1)]
     kept = np.asarray(ds.metadata("episode_return"))
     assert rows[1].kept_mean == pytest.approx(float(kept[1]))
     assert rows[1].recorded_mean == pytest.approx(float(kept[1]), abs=1e-3)
@@ -91,11 +99,11 @@ def test_same_seed_same_policy_bytes_and_a_crashed_run_resumes_to_them(tiny, tmp
 
     out = tmp_path / "crashed"
     with pytest.raises(Crash):
-        generate(TASK, out, on_chunk=crash, **KW)
+        generate(_config(), out, on_chunk=crash)
     work = tmp_path / ".crashed.generate"
     assert (work / "run_000/policies/checkpoint_00000.npz").exists()
     assert not (work / "run_000/policies/checkpoint_00001.npz").exists()
-    generate(TASK, out, **KW)
+    generate(_config(), out)
     got, want = _files(out), _files(tiny)
     assert [k for k in want if k.startswith("policies/")] and got.keys() == want.keys()
     assert [k for k in want if got[k] != want[k]] == []
@@ -105,7 +113,8 @@ def test_loaded_policy_acts_as_the_behaviour_agent_did(tiny):
     """Checkpoint 0 is the agent before any update: rebuilt from its seed, it must act as the
     loaded policy (float16 weights: within rounding)."""
     from rlu.data import open_dataset
-    from rlu.generate.online import derive_seed, make_behaviour_agent
+    from rlu.generate.common import AGENT, run_seed
+    from rlu.generate.online import make_behaviour_agent
     from rlu.generate.policies import load_behaviour_policy
     from rlu.generate.scales import get_scale
     from rlu.tasks import get_task
@@ -114,7 +123,7 @@ def test_loaded_policy_acts_as_the_behaviour_agent_did(tiny):
     ds = open_dataset(tiny)
     obs = {k: np.asarray(v) for k, v in ds.segment(0).observation.items()}
     for run in (0, 1):
-        agent = make_behaviour_agent(task, get_scale(task, "tiny").online, derive_seed(7, run))
+        agent = make_behaviour_agent(task, get_scale(task, "tiny").online, run_seed(7, run, AGENT))
         want = agent.act(obs)
         got = load_behaviour_policy(tiny, run, 0)(obs, np.zeros(len(want), bool))
         assert got.shape == want.shape == (1001, 1)
@@ -243,12 +252,10 @@ def test_fqe_values_behaviour_policies_against_their_rollouts(tiny, capsys):
     assert main(["policies", str(tiny)]) == 0
     out = capsys.readouterr().out
     assert "| run | checkpoint | env steps |" in out and "| 1 | 1 | 1,000 | 1 |" in out
-    assert main(["evaluate-behaviour", str(tiny), "--run", "1", "--checkpoint", "1",
-                 "--episodes", "1", "--json"]) == 0  # fmt: skip
+    one = ["evaluate-behaviour", str(tiny), "--run", "1", "--checkpoint", "1", "--episodes", "1"]
+    assert main([*one, "--json"]) == 0
     assert json.loads(capsys.readouterr().out)[0]["returns"] == rows[1]["returns"]
-    assert main(["evaluate-behaviour", str(tiny), "--run", "1", "--checkpoint", "1",
-                 "--episodes", "1", "--fqe", "--fqe-steps", "50",
-                 "--fqe-target-period", "100"]) == 0  # fmt: skip
+    assert main([*one, "--fqe", "--fqe-steps", "50", "--fqe-target-period", "100"]) == 0
     out = capsys.readouterr().out
     assert f"| 1 | 1 | 1,000 | {rows[1]['fqe_estimate']:.2f} |" in out  # same FQE seed, same value
     assert "Spearman rank correlation: undefined" in out
@@ -262,10 +269,11 @@ def test_dqn_keeps_its_q_network_and_rolls_out_under_its_env_settings(tmp_path):
     pytest.importorskip("ale_py")
     from rlu.data import open_dataset
     from rlu.data.validate import validate
-    from rlu.generate import generate
+    from rlu.generate import GenerateConfig, generate
     from rlu.generate.policies import list_policies, load_behaviour_policy, rollout_behaviour
 
-    out = generate("atari/Pong", tmp_path / "pong", scale="tiny", seed=1, progress=False)
+    config = GenerateConfig("atari/Pong", scale="tiny", seed=1, progress=False)
+    out = generate(config, tmp_path / "pong")
     assert validate(out).ok
     rows = list_policies(out)
     assert rows and rows[0].run == 0 and rows[0].checkpoint == 0

@@ -95,10 +95,12 @@ def test_a_sweeps_runs_get_the_gpu_share_they_ask_for(one_gpu_ray, pendulum_data
 
 
 def test_generation_checks_its_gpu_request_before_any_run(one_gpu_ray, tmp_path):
-    from rlu.generate import generate
+    from rlu.generate import GenerateConfig, generate
+    from rlu.workers import Backend
 
+    config = GenerateConfig("atari/Pong", scale="tiny", backend=Backend("ray", gpus_per_job=2))
     with pytest.raises(RluError, match="has 1 GPU"):
-        generate("atari/Pong", tmp_path / "g", scale="tiny", backend="ray", gpus_per_run=2)
+        generate(config, tmp_path / "g")
     with pytest.raises(RluError, match="--backend ray"):
-        generate("atari/Pong", tmp_path / "h", scale="tiny", gpus_per_run=0.5)
-    assert not (tmp_path / "h").exists()
+        GenerateConfig("atari/Pong", scale="tiny", backend=Backend(gpus_per_job=0.5))
+    assert not (tmp_path / "g").exists()  # no dataset

@@ -193,17 +193,3 @@ def find_shards(
             f"{base}-{missing[0]:05d}-of-{n:05d}). {hint}"
         )
     return [by_index[i] for i in picked]
-
-
-def bsuite_objects(env: str, noise: float, k: int = 0, split: str = "full") -> list[str]:
-    """bsuite shards (one each): ``bsuite/{env}/0_{noise}/{k}_{split}-00000-of-00001``."""
-    if env not in ("cartpole", "catch", "mountain_car"):
-        raise RluError(f"unknown bsuite environment {env!r}; use cartpole, catch or mountain_car")
-    return [f"bsuite/{env}/0_{noise:.1f}/{k}_{split}-00000-of-00001"]
-
-
-def dmlab_objects(level: str, run: str) -> list[str]:
-    """DMLab shards: ``dmlab/{level}/{run}/tfrecord-{i}-of-00500``."""
-    return [
-        f"dmlab/{level}/{run}/tfrecord-{i:05d}-of-{DMLAB_SHARDS:05d}" for i in range(DMLAB_SHARDS)
-    ]

@@ -21,7 +21,7 @@ as columns of one 2D byte array (:func:`decode_batch`).
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -569,7 +569,3 @@ def encode_example(
         feat = encode_feature(features[key], packed=packed, kind=kinds.get(key))
         entries.append(_ld(1, _ld(1, key.encode("utf-8")) + _ld(2, feat)))
     return _ld(1, b"".join(entries))
-
-
-def decode_examples(payloads: Iterable[bytes]) -> list[dict[str, Feature]]:
-    return [decode_example(p) for p in payloads]

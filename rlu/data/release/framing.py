@@ -504,10 +504,6 @@ def read_records(
     return iter(RecordReader(path, verify=verify, on_error=on_error))
 
 
-def count_records(path: str | os.PathLike, *, verify: bool = True) -> int:
-    return sum(len(b) for b in RecordReader(path, verify=verify).batches())
-
-
 def frame(payload: bytes) -> bytes:
     """One framed record."""
     header = struct.pack("<Q", len(payload))

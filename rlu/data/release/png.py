@@ -4,8 +4,8 @@ Decoding uses Pillow (the ``release`` extra), imported on first use. The release
 the Paeth filter (the TF-written fixture holds Sub, Up and Paeth rows), whose per-pixel recurrence
 a numpy decoder cannot vectorise, so the decoder is Pillow's C one, called directly for 8-bit grey
 and RGB frames (``_fast_decode``) rather than through ``Image.open``, whose Python-side plugin and
-chunk handling dominates on 84x84 frames: 41 us per frame against 121 us for ``Image.open``, with
-zlib's inflate alone at 4.4 us (``bench/release_reader.py --png``, dev machine under load).
+chunk handling dominates on 84x84 frames (``bench/release_reader.py --png``; the figures:
+bench/README.md, "Design choices").
 Anything else (palette, 16-bit, interlaced) goes through ``Image.open``.
 
 Encoding (for writing test shards and round trips) is a few lines of zlib with filter 0: no
@@ -48,8 +48,8 @@ def _fast_decode(data: bytes, Image) -> np.ndarray | None:
     """8-bit grey / RGB, non-interlaced: Pillow's C inflate + unfilter without ``Image.open``.
 
     ``Image.open`` spends most of its time in Python (plugin lookup, chunk parsing); calling the
-    same C decoder directly is about 2.7x faster on 84x84 frames. Anything else returns None and
-    goes through ``Image.open``.
+    same C decoder directly is faster on 84x84 frames (bench/README.md). Anything else returns
+    None and goes through ``Image.open``.
     """
     pos, n = 8, len(data)
     idat = []
@@ -123,11 +123,6 @@ def decode_png(
     elif channels == 3 and im.mode != "RGB":
         im = im.convert("RGB")
     return np.asarray(im)
-
-
-def decode_pngs(frames: list[bytes], channels: int | None = None) -> np.ndarray:
-    """Several PNGs of one size -> stacked on axis 0."""
-    return np.stack([decode_png(f, channels) for f in frames])
 
 
 def _chunk(kind: bytes, body: bytes) -> bytes:

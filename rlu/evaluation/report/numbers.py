@@ -68,6 +68,7 @@ from typing import Any
 import numpy as np
 
 from rlu.evaluation.protocols import Selection, offline_selection_naive, online_selection
+from rlu.evaluation.reference import denominator_flags, random_spread
 from rlu.evaluation.scores import (
     domain_statistic,
     load_reference_scores,
@@ -710,6 +711,7 @@ def build_report(
         dom["paper_budgets"] = budgets
         if norm is not None:
             dom["reference_scores"] = refs
+            dom["reference_flags"] = denominator_flags(refs, random_spread())
         dom["panels"] = []
         dom["absent"] = {}
         for name, panel in PANELS.items():

@@ -418,7 +418,10 @@ def atari_per_game_figure(dom: Mapping[str, Any], plt: Any) -> Any:
         ax.set_ylim(_symlog_pad(min(seen)), _symlog_pad(max(seen)))
         ax.yaxis.set_major_formatter(plt.FuncFormatter(lambda v, _: f"{v:g}"))
         labels = [
-            b["task"].split("/", 1)[-1] + (" *" if b["selection"] == "online" else "") for b in bars
+            b["task"].split("/", 1)[-1]
+            + (" *" if b["selection"] == "online" else "")
+            + (" †" if dom.get("reference_flags", {}).get(b["task"]) else "")
+            for b in bars
         ]
         ax.set_xticks(x, labels, rotation=60, fontsize=7, ha="right")
         ax.set_xlim(-0.75, max(len(bars), 3) - 0.25)
@@ -429,6 +432,8 @@ def atari_per_game_figure(dom: Mapping[str, Any], plt: Any) -> Any:
     note = "* tuning game (online policy selection); others held-out (naive offline selection)"
     sources = sorted({i for a in names for b in per[a] for i in b["provenance"]})
     note += "; " + _bars_line(dom, sources)
+    if any(dom.get("reference_flags", {}).values()):
+        note += "; † small denominator (best - random under 2 random stds)"
     fig.suptitle(_wrap(title, width, 10) + "\n" + _wrap(note, width, 10), fontsize=10)
     _legend_below(fig, list(axes[:, 0]))
     return fig
@@ -615,6 +620,16 @@ def _skipped(skipped: Mapping[str, str]) -> str:
     return "".join(f" Left out: {why}." for why in skipped.values())
 
 
+def _small_denominators(dom: Mapping[str, Any], tasks: Sequence[str]) -> str:
+    """The games of ``tasks`` whose normaliser is small (``rlu.evaluation.reference``), marked †."""
+    from rlu.evaluation.reference import SPREAD_K
+
+    games = [t.split("/", 1)[-1] for t in tasks if dom.get("reference_flags", {}).get(t)]
+    return (f" † small denominator (best - random < {SPREAD_K:g} x the random returns' std): "
+            f"{', '.join(games)}; their normalised scores mostly measure random play's spread."
+            if games else "")  # fmt: skip
+
+
 AGGREGATE_SPLITS = {
     "online": "online policy selection, online-selection tasks",
     "offline": "naive offline selection, offline-selection tasks",
@@ -792,6 +807,7 @@ def render_atari_median(
         )  # fmt: skip
         + "".join(f" {h}: left out, {why}." for h, why in panel["missing"].items())
         + _skipped(panel.get("offline", {}).get("skipped", {}))
+        + _small_denominators(dom, dom["tasks"])
     )
     paper = paper_head("paper's table, same games", _budget(dom, names), status)
     head = ("selection", "agent", "games", "median", "[25, 75]", paper,
@@ -820,7 +836,8 @@ def render_atari_per_game(
     for task in dom["tasks"]:
         if not any(task in by[a] for a in agents):
             continue
-        cells = [Cell(task, numeric=False), Cell(task_selection(task), numeric=False)]
+        mark = " †" if dom.get("reference_flags", {}).get(task) else ""
+        cells = [Cell(task + mark, numeric=False), Cell(task_selection(task), numeric=False)]
         for a in agents:
             b = by[a].get(task)
             mixed = _status([x["comparable"] for x in by[a].values()]) == "some"
@@ -843,6 +860,7 @@ def render_atari_per_game(
         + " Note: the paper prints this figure without numbers; 'paper' is its per-game "
         "appendix table normalised with the reference scores used here."
         + _skipped(panel["skipped"])
+        + _small_denominators(dom, dom["tasks"])
     )
     blocks: list[Block] = [Text(text), Table(tuple(head), tuple(rows))]
     if figures is not None:
