@@ -883,6 +883,26 @@ def d3rlpy_config(name: str, c, same_network: bool = False):
             actor_encoder_factory=mlp(c.policy_layers),
             critic_encoder_factory=mlp(c.critic_layers),
         )  # fmt: skip
+    if name == "td3bc":  # the observation scaler is set by the caller, from the data
+        return d3rlpy.algos.TD3PlusBCConfig(
+            actor_learning_rate=c.actor_lr, critic_learning_rate=c.critic_lr,
+            batch_size=c.batch_size, gamma=c.gamma, tau=c.tau, n_critics=2, alpha=c.alpha,
+            target_smoothing_sigma=c.policy_noise, target_smoothing_clip=c.noise_clip,
+            update_actor_interval=c.policy_freq, actor_encoder_factory=mlp(c.hidden_layers),
+            critic_encoder_factory=mlp(c.hidden_layers),
+        )  # fmt: skip
+    if name == "rebrac":
+        return d3rlpy.algos.ReBRACConfig(
+            actor_learning_rate=c.actor_lr, critic_learning_rate=c.critic_lr,
+            batch_size=c.batch_size, gamma=c.gamma, tau=c.tau, n_critics=2,
+            actor_beta=c.actor_bc_coef, critic_beta=c.critic_bc_coef,
+            target_smoothing_sigma=c.policy_noise, target_smoothing_clip=c.noise_clip,
+            update_actor_interval=c.policy_freq,
+            actor_encoder_factory=VectorEncoderFactory(
+                hidden_units=list(c.actor_layers), use_layer_norm=c.actor_layer_norm),
+            critic_encoder_factory=VectorEncoderFactory(
+                hidden_units=list(c.critic_layers), use_layer_norm=c.critic_layer_norm),
+        )  # fmt: skip
     return None
 
 

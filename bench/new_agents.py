@@ -1,7 +1,8 @@
-"""The four new agents (continuous CRR, IQL, CQL; discrete CQL) vs d3rlpy's implementations of the
-same algorithms: returns after the same number of updates on the same data, and updates/s.
+"""The newer agents (continuous CRR, IQL, CQL, TD3+BC, ReBRAC; discrete CQL) vs d3rlpy's
+implementations of the same algorithms: returns after the same number of updates on the same
+data, and updates/s.
 
-    .venv-bench/bin/python bench/new_agents.py                       # all four, where registered
+    .venv-bench/bin/python bench/new_agents.py                       # all of them, where registered
     .venv-bench/bin/python bench/new_agents.py --agents cql-discrete --steps 1000 --seeds 3
     .venv-bench/bin/python bench/new_agents.py --agents iql --control-data PATH --steps 20000
 
@@ -10,16 +11,19 @@ agents are built by name with ``rlu.agents.make_agent``; an agent not registered
 ``rlu.agents.AGENTS`` yet is skipped with a line saying so.
 
 Data and evaluation:
-- continuous (``crr``, ``iql``, ``cql``): an rlu dataset of control_suite/cartpole_swingup (by
-  default the one the package bundles; ``rlu generate control_suite/cartpole_swingup --scale
-  small`` makes a larger one), evaluated in dm_control's cartpole swingup through
-  ``rlu.evaluation.evaluate`` for both libraries. d3rlpy sees the observation dict concatenated
-  in sorted key order, a vector encoder of the widths rlu's config names, and rlu's learning
-  rates, batch size, discount and algorithm constants (the mapping: ``agents_continuous.py``
-  ``d3rlpy_config``).
+- continuous (``crr``, ``iql``, ``cql``, ``td3bc``, ``rebrac``): an rlu dataset of
+  control_suite/cartpole_swingup (by default the one the package bundles; ``rlu generate
+  control_suite/cartpole_swingup --scale small`` makes a larger one), evaluated in
+  dm_control's cartpole swingup through ``rlu.evaluation.evaluate`` for both libraries.
+  d3rlpy sees the observation dict concatenated in sorted key order, a vector encoder of the
+  widths rlu's config names, and rlu's learning rates, batch size, discount and algorithm
+  constants (the mapping: ``agents_continuous.py`` ``d3rlpy_config``).
   Where rlu's agent has a part d3rlpy's lacks (the per-key observation torso, a distributional
-  critic, a behaviour-cloning warm-up), d3rlpy runs without it: the returns compare the
-  algorithms as each library ships them, at equal widths; the rlu config is printed.
+  critic, a behaviour-cloning warm-up, ReBRAC's initialisation of its original), d3rlpy runs
+  without it: the returns compare the algorithms as each library ships them, at equal widths;
+  the rlu config is printed. An agent that asks for dataset statistics (TD3+BC's observation
+  normalisation) gets them from ``rlu.data.statistics``, and d3rlpy a
+  ``StandardObservationScaler`` with the same mean and std (both divide by std + 1e-3).
 - discrete (``cql-discrete``): the corridor of the discrete learning check
   (``tests/agents/test_learning_discrete.py``: 84x84 frames, four stacked, three actions, the
   data's majority action "left" pays 0.1, "right" pays 1.0), recorded through rlu's store as
@@ -70,10 +74,11 @@ from agents_continuous import d3rlpy_config as d3rlpy_continuous  # noqa: E402
 
 from rlu.agents import AGENTS, make_agent  # noqa: E402
 from rlu.data import open_dataset  # noqa: E402
+from rlu.data.statistics import dataset_statistics  # noqa: E402
 from rlu.data.views import make_sampler  # noqa: E402
 from rlu.types import available_cores  # noqa: E402
 
-CONTINUOUS = ("crr", "iql", "cql")
+CONTINUOUS = ("crr", "iql", "cql", "td3bc", "rebrac")
 DISCRETE = ("cql-discrete",)
 CONTROL_TASK = "control_suite/cartpole_swingup"
 NATURE = {"atari.channels": (32, 64, 64), "atari.hidden_size": 512, "atari.batch_size": 256}
@@ -204,13 +209,25 @@ def continuous_pair(name: str, ds, seed: int, preset: str):
     import d3rlpy
 
     agent = make_agent(name, ds.schema.observation, ds.schema.action, preset, seed=seed)
+    config = d3rlpy_continuous(name, agent.config)
+    if agent.batch_spec.statistics:  # both normalise with the same statistics, eps 1e-3
+        stats = dataset_statistics(ds, agent.batch_spec.statistics)
+        agent.set_statistics(stats)
+        mean, std = stats.observation_mean, stats.observation_std
+        config.observation_scaler = d3rlpy.preprocessing.StandardObservationScaler(
+            mean=np.concatenate([mean[k] for k in sorted(mean)]),
+            std=np.concatenate([std[k] for k in sorted(std)]),
+        )
     d3rlpy.seed(seed)
-    algo = d3rlpy_continuous(name, agent.config).create(device="cpu:0")
+    algo = config.create(device="cpu:0")
     return pair(ds, agent, algo, d3rlpy_buffer(ds, 1, False), seed)
 
 
-def d3rlpy_vector_policy(algo) -> Callable[[dict], np.ndarray]:
-    def policy(observation: dict) -> np.ndarray:
+def d3rlpy_vector_policy(algo) -> Callable[..., np.ndarray]:
+    """A ``rlu.types.Policy`` (observations and ``is_first`` in, actions out) of d3rlpy's
+    greedy action."""
+
+    def policy(observation: dict, is_first=None) -> np.ndarray:
         x = np.concatenate([observation[k] for k in sorted(observation)], -1)
         return algo.predict(x.astype(np.float32))
 
@@ -295,6 +312,7 @@ def bench_discrete(args) -> None:
 def bench_continuous(name: str, args) -> None:
     from rlu.evaluation import evaluate, task_env_factory
     from rlu.generate.recipe import bundled_dataset
+    from rlu.train import greedy_policy
 
     path = args.control_data or bundled_dataset(CONTROL_TASK)
     ds = open_dataset(path)
@@ -311,7 +329,7 @@ def bench_continuous(name: str, args) -> None:
     for rlu_c, agent, d3_c, algo in [] if args.speed_only else pairs:
         rlu_c.train(args.steps)
         d3_c.train(args.steps)
-        for lib, policy in (("rlu", agent.act), ("d3rlpy", d3rlpy_vector_policy(algo))):
+        for lib, policy in (("rlu", greedy_policy(agent)), ("d3rlpy", d3rlpy_vector_policy(algo))):
             result = evaluate(policy, env_fn, args.episodes, seed=1000)
             scores[lib].append(float(np.mean(result.returns)))
     if not args.speed_only:

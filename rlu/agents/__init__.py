@@ -39,6 +39,8 @@ AGENTS: dict[tuple[str, bool], str] = {
     ("crr", False): "rlu.agents.crr",
     ("iql", False): "rlu.agents.iql",
     ("cql", False): "rlu.agents.cql",
+    ("td3bc", False): "rlu.agents.td3bc",
+    ("rebrac", False): "rlu.agents.rebrac",
     # continuous, online: distributional MPO, the RWRL data's behaviour agent (rlu generate)
     ("dmpo", False): "rlu.agents.dmpo",
     # discrete (Atari): paper appendix A.2

@@ -18,6 +18,14 @@ def bootstrap_values(reward, discount, bootstrap_gamma: float, next_values):
     return reward[:, None] + bootstrap_gamma * discount[:, None] * next_values
 
 
+def smoothed_target_action(next_action, sigma: float, clip: float, generator: torch.Generator):
+    """TD3's target policy smoothing (TD3+BC, ReBRAC): clip(a' + clip(sigma eps, -clip, clip),
+    -1, 1) with eps ~ N(0, I) drawn from ``generator`` on the actions' device; (B, A) ->
+    (B, A)."""
+    eps = torch.randn(next_action.shape, generator=generator, device=next_action.device)
+    return (next_action + (sigma * eps).clamp(-clip, clip)).clamp(-1.0, 1.0)
+
+
 def categorical_projection(values: torch.Tensor, probs: torch.Tensor, atoms: torch.Tensor):
     """Project a distribution with mass ``probs`` at ``values`` (B, N) onto ``atoms`` (M,).
 

@@ -13,9 +13,13 @@
 - ``Torso``: Encoder -> ResidualMLP -> optional 2-layer LSTM (the sequence tasks).
 - ``MixtureHead``: 5-component diagonal Gaussian mixture policy (evaluation variance 1e-4);
   ``GaussianHead`` the single Gaussian of RABM; ``CategoricalHead`` the distributional critic.
-- ``TwinCritic``: two Q MLPs on one encoder (IQL, CQL, BRAC); ``TanhGaussianPolicy``: the
+- ``TwinCritic``: two Q MLPs on one encoder (IQL, CQL, BRAC, TD3+BC; ReBRAC's with a
+  LayerNorm after every hidden ReLU); ``TanhGaussianPolicy``: the
   tanh-squashed Gaussian policy of SAC-style agents (CQL, BRAC), with
-  ``sample_tanh_gaussian`` for its reparameterised samples and their log densities.
+  ``sample_tanh_gaussian`` for its reparameterised samples and their log densities;
+  ``DeterministicPolicy``: TD3's tanh actor (TD3+BC, ReBRAC).
+- ``ObservationNormaliser``: a dataset's observation mean and std (``rlu.types.DataStatistics``)
+  as buffers, applied per entry (TD3+BC's state normalisation).
 
 Network pieces only: seeding, tensors, optimisers and the checkpoint format are in
 ``rlu.agents.common``, shared with the discrete agents.
@@ -32,7 +36,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from rlu.agents.losses import tanh_gaussian_log_prob
-from rlu.types import ArraySpec, BoundedSpec, ObservationSpec, SpecError
+from rlu.types import ArraySpec, BoundedSpec, ObservationSpec, RluError, SpecError
 
 
 def is_image(spec: ArraySpec) -> bool:
@@ -186,11 +190,16 @@ def layer_norm_mlp(input_dim: int, sizes: tuple[int, ...], activate_final: bool 
     return nn.Sequential(*layers)
 
 
-def mlp(input_dim: int, sizes: tuple[int, ...], output_dim: int) -> nn.Sequential:
-    """Plain ReLU MLP (the BCQ and BRAC papers' networks)."""
+def mlp(
+    input_dim: int, sizes: tuple[int, ...], output_dim: int, layer_norm: bool = False
+) -> nn.Sequential:
+    """Plain ReLU MLP (the BCQ and BRAC papers' networks); with ``layer_norm`` a LayerNorm after
+    every hidden ReLU (Linear -> ReLU -> LayerNorm: ReBRAC's critic)."""
     layers: list[nn.Module] = []
     for size in sizes:
         layers += [nn.Linear(input_dim, size), nn.ReLU()]
+        if layer_norm:
+            layers.append(nn.LayerNorm(size))
         input_dim = size
     layers.append(nn.Linear(input_dim, output_dim))
     return nn.Sequential(*layers)
@@ -276,16 +285,22 @@ class CategoricalHead(nn.Module):
 
 
 class TwinCritic(nn.Module):
-    """Two Q-networks on one encoder: Q_i(s, a) = MLP_i([Encoder(s), a]) (ReLU MLPs)."""
+    """Two Q-networks on one encoder: Q_i(s, a) = MLP_i([Encoder(s), a]) (ReLU MLPs, with
+    ``layer_norm`` a LayerNorm after every hidden ReLU)."""
 
     def __init__(
-        self, observation_spec: ObservationSpec, action_dim: int, layers, torso_hidden: int
+        self,
+        observation_spec: ObservationSpec,
+        action_dim: int,
+        layers,
+        torso_hidden: int,
+        layer_norm: bool = False,
     ):
         super().__init__()
         self.encoder = Encoder(observation_spec, torso_hidden)
         f = self.encoder.output_dim + action_dim
-        self.q1 = mlp(f, layers, 1)
-        self.q2 = mlp(f, layers, 1)
+        self.q1 = mlp(f, layers, 1, layer_norm)
+        self.q2 = mlp(f, layers, 1, layer_norm)
 
     def forward(self, obs, action: torch.Tensor) -> torch.Tensor:
         """(2, ...) values of (B, A) actions, or (N, B, A): N actions per state, one encoder
@@ -293,6 +308,105 @@ class TwinCritic(nn.Module):
         s = self.encoder(obs)
         sa = torch.cat([s.expand(*action.shape[:-1], s.shape[-1]), action], -1)
         return torch.stack([self.q1(sa).squeeze(-1), self.q2(sa).squeeze(-1)])
+
+    def first(self, obs, action: torch.Tensor) -> torch.Tensor:
+        """Q_1(s, a) alone, (B,): TD3's actor loss reads the first critic only, and a pass
+        through both would also send its backward pass through the second."""
+        return self.q1(torch.cat([self.encoder(obs), action], -1)).squeeze(-1)
+
+
+class DeterministicPolicy(nn.Module):
+    """a = tanh(MLP(Encoder(s))) in [-1, 1]: TD3's actor (TD3+BC, ReBRAC)."""
+
+    def __init__(
+        self,
+        observation_spec: ObservationSpec,
+        action_dim: int,
+        layers,
+        torso_hidden: int,
+        layer_norm: bool = False,
+    ):
+        super().__init__()
+        self.encoder = Encoder(observation_spec, torso_hidden)
+        self.net = mlp(self.encoder.output_dim, layers, action_dim, layer_norm)
+
+    def forward(self, obs) -> torch.Tensor:
+        return torch.tanh(self.net(self.encoder(obs)))
+
+
+class ObservationNormaliser(nn.Module):
+    """(x - mean) / (std + eps) per float observation entry, with a whole dataset's statistics
+    (``rlu.types.DataStatistics``: the training loop computes them once and hands them to
+    ``agent.set_statistics``) held as buffers, so they travel in the agent's state and move
+    with it between devices. uint8 entries (cameras) pass unchanged: the data's statistics leave
+    them out and their torso scales pixels itself. With ``enabled`` False every observation
+    passes unchanged (the buffers stay, so the state has one layout).
+
+    ``statistics`` is what the agent declares in its ``BatchSpec``; ``ready`` turns True once
+    statistics are :meth:`set` or a state is loaded (a state carries its own), and
+    :meth:`require` refuses an update before that: normalising with the initial mean 0 and
+    std 1 would silently be another algorithm."""
+
+    def __init__(self, observation_spec: ObservationSpec, eps: float, enabled: bool = True):
+        super().__init__()
+        specs = _as_dict(observation_spec)
+        self.keys = sorted(k for k, s in specs.items() if np.dtype(s.dtype) != np.uint8)
+        self.shapes = {k: tuple(specs[k].shape) for k in self.keys}
+        self.eps, self.enabled, self.ready = float(eps), bool(enabled), not enabled
+        self.statistics: tuple[str, ...] = ("observation",) if enabled else ()
+        for i, key in enumerate(self.keys):  # buffer names by position: keys may hold "/"
+            self.register_buffer(f"mean_{i}", torch.zeros(self.shapes[key]))
+            self.register_buffer(f"std_{i}", torch.ones(self.shapes[key]))
+        self.register_load_state_dict_post_hook(ObservationNormaliser._loaded)
+
+    def _loaded(self, incompatible_keys: Any) -> None:
+        self.ready = True
+
+    def require(self, agent: str) -> None:
+        """An ``RluError`` saying what to do if no statistics were set or loaded."""
+        if not self.ready:
+            raise RluError(
+                f"{agent} normalises observations with the dataset's statistics and none were "
+                "set: call agent.set_statistics(rlu.data.statistics.dataset_statistics(ds, "
+                "agent.batch_spec.statistics)) before the first update (rlu train does)"
+            )
+
+    def set(self, stats: Any) -> None:
+        """Take ``stats.observation_mean`` and ``stats.observation_std`` (arrays, or dicts of
+        arrays by observation key); a missing entry, another shape or a value that is not
+        finite is an ``RluError`` naming the entry."""
+        means, stds = stats.observation_mean, stats.observation_std
+        means = means if isinstance(means, Mapping) else {"": means}
+        stds = stds if isinstance(stds, Mapping) else {"": stds}
+        for i, key in enumerate(self.keys):
+            for kind, values in (("mean", means), ("std", stds)):
+                name = f"observation {kind}" + (f" of {key!r}" if key else "")
+                if values.get(key) is None:
+                    raise RluError(
+                        f"the dataset statistics hold no {name}; compute them with "
+                        "rlu.data.statistics.dataset_statistics(ds, agent.batch_spec.statistics)"
+                    )
+                value = np.asarray(values[key], np.float32)
+                if value.shape != self.shapes[key] or not np.all(np.isfinite(value)):
+                    raise RluError(
+                        f"the {name} has shape {value.shape} or values that are not finite; "
+                        f"the observation spec wants shape {self.shapes[key]}, finite values"
+                    )
+                self.get_buffer(f"{kind}_{i}").copy_(torch.from_numpy(value))
+        self.ready = True
+
+    def forward(self, obs: Mapping[str, torch.Tensor] | torch.Tensor):
+        if not self.enabled:
+            return obs
+        if not isinstance(obs, Mapping):
+            return self._normalised(0, obs) if self.keys == [""] else obs
+        out = dict(obs)
+        for i, key in enumerate(self.keys):
+            out[key] = self._normalised(i, obs[key])
+        return out
+
+    def _normalised(self, i: int, x: torch.Tensor) -> torch.Tensor:
+        return (x - self.get_buffer(f"mean_{i}")) / (self.get_buffer(f"std_{i}") + self.eps)
 
 
 class TanhGaussianPolicy(nn.Module):
