@@ -76,7 +76,7 @@ from rlu.agents import AGENTS, make_agent  # noqa: E402
 from rlu.data import open_dataset  # noqa: E402
 from rlu.data.statistics import dataset_statistics  # noqa: E402
 from rlu.data.views import make_sampler  # noqa: E402
-from rlu.types import available_cores  # noqa: E402
+from rlu.system import available_cores  # noqa: E402
 
 CONTINUOUS = ("crr", "iql", "cql", "td3bc", "rebrac")
 DISCRETE = ("cql-discrete",)

@@ -75,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
         extra = EXTRA_OF.get((e.name or "").partition(".")[0])
         if extra is None:
             raise
-        from rlu.types import install_hint
+        from rlu.system import install_hint
 
         _say(f"rlu: error: rlu {args.command} needs {e.name} (the {extra} extra): "
              f"{install_hint(extra)}")  # fmt: skip

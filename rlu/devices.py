@@ -4,7 +4,7 @@ run asks for. docs/devices.md explains the choices and what is bit-reproducible 
 
 A run's ``Runtime`` may change between its sessions (train on a GPU, resume or evaluate on a
 CPU): ``rlu train --resume`` compares the run's config without it. Device strings are parsed
-and checked in one place, ``rlu.types.resolve_device``. This module imports numpy only; torch
+and checked in one place, ``resolve_device`` below. This module imports numpy only; torch
 is imported when a runtime is resolved or applied.
 """
 
@@ -12,11 +12,52 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import os
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from rlu.types import RluError, resolve_device
+from rlu.types import RluError
+
+DEVICES = "auto, cpu, cuda or cuda:N"
+"""The device strings rlu accepts (``--device`` of the commands, ``device=`` of agents)."""
+
+
+def resolve_device(device: Any = "auto") -> Any:
+    """The ``torch.device`` that ``device`` names on this machine, checked here once for every
+    part of rlu (agents, the loop, FQE, generation): ``auto`` is the first CUDA GPU if PyTorch
+    sees one and the CPU otherwise; ``cuda`` is ``cuda:0``; ``cuda:N`` must exist. A
+    ``torch.device`` passes through as given (the placement tests build agents on ``meta``).
+    Imports torch."""
+    import torch
+
+    if isinstance(device, torch.device):
+        return device
+    text = device.strip().lower() if isinstance(device, str) else None
+    if text == "cpu" or (text == "auto" and not torch.cuda.is_available()):
+        return torch.device("cpu")
+    if text == "auto":
+        return torch.device("cuda", 0)
+    kind, sep, index = (text or "").partition(":")
+    if kind != "cuda" or (sep and not index.isdigit()):
+        raise RluError(f"device {device!r}; use one of {DEVICES} (e.g. --device cuda:0)")
+    if not torch.cuda.is_available():
+        build = f"CUDA {torch.version.cuda}" if torch.version.cuda else "a CPU-only build"
+        raise RluError(
+            f"device {device!r}: PyTorch sees no CUDA GPU here (torch {torch.__version__}, "
+            f"{build}); use --device cpu (or auto), or install a CUDA build of torch on a "
+            "machine with an NVIDIA GPU"
+        )
+    count, number = torch.cuda.device_count(), int(index) if sep else 0
+    if number >= count:
+        visible = os.environ.get("CUDA_VISIBLE_DEVICES")
+        seen = f" (CUDA_VISIBLE_DEVICES={visible})" if visible is not None else ""
+        raise RluError(
+            f"device {device!r}: PyTorch sees {count} CUDA GPU(s){seen}, cuda:0 .. "
+            f"cuda:{count - 1}; pick one of those"
+        )
+    return torch.device("cuda", number)
+
 
 PRECISIONS = ("fp32", "bf16")
 DEFAULT_CUDA_PREFETCH = 2

@@ -22,7 +22,8 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
-from rlu.types import RluError, install_hint
+from rlu.system import install_hint
+from rlu.types import RluError
 
 LOGGERS = ("csv", "tensorboard", "wandb")
 

@@ -254,7 +254,8 @@ def read_config_file(path: str, cls: type) -> dict[str, Any]:
     from pathlib import Path
 
     from rlu.files import check_value, parse_json, read_bytes
-    from rlu.types import FormatError, install_hint
+    from rlu.system import install_hint
+    from rlu.types import FormatError
 
     fix = "write it as JSON or YAML with the fields of `rlu train --help`"
     raw = read_bytes(path, MAX_CONFIG_BYTES, fix)

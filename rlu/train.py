@@ -38,8 +38,9 @@ import numpy as np
 from rlu import runs
 from rlu.devices import compile_modules, numerics
 from rlu.files import bounds, check_output, shape_of
+from rlu.seeds import derive_seed
 from rlu.settings import RunSettings
-from rlu.types import ArraySpec, DiscreteSpec, RluError, derive_seed, observation_spec_to_json
+from rlu.types import ArraySpec, DiscreteSpec, RluError, observation_spec_to_json
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,6 @@ keyed as in the original release without its ``observation/`` prefix, nested lev
 
 from __future__ import annotations
 
-import os
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, NamedTuple, Protocol
@@ -279,83 +278,3 @@ class Agent(Protocol):
     def state_dict(self) -> dict[str, Any]: ...
 
     def load_state_dict(self, state: dict[str, Any]) -> None: ...
-
-
-def available_cores() -> int:
-    """CPU cores this process may run on (its affinity mask, which containers and taskset
-    narrow; ``os.cpu_count()`` counts the whole machine)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not Linux
-        return os.cpu_count() or 1
-
-
-def seed_stream(seed: int, *key: int) -> np.random.SeedSequence:
-    """The random stream ``key`` of run ``seed``: ``SeedSequence(seed).spawn(...)`` indexed by
-    ``key`` (``seed_stream(s, w, e)`` is ``SeedSequence(s).spawn(w + 1)[w].spawn(e + 1)[e]``).
-
-    numpy spawns children by extending the spawn key and hashes (entropy, spawn key) together, so
-    two different ``(seed, *key)`` never give the same stream, unlike ``seed + k`` (run 0's
-    worker 1 would be run 1's worker 0). Every seed and key must be a non-negative int.
-    """
-    parts = (seed, *key)
-    if any(isinstance(p, bool) or not isinstance(p, int | np.integer) or p < 0 for p in parts):
-        raise RluError(f"seed {seed!r} with stream key {key!r}: seeds are non-negative integers")
-    return np.random.SeedSequence(int(seed), spawn_key=tuple(int(k) for k in key))
-
-
-def derive_seed(seed: int, *key: int) -> int:
-    """A 31-bit int seed for stream ``key`` of ``seed`` (see ``seed_stream``), for APIs that take
-    an int (``env.reset(seed=...)``, dm_control's ``random``, ALE's signed 32-bit seed)."""
-    return int(seed_stream(seed, *key).generate_state(1, np.uint32)[0] >> 1)
-
-
-def install_hint(*extras: str) -> str:
-    """How to install the pip extras ``extras`` of rlu, as the user installed rlu: the pip line
-    always, and ``bash scripts/install.sh`` too when rlu runs from a checkout (the script is not
-    in the wheel)."""
-    hint = f'pip install "rlu[{",".join(extras)}]"'
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    if os.path.exists(os.path.join(root, "scripts", "install.sh")):
-        hint += f" (in this checkout: bash scripts/install.sh {' '.join(extras)})"
-    return hint
-
-
-DEVICES = "auto, cpu, cuda or cuda:N"
-"""The device strings rlu accepts (``--device`` of the commands, ``device=`` of agents)."""
-
-
-def resolve_device(device: Any = "auto") -> Any:
-    """The ``torch.device`` that ``device`` names on this machine, checked here once for every
-    part of rlu (agents, the loop, FQE, generation): ``auto`` is the first CUDA GPU if PyTorch
-    sees one and the CPU otherwise; ``cuda`` is ``cuda:0``; ``cuda:N`` must exist. A
-    ``torch.device`` passes through as given (the placement tests build agents on ``meta``).
-    Imports torch."""
-    import torch
-
-    if isinstance(device, torch.device):
-        return device
-    text = device.strip().lower() if isinstance(device, str) else None
-    if text == "cpu" or (text == "auto" and not torch.cuda.is_available()):
-        return torch.device("cpu")
-    if text == "auto":
-        return torch.device("cuda", 0)
-    kind, sep, index = (text or "").partition(":")
-    if kind != "cuda" or (sep and not index.isdigit()):
-        raise RluError(f"device {device!r}; use one of {DEVICES} (e.g. --device cuda:0)")
-    if not torch.cuda.is_available():
-        build = f"CUDA {torch.version.cuda}" if torch.version.cuda else "a CPU-only build"
-        raise RluError(
-            f"device {device!r}: PyTorch sees no CUDA GPU here (torch {torch.__version__}, "
-            f"{build}); use --device cpu (or auto), or install a CUDA build of torch on a "
-            "machine with an NVIDIA GPU"
-        )
-    count, number = torch.cuda.device_count(), int(index) if sep else 0
-    if number >= count:
-        visible = os.environ.get("CUDA_VISIBLE_DEVICES")
-        seen = f" (CUDA_VISIBLE_DEVICES={visible})" if visible is not None else ""
-        raise RluError(
-            f"device {device!r}: PyTorch sees {count} CUDA GPU(s){seen}, cuda:0 .. "
-            f"cuda:{count - 1}; pick one of those"
-        )
-    return torch.device("cuda", number)

@@ -216,7 +216,8 @@ def _run_pool(fn, jobs, workers, on_result, on_error, on_message) -> None:
 def _run_ray(
     fn, jobs, backend: Backend, on_result, on_error, on_message, ray_check, retries, resources
 ) -> None:
-    from rlu.types import RluError, install_hint
+    from rlu.system import install_hint
+    from rlu.types import RluError
 
     try:
         import ray

@@ -1,4 +1,4 @@
-"""Device strings and the runtime options (rlu.types.resolve_device, rlu.devices): what they
+"""Device strings and the runtime options (rlu.devices.resolve_device, rlu.devices): what they
 decide on this machine, and, with PyTorch's CUDA queries answered as on a 2-GPU machine, what
 they would decide there. No GPU is needed: the CUDA side of the answers is the only stand-in."""
 
@@ -14,8 +14,9 @@ from rlu.devices import (  # noqa: E402
     compile_modules,
     numerics,
     ray_options,
+    resolve_device,
 )
-from rlu.types import RluError, resolve_device  # noqa: E402
+from rlu.types import RluError  # noqa: E402
 
 CPU = torch.device("cpu")
 

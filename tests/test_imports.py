@@ -17,6 +17,9 @@ FORBIDDEN = {
     "agents": ("rlu.data", "rlu.envs", "rlu.evaluation", "rlu.train", "rlu.generate", "rlu.tasks"),
     "evaluation": ("rlu.agents", "rlu.train", "rlu.generate"),
     "types.py": ("rlu.",),
+    "system.py": ("rlu.",),
+    "seeds.py": ("rlu.data", "rlu.envs", "rlu.agents", "rlu.evaluation", "rlu.train"),
+    "devices.py": ("rlu.data", "rlu.envs", "rlu.agents", "rlu.evaluation", "rlu.train", "rlu.runs"),
     "tasks.py": ("rlu.data", "rlu.envs", "rlu.agents", "rlu.evaluation"),
     # the run and sweep folders' files sit below the loop; rebuilding a run sits above it
     "runs.py": ("rlu.train", "rlu.sweep", "rlu.restore", "rlu.evaluation", "rlu.agents",

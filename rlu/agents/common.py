@@ -37,7 +37,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from rlu.types import RluError, resolve_device
+from rlu.devices import resolve_device
+from rlu.types import RluError
 
 Metrics = dict[str, torch.Tensor]
 
@@ -57,7 +58,7 @@ def seeded(seed: int) -> Iterator[None]:
 
 
 def device(spec: Any = "cpu") -> torch.device:
-    """An agent's device, resolved once in its ``__init__`` (``rlu.types.resolve_device``: an
+    """An agent's device, resolved once in its ``__init__`` (``rlu.devices.resolve_device``: an
     unknown or missing device is an ``RluError`` naming the fix)."""
     return resolve_device(spec)
 

@@ -90,7 +90,9 @@ def _run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from rlu.types import DiscreteSpec, RluError, derive_seed, install_hint
+    from rlu.seeds import derive_seed
+    from rlu.system import install_hint
+    from rlu.types import DiscreteSpec, RluError
 
     missing = [m for m in ("torch", "dm_control") if importlib.util.find_spec(m) is None]
     if missing:

@@ -57,7 +57,7 @@ def add_backend_options(
 def backend_from_args(args: argparse.Namespace, jobs: int | None = None) -> Any:
     """The ``rlu.workers.Backend`` of :func:`add_backend_options`' flags (default workers: one
     per core, never more than ``jobs``)."""
-    from rlu.types import available_cores
+    from rlu.system import available_cores
     from rlu.workers import Backend
 
     workers = args.workers or min(available_cores(), jobs or available_cores())

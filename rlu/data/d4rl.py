@@ -68,7 +68,8 @@ from rlu.data.foreign import (
 from rlu.data.store import Dataset, DatasetWriter, Schema
 from rlu.data.store.schema import action_problem
 from rlu.data.views import TransitionView
-from rlu.types import ArraySpec, FormatError, RluError, SpecError, install_hint
+from rlu.system import install_hint
+from rlu.types import ArraySpec, FormatError, RluError, SpecError
 
 REQUIRED = ("actions", "rewards", "terminals", "timeouts")
 

@@ -34,7 +34,8 @@ from typing import Any
 import numpy as np
 
 from rlu.data.episode import Segment
-from rlu.types import FormatError, RluError, install_hint
+from rlu.system import install_hint
+from rlu.types import FormatError, RluError
 
 MAX_DEFLATE_RATIO = 1032
 """The most deflate can compress (RFC 1951: a 258-byte match in 2 bits): what a compressed

@@ -66,6 +66,7 @@ from rlu.data.foreign import (
     with_final_step,
 )
 from rlu.data.store import Dataset, DatasetWriter, Schema
+from rlu.system import install_hint
 from rlu.types import (
     ArraySpec,
     BoundedSpec,
@@ -73,7 +74,6 @@ from rlu.types import (
     FormatError,
     RluError,
     SpecError,
-    install_hint,
 )
 
 CHUNK_STEPS = 1 << 16  # episodes are handed to Minari in chunks of about this many steps

@@ -3,7 +3,7 @@ loop's data path on an accelerator (``device_batch``, ``Prefetcher``, ``DeviceSa
 
 Imports torch only when this module is used. ``TorchSampler`` re-opens the dataset in each worker
 process (only the path crosses the process boundary). Its batch streams are spawned from one
-``numpy.random.SeedSequence`` per run seed (``rlu.types.seed_stream``), one child per (worker,
+``numpy.random.SeedSequence`` per run seed (``rlu.seeds.seed_stream``), one child per (worker,
 pass over the loader), so no two (run seed, worker, pass) streams coincide: with ``seed + k``
 run 0's worker 1 replayed run 1's worker 0, and iterating the same loader again replayed it.
 
@@ -31,7 +31,8 @@ import torch
 
 from rlu.data.store import Dataset, open_dataset
 from rlu.data.views import Sampler, TransitionView, make_sampler
-from rlu.types import ArraySpec, BatchSpec, RluError, Transition, seed_stream
+from rlu.seeds import seed_stream
+from rlu.types import ArraySpec, BatchSpec, RluError, Transition
 
 
 def to_torch(batch: Any, device: str | torch.device = "cpu") -> Any:

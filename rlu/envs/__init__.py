@@ -38,8 +38,9 @@ import importlib
 import os
 from typing import Any
 
+from rlu.system import install_hint
 from rlu.tasks import resolve_task
-from rlu.types import RluError, install_hint
+from rlu.types import RluError
 
 _FACTORIES = {
     "control_suite": "rlu.envs.control",

@@ -31,7 +31,8 @@ from typing import Any
 
 import numpy as np
 
-from rlu.types import ArraySpec, BoundedSpec, DiscreteSpec, RluError, SpecError, install_hint
+from rlu.system import install_hint
+from rlu.types import ArraySpec, BoundedSpec, DiscreteSpec, RluError, SpecError
 
 try:  # gymnasium is in every env extra; rlu.envs is never imported by the numpy-only core.
     import gymnasium as gym

@@ -35,10 +35,12 @@ from typing import Any
 import numpy as np
 
 from rlu.envs.core import gym, spaces
-from rlu.tasks import ATARI_MAX_AGENT_STEPS, get_task
-from rlu.types import RluError, available_cores
 
 # Chosen by measurement (bench/envs.py; the figures and their machine: bench/README.md, "Design
+from rlu.system import available_cores
+from rlu.tasks import ATARI_MAX_AGENT_STEPS, get_task
+from rlu.types import RluError
+
 # choices"): ALE's C++ threads beat processes for Atari; worker processes pay off for the slow
 # camera envs of locomotion; control-suite and RWRL steps are cheaper than a message round trip
 # to a worker, so their N envs step in this process, where the batched policy forward (PyTorch's

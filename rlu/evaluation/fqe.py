@@ -20,7 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from rlu.types import DiscreteSpec, Policy, RluError, resolve_device
+from rlu.devices import resolve_device
+from rlu.types import DiscreteSpec, Policy, RluError
 
 
 @dataclass(frozen=True)

@@ -23,7 +23,9 @@ from typing import Any
 
 import numpy as np
 
-from rlu.types import Policy, RluError, derive_seed, install_hint
+from rlu.seeds import derive_seed
+from rlu.system import install_hint
+from rlu.types import Policy, RluError
 
 EnvFactory = Callable[[], Any]
 

@@ -42,7 +42,8 @@ from typing import Any
 import numpy as np
 
 from rlu.evaluation.rollout import EnvFactory, _inference_mode, _stack, episode_seed
-from rlu.types import Policy, RluError, install_hint
+from rlu.system import install_hint
+from rlu.types import Policy, RluError
 
 FORMATS = ("mp4", "gif")
 INDEX = "videos.json"

@@ -15,7 +15,7 @@ Success, per domain (``success_rule``):
 - Atari: no episode counts as successful: the paper keeps DQN's whole replay (no reduction);
 - locomotion: the episode reached its time limit (the walker did not fall).
 
-Seeds: every random stream of a generation is one of ``rlu.types.seed_stream`` under the
+Seeds: every random stream of a generation is one of ``rlu.seeds.seed_stream`` under the
 command's ``--seed``, keyed by what it is for (``run_seed``, ``run_rng``, ``stream_rng``): one
 subtree per run, so no two streams coincide whatever the counts of runs, episodes or chunks.
 
@@ -38,8 +38,9 @@ from rlu.data.episode import Segment
 from rlu.files import AnyJSON, MapOf, read_json, write_json
 from rlu.generate.config import GenerateConfig
 from rlu.generate.recorder import schema_for
+from rlu.seeds import derive_seed, seed_stream
 from rlu.tasks import TaskSpec
-from rlu.types import RluError, derive_seed, seed_stream
+from rlu.types import RluError
 
 CONTROL_SUCCESS_RETURN = 800.0
 

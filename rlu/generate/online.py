@@ -17,7 +17,7 @@ The replay holds whole episodes and builds its n-step transitions and Atari fram
 the store's own maths (``rlu.data.views``: ``n_step_targets``, ``stack_frames``), so the online
 agent learns from the transitions an offline agent would sample from the recorded data.
 
-Determinism and resumption: every seed is a stream of ``rlu.types.seed_stream`` under the run
+Determinism and resumption: every seed is a stream of ``rlu.seeds.seed_stream`` under the run
 (``rlu.generate.common``); every episode resets the env with its own, so the env carries no
 state across episodes; the agent, the replay and the actor's random generator are saved after
 every chunk of episodes (``state.pt``, through ``rlu.checkpoints``), so a run resumed from its

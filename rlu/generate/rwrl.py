@@ -46,8 +46,9 @@ from rlu.generate.config import GenerateConfig
 from rlu.generate.online import OnlineConfig, RunHooks, make_behaviour_agent, run_online
 from rlu.generate.recorder import EpisodeRecorder, episode_id
 from rlu.generate.scales import get_scale
+from rlu.seeds import derive_seed
 from rlu.tasks import RWRL_SIZES, TaskSpec, rwrl_observation_spec
-from rlu.types import FormatError, derive_seed
+from rlu.types import FormatError
 
 SNAPSHOT_FRACTION = 0.75
 CHALLENGES = ("none", "easy")

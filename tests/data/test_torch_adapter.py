@@ -63,9 +63,10 @@ def test_no_two_run_worker_pass_streams_coincide(cartpole):
 
 
 def test_seed_streams_are_distinct_over_runs_workers_and_epochs():
-    """The keys rlu spawns streams from (rlu.types.seed_stream): 20 runs x 9 lanes x 20 epochs,
+    """The keys rlu spawns streams from (rlu.seeds.seed_stream): 20 runs x 9 lanes x 20 epochs,
     the first 4 draws of each stream, all distinct."""
-    from rlu.types import RluError, seed_stream
+    from rlu.seeds import seed_stream
+    from rlu.types import RluError
 
     draws = {
         np.random.default_rng(seed_stream(r, w, e)).integers(0, 2**63, 4).tobytes()

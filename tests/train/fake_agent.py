@@ -14,7 +14,8 @@ from collections.abc import Mapping
 import numpy as np
 import torch
 
-from rlu.types import BatchSpec, BoundedSpec, resolve_device
+from rlu.devices import resolve_device
+from rlu.types import BatchSpec, BoundedSpec
 
 
 @dataclasses.dataclass(frozen=True)

@@ -15,8 +15,9 @@ import numpy as np
 import pytest
 
 from rlu.restore import evaluate_run
+from rlu.seeds import derive_seed
 from rlu.train import TrainConfig, parse_overrides, train
-from rlu.types import RluError, derive_seed
+from rlu.types import RluError
 from tests.fakes import train_config
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -28,8 +28,9 @@ from rlu.data.episode import METADATA_FIELDS
 from rlu.data.release.families import SegmentBatch, get_family, iter_segments, reader_for
 from rlu.data.store import DatasetWriter, Deflated, Schema, SegmentColumns, segment_columns
 from rlu.progress import Progress
+from rlu.system import available_cores
 from rlu.tasks import TaskSpec, get_task, rwrl_observation_spec
-from rlu.types import ArraySpec, FormatError, RluError, SpecError, available_cores
+from rlu.types import ArraySpec, FormatError, RluError, SpecError
 from rlu.workers import die_with_parent
 
 _RUN_RE = re.compile(r"run_(\d+)")

@@ -36,7 +36,8 @@ from rlu.data.store.schema import (
     segment_columns,
 )
 from rlu.locks import OutputLock
-from rlu.types import ArraySpec, RluError, SpecError, available_cores
+from rlu.system import available_cores
+from rlu.types import ArraySpec, RluError, SpecError
 
 _ZLIB_POOL: tuple[int, Any] | None = None  # (pid, executor): never reused across a fork
 _ZLIB_THREADED_FRAMES = 64

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from rlu.files import write_atomic, write_json
-from rlu.types import install_hint
+from rlu.system import install_hint
 
 MARKER = "results.json"
 """The file every quick-start folder holds (the quick start replaces only such a folder)."""

@@ -29,10 +29,11 @@ from typing import Any
 
 import numpy as np
 
-from rlu.types import RluError, install_hint
-
-
 # --- blocks ---------------------------------------------------------------------------------
+from rlu.system import install_hint
+from rlu.types import RluError
+
+
 @dataclass(frozen=True)
 class Text:
     text: str

@@ -1,4 +1,4 @@
-"""rlu.types helpers: install hints that fit how rlu was installed."""
+"""rlu.system: install hints that fit how rlu was installed."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from rlu.types import install_hint
+from rlu.system import install_hint
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -23,8 +23,8 @@ def test_install_hint_without_a_checkout_names_pip_only(tmp_path):
     """rlu as a wheel installs it: the package alone, no scripts/ beside it."""
     shutil.copytree(ROOT / "rlu", tmp_path / "rlu", ignore=shutil.ignore_patterns("resources"))
     code = (
-        "import rlu.types; from rlu.types import install_hint; "
-        "print(rlu.types.__file__); print(install_hint('control', 'agents'))"
+        "import rlu.system; from rlu.system import install_hint; "
+        "print(rlu.system.__file__); print(install_hint('control', 'agents'))"
     )
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
     out = subprocess.run(
