@@ -196,6 +196,41 @@ def frozen_copy(module: nn.Module) -> nn.Module:
     return copy.deepcopy(module).requires_grad_(False)
 
 
+class ActorCritic(NamedTuple):
+    """What :func:`actor_critic` builds around an actor and a critic: their frozen targets, the
+    modules of the agent's state and its two optimisers, and ``{target: source}``."""
+
+    target_actor: nn.Module
+    target_critic: nn.Module
+    modules: dict[str, nn.Module]
+    optimizers: dict[str, torch.optim.Optimizer]
+    targets: dict[nn.Module, nn.Module]
+
+
+def actor_critic(
+    actor: nn.Module,
+    critic: nn.Module,
+    actor_lr: float,
+    critic_lr: float,
+    names: tuple[str, str] = ("policy", "critic"),
+    more: Mapping[str, nn.Module] | None = None,
+) -> ActorCritic:
+    """Targets, state and optimisers of an actor-critic agent (D4PG, CRR, TD3+BC, ReBRAC): a
+    frozen copy of each network; the modules ``{actor, critic, *more, target_actor,
+    target_critic}`` under ``names`` (the targets as ``target_<name>``, in this order, which is
+    the checkpoint's); one Adam per network, keyed ``names[0]`` and ``"critic"``."""
+    target_actor, target_critic = frozen_copy(actor), frozen_copy(critic)
+    a, c = names
+    modules = {a: actor, c: critic, **(more or {}),
+               f"target_{a}": target_actor, f"target_{c}": target_critic}  # fmt: skip
+    optimizers = {
+        a: adam(actor.parameters(), actor_lr),
+        "critic": adam(critic.parameters(), critic_lr),
+    }
+    targets = {target_actor: actor, target_critic: critic}
+    return ActorCritic(target_actor, target_critic, modules, optimizers, targets)
+
+
 def hard_update(target: nn.Module, source: nn.Module) -> None:
     with torch.no_grad():
         torch._foreach_copy_(list(target.parameters()), list(source.parameters()))

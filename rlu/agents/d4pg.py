@@ -155,19 +155,12 @@ class D4PGAgent:
         with common.seeded(seed):
             self.policy = Policy(observation_spec, a, config).to(d)
             self.critic = Critic(observation_spec, a, config).to(d)
-        self.target_policy = common.frozen_copy(self.policy)
-        self.target_critic = common.frozen_copy(self.critic)
-        self.modules = {
-            "policy": self.policy, "critic": self.critic,
-            "target_policy": self.target_policy, "target_critic": self.target_critic,
-        }  # fmt: skip
-        self.optimizers = {
-            "policy": common.adam(self.policy.parameters(), config.policy_lr),
-            "critic": common.adam(self.critic.parameters(), config.critic_lr),
-        }
+        built = common.actor_critic(self.policy, self.critic, config.policy_lr, config.critic_lr)
+        self.target_policy, self.target_critic = built.target_actor, built.target_critic
+        self.modules, self.optimizers = built.modules, built.optimizers
         self.generators = {"sample": self.generator}
         # copied into their targets every target_update_period updates
-        self.targets = {self.target_policy: self.policy, self.target_critic: self.critic}
+        self.targets = built.targets
 
     def update(self, batch: Transition) -> dict[str, float]:
         c, b = self.config, common.transition(batch, self.scaler, self.device)

@@ -137,17 +137,13 @@ class TD3BCAgent:
         with common.seeded(seed):
             self.actor = nets.DeterministicPolicy(observation_spec, a, layers, th).to(d)
             self.critics = nets.TwinCritic(observation_spec, a, layers, th).to(d)
-        self.target_actor = common.frozen_copy(self.actor)
-        self.target_critics = common.frozen_copy(self.critics)
+        built = common.actor_critic(
+            self.actor, self.critics, config.actor_lr, config.critic_lr, ("actor", "critics"),
+            {"normaliser": self.normaliser},
+        )  # fmt: skip
+        self.target_actor, self.target_critics = built.target_actor, built.target_critic
         self.actor_params = list(self.actor.parameters())
-        self.modules = {
-            "actor": self.actor, "critics": self.critics, "normaliser": self.normaliser,
-            "target_actor": self.target_actor, "target_critics": self.target_critics,
-        }  # fmt: skip
-        self.optimizers = {
-            "actor": common.adam(self.actor_params, config.actor_lr),
-            "critic": common.adam(self.critics.parameters(), config.critic_lr),
-        }
+        self.modules, self.optimizers = built.modules, built.optimizers
         self.generators = {"noise": self.generator}
 
     def set_statistics(self, stats: DataStatistics) -> None:
