@@ -39,6 +39,7 @@ from typing import Any
 
 import numpy as np
 
+from rlu.files import write_json
 from rlu.types import FormatError, RluError
 
 FORMAT = "rlu.random_scores/1"
@@ -237,10 +238,7 @@ def measure(
 
 def write(doc: dict[str, Any], path: str | os.PathLike) -> None:
     """Write atomically (temp file + rename): a crash never leaves half a file."""
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(doc, indent=1) + "\n")
-    os.replace(tmp, path)
+    write_json(path, doc, indent=1)
 
 
 def load(path: str | os.PathLike | None = None) -> dict[str, Any]:

@@ -41,6 +41,7 @@ from typing import Any
 
 import numpy as np
 
+from rlu.files import write_json
 from rlu.types import FormatError, RluError
 
 FORMAT = "rlu.atari_best_behaviour/1"
@@ -190,10 +191,7 @@ def best_of_runs(per_run: Mapping[int, Mapping[int, Sequence[float]]]) -> dict[s
 
 def write(path: str | os.PathLike, doc: Mapping[str, Any]) -> None:
     """Write a reference file atomically (a crash leaves the old file or none)."""
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(doc, indent=1) + "\n")
-    os.replace(tmp, path)
+    write_json(path, doc, indent=1)
 
 
 # --- small denominators ---------------------------------------------------------------------

@@ -31,7 +31,6 @@ batch of one.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from collections.abc import Callable
@@ -42,6 +41,7 @@ from typing import Any
 import numpy as np
 
 from rlu.evaluation.rollout import EnvFactory, _inference_mode, _stack, episode_seed
+from rlu.files import write_json
 from rlu.system import install_hint
 from rlu.types import Policy, RluError
 
@@ -107,7 +107,7 @@ def record_video(
     finally:
         env.close()
     index = {"seed": seed, "videos": [v.to_json() for v in videos]}
-    _write_atomic(out / INDEX, json.dumps(index, indent=1) + "\n")
+    write_json(out / INDEX, index, indent=1)
     return videos
 
 
@@ -264,9 +264,3 @@ def _gif_writer() -> Callable[[Path, tuple, float], _Writer]:
         return _Writer(add, frames.clear)
 
     return open_writer
-
-
-def _write_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
