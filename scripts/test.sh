@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # Installs rlu with every extra the tests exercise into .venv, then runs the test suite on CPU.
-#   bash scripts/test.sh            # the CI suite (learning checks marked slow are left out)
-#   RLU_SLOW=1 bash scripts/test.sh # everything, slow learning checks included
+#   bash scripts/test.sh            # the fast suite (the tests marked slow are left out)
+#   RLU_SLOW=1 bash scripts/test.sh # CI's suite: the slow learning checks too, not those marked long
+#   RLU_SLOW=2 bash scripts/test.sh # everything: the long reproductions of whole jobs too
+# The tests run on every core (pytest-xdist; RLU_TEST_WORKERS=1 runs them in one process).
 # Extra arguments go to pytest.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -12,7 +14,7 @@ export MUJOCO_GL=${MUJOCO_GL:-egl}
 export PYOPENGL_PLATFORM=${PYOPENGL_PLATFORM:-egl}
 # The slow report test screenshots report.html in Debian's headless chromium; install it where
 # it is missing and apt-get can (root), else that one test skips and says why.
-if [ "${RLU_SLOW:-0}" = "1" ] && ! command -v chromium >/dev/null; then
+if [ "${RLU_SLOW:-0}" != "0" ] && ! command -v chromium >/dev/null; then
   if command -v apt-get >/dev/null && [ "$(id -u)" = "0" ]; then
     { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; } \
       || echo "scripts/test.sh: installing chromium failed; the browser test will skip"
@@ -28,10 +30,16 @@ echo "scripts/test.sh: ruff check and ruff format --check"
 # out of the nav, a docstring mkdocstrings cannot read. Into build/site (git-ignored). Not
 # --quiet: with it, mkdocs 1.6 counts no warning and --strict passes whatever the site holds.
 NO_MKDOCS_2_WARNING=1 .venv/bin/mkdocs build --strict --site-dir build/site
-marker=(-m "not slow")
-[ "${RLU_SLOW:-0}" = "1" ] && marker=()
+case "${RLU_SLOW:-0}" in
+  0) marker=(-m "not slow") ;;
+  1) marker=(-m "not long") ;;
+  *) marker=() ;;
+esac
+workers=${RLU_TEST_WORKERS:-auto}
+parallel=()
+[ "$workers" != "1" ] && parallel=(-n "$workers" --dist worksteal)
 set +e
-.venv/bin/python -m pytest -q "${marker[@]}" "$@"
+.venv/bin/python -m pytest -q "${parallel[@]}" "${marker[@]}" "$@"
 rc=$?
 set -e
 # pytest exits 5 when it collected no test; that is not a failure of the code under test.

@@ -28,6 +28,7 @@ def test_bundled_dataset_is_valid_and_small():
 
 
 @pytest.mark.slow
+@pytest.mark.long  # outside CI: RLU_SLOW=2
 def test_bundled_dataset_is_reproduced_by_its_recorded_command(tmp_path):
     """Minutes: re-runs the recorded command (3 D4PG runs at the laptop scale)."""
     pytest.importorskip("torch")
