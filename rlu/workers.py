@@ -125,6 +125,24 @@ def node_name() -> str:
     return socket.gethostname()
 
 
+def _deliver(
+    i: int,
+    get: Callable[[], Any],
+    on_result: Callable[[int, Any], None],
+    on_error: Callable[[int, BaseException], None] | None,
+) -> None:
+    """Job ``i``'s outcome to its callback: ``on_result(i, get())``, or ``on_error(i, e)`` when
+    ``get`` raises (re-raised without ``on_error``)."""
+    try:
+        result = get()
+    except Exception as e:
+        if on_error is None:
+            raise
+        on_error(i, e)
+        return
+    on_result(i, result)
+
+
 def run_jobs(
     fn: Callable[..., Any],
     jobs: Sequence[tuple[Any, ...]],
@@ -152,14 +170,7 @@ def run_jobs(
         _LOCAL_SINK = on_message
         try:
             for i, job in enumerate(jobs):
-                try:
-                    result = fn(*job)
-                except Exception as e:
-                    if on_error is None:
-                        raise
-                    on_error(i, e)
-                    continue
-                on_result(i, result)
+                _deliver(i, lambda: fn(*job), on_result, on_error)  # noqa: B023 (called now)
         finally:
             _LOCAL_SINK = None
         return
@@ -197,15 +208,7 @@ def _run_pool(fn, jobs, workers, on_result, on_error, on_message) -> None:
             done, pending = wait(pending, timeout=0.5, return_when=FIRST_COMPLETED)
             drain()
             for f in done:
-                i = futures[f]
-                try:
-                    result = f.result()
-                except Exception as e:
-                    if on_error is None:
-                        raise
-                    on_error(i, e)
-                    continue
-                on_result(i, result)
+                _deliver(futures[f], f.result, on_result, on_error)
         drain()
     except BaseException:  # Ctrl-C or a job's error: start no further job
         pool.shutdown(wait=False, cancel_futures=True)
