@@ -24,11 +24,12 @@ import resource
 import socket
 import subprocess
 import sys
-import threading
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+from tests.servers import direct, serve
 
 pytest.importorskip("google_crc32c", reason="the release extra (google-crc32c) is not installed")
 
@@ -100,17 +101,10 @@ class _Handler(http.server.BaseHTTPRequestHandler):
 
 @pytest.fixture
 def server(monkeypatch):
-    for k in ("http_proxy", "https_proxy", "all_proxy", "HTTP_PROXY", "HTTPS_PROXY", "ALL_PROXY"):
-        monkeypatch.delenv(k, raising=False)
-    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), _Handler)
-    srv.daemon_threads = True
-    srv.mode, srv.body, srv.requests, srv.sent, srv.cap = "ok", _shard_bytes(), 0, 0, 0
-    t = threading.Thread(target=srv.serve_forever, daemon=True)
-    t.start()
-    srv.url = f"http://127.0.0.1:{srv.server_address[1]}"
-    yield srv
-    srv.shutdown()
-    srv.server_close()
+    direct(monkeypatch)
+    with serve(_Handler, daemon_threads=True, mode="ok", body=_shard_bytes(), requests=0, sent=0,
+               cap=0) as srv:  # fmt: skip
+        yield srv
 
 
 def _download(srv, cache: Path, capsys, *extra: str) -> tuple[int, list[str]]:

@@ -11,7 +11,6 @@ import hashlib
 import http.server
 import os
 import socket
-import threading
 import urllib.error
 
 import google_crc32c
@@ -22,6 +21,7 @@ from rlu.cli import main
 from rlu.data.release import framing as F
 from rlu.data.release.download import Downloader, DownloadError
 from rlu.locks import LockBusy, OutputLock
+from tests.servers import direct, serve
 
 
 class _Handler(http.server.BaseHTTPRequestHandler):
@@ -90,22 +90,13 @@ class _Handler(http.server.BaseHTTPRequestHandler):
 
 @pytest.fixture(autouse=True)
 def _direct(monkeypatch):
-    """No proxy from the environment: every request goes to 127.0.0.1 itself."""
-    for k in ("http_proxy", "https_proxy", "all_proxy", "HTTP_PROXY", "HTTPS_PROXY", "ALL_PROXY"):
-        monkeypatch.delenv(k, raising=False)
+    direct(monkeypatch)
 
 
 @pytest.fixture
 def server():
-    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), _Handler)
-    srv.files, srv.plans, srv.requests = {}, {}, []
-    srv.ranges, srv.hashes = True, True
-    t = threading.Thread(target=srv.serve_forever, daemon=True)
-    t.start()
-    srv.url = f"http://127.0.0.1:{srv.server_address[1]}"
-    yield srv
-    srv.shutdown()
-    srv.server_close()
+    with serve(_Handler, files={}, plans={}, requests=[], ranges=True, hashes=True) as srv:
+        yield srv
 
 
 def _blob(n=300_000, seed=0):

@@ -8,7 +8,6 @@ from __future__ import annotations
 import gzip
 import http.server
 import json
-import threading
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +23,7 @@ from rlu.types import RluError
 from rlu.workers import Backend
 from tests.release.test_convert import _windows
 from tests.release.test_families import atari_episode, atari_record
+from tests.servers import direct, serve
 
 TASK = "control_suite/walker_walk"
 
@@ -149,16 +149,9 @@ class _Bucket(http.server.BaseHTTPRequestHandler):
 
 @pytest.fixture
 def bucket(monkeypatch):
-    for k in ("http_proxy", "https_proxy", "all_proxy", "HTTP_PROXY", "HTTPS_PROXY", "ALL_PROXY"):
-        monkeypatch.delenv(k, raising=False)
-    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), _Bucket)
-    srv.files = {}
-    t = threading.Thread(target=srv.serve_forever, daemon=True)
-    t.start()
-    srv.url = f"http://127.0.0.1:{srv.server_address[1]}"
-    yield srv
-    srv.shutdown()
-    srv.server_close()
+    direct(monkeypatch)
+    with serve(_Bucket, files={}) as srv:
+        yield srv
 
 
 def serve_walker(bucket, tmp_path: Path, n: int = 3) -> None:

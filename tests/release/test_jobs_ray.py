@@ -21,6 +21,7 @@ from rlu.workers import Backend, run_jobs, send
 from tests.release.ray_cluster import loopback_cluster
 from tests.release.test_convert import _windows
 from tests.release.test_jobs import same_bytes
+from tests.servers import direct, serve
 
 ray = pytest.importorskip("ray")
 
@@ -58,24 +59,20 @@ class _Bucket(http.server.BaseHTTPRequestHandler):
 
 @pytest.fixture
 def bucket(monkeypatch, tmp_path):
-    for k in ("http_proxy", "https_proxy", "all_proxy", "HTTP_PROXY", "HTTPS_PROXY", "ALL_PROXY"):
-        monkeypatch.delenv(k, raising=False)
-    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), _Bucket)
-    srv.files, srv.requests, srv.lock, srv.hold = {}, [], threading.Lock(), True
-    srv.pair, srv.released, srv.on_pair = threading.Barrier(2), threading.Event(), lambda: None
+    direct(monkeypatch)
+    files = {}
     for t, task in enumerate(TASKS):
         for i, obj in enumerate(catalog.select(task, shards="0-2").objects):
             p = tmp_path / "shard"
             Fm.write_shard(p, "dm_control_suite", _windows(task, 16, seed=10 * t + i))
-            srv.files[obj] = p.read_bytes()
-    thread = threading.Thread(target=srv.serve_forever, daemon=True)
-    thread.start()
-    srv.url = f"http://127.0.0.1:{srv.server_address[1]}"
-    yield srv
-    srv.pair.abort()
-    srv.released.set()
-    srv.shutdown()
-    srv.server_close()
+            files[obj] = p.read_bytes()
+    with serve(
+        _Bucket, files=files, requests=[], lock=threading.Lock(), hold=True,
+        pair=threading.Barrier(2), released=threading.Event(), on_pair=lambda: None,
+    ) as srv:  # fmt: skip
+        yield srv
+        srv.pair.abort()  # a handler still waiting for its pair returns
+        srv.released.set()
 
 
 def local_datasets(bucket, tmp_path: Path) -> list[Path]:

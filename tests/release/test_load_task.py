@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import functools
 import http.server
-import threading
 
 import pytest
 
@@ -18,6 +17,7 @@ from rlu.data.store import Schema
 from rlu.data.synthetic import write_synthetic
 from rlu.tasks import get_task
 from rlu.types import RluError
+from tests.servers import serve
 
 SHARD = "dm_control_suite/cartpole_swingup/train-00000-of-00001"  # in the fixtures
 OBJECT = "dm_control_suite/cartpole_swingup/train-00000-of-00100"  # its name in the bucket
@@ -92,14 +92,8 @@ def test_downloaded_shards_are_converted_without_the_network(fixtures, tmp_path,
     (served / OBJECT).parent.mkdir(parents=True)
     (served / OBJECT).write_bytes((fixtures / "data" / SHARD).read_bytes())
     handler = functools.partial(_Quiet, directory=str(served))
-    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
-    threading.Thread(target=srv.serve_forever, daemon=True).start()
-    try:
-        url = f"http://127.0.0.1:{srv.server_address[1]}"
-        Downloader(base_url=url, progress=False).fetch([OBJECT])  # what `rlu download` does
-    finally:
-        srv.shutdown()
-        srv.server_close()
+    with serve(handler) as srv:
+        Downloader(base_url=srv.url, progress=False).fetch([OBJECT])  # what `rlu download` does
     (served / OBJECT).unlink()  # and the server is gone: only the cache can serve now
     ds = rlu.load_dataset("control_suite/cartpole_swingup", shards="0", workers=1)
     assert ds.manifest["provenance"]["family"] == "dm_control_suite"
