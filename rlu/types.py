@@ -142,6 +142,11 @@ class Sequence(NamedTuple):
     is_first: np.ndarray
     is_last: np.ndarray
     mask: np.ndarray
+    return_to_go: np.ndarray | None = None
+    """``return_to_go[b, t]``: the undiscounted sum of the rewards from step t to the end of its
+    segment (a whole episode's remaining return; for window files, the window's), float32, 0
+    where ``mask`` is False. Present when ``BatchSpec.return_to_go`` asks for it (the
+    conditioning of return-conditioned agents: Decision Transformer), else None."""
 
 
 class Policy(Protocol):
@@ -192,6 +197,9 @@ class BatchSpec:
     them once (``rlu.data.statistics``) and hands them to ``agent.set_statistics``, which an
     agent that names any must have; the agent keeps them in its state."""
 
+    return_to_go: bool = False
+    """Sequence batches only: also give each step's return to go (``Sequence.return_to_go``)."""
+
     def __post_init__(self) -> None:
         if self.kind not in BATCH_KINDS:
             raise SpecError(f"BatchSpec.kind={self.kind!r}; use one of {', '.join(BATCH_KINDS)}")
@@ -208,6 +216,10 @@ class BatchSpec:
         if unknown:
             raise SpecError(
                 f"BatchSpec.statistics names {unknown}; the data gives {', '.join(STATISTICS)}"
+            )
+        if self.return_to_go and self.kind != "sequence":
+            raise SpecError(
+                "BatchSpec.return_to_go applies to sequence batches; set kind='sequence'"
             )
         if self.reward_clip is not None and not float(self.reward_clip) > 0.0:
             raise SpecError(

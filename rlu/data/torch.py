@@ -39,6 +39,8 @@ def to_torch(batch: Any, device: str | torch.device = "cpu") -> Any:
     """A named batch (Transition / Sequence) of numpy arrays as the same type of tensors."""
 
     def conv(x: Any) -> Any:
+        if x is None:
+            return None
         if isinstance(x, dict):
             return {k: conv(v) for k, v in x.items()}
         return torch.from_numpy(np.ascontiguousarray(x)).to(device)

@@ -233,11 +233,14 @@ class TransitionView(DatasetView):
 class SequenceView(DatasetView):
     """Fixed-length windows with a padding mask (recurrent agents, the seq-40 tasks)."""
 
-    def __init__(self, ds: Dataset, length: int, stride: int = 1):
+    def __init__(self, ds: Dataset, length: int, stride: int = 1, return_to_go: bool = False):
         super().__init__(ds)
         if length < 1 or stride < 1:
             raise RluError(f"sequence length={length}, stride={stride}; both must be >= 1")
         self.seq_length, self.stride = int(length), int(stride)
+        self.rtg_cum: np.ndarray | None = None
+        if return_to_go:  # running sum of the rewards: 8 bytes a step, built once per view
+            self.rtg_cum = np.concatenate([[0.0], np.cumsum(ds.column("reward"), dtype=np.float64)])
         # windows start at step 0, stride, 2*stride ... up to the last step that holds a
         # transition (a one-step segment still gives one window)
         counts = (np.maximum(self.length - 2, 0) // stride) + 1
@@ -259,6 +262,10 @@ class SequenceView(DatasetView):
 
         obs = self.observation(segs, steps)
         obs = {k: padded(v) for k, v in obs.items()} if isinstance(obs, dict) else padded(obs)
+        rtg = None
+        if self.rtg_cum is not None:  # sum of rewards t .. last of the segment
+            rtg = self.rtg_cum[(self.last[seg] + 1)[:, None]] - self.rtg_cum[steps]
+            rtg = np.where(mask, rtg, 0.0).astype(np.float32)
         return Sequence(
             observation=obs,
             action=padded(self.column("action", steps)),
@@ -267,6 +274,7 @@ class SequenceView(DatasetView):
             is_first=padded(self.column("is_first", steps)),
             is_last=padded(self.column("is_last", steps)),
             mask=mask,
+            return_to_go=rtg,
         )
 
 
@@ -347,7 +355,7 @@ def make_view(
                 "BatchSpec.reward_clip is applied by transition batches only; clip sequence "
                 "rewards in the agent"
             )
-        return SequenceView(ds, spec.sequence_length)
+        return SequenceView(ds, spec.sequence_length, return_to_go=spec.return_to_go)
     return TransitionView(ds, spec.n_step, spec.gamma, spec.reward_clip)
 
 
