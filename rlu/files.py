@@ -1,11 +1,16 @@
 """rlu's own files: written atomically, opened without following planted links, read back checked.
 
-Writing. Every file rlu writes for its own state goes through :func:`write_atomic` (or
-:func:`atomic_path` for writers that need a path, such as ``torch.save``): a temporary sibling
-opened with ``O_EXCL | O_NOFOLLOW``, synced, renamed over the target, the folder synced. A kill
-leaves the old file or the new one, never half of one, and a planted ``.tmp`` symlink is refused
-instead of written through. A file rlu opens again and again (a lock, a cache entry, a partial
-download) goes through :func:`open_private`: never a symbolic link, a hard link or a non-file.
+Writing. Every file rlu writes goes through :func:`atomic_path` (:func:`write_atomic`,
+:func:`write_json` for bytes and JSON; ``with atomic_path(p, suffix=True) as tmp`` for a library
+that writes to a path itself: ``torch.save``, ``np.savez``, h5py, matplotlib, ffmpeg): the target
+is checked first (:func:`check_target`: not a symbolic link, not a file with another hard link,
+no symlinked folder between the folder the command was given and the file), a temporary with an
+unpredictable name is created exclusively (``O_EXCL | O_NOFOLLOW``) beside it, synced, renamed
+over the target, the folder synced. A kill leaves the old file or the new one, never half of
+one. A folder rlu hands to a library that owns it (TensorBoard, W&B) is made by
+:func:`make_folder`. A file rlu opens again and again (a lock, a log it appends to, a cache entry,
+a partial download) goes through :func:`open_private`: never a symbolic link, a hard link or a
+non-file.
 
 Reading. A JSON file rlu reads is checked at the boundary, once, against a *shape* of its own
 (:class:`Shape`: types, ranges, sizes, nesting depth) before any value is used; a shape is written
@@ -30,6 +35,7 @@ import errno
 import json
 import math
 import os
+import secrets
 import stat
 import types
 import typing
@@ -98,34 +104,109 @@ def open_private(path: str | os.PathLike, flags: int, what: str = "file") -> int
     return fd
 
 
-def _tmp_name(path: Path) -> Path:
-    return path.with_name(f".{path.name}.{os.getpid()}.tmp")
+TEMPORARY = ".tmp"
+"""Every temporary rlu writes has a name ``.<name>.<random>.tmp`` (plus the target's suffix
+when a library needs it: ``.video.<random>.tmp.mp4``); :func:`clear_temporaries` finds them."""
+
+
+def _refuse(path: Path, why: str) -> RluError:
+    return RluError(
+        f"{path}: {why}; rlu does not write through it: remove it or choose another path"
+    )
+
+
+def check_target(path: str | os.PathLike, root: str | os.PathLike | None = None) -> Path:
+    """Refuse to write ``path`` (an :class:`~rlu.types.RluError` naming it) when it is a symbolic
+    link, exists and is not a regular file, or is a regular file with another hard link; or when
+    a folder between ``root`` (the folder the command was given, itself included) and ``path``
+    is a symbolic link, so the write would land outside where it was named. Without ``root``,
+    ``path``'s own folder is checked. Folders above ``root`` are the user's (a symlinked home is
+    fine). Returns ``path``."""
+    path = Path(path)
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        st = None
+    if st is not None:
+        if stat.S_ISLNK(st.st_mode):
+            raise _refuse(path, "is a symbolic link")
+        if not stat.S_ISREG(st.st_mode):
+            raise _refuse(path, "exists and is not a plain file (a folder, FIFO or device)")
+        if st.st_nlink > 1:
+            raise _refuse(path, "has another hard link (writing it would change that file too)")
+    parent = Path(os.path.abspath(path.parent))
+    top = parent if root is None else Path(os.path.abspath(root))
+    if not _inside(parent, top):
+        raise RluError(f"{path}: lies outside the output folder {top}; choose a path inside it")
+    folder = parent
+    while True:
+        if folder.is_symlink():
+            raise _refuse(folder, "is a symbolic link (the write would land where it points)")
+        if folder == top:
+            break
+        folder = folder.parent
+    return path
+
+
+def make_folder(path: str | os.PathLike, root: str | os.PathLike | None = None) -> Path:
+    """Create folder ``path`` (and its parents) for rlu's output, or accept it if it is already a
+    real folder; a symbolic link there, or between ``root`` and ``path``, is refused (an
+    :class:`~rlu.types.RluError`). Loggers that own a folder (TensorBoard, W&B) get one made
+    here. Returns ``path``."""
+    path = Path(path)
+    if path.is_symlink():
+        raise _refuse(path, "is a symbolic link, not a folder rlu made")
+    if path.exists() and not path.is_dir():
+        raise RluError(f"{path}: exists and is not a folder; choose another path")
+    path.mkdir(parents=True, exist_ok=True)
+    check_target(path / ".probe", root if root is not None else path)
+    return path
+
+
+def clear_temporaries(folder: str | os.PathLike) -> None:
+    """Remove the temporaries a killed writer left under ``folder`` (links removed, never
+    followed)."""
+    for tmp in Path(folder).rglob(f".*{TEMPORARY}*"):
+        if tmp.is_symlink() or tmp.is_file():
+            name = tmp.name
+            if name.endswith(TEMPORARY) or f"{TEMPORARY}." in name:
+                tmp.unlink()
 
 
 @contextlib.contextmanager
-def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+def atomic_path(
+    path: str | os.PathLike, suffix: bool = False, root: str | os.PathLike | None = None
+) -> Iterator[Path]:
     """``with atomic_path(p) as tmp: write tmp`` -> ``tmp`` synced and renamed to ``p`` when the
-    block succeeds, removed when it fails. ``tmp`` exists (empty, created without following
-    links) when the block starts; the writer may replace its content."""
-    path = Path(path)
-    tmp = _tmp_name(path)
-    try:
-        os.unlink(tmp)  # a stale one of this PID: ours (a crashed earlier process with our PID)
-    except FileNotFoundError:
-        pass
-    try:
-        os.close(open_new(tmp))
-    except FileExistsError:
-        raise RluError(
-            f"{tmp}: cannot be created (a link or file is in the way); remove it"
-        ) from None
+    block succeeds, removed when it fails. The target is checked first (:func:`check_target`,
+    with ``root``); ``tmp`` is a new file with an unpredictable name in ``p``'s folder, created
+    exclusively without following links, and exists (empty) when the block starts; the writer
+    may replace its content. ``suffix=True`` ends ``tmp``'s name with ``p``'s suffix, for
+    libraries that choose a format by it (``np.savez`` adds ``.npz``, ffmpeg reads ``.mp4``)."""
+    path = check_target(path, root)
+    end = path.suffix if suffix else ""
+    base = path.stem if suffix else path.name
+    while True:
+        tmp = path.with_name(f".{base}.{secrets.token_hex(6)}{TEMPORARY}{end}")
+        try:
+            os.close(open_new(tmp))
+            break
+        except FileExistsError:
+            continue  # 48 random bits taken: draw again
+        except OSError as e:
+            raise RluError(
+                f"{tmp}: cannot be created ({e.strerror}); check {path.parent}"
+            ) from None
     try:
         yield tmp
         fd = os.open(tmp, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
         try:
+            if not stat.S_ISREG(os.fstat(fd).st_mode):
+                raise _refuse(tmp, "was replaced by something that is not a plain file")
             os.fsync(fd)
         finally:
             os.close(fd)
+        check_target(path, root)  # again: a link planted while the file was written
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
@@ -134,10 +215,12 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     _fsync_dir(path.parent)
 
 
-def write_atomic(path: str | os.PathLike, data: str | bytes) -> None:
-    """Write ``data`` (text as UTF-8) to ``path`` atomically (see the module docstring)."""
+def write_atomic(
+    path: str | os.PathLike, data: str | bytes, root: str | os.PathLike | None = None
+) -> None:
+    """Write ``data`` (text as UTF-8) to ``path`` atomically (see :func:`atomic_path`)."""
     raw = data.encode() if isinstance(data, str) else data
-    with atomic_path(path) as tmp:
+    with atomic_path(path, root=root) as tmp:
         fd = os.open(tmp, os.O_WRONLY | os.O_TRUNC | os.O_NOFOLLOW | os.O_CLOEXEC)
         try:
             view = memoryview(raw)
@@ -147,8 +230,20 @@ def write_atomic(path: str | os.PathLike, data: str | bytes) -> None:
             os.close(fd)
 
 
-def write_json(path: str | os.PathLike, data: Any, indent: int | None = 2) -> None:
-    write_atomic(path, json.dumps(data, indent=indent) + "\n")
+def write_json(
+    path: str | os.PathLike,
+    data: Any,
+    indent: int | None = 2,
+    root: str | os.PathLike | None = None,
+) -> None:
+    """``data`` as JSON, atomically; NaN and infinities are refused (JSON has none: write None
+    for a value that is not a number)."""
+    try:
+        text = json.dumps(data, indent=indent, allow_nan=False)
+    except ValueError:
+        raise RluError(f"{path}: a value to write is NaN or infinite, which JSON cannot hold "
+                       "(a bug in rlu: report it)") from None  # fmt: skip
+    write_atomic(path, text + "\n", root)
 
 
 # --- shapes ---------------------------------------------------------------------------------
@@ -569,6 +664,8 @@ def check_output(
     inside one of ``inputs``, or when it exists, is not empty and lacks ``marker`` (the file every
     output of this kind holds; None: an existing non-empty folder is refused). Call it before
     anything is touched. Returns ``out``."""
+    if not str(out).strip():
+        raise RluError(f"{flag} is empty; give the {what}'s path")
     out = Path(out)
     real = Path(os.path.realpath(out))
     for item in inputs:
@@ -586,6 +683,44 @@ def check_output(
             f"{flag} {out} exists and is not an rlu {what}{kind}; rlu replaces only its own "
             f"outputs: choose a new {flag} or empty that folder yourself"
         )
+    return out
+
+
+def check_output_file(
+    out: str | os.PathLike,
+    inputs: Sequence[str | os.PathLike] = (),
+    overwrite: bool = False,
+    ours: typing.Callable[[Path], bool] | None = None,
+    what: str = "output file",
+    flag: str = "-o",
+) -> Path:
+    """Refuse an output file a command would write before any work: an empty name; a file
+    that is, or lies inside, one of ``inputs``; an existing file without ``overwrite``, or with
+    it when ``ours(path)`` says rlu did not write it (a file of the same format that some other
+    tool wrote is never replaced); a link or anything :func:`check_target` refuses. Returns
+    ``out``."""
+    if not str(out).strip():
+        raise RluError(f"{flag} is empty; give the {what}'s path")
+    out = Path(out)
+    real = Path(os.path.realpath(out))
+    for item in inputs:
+        src = Path(os.path.realpath(item))
+        if _inside(real, src):
+            raise RluError(
+                f"{flag} {out} is or lies inside the input {item}; writing there could destroy "
+                f"it: choose an {what} outside it"
+            )
+    check_target(out)
+    if os.path.lexists(out):
+        if not overwrite:
+            raise RluError(
+                f"{flag} {out} exists; pass --overwrite to replace it, or choose another {what}"
+            )
+        if ours is not None and not ours(out):
+            raise RluError(
+                f"{flag} {out} exists and was not written by rlu; rlu replaces only its own "
+                f"outputs, even with --overwrite: choose another {what} or remove it yourself"
+            )
     return out
 
 

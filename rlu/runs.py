@@ -148,9 +148,7 @@ write_json = files.write_json
 
 def clear_temporary(run: str | os.PathLike) -> None:
     """Remove the temporary files a killed writer left in a run folder (never following links)."""
-    for tmp in Path(run).rglob("*.tmp"):
-        if tmp.is_file() or tmp.is_symlink():
-            tmp.unlink()
+    files.clear_temporaries(run)
 
 
 @contextlib.contextmanager
