@@ -10,6 +10,7 @@ from typing import Any
 
 from rlu.data.episode import Segment, make_episode
 from rlu.data.store import Dataset, DatasetWriter, Schema, open_dataset
+from rlu.data.stream import SampleSource, StreamSampler, stream_sampler
 from rlu.data.views import (
     Sampler,
     SequenceView,
@@ -23,10 +24,12 @@ from rlu.data.views import (
 __all__ = [
     "Dataset",
     "DatasetWriter",
+    "SampleSource",
     "Sampler",
     "Schema",
     "Segment",
     "SequenceView",
+    "StreamSampler",
     "TransitionView",
     "load_dataset",
     "make_episode",
@@ -34,6 +37,7 @@ __all__ = [
     "make_view",
     "open_dataset",
     "sequence_sampler",
+    "stream_sampler",
     "transition_sampler",
 ]
 
