@@ -71,6 +71,16 @@ class RunSettings:
     torch_threads: int = field(default=1, metadata=bounds(min=1, flag="--threads", metavar="N"))
     """torch threads per run (1: faster than one per core for these batch sizes on a shared
     machine; bench/README.md)."""
+    sampler: str = field(default="auto", metadata=bounds(choices=("auto", "uniform", "stream")))
+    """Where batches come from: uniform (exact uniform draws from the memory-mapped dataset),
+    stream (rlu.data.StreamSampler: the files read in order into a bounded buffer, every sample
+    drawn --stream-reuse times a pass: for runs larger than the page cache and mixtures; docs/
+    data.md), or auto: uniform for one dataset, stream for several."""
+    stream_memory: int = field(default=2048, metadata=bounds(min=16, metavar="MB"))
+    """The stream sampler's buffer of decoded frames and steps, in MB (its batches depend on
+    it: a resumed run keeps it)."""
+    stream_reuse: int = field(default=8, metadata=bounds(min=1, metavar="N"))
+    """Draws of each sample per pass of the stream sampler."""
     runtime: Runtime = field(default_factory=Runtime)
     """Device, precision, TF32, compile and data path: how the run computes, which may change
     between its sessions (rlu.devices.Runtime)."""

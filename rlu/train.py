@@ -25,10 +25,12 @@ Agents are built by name through ``rlu.agents``; a dotted module path in a ``Tra
 from __future__ import annotations
 
 import ast
+import contextlib
 import dataclasses
 import json
 import os
 from collections.abc import Mapping, Sequence
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -52,14 +54,42 @@ class TrainConfig:
     agent: str
     """Agent name (bc, d4pg, ...; rlu list-agents) or a module path following the agent-module
     convention (imported because you typed it; docs/agents.md)."""
-    dataset: str
-    """Path of an rlu dataset (rlu convert / rlu generate / rlu import output)."""
+    dataset: str | tuple[str, ...]
+    """Path of an rlu dataset (rlu convert / rlu generate / rlu import output), or several of
+    one schema: a mixture, streamed (the first is the evaluation task's)."""
     seed: int = field(default=0, metadata=bounds(min=0, max=2**63 - 1))
     """Seeds the agent, the sampler and the evaluation episodes."""
     overrides: Mapping[str, Any] = field(default_factory=dict)
     """Agent config fields to change from the preset."""
     run: RunSettings = field(default_factory=RunSettings)
     """How the run is run: preset, budget, evaluation, checkpoints, runtime."""
+    weights: tuple[float, ...] | None = field(default=None, metadata=bounds(metavar="W"))
+    """Share of each dataset's samples in a mixture (default: by their sizes)."""
+
+    def __post_init__(self) -> None:
+        paths = (self.dataset,) if isinstance(self.dataset, str | os.PathLike) else self.dataset
+        if (
+            not isinstance(paths, tuple | list)
+            or not paths
+            or not all(isinstance(p, str | os.PathLike) for p in paths)
+        ):
+            raise RluError(f"dataset {self.dataset!r}; give a dataset path, or several")
+        paths = tuple(os.fspath(p) for p in paths)
+        object.__setattr__(self, "dataset", paths[0] if len(paths) == 1 else paths)
+        if self.weights is not None:
+            w = tuple(self.weights)
+            if len(w) != len(paths) or not all(
+                isinstance(x, int | float) and not isinstance(x, bool) and 0 < x < float("inf")
+                for x in w
+            ):
+                raise RluError(
+                    f"weights {list(w)}; give one positive number per dataset ({len(paths)})"
+                )
+            object.__setattr__(self, "weights", w)
+
+    def datasets(self) -> tuple[str, ...]:
+        """The dataset paths (one, or a mixture's)."""
+        return (self.dataset,) if isinstance(self.dataset, str) else tuple(self.dataset)
 
     def to_json(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
@@ -132,7 +162,14 @@ def _jsonable(x: Any) -> Any:
 def comparable(resolved: Mapping[str, Any]) -> dict[str, Any]:
     """A run's resolved config without its runtime: what must match for ``--resume``."""
     out = json.loads(json.dumps(resolved))
-    out.get("train", {}).get("run", {}).pop("runtime", None)
+    train = out.get("train", {})
+    train.get("run", {}).pop("runtime", None)
+    # a field left at its default compares equal to its absence: a run begun before the field
+    # existed resumes
+    for holder, cls in ((train, TrainConfig), (train.get("run", {}), RunSettings)):
+        for f in dataclasses.fields(cls):
+            if f.default is not dataclasses.MISSING and holder.get(f.name, ...) == f.default:
+                holder.pop(f.name)
     return out
 
 
@@ -181,17 +218,18 @@ def _train(
 
     from rlu.agents import agent_module
     from rlu.checkpoints import load_state
-    from rlu.data import make_sampler, open_dataset
+    from rlu.data import StreamSampler, open_dataset
     from rlu.data.provenance import data_source
-    from rlu.data.torch import DeviceSampler, prefetched
+    from rlu.data.torch import prefetched
     from rlu.evaluation.rollout import evaluate, task_env_factory
     from rlu.progress import Progress
 
     run = Path(out)
     settings = config.run
     runtime = settings.runtime.resolve()
-    ds = open_dataset(config.dataset)
-    check_output(run, [ds.path], runs.CONFIG, "run folder")
+    opened = [open_dataset(path) for path in config.datasets()]
+    ds = opened[0]  # the evaluation task's; a mixture's others share its schema
+    check_output(run, [d.path for d in opened], runs.CONFIG, "run folder")
     obs_spec, action_spec = dataset_specs(ds)
     discrete = isinstance(action_spec, DiscreteSpec)
     agent_cfg = agent_config(config.agent, discrete, settings.preset, config.overrides)
@@ -216,8 +254,13 @@ def _train(
         "agent_config": _jsonable(agent_cfg),
         "observation_spec": observation_spec_to_json(obs_spec),
         "action_spec": action_spec.to_json(),
-        "dataset": {"path": str(Path(config.dataset).resolve()), "num_steps": int(ds.num_steps)},
+        "dataset": {"path": str(Path(ds.path).resolve()), "num_steps": int(ds.num_steps)},
     }
+    if len(opened) > 1:  # the first one's path and steps above, every one's here
+        resolved["dataset"]["mixture"] = {
+            "paths": [str(Path(d.path).resolve()) for d in opened],
+            "num_steps": [int(d.num_steps) for d in opened],
+        }
     ckpts = runs.checkpoints(run)
     if run.exists() and (run / runs.CONFIG).exists():
         if not resume:
@@ -238,13 +281,15 @@ def _train(
     np.random.seed(config.seed % 2**32)
     module = agent_module(config.agent, discrete)
     agent = module.Agent(obs_spec, action_spec, agent_cfg, seed=config.seed, device=runtime.device)
-    if runtime.data_on_device:  # a dataset that does not fit fails here, before any writing
-        sampler = DeviceSampler(ds, agent.batch_spec, config.seed, runtime.device)
-    else:
-        sampler = make_sampler(ds, agent.batch_spec, seed=config.seed)
+    sampler = _sampler(config, opened, agent.batch_spec, runtime)
     steps = agent.num_steps if settings.steps is None else int(settings.steps)
     total = agent.pretrain_steps + steps  # a pre-training phase comes on top of the budget
 
+    if agent.batch_spec.statistics and len(opened) > 1:
+        raise RluError(
+            f"agent {config.agent} normalises by statistics of its dataset "
+            f"({', '.join(agent.batch_spec.statistics)}); train it on one dataset"
+        )
     if agent.batch_spec.statistics:  # computed from the whole dataset, once, before any update
         from rlu.data.statistics import dataset_statistics
 
@@ -303,6 +348,7 @@ def _train(
         runs.append_log(metrics_path) as mlog,
         runs.append_log(eval_path) as elog,
         numerics(runtime) as update_context,
+        contextlib.closing(sampler) if isinstance(sampler, StreamSampler) else nullcontext(),
         prefetched(sampler, runtime.device, runtime.prefetch) as batches,
     ):
         if eval_period and settings.eval_at_start and start == 0:
@@ -347,6 +393,36 @@ def _train(
     }
     runs.write_json(run / runs.RESULT, result)
     return result
+
+
+def _sampler(config: TrainConfig, datasets: list[Any], spec: Any, runtime: Any) -> Any:
+    """The run's batch source (``RunSettings.sampler``): uniform from the one dataset (on the
+    device with ``--data-on-device``), or streamed from one or several."""
+    from rlu.data import StreamSampler, make_sampler
+    from rlu.data.torch import DeviceSampler
+
+    settings = config.run
+    kind = settings.sampler
+    if kind == "auto":
+        kind = "stream" if len(datasets) > 1 else "uniform"
+    if kind == "uniform" and len(datasets) > 1:
+        raise RluError(
+            f"{len(datasets)} datasets: a mixture is streamed; use --sampler stream (or auto)"
+        )
+    if kind == "stream":
+        if runtime.data_on_device:
+            raise RluError(
+                "--data-on-device holds one dataset on the device for uniform batches; drop it "
+                "to stream (--sampler stream: its batches are prefetched)"
+            )
+        return StreamSampler(datasets, spec, config.seed, config.weights,
+                             memory=settings.stream_memory << 20,
+                             reuse=settings.stream_reuse)  # fmt: skip
+    if config.weights is not None:
+        raise RluError("--weights weigh the datasets of a mixture; one dataset needs none")
+    if runtime.data_on_device:  # a dataset that does not fit fails here, before any writing
+        return DeviceSampler(datasets[0], spec, config.seed, runtime.device)
+    return make_sampler(datasets[0], spec, seed=config.seed)
 
 
 def greedy_policy(agent: Any) -> Any:

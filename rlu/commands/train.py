@@ -82,7 +82,17 @@ def register(sub: argparse._SubParsersAction) -> None:
         "overrides, run: {steps, preset, ...}), or a run folder's config.json; options typed "
         "here override it",
     )
-    add_options(p, TrainConfig, only=("task", "agent", "dataset", "seed"), require=False)
+    add_options(p, TrainConfig, only=("task", "agent", "seed", "weights"), require=False)
+    p.add_argument(
+        "--dataset",
+        action="extend",
+        nargs="+",
+        default=None,
+        metavar="PATH",
+        help="rlu dataset folder; several (repeated, or a glob such as 'runs/Pong_*'): a mixture "
+        "of one schema, streamed, weighted by --weights (the first is the evaluation task's) "
+        "(required, on the command line or in --config)",
+    )
     p.add_argument("--out", required=True, help="run folder (created; an existing one: --resume)")
     p.add_argument("--resume", action="store_true", help="continue from the last checkpoint")
     p.add_argument(
@@ -238,7 +248,15 @@ def _train(args: argparse.Namespace) -> int:
     for name in ("task", "agent", "dataset"):
         if getattr(args, name) is None:
             raise RluError(f"--{name} is missing: give it on the command line or in --config")
-    config = from_args(TrainConfig, args, overrides=overrides, run=from_args(RunSettings, args))
+    paths = _dataset_paths(args.dataset)
+    config = from_args(
+        TrainConfig,
+        args,
+        dataset=paths[0] if len(paths) == 1 else paths,
+        weights=None if args.weights is None else tuple(args.weights),
+        overrides=overrides,
+        run=from_args(RunSettings, args),
+    )
     print(f"rlu train: {args.agent} on {config.run.runtime.resolve().device}", file=sys.stderr)
     result = train(
         config,
@@ -252,6 +270,25 @@ def _train(args: argparse.Namespace) -> int:
         f"return {_score(result['score'])} over {result['eval_episodes']} episodes"
     )
     return 0
+
+
+def _dataset_paths(given: str | list[str]) -> tuple[str, ...]:
+    """``--dataset`` values (or a config file's) with globs expanded, in order."""
+    import glob
+    import os
+
+    from rlu.types import RluError
+
+    out: list[str] = []
+    for item in [given] if isinstance(given, str) else given:
+        if glob.has_magic(item) and not os.path.exists(item):
+            found = sorted(glob.glob(item))
+            if not found:
+                raise RluError(f"--dataset {item!r} matches no dataset folder")
+            out += found
+        else:
+            out.append(item)
+    return tuple(out)
 
 
 def _from_config_file(args: argparse.Namespace) -> dict[str, Any]:

@@ -95,15 +95,22 @@ def use(name: str) -> Iterator[None]:
 
 
 def inflate_frames(
-    data: Any, starts: np.ndarray, ends: np.ndarray, out: np.ndarray, nbytes: int
+    data: Any,
+    starts: np.ndarray,
+    ends: np.ndarray,
+    out: np.ndarray,
+    nbytes: int,
+    rows: np.ndarray | None = None,
 ) -> tuple[int, str] | None:
-    """Inflate the zlib streams ``data[starts[j]:ends[j]]`` into ``out``'s rows (a C-contiguous
-    uint8 view of ``len(starts) * nbytes`` bytes), each to exactly ``nbytes``. Returns None, or
-    ``(j, why)`` for the first stream that is not one ``nbytes``-byte frame (rows before j are
-    written). The inflater releases the GIL on every frame, so threads decode in parallel."""
+    """Inflate the zlib streams ``data[starts[j]:ends[j]]`` into rows of ``out`` (C-contiguous,
+    ``nbytes`` bytes a row): stream j into row ``rows[j]`` (default: row j), each to exactly
+    ``nbytes``. Returns None, or ``(j, why)`` for the first stream that is not one
+    ``nbytes``-byte frame (the streams before j are written). The inflater releases the GIL on
+    every frame, so threads decode in parallel."""
     view = memoryview(data)
     dest = memoryview(out).cast("B")
     s, e = starts.tolist(), ends.tolist()
+    at = range(len(s)) if rows is None else rows.tolist()
     if _current == "libdeflate":
         inflate, adler = _libdeflate.zlib_decompress, _libdeflate.adler32
         error = _libdeflate.DeflateError
@@ -117,7 +124,8 @@ def inflate_frames(
                 return j, f"inflates to {len(raw)} bytes"
             if int.from_bytes(blob[-4:], "big") != adler(raw):
                 return j, "bytes after the end of its zlib stream"
-            dest[j * nbytes : (j + 1) * nbytes] = raw
+            r = at[j]
+            dest[r * nbytes : (r + 1) * nbytes] = raw
         return None
     for j in range(len(s)):
         d = zlib.decompressobj()
@@ -129,7 +137,8 @@ def inflate_frames(
             return j, "wrong size"
         if d.unused_data:
             return j, "bytes after the end of its zlib stream"
-        dest[j * nbytes : (j + 1) * nbytes] = raw
+        r = at[j]
+        dest[r * nbytes : (r + 1) * nbytes] = raw
     return None
 
 

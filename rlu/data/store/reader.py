@@ -454,18 +454,28 @@ class ZlibColumn:
             return out
         if flat.min() < 0 or flat.max() >= len(self):
             raise IndexError(f"{self.path}: rows must lie in [0, {len(self)})")
-        if flat.size == 1 or bool((np.diff(flat) > 0).all()):  # sorted, no repeats: in place
+        if flat.size == 1 or bool((np.diff(flat) > 0).all()):  # sorted, no repeats
             self.read_into(flat, out.reshape(flat.size, -1))
             return out
-        uniq, inverse = np.unique(flat, return_inverse=True)
-        frames = np.empty((uniq.size, self.frame_bytes // self.dtype.itemsize), self.dtype)
-        self.read_into(uniq, frames)
-        np.take(frames, inverse.ravel(), axis=0, out=out.reshape(flat.size, -1))
+        # each distinct row inflated once, straight into its first place in the batch, in file
+        # order; its other places copied from there
+        order = np.argsort(flat, kind="stable")
+        ordered = flat[order]
+        new = np.concatenate([[True], ordered[1:] != ordered[:-1]])
+        dest = out.reshape(flat.size, -1)
+        self.read_into(ordered[new], dest, order[new])
+        if not new.all():
+            first = order[np.flatnonzero(new)[np.cumsum(new) - 1]]  # first place of each row
+            dup = order[~new]
+            dest[dup] = dest[first[~new]]
         return out
 
-    def read_into(self, rows: np.ndarray, out: np.ndarray) -> None:
-        """Inflate ``rows`` (ascending, no repeats) into ``out``'s rows (C-contiguous, one frame
-        each), one read per run of nearby rows, the runs spread over the inflating threads."""
+    def read_into(
+        self, rows: np.ndarray, out: np.ndarray, places: np.ndarray | None = None
+    ) -> None:
+        """Inflate ``rows`` (ascending, no repeats) into rows ``places`` of ``out`` (C-contiguous,
+        one frame a row; default: rows 0, 1, ...), one read per run of nearby rows, the runs
+        spread over the inflating threads."""
         starts, ends = self.offsets[rows], self.offsets[rows + 1]
         # a task: rows [a, b) read from the file in one piece (nearby rows merged), split so
         # that no task inflates more than _RUN_FRAMES frames
@@ -485,7 +495,12 @@ class ZlibColumn:
                     f"{self.path}: {hi - lo} bytes at offset {lo} hold {len(data)} (the file was "
                     f"cut since it was opened); {_RECREATE}"
                 )
-            bad = inflate_frames(data, starts[a:b] - lo, ends[a:b] - lo, out[a:b], self.frame_bytes)
+            if places is None:
+                bad = inflate_frames(data, starts[a:b] - lo, ends[a:b] - lo, out[a:b],
+                                     self.frame_bytes)  # fmt: skip
+            else:
+                bad = inflate_frames(data, starts[a:b] - lo, ends[a:b] - lo, out,
+                                     self.frame_bytes, places[a:b])  # fmt: skip
             if bad is not None:
                 j, why = bad
                 raise FormatError(
