@@ -22,6 +22,14 @@ Nature torso, batch 256, on synthetic Atari frames) it prints updates/s of:
 
 and the projected wall time of the paper's Atari budget (2M learner steps) for one game.
 
+Streamed (issue 36): DQN (the Nature torso; batch 256 at the paper size) and the Decision
+Transformer ``dt`` (when the registry has it; a line says so when it does not) fed by
+``rlu.data.StreamSampler`` from a cold run on disk (its files evicted from the page cache with
+``posix_fadvise(DONTNEED)`` first; batches prefetched to the device by the background thread)
+against the same agent on pre-sampled device batches (the target: at least 90 %). The run is
+``--stream-data`` (a dataset folder of real frames: ``bench/stream_data.py``'s ``run``) or
+synthetic Atari frames stored as rlu stores a release run (zlib frames, stack of 4).
+
 Then the device checks (PASS/FAIL, exit status 1 on a FAIL): the on-device sampler and the
 prefetcher give the host sampler's batches on this device; a checkpoint written on this device
 loads into a CPU agent and back with equal weights, and the CPU agent acts; plus what is and
@@ -225,6 +233,60 @@ def d3rlpy_rate(name, path, overrides, preset, device, seconds) -> float | None:
     return rate(lambda: algo.update(mini), seconds, device)
 
 
+# --- fed by the stream sampler from a cold disk (issue 36) ----------------------------------
+STREAM_AGENTS = {"dqn": {"atari.batch_size": 256}, "dt": {}}
+"""Agents of the streamed figure and their paper-size overrides (DQN: the batch of 256)."""
+
+
+def evict(path: Path) -> None:
+    """Drop every file of a dataset from the page cache (a cold run on disk)."""
+    import os
+
+    for f in sorted(Path(path).rglob("*")):
+        if f.is_file():
+            fd = os.open(f, os.O_RDONLY)
+            try:
+                os.posix_fadvise(fd, 0, 0, os.POSIX_FADV_DONTNEED)
+            finally:
+                os.close(fd)
+
+
+def stream_figures(name, path, overrides, preset, device, seconds, memory, reuse) -> dict | None:
+    """Updates/s of ``name`` fed by the stream sampler from ``path`` evicted from the page cache,
+    and of the same agent on pre-sampled device batches; None when the registry has no such
+    agent."""
+    from rlu.agents import AGENTS
+    from rlu.data import StreamSampler
+
+    if (name, True) not in AGENTS:
+        return None
+    ds = open_dataset(path)
+    obs, act = dataset_specs(ds)
+    agent = make_agent(name, obs, act, preset, seed=0, device=device, **overrides)
+    out: dict = {"batch": agent.batch_spec.batch_size, "kind": agent.batch_spec.kind}
+    out["alone"] = presampled_rate(name, path, overrides, preset, Runtime(device=str(device)),
+                                   seconds)  # fmt: skip
+    evict(path)
+    t0 = time.perf_counter()
+    sampler = StreamSampler(path, agent.batch_spec, seed=0, memory=memory, reuse=reuse)
+    with Prefetcher(sampler, device, depth=4) as batches:
+        agent.update(batches.sample())
+        sync(device)
+        out["first_s"] = time.perf_counter() - t0
+        out["streamed"] = rate(lambda: agent.update(batches.sample()), seconds, device)
+    sampler.close()
+    out["share"] = out["streamed"] / out["alone"]
+    return out
+
+
+def stream_data(root: Path, steps: int) -> Path:
+    """Synthetic Atari frames stored as a converted release run (zlib frames, a stack of 4)."""
+    task = get_task("atari/Pong")
+    length = min(1000, steps)
+    return write_synthetic(root / "stream_atari", Schema.for_task(task, image_encoding="zlib"),
+                           max(1, steps // length), length)  # fmt: skip
+
+
 # --- device checks ----------------------------------------------------------------------------
 def checks(device: torch.device, data: dict[str, str]) -> list[tuple[str, bool | None, str]]:
     from rlu.types import BatchSpec
@@ -304,6 +366,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-checks", action="store_true")
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     p.add_argument("--json", default=None, help="also write the figures here")
+    p.add_argument("--stream-agents", default=",".join(STREAM_AGENTS),
+                   help="agents fed by the stream sampler (empty: none)")  # fmt: skip
+    p.add_argument("--stream-data", default=None,
+                   help="dataset folder of Atari frames for them (default: synthetic frames, "
+                        "--atari-steps of them)")  # fmt: skip
+    p.add_argument(
+        "--stream-memory",
+        type=int,
+        default=None,
+        help="the stream sampler's buffer in MB (default 2048 on CUDA, 64 on the CPU)",
+    )
+    p.add_argument("--stream-reuse", type=int, default=8)
     args = p.parse_args(argv)
     device = Runtime(device=args.device).resolve().device
     dev = torch.device(device)
@@ -361,6 +435,25 @@ def main(argv: list[str] | None = None) -> int:
                         fig[f"atari budget hours ({label})"] = hours
                         log(f"  {agent:5s} 2M learner steps ({label}): {hours:.1f} h per game")
             report["agents"][agent] = fig
+        names = [a for a in args.stream_agents.split(",") if a]
+        if names:
+            path = Path(args.stream_data) if args.stream_data else stream_data(
+                work / "data", args.atari_steps or (50_000 if cuda else 2_000))  # fmt: skip
+            memory = (args.stream_memory or (2048 if cuda else 64)) << 20
+            report["stream"] = {}
+            for agent in names:
+                overrides = TINY.get(agent, {}) if size == "tiny" else STREAM_AGENTS.get(agent, {})
+                fig = stream_figures(agent, path, overrides, "paper" if size == "paper" else
+                                     "small", dev, seconds, memory, args.stream_reuse)  # fmt: skip
+                if fig is None:
+                    log(f"  {agent:5s} streamed: no agent {agent!r} in rlu.agents.AGENTS yet; "
+                        "skipped")  # fmt: skip
+                    continue
+                report["stream"][agent] = fig
+                log(f"  {agent:5s} streamed from a cold disk ({fig['kind']}s of "
+                    f"{fig['batch']}): {fig['streamed']:9.1f} updates/s = {fig['share']:.0%} of "
+                    f"the agent on pre-sampled batches ({fig['alone']:.1f}/s; target >= 90%), "
+                    f"first batch after {fig['first_s']:.1f} s")  # fmt: skip
         if not args.no_checks:
             log("device checks:")
             for what, ok, note in checks(dev, data):
