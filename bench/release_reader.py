@@ -19,6 +19,13 @@ Writes ``--shards`` gzip TFRecord shards in the exact ``dm_control_suite/cartpol
   in the store) with 1 and 2 processes.
 
 Prints records/s and MB/s (of the decompressed record stream) and the ratios.
+
+``--inflate`` (issue 36) runs only this: on one core (the process pinned to one CPU), the
+release reader (framing + CRC of every record) over gzip shards of Atari transitions (8 PNG
+frames a record; real frames with ``--frames DATASET``, e.g. ``bench/stream_data.py``'s ``run``)
+with the installed inflater and with zlib, against the bare inflate of the same file by zlib
+and by the installed inflater (the bounds). Two shards: one inflating to under 64 MiB (one
+libdeflate call) and one over it (streamed by zlib-ng).
 """
 
 from __future__ import annotations
@@ -255,6 +262,72 @@ def atari_rows(tmp: str, records: int = 8000, shards: int = 4) -> list[tuple[str
     return rows
 
 
+def inflate_rows(tmp: str, frames_from: str | None, records: tuple[int, ...] = (3000, 12000)):
+    """(shard, {figure: MB/s of the inflated stream}) on one core: the reader with the installed
+    inflater and with zlib, and zlib's and the installed inflater's bare inflate of the file."""
+    import zlib
+
+    import numpy as np
+
+    from rlu.data import inflate
+    from rlu.data.release import families as Fm
+    from rlu.data.release.framing import RecordReader
+
+    os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
+    if frames_from:
+        from rlu.data import open_dataset
+
+        col = open_dataset(frames_from).column("observation")
+        frames = col[: max(records) + 8]
+    else:
+        frames = atari_frames(max(records) + 8)
+    stack = lambda i: np.stack([frames[i + k] for k in range(4)], -1)  # noqa: E731
+    out = []
+    for n in records:
+        path = os.path.join(tmp, "inflate", "MsPacman", f"run_1-00000-of-00001-{n}")
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        recs = [dict(o_t=stack(i), o_tp1=stack(i + 1), a_t=i % 6, a_tp1=(i + 1) % 6,
+                     r_t=np.float32(0), d_t=np.float32(1), episode_id=i // 1000,
+                     episode_return=np.float32(0)) for i in range(n)]  # fmt: skip
+        Fm.write_shard(path, "atari", recs)
+        with open(path, "rb") as fh:
+            data = fh.read()
+        size = int.from_bytes(data[-4:], "little")
+
+        def read_all(path=path):
+            reader = RecordReader(path)
+            for _ in reader.batches():
+                pass
+            return reader.stats.bytes_read
+
+        def stream(make, data=data):
+            d, total, view = make(), 0, data
+            while view:
+                got = d.decompress(view, 1 << 22)
+                total += len(got)
+                view = d.unconsumed_tail
+                if d.eof:
+                    break
+            return total
+
+        fig = {}
+        fig[f"reader, {inflate.current()} + {inflate.gzip_inflater()}"] = time_it(read_all)
+        with inflate.use("zlib"):
+            fig["reader, zlib"] = time_it(read_all)
+        fig["bare inflate, zlib"] = time_it(lambda: stream(lambda: zlib.decompressobj(31)))
+        if size <= inflate.WHOLE_GZIP_MAX and inflate.current() == "libdeflate":
+            fig["bare inflate, libdeflate (one call)"] = time_it(
+                lambda data=data: inflate.gunzip_whole(data)
+            )
+        else:
+            fig[f"bare inflate, {inflate.gzip_inflater()}"] = time_it(
+                lambda: stream(inflate.gzip_decompressobj)
+            )
+        label = f"{n:,} records, {len(data) / 1e6:.0f} MB gzip, {size / 1e6:.0f} MB inflated"
+        out.append((label, {k: size / v / 1e6 for k, v in fig.items()}))
+    return out
+
+
 def decoder_rows(files: list[str], n: int = 50_000) -> list[tuple[str, float, int]]:
     import numpy as np
     from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
@@ -415,11 +488,22 @@ def main() -> None:
     ap.add_argument("--decoders", action="store_true")
     ap.add_argument("--png", action="store_true")
     ap.add_argument("--atari", action="store_true", help="also convert Atari transition shards")
+    ap.add_argument("--inflate", action="store_true", help="only the one-core inflate figures")
+    ap.add_argument("--frames", default=None, help="--inflate: a dataset of real Atari frames")
     ap.add_argument("--tf-worker", nargs=2, metavar=("MODE", "FILES_JSON"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.tf_worker:
         mode, files = args.tf_worker
         print(json.dumps(tf_worker(json.loads(files), mode, args.batch, args.shuffle)))
+        return
+    if args.inflate:
+        sys.path.insert(0, ROOT)
+        with tempfile.TemporaryDirectory() as tmp:
+            for label, fig in inflate_rows(tmp, args.frames):
+                print(f"\n{label} (one core; load {os.getloadavg()[0]:.1f})")
+                zlib_bound = fig["bare inflate, zlib"]
+                for name, mbs in fig.items():
+                    print(f"  {name:44s} {mbs:8.1f} MB/s  {mbs / zlib_bound:5.2f}x zlib's inflate")
         return
 
     sys.path.insert(0, ROOT)

@@ -19,7 +19,9 @@ frames of 84x84, n-step 1):
   file's copy of the reader before issue 36 (one ``pread`` and one ``zlib.decompressobj`` per
   frame in a Python loop), the new one is the store's reader;
 - ``stream``: ``rlu.data.StreamSampler`` from a cold disk (time to the first batch: the first
-  window decoded; then the rate), ``--memory`` bytes of buffer, ``--reuse`` draws per sample;
+  window decoded; the rate over ``--warmup`` seconds while the rest of the buffer fills ahead,
+  then the steady rate over ``--seconds``, still reading the evicted files; the overall rate
+  from construction), ``--memory`` bytes of buffer, ``--reuse`` draws per sample;
 - ``mixture``: the same over the 8 parts (same frames, same memory), weights by size.
 
 It prints transitions/s, the ratio to the gather and peak RSS per figure, the machine's load
@@ -166,8 +168,13 @@ def figure(name: str, args) -> dict:
         s.sample()
         out["first_s"] = time.perf_counter() - t0
         out["window"], out["memory"] = s.window, args.memory
+        # the decoders fill the rest of the buffer ahead of the window first: the steady rate
+        # is timed after --warmup seconds (still reading the evicted files: each chunk is read
+        # once a pass)
+        warm_rate, warm_batches = timed(s.sample, args.warmup)
+        out["warmup_rate"] = warm_rate
         out["rate"], out["batches"] = timed(s.sample, args.seconds)
-        out["overall"] = (out["batches"] + 1) * BATCH / (time.perf_counter() - t0)
+        out["overall"] = (out["batches"] + warm_batches + 1) * BATCH / (time.perf_counter() - t0)
         # sampling statistics over the next batches
         view = TransitionView(open_dataset(run))
         offsets = _part_offsets(parts) if name == "mixture" else [0]
@@ -212,6 +219,7 @@ def main() -> None:
     ap.add_argument("--data", required=True, help="bench/stream_data.py's --out")
     ap.add_argument("--seconds", type=float, default=20.0)
     ap.add_argument("--cold-batches", type=int, default=100)
+    ap.add_argument("--warmup", type=float, default=15.0, help="stream: seconds before timing")
     ap.add_argument("--memory", type=int, default=2 << 30)
     ap.add_argument("--reuse", type=int, default=8)
     ap.add_argument("--figures", default="gather,uniform-today,uniform-today-cold,uniform,"
@@ -236,6 +244,7 @@ def main() -> None:
     for name in args.figures.split(","):
         cmd = [sys.executable, __file__, "--figure", name, "--data", args.data,
                "--seconds", str(args.seconds), "--cold-batches", str(args.cold_batches),
+               "--warmup", str(args.warmup),
                "--memory", str(args.memory), "--reuse", str(args.reuse)]  # fmt: skip
         res = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ})
         if res.returncode:
@@ -245,7 +254,8 @@ def main() -> None:
         extra = ""
         if "first_s" in r:
             extra = (f", first batch after {r['first_s']:.1f} s (window {r['window']:,}), "
-                     f"overall {r['overall']:,.0f}/s, {r['episodes_per_batch']:.0f} episodes and "
+                     f"{r['warmup_rate']:,.0f}/s in the first {args.warmup:.0f} s, overall "
+                     f"{r['overall']:,.0f}/s, {r['episodes_per_batch']:.0f} episodes and "
                      f"{r['datasets_per_batch']:.1f} datasets a batch")  # fmt: skip
         if "fill_s" in r:
             extra = f", buffer filled in {r['fill_s']:.0f} s"

@@ -378,25 +378,24 @@ def _compress_bound(n: int) -> int:
     return n + (n >> 12) + (n >> 14) + (n >> 25) + 13
 
 
-_POOL: tuple[int, Any] | None = None  # (pid, executor): never reused across a fork
+_POOL: tuple[int, Any, int] | None = None  # (pid, executor, threads): not reused after a fork
 _THREADED_FRAMES = 64  # fewer frames than this are inflated in the calling thread
 _RUN_FRAMES = 256  # the most frames one task inflates (a long run is split across threads)
 _MERGE_GAP = 16 << 10  # runs of rows whose streams lie closer than this are read at once
 
 
-def _pool() -> Any:
-    """The process's inflating threads, one per core (made on first use, anew after a fork)."""
+def _pool() -> tuple[Any, int]:
+    """The process's inflating threads, one per core, and their number (made on first use,
+    anew after a fork)."""
     global _POOL
     if _POOL is None or _POOL[0] != os.getpid():
         from concurrent.futures import ThreadPoolExecutor
 
         from rlu.system import available_cores
 
-        _POOL = (
-            os.getpid(),
-            ThreadPoolExecutor(available_cores(), thread_name_prefix="rlu-inflate"),
-        )
-    return _POOL[1]
+        n = available_cores()
+        _POOL = (os.getpid(), ThreadPoolExecutor(n, thread_name_prefix="rlu-inflate"), n)
+    return _POOL[1], _POOL[2]
 
 
 class ZlibColumn:
@@ -477,43 +476,46 @@ class ZlibColumn:
         one frame a row; default: rows 0, 1, ...), one read per run of nearby rows, the runs
         spread over the inflating threads."""
         starts, ends = self.offsets[rows], self.offsets[rows + 1]
-        # a task: rows [a, b) read from the file in one piece (nearby rows merged), split so
-        # that no task inflates more than _RUN_FRAMES frames
+        # a read: rows [a, b) from the file in one piece (nearby rows merged), at most
+        # _RUN_FRAMES of them; a task: consecutive reads, about as many frames in each
         cut = np.flatnonzero(starts[1:] - ends[:-1] > _MERGE_GAP) + 1
         bounds = np.concatenate([[0], cut, [len(rows)]])
-        tasks = []
+        reads = []
         for a, b in zip(bounds[:-1].tolist(), bounds[1:].tolist(), strict=True):
-            tasks.extend((i, min(i + _RUN_FRAMES, b)) for i in range(a, b, _RUN_FRAMES))
+            reads.extend((i, min(i + _RUN_FRAMES, b)) for i in range(a, b, _RUN_FRAMES))
         fd = self._fileno()
 
-        def run(task: tuple[int, int]) -> None:
-            a, b = task
-            lo, hi = int(starts[a]), int(ends[b - 1])
-            data = os.pread(fd, hi - lo, lo)
-            if len(data) != hi - lo:
-                raise FormatError(
-                    f"{self.path}: {hi - lo} bytes at offset {lo} hold {len(data)} (the file was "
-                    f"cut since it was opened); {_RECREATE}"
-                )
-            if places is None:
-                bad = inflate_frames(data, starts[a:b] - lo, ends[a:b] - lo, out[a:b],
-                                     self.frame_bytes)  # fmt: skip
-            else:
-                bad = inflate_frames(data, starts[a:b] - lo, ends[a:b] - lo, out,
-                                     self.frame_bytes, places[a:b])  # fmt: skip
-            if bad is not None:
-                j, why = bad
-                raise FormatError(
-                    f"{self.path}: frame {int(rows[a + j])} is not a zlib stream of one "
-                    f"{self.frame_bytes}-byte frame ({why}); {_RECREATE}"
-                )
+        def run(task: list[tuple[int, int]]) -> None:
+            for a, b in task:
+                lo, hi = int(starts[a]), int(ends[b - 1])
+                data = os.pread(fd, hi - lo, lo)
+                if len(data) != hi - lo:
+                    raise FormatError(
+                        f"{self.path}: {hi - lo} bytes at offset {lo} hold {len(data)} (the file "
+                        f"was cut since it was opened); {_RECREATE}"
+                    )
+                if places is None:
+                    bad = inflate_frames(data, starts[a:b] - lo, ends[a:b] - lo, out[a:b],
+                                         self.frame_bytes)  # fmt: skip
+                else:
+                    bad = inflate_frames(data, starts[a:b] - lo, ends[a:b] - lo, out,
+                                         self.frame_bytes, places[a:b])  # fmt: skip
+                if bad is not None:
+                    j, why = bad
+                    raise FormatError(
+                        f"{self.path}: frame {int(rows[a + j])} is not a zlib stream of one "
+                        f"{self.frame_bytes}-byte frame ({why}); {_RECREATE}"
+                    )
 
-        if len(rows) < _THREADED_FRAMES or len(tasks) == 1:
-            for task in tasks:
-                run(task)
-        else:
-            for _ in _pool().map(run, tasks):  # the first error (in row order) is raised
-                pass
+        if len(rows) < _THREADED_FRAMES or len(reads) == 1:
+            run(reads)
+            return
+        pool, threads = _pool()
+        ntasks = min(len(reads), 2 * threads)
+        edges = np.searchsorted([b for _, b in reads], np.linspace(0, len(rows), ntasks + 1)[1:-1])
+        tasks = np.split(np.arange(len(reads)), np.unique(edges))
+        for _ in pool.map(run, [[reads[i] for i in t] for t in tasks if len(t)]):
+            pass  # the first error (in row order) is raised
 
     def __getitem__(self, rows: Any) -> np.ndarray:
         if isinstance(rows, slice):
