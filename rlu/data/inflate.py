@@ -4,22 +4,23 @@ Two kinds of input are inflated in rlu's hot paths:
 
 - **frames**: the store's image columns keep one zlib stream per frame, each of a known size
   (``rlu.data.store.ZlibColumn``). :func:`inflate_frames` decodes many of them from one buffer
-  into rows of an array, outside the GIL, with `libdeflate <https://github.com/ebiggers/libdeflate>`_
-  (the ``deflate`` package) when it is installed, else with zlib;
+  into rows of an array, outside the GIL, with libdeflate (the ``deflate`` package) when it is
+  installed, else with zlib;
 - **gzip shards** of the original release (``rlu.data.release.framing``): a single gzip member
   whose trailer says it inflates to at most :data:`WHOLE_GZIP_MAX` bytes is inflated in one call
   by libdeflate (:func:`gunzip_whole`); longer shards stream through :func:`gzip_decompressobj`,
   zlib-ng's (the ``zlib-ng`` package) when installed, else zlib's.
 
 Both packages are the ``inflate`` extra (``pip install "rlu[inflate]"``); ``bench/stream.py``
-measures them against zlib on the same bytes. Inflating is deterministic, so every inflater gives
-zlib's bytes for a valid stream. The guarantees on hostile input hold with each of them: a frame
-inflates to exactly its declared size or is refused, after allocating one frame (libdeflate
-writes into a buffer of that size and fails when the stream would overflow it; zlib is capped at
-it); a stream with bytes after its end is refused (zlib sees them; for libdeflate, which does not
-report how much input it used, the last four bytes of the frame's stream must be the Adler-32 of
-the frame it made, which they are only when the stream ends there, or when bytes were appended
-that end in that very checksum: the frame is then the one the stream encodes).
+and ``bench/release_reader.py --inflate`` measure them against zlib on the same bytes. Inflating
+is deterministic, so every inflater gives zlib's bytes for a valid stream. The guarantees on
+hostile input hold with each of them: a frame inflates to exactly its declared size or is
+refused, after allocating one frame (libdeflate writes into a buffer of that size and fails when
+the stream would overflow it; zlib is capped at it); a stream with bytes after its end is
+refused (zlib sees them; for libdeflate, which does not report how much input it used, the last
+four bytes of the frame's stream must be the Adler-32 of the frame it made, which they are only
+when the stream ends there, or when bytes were appended that end in that very checksum: the
+frame is then the one the stream encodes).
 
 ``RLU_INFLATER=zlib`` (or :func:`use`) picks zlib even where libdeflate is installed.
 """
