@@ -23,7 +23,8 @@ frames of 84x84, n-step 1):
   window decoded; the rate over ``--warmup`` seconds while the rest of the buffer fills ahead,
   then the steady rate over ``--seconds``, still reading the evicted files; the overall rate
   from construction), ``--memory`` bytes of buffer, ``--reuse`` draws per sample;
-- ``mixture``: the same over the 8 parts (same frames, same memory), weights by size.
+- ``mixture``: the same over the 8 parts (same frames, same memory), weights by size;
+- ``inflate``: frames/s of libdeflate and zlib on one thread over the run's first 20,000 frames.
 
 It prints transitions/s, the ratio to the gather and peak RSS per figure, the machine's load
 and cores, and the stream's sampling statistics (distinct episodes per batch, draws per sample)
@@ -121,7 +122,23 @@ def figure(name: str, args) -> dict:
     data = Path(args.data)
     run, parts = data / "run", [data / f"part{i}" for i in range(8)]
     out: dict = {"figure": name}
-    if name == "gather":
+    if name == "inflate":  # frames/s of each inflater on one thread, the same 20k frames
+        from rlu.data import inflate
+
+        col = open_dataset(run).column("observation")
+        with open(col.path, "rb") as fh:
+            data = fh.read(int(col.offsets[20_000]))
+        starts, ends = col.offsets[:20_000], col.offsets[1:20_001]
+        frames = np.empty((20_000, col.frame_bytes), np.uint8)
+        for _ in range(2):  # alternated
+            for inflater in inflate.installed():
+                with inflate.use(inflater):
+                    t0 = time.perf_counter()
+                    inflate.inflate_frames(data, starts, ends, frames, col.frame_bytes)
+                    out.setdefault(inflater, []).append(20_000 / (time.perf_counter() - t0))
+        out = {k: max(v) if isinstance(v, list) else v for k, v in out.items()}
+        out["rate"], out["batches"] = out["libdeflate"] / out["zlib"], 0
+    elif name == "gather":
         ds = open_dataset(run)
         col = ds.column("observation")
         t0 = time.perf_counter()
@@ -268,6 +285,12 @@ def main() -> None:
             print(f"{name}: failed\n{res.stderr[-3000:]}")
             continue
         results[name] = r = json.loads(res.stdout.strip().splitlines()[-1])
+        if name == "inflate":
+            print(f"  inflate: one thread, 20,000 frames: libdeflate {r['libdeflate']:,.0f} "
+                  f"frames/s, zlib {r['zlib']:,.0f} frames/s = {r['rate']:.2f}x, load "
+                  f"{r['load']:.1f}")  # fmt: skip
+            results.pop(name)
+            continue
         extra = ""
         if "first_s" in r:
             extra = (f", first batch after {r['first_s']:.1f} s (window {r['window']:,}), "
