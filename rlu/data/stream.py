@@ -47,7 +47,6 @@ from __future__ import annotations
 
 import os
 import stat
-import threading
 from collections import deque
 from collections.abc import Iterator, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -252,9 +251,10 @@ class StreamSampler:
             datasets = [datasets]
         if not datasets:
             raise RluError("StreamSampler needs at least one dataset")
-        for name, value, low in (("reuse", reuse, 1), ("chunk", chunk, 1), ("memory", memory, 1)):
-            if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < low:
-                raise RluError(f"stream sampler {name}={value!r}; give an integer >= {low}")
+        checks = [("reuse", reuse), ("chunk", chunk), ("memory", memory), ("workers", workers or 1)]
+        for name, value in checks:
+            if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
+                raise RluError(f"stream sampler {name}={value!r}; give an integer >= 1")
         if spec.kind == "sequence" and spec.reward_clip is not None:
             raise RluError(
                 "BatchSpec.reward_clip is applied by transition batches only; clip sequence "
@@ -276,25 +276,29 @@ class StreamSampler:
         self._check_schemas()
         empty = [str(s.path) for s in self.sources if s.size == 0]
         if empty:
-            raise RluError(
-                f"{empty[0]}: the dataset has no {spec.kind} samples (a transition needs two "
-                "steps of one segment); leave it out of the mixture"
-            )
+            why = "it holds no segment" if spec.kind == "sequence" else (
+                f"a transition needs {spec.n_step + 1} steps of one segment, or a terminal "
+                "inside its window"
+            )  # fmt: skip
+            rest = "; leave it out of the mixture" if len(self.sources) > 1 else ""
+            raise RluError(f"{empty[0]}: the dataset has no {spec.kind} samples ({why}){rest}")
         sizes = np.array([s.size for s in self.sources], np.float64)
         if weights is None:
             w = sizes
         else:
-            w = np.asarray(weights, np.float64)
+            try:
+                w = np.asarray(weights, np.float64)
+            except (TypeError, ValueError):
+                w = np.zeros(0)
             if w.shape != sizes.shape or not np.isfinite(w).all() or (w <= 0).any():
                 raise RluError(
-                    f"weights {list(weights)!r}: give one positive number per dataset "
+                    f"weights {weights!r}: give one positive number per dataset "
                     f"({len(sizes)} datasets)"
                 )
         self.weights = w / w.sum()
         self._layout(int(memory))
         self.workers = int(workers or _cores())
         self._pool = ThreadPoolExecutor(self.workers, thread_name_prefix="rlu-stream")
-        self._lock = threading.Lock()
         self._closed = False
         self._reset(self._start_snapshot(), self.window // self.bucket, 0)
 
