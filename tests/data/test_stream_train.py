@@ -1,11 +1,10 @@
 """`rlu train` on a mixture of datasets (streamed): the command line (repeated --dataset, a glob,
---weights, --sampler), the resolved config, and an exact resume after a SIGKILL."""
+--weights, --sampler), the resolved config, and an exact resume from a checkpoint."""
 
 from __future__ import annotations
 
 import json
 import os
-import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -43,27 +42,37 @@ def _args(datasets: list[str], out: Path) -> list[str]:
     ]  # fmt: skip
 
 
-def test_mixture_from_the_command_line_resumes_exactly(pendulums, tmp_path):
+def test_mixture_from_the_command_line(pendulums, tmp_path):
     glob = str(Path(pendulums[0]).parent / "pendulum_[12]")
     given = ["--dataset", pendulums[0], "--dataset", glob, "--weights", "2", "1", "1"]
+    done = _cli(_args(given, tmp_path / "run"))
+    assert done.returncode == 0, done.stderr
+    resolved = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert resolved["train"]["dataset"] == pendulums
+    assert resolved["train"]["weights"] == [2.0, 1.0, 1.0]
+    assert resolved["train"]["run"]["sampler"] == "auto"
+    assert resolved["dataset"]["mixture"]["paths"] == [str(Path(p).resolve()) for p in pendulums]
+    assert json.loads((tmp_path / "run" / "result.json").read_text())["steps"] == 60
+
+
+def test_mixture_resumes_exactly(pendulums, tmp_path):
+    """A run that stopped after its checkpoint at step 50 resumes there (the stream sampler's
+    state restored) and ends as the uninterrupted run did."""
     from rlu.train import train
     from tests.fakes import train_config
 
-    # the reference in this process; the same run on the command line, killed and resumed
-    train(train_config(task="test/pendulum", agent=AGENT, dataset=tuple(pendulums), env=ENV,
-                       weights=(2.0, 1.0, 1.0), steps=60, eval_every=-1, log_every=10,
-                       checkpoint_every=25, torch_threads=1, stream_memory=16),
-          tmp_path / "ref")  # fmt: skip
-    resolved = json.loads((tmp_path / "ref" / "config.json").read_text())
-    assert resolved["train"]["dataset"] == pendulums
-    assert resolved["train"]["weights"] == [2.0, 1.0, 1.0]
-    assert resolved["dataset"]["mixture"]["paths"] == [str(Path(p).resolve()) for p in pendulums]
-    killed = _cli(_args(given, tmp_path / "run"), {"RLU_TEST_SIGKILL_AT_UPDATE": "37"})
-    assert killed.returncode == -signal.SIGKILL, killed.stderr
-    resumed = _cli([*_args(given, tmp_path / "run"), "--resume"])
-    assert resumed.returncode == 0, resumed.stderr
+    config = train_config(task="test/pendulum", agent=AGENT, dataset=tuple(pendulums), env=ENV,
+                          weights=(2.0, 1.0, 1.0), steps=60, eval_every=-1, log_every=5,
+                          checkpoint_every=25, torch_threads=1, stream_memory=16)  # fmt: skip
+    train(config, tmp_path / "ref")
+    run = tmp_path / "run"
+    train(config, run)
+    (run / "result.json").unlink()  # as if killed between the checkpoints at 50 and 60
+    (run / "checkpoints" / "step_00000060.pt").unlink()
+    assert (run / "checkpoints" / "step_00000050.pt").exists()
+    train(config, run, resume=True)
     for name in ("metrics.jsonl", "result.json"):
-        assert (tmp_path / "run" / name).read_text() == (tmp_path / "ref" / name).read_text()
+        assert (run / name).read_text() == (tmp_path / "ref" / name).read_text(), name
 
 
 def test_one_dataset_streamed_and_refusals(pendulums, tmp_path):
