@@ -31,6 +31,7 @@ from typing import Any
 from rlu import runs
 from rlu.devices import check_ray_gpus
 from rlu.files import bounds, check_output, shape_of
+from rlu.loggers import LOGGERS
 from rlu.settings import RunSettings
 from rlu.types import DiscreteSpec, RluError
 from rlu.workers import Backend, run_jobs
@@ -58,6 +59,11 @@ class SweepConfig:
     "paper_recurrent"}."""
     run: RunSettings = field(default_factory=RunSettings)
     """How every run is run (preset, budget, evaluation, checkpoints, runtime)."""
+    loggers: tuple[str, ...] = field(
+        default=(), metadata=bounds(choices=LOGGERS, flag="--log-to", metavar="LOGGER")
+    )
+    """Where every run also logs its metrics (rlu train --log-to: csv, tensorboard, wandb);
+    loggers change nothing a run computes, so a sweep may be continued with others."""
 
     def to_json(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
@@ -84,8 +90,7 @@ def _slug(text: str) -> str:
     return "".join(c if c.isalnum() or c in "-_.=," else "_" for c in text.replace("/", "__"))
 
 
-def config_label(overrides: Mapping[str, Any]) -> str:
-    return ",".join(f"{k}={overrides[k]}" for k in sorted(overrides)) or "default"
+config_label = runs.config_label
 
 
 def agent_grid(agent: str, discrete: bool) -> dict[str, list[Any]]:
@@ -151,7 +156,7 @@ def run_one(spec: RunSpec, config: SweepConfig) -> dict[str, Any]:
             overrides=dict(spec.overrides),
             run=dataclasses.replace(config.run, preset=spec.preset),
         )
-        result = train(tc, run, resume=True)
+        result = train(tc, run, resume=True, loggers=config.loggers)
     return {
         "task": spec.task,
         "agent": spec.agent,
@@ -211,6 +216,9 @@ def sweep(
         config, datasets={t: str(Path(p).resolve()) for t, p in config.datasets.items()}
     )
     check_output(out, list(config.datasets.values()), runs.SWEEP_CONFIG, "sweep folder")
+    unknown = [n for n in config.loggers if n not in LOGGERS]
+    if unknown:
+        raise RluError(f"logger {unknown[0]!r}; loggers are {', '.join(LOGGERS)}")
     with OutputLock(out, "sweep folder"):
         cfg_path = out / runs.SWEEP_CONFIG
         if cfg_path.exists():
@@ -259,10 +267,11 @@ def sweep(
 
 
 def _what(sweep_json: Mapping[str, Any]) -> dict[str, Any]:
-    """A sweep config without how its runs compute (runtime): what must match to continue a
-    sweep in the same folder."""
+    """A sweep config without how its runs compute (runtime) and where they also log: what
+    must match to continue a sweep in the same folder."""
     out = json.loads(json.dumps(sweep_json))
     out.get("run", {}).pop("runtime", None)
+    out.pop("loggers", None)
     return out
 
 

@@ -168,17 +168,26 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="tasks x agents x grids x seeds, locally or on Ray",
         description="Train every (task, agent, grid configuration, seed) and collect the final "
         "scores. Without --grid each agent's paper grid is expanded (the plan is printed "
-        "first). Runs default to --preset small (minutes each on a CPU); numbers to stand "
-        "beside the paper's need --preset paper (the paper's settings and budget) on release "
-        "data.",
+        "first). Runs default to --preset small (minutes each on a CPU); a number that "
+        "compares with the paper's needs --preset paper on the release's data, and rlu report "
+        "checks every condition of the paper's number (docs/evaluation.md).",
+        allow_abbrev=False,  # a config file's values yield to the options typed in full
     )
-    add_options(p, SweepConfig, only=("tasks", "agents", "seeds", "max_configs"))
+    p.add_argument(
+        "--config",
+        metavar="FILE",
+        help="sweep config as JSON or YAML (the fields of SweepConfig: tasks, agents, datasets, "
+        "seeds, grid, max_configs, task_presets, loggers, run: {steps, preset, ...}), a sweep "
+        "folder's sweep.json, or a run config that rlu train --config takes (its task, agent, "
+        "dataset, seed and overrides: a sweep of one run); options typed here override it",
+    )
+    add_options(p, SweepConfig, only=("tasks", "agents", "seeds", "max_configs"), require=False)
     p.add_argument(
         "--dataset",
         action="append",
-        required=True,
+        default=None,
         metavar="TASK=PATH",
-        help="dataset of a task (repeat per task)",
+        help="dataset of a task (repeat per task; required, here or in --config)",
     )
     p.add_argument(
         "--grid",
@@ -190,31 +199,41 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--task-preset",
         action="append",
-        default=[],
+        default=None,
         metavar="TASK=PRESET",
         help="preset of one task for the agents that have it (e.g. paper_recurrent)",
     )
+    add_options(p, SweepConfig, only=("loggers",))
     add_backend_options(p, default_workers=2)
     p.add_argument("--out", required=True, help="sweep folder (an existing one is continued)")
     add_options(p, RunSettings)
-    p.set_defaults(func=_sweep)
+    p.set_defaults(func=_sweep, parser=p)
 
-    p = sub.add_parser("report", help="tables and figures of sweeps (Markdown, HTML, PNG)")
+    p = sub.add_parser(
+        "report",
+        help="tables and figures of runs and sweeps (Markdown, HTML, PNG)",
+        description="Report run folders (rlu train --out) and sweep folders (rlu sweep --out), "
+        "any mix, together: runs are grouped by the task, agent, configuration and seed each "
+        "recorded. Tables under the paper's protocols, learning curves, rliable's performance "
+        "profiles and probability of improvement, each number labelled with what produced it "
+        "and, beside the paper's, which of the paper's conditions it meets.",
+    )
     p.add_argument(
-        "sweep_dirs",
+        "paths",
         nargs="+",
-        metavar="SWEEP_DIR",
-        help="one or more sweep folders, reported together (e.g. an Atari and a control sweep)",
+        metavar="RUN_OR_SWEEP",
+        help="run folders and sweep folders, reported together",
     )
     p.add_argument(
         "--out",
         default=None,
-        help="report folder (default: SWEEP_DIR/report; required with several sweeps)",
+        help="report folder (default: RUN_OR_SWEEP/report for one folder; required with "
+        "several); a folder holding anything but an earlier rlu report is refused",
     )
     p.add_argument(
         "--fqe",
         action="store_true",
-        help="first run offline policy selection by FQE (writes SWEEP_DIR/fqe.json per sweep)",
+        help="first run offline policy selection by FQE (writes SWEEP/fqe.json per sweep)",
     )
     add_options(p, FQEConfig, only=("steps",), flag_prefix="--fqe-", dest_prefix="fqe_")
     add_device_option(p)
@@ -341,19 +360,30 @@ def _sweep(args: argparse.Namespace) -> int:
     from rlu.settings import RunSettings
     from rlu.sweep import SweepConfig, results_table, sweep
     from rlu.train import parse_overrides
+    from rlu.types import RluError
 
-    grid = None
+    given = _sweep_config_file(args) if args.config is not None else {}
+    datasets = {**given.get("datasets", {}),
+                **_pairs(args.dataset or [], "--dataset", "TASK=PATH")}  # fmt: skip
+    task_presets = {**given.get("task_presets", {}),
+                    **_pairs(args.task_preset or [], "--task-preset", "TASK=PRESET")}  # fmt: skip
+    grid = given.get("grid")
     if args.grid:
         grid = {
             key: [parse_overrides([f"v={v}"])["v"] for v in values.split(",")]
             for key, values in _pairs(args.grid, "--grid", "FIELD=V1,V2").items()
         }
+    for name, flag in (("tasks", "--tasks"), ("agents", "--agents")):
+        if not getattr(args, name):
+            raise RluError(f"{flag} is missing: give it on the command line or in --config")
+    if not datasets:
+        raise RluError("--dataset is missing: give TASK=PATH per task, here or in --config")
     config = from_args(
         SweepConfig,
         args,
-        datasets=_pairs(args.dataset, "--dataset", "TASK=PATH"),
+        datasets=datasets,
         grid=grid,
-        task_presets=_pairs(args.task_preset, "--task-preset", "TASK=PRESET"),
+        task_presets=task_presets,
         run=from_args(RunSettings, args),
     )
     records = sweep(config, args.out, backend_from_args(args), progress=True)
@@ -361,21 +391,63 @@ def _sweep(args: argparse.Namespace) -> int:
     return 0
 
 
+def _sweep_config_file(args: argparse.Namespace) -> dict[str, Any]:
+    """Fill the sweep options the user did not type from ``--config`` (a sweep config, a sweep
+    folder's sweep.json, or a run config, which becomes a sweep of its one run); returns the
+    file's datasets, grid and task presets for the caller to merge with the typed ones. An
+    agent module or env factory named in the file is refused unless typed too: names in files
+    are never imported."""
+    from rlu.settings import RunSettings, flat_values, read_config_file, typed_dests
+    from rlu.sweep import SweepConfig
+    from rlu.train import TrainConfig
+    from rlu.types import FormatError, RluError
+
+    try:
+        data = read_config_file(args.config, SweepConfig)
+    except FormatError as not_a_sweep:
+        try:
+            run = read_config_file(args.config, TrainConfig)
+        except FormatError:
+            raise not_a_sweep from None
+        data = {
+            "tasks": [run["task"]] if "task" in run else None,
+            "agents": [run["agent"]] if "agent" in run else None,
+            "seeds": [run["seed"]] if "seed" in run else None,
+            "datasets": {run["task"]: run["dataset"]} if {"task", "dataset"} <= set(run) else {},
+            "grid": {k: [v] for k, v in run.get("overrides", {}).items()} or None,
+            "run": run.get("run", {}),
+        }
+        data = {k: v for k, v in data.items() if v is not None}
+    typed = typed_dests(args.parser, args.argv)
+    plain = {k: v for k, v in data.items() if k not in ("run", "datasets", "grid", "task_presets")}
+    values = flat_values(SweepConfig, plain)
+    values.update(flat_values(RunSettings, data.get("run", {})))
+    for dest, value in values.items():
+        if dest not in typed:
+            setattr(args, dest, value)
+    named = [a for a in (args.agents or []) if "." in a] if "agents" not in typed else []
+    if named:
+        raise RluError(
+            f"{args.config}: field 'agents' names the agent module {named[0]!r}, and a module "
+            f"named in a file is never imported; if you trust it, type it: --agents {named[0]}"
+        )
+    if "env" not in typed and args.env is not None:
+        raise RluError(
+            f"{args.config}: field 'env' names the env factory {args.env!r}, and a module "
+            f"named in a file is never imported; if you trust it, type it: --env {args.env}"
+        )
+    return {k: data[k] for k in ("datasets", "grid", "task_presets") if data.get(k) is not None}
+
+
 def _report(args: argparse.Namespace) -> int:
-    from rlu.evaluation.report import write_report
-    from rlu.types import RluError
+    from rlu.restore import report
 
-    if args.out is None and len(args.sweep_dirs) > 1:
-        raise RluError(f"{len(args.sweep_dirs)} sweep folders: pass --out for the report folder")
-    if args.fqe:
-        from rlu.evaluation.fqe import FQEConfig
-        from rlu.restore import fqe_selection
-
-        for sweep_dir in args.sweep_dirs:
-            fqe_selection(sweep_dir, FQEConfig(steps=args.fqe_steps), args.device)
-    from rlu.agents import paper_steps
-
-    paths = write_report(args.sweep_dirs, args.out, paper_steps=paper_steps)
+    paths = report(
+        args.paths,
+        args.out,
+        fqe_steps=args.fqe_steps if args.fqe else None,
+        device=args.device,
+    )
     for p in paths:
         print(f"wrote {p}")
     return 0
