@@ -43,15 +43,22 @@ def test_markdown_and_html_hold_every_number_of_the_json(tmp_path):
     md = (tmp_path / "r" / "report.md").read_text()
     html = (tmp_path / "r" / "report.html").read_text()
     dom = rep["domains"]["control_suite"]
-    assert dom["panels"] == ["online", "offline_naive", "aggregates", "task_bars"]
-    # what produced the numbers, the online and naive offline tables, the aggregates
-    assert html.count("<table>") == 4 and html.count("<section") == 1
+    assert dom["panels"] == ["online", "offline_naive", "aggregates", "task_bars", "profiles",
+                             "improvement"]  # fmt: skip
+    assert "curves" in dom["absent"]  # records without run folders: no eval.jsonl to draw
+    # what produced the numbers, the paper's conditions, the online and naive offline tables,
+    # the aggregates, the performance profiles and the probability of improvement
+    assert html.count("<table>") == 7 and html.count("<section") == 1
     # each table scrolls in its own box: a wide one (five agents and the paper's columns) does
     # not push the page past the window
-    assert html.count('<div class="table"><table>') == 4 and "overflow-x: auto" in html
+    assert html.count('<div class="table"><table>') == 7 and "overflow-x: auto" in html
     for row in dom["online"]["rows"] + dom["offline_naive"]["rows"]:
         for agent, c in row["cells"].items():
+            assert c["std"] == pytest.approx(np.std(c["scores"], ddof=1))  # the sample std
             text = f"{c['mean']:.1f} ± {c['std']:.1f}"
+            if agent in row["paper"]:  # beside the paper's number: which conditions it misses
+                assert not c["comparable"]
+                text += f" (not comparable: {', '.join(c['missing'])})"
             assert (f"| **{text}** |" if c["bold"] else f"| {text} |") in md, (agent, text)
             assert (f"<b>{text}</b>" if c["bold"] else f">{text}<") in html
     # a '|' in a name is escaped in Markdown, '<' and '&' in HTML
@@ -250,10 +257,14 @@ def test_cells_of_fewer_seeds_say_how_many(tmp_path):
     assert [line.count(" | ") for line in table] == [6, 6]  # task, 3 x (ours, the paper's)
     # walker walk: bc's paper cell, no brac of ours, then the paper's brac all the same
     assert "| 380.0 ± 32.0 |  | 786.0 ± 294.0 |" in table[1]
+    assert "seeds" not in table[0].split(" | ")[1]  # bc's 3 seeds meet rlu's 3
     cells = json.loads((tmp_path / "r" / "report.json").read_text())["domains"]["control_suite"]
     cells = cells["online"]["rows"][0]["cells"]
     md = (tmp_path / "r" / "report.md").read_text().replace("**", "")  # bold or not
     bc, brac, d4pg = cells["bc"], cells["brac"], cells["d4pg"]
-    assert f"{bc['mean']:.1f} ± {bc['std']:.1f} |" in md  # all the seeds: as before
-    assert f"{brac['mean']:.1f} ± {brac['std']:.1f} (2 seeds)" in md
-    assert f"{d4pg['mean']:.1f} (1 seed)" in md and f"{d4pg['mean']:.1f} ± " not in md
+    assert f"{bc['mean']:.1f} ± {bc['std']:.1f} (not comparable:" in md  # all the seeds
+    assert f"{brac['mean']:.1f} ± {brac['std']:.1f} (2 seeds) (not comparable:" in md
+    # one seed: its mean, no spread (not a ± 0.0), and "seeds" among what it misses
+    assert d4pg["std"] is None and d4pg["mean"] == d4pg["scores"][0]
+    assert f"{d4pg['mean']:.1f} (1 seed) (not comparable: " in md and f"{d4pg['mean']:.1f} ± " not in md
+    assert "seeds" in d4pg["missing"] and "seeds" in brac["missing"] and "seeds" not in bc["missing"]

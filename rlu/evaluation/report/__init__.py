@@ -151,7 +151,6 @@ def read_inputs(
     record with its learning curve (``curve``) and its report task (``report_key``)."""
     records: dict[tuple[str, str, str, int], dict[str, Any]] = {}
     where: dict[tuple[str, str, str, int], str] = {}
-    seen_runs: set[str] = set()
     datasets: dict[str, list[str]] = {}
     selections: list[dict[str, Any]] = []
     any_fqe = False
@@ -174,18 +173,16 @@ def read_inputs(
         else:
             found.append((runs.run_record(item), str(item)))
     for r, source in _told_apart(found):
-        real = os.path.realpath(r["run"])
-        if real in seen_runs:
-            continue  # a run given alone and in its sweep
-        seen_runs.add(real)
-        r = {**r, "task": report_key(r), "curve": runs.learning_curve(r["run"])}
+        r = {**r, "task": report_key(r)}
         key = (r["task"], r["agent"], r["config"], int(r["seed"]))
+        if key in records and os.path.realpath(r["run"]) == os.path.realpath(where[key]):
+            continue  # a run given alone and in its sweep
         if key in records:
             raise RluError(
                 f"{source}: run {r['run']} is {_key_text(key)}, and so is {where[key]}, with the "
                 "same settings; a report holds one run of each: leave one of them out"
             )
-        records[key], where[key] = r, r["run"]
+        records[key], where[key] = {**r, "curve": runs.learning_curve(r["run"])}, r["run"]
         if r.get("dataset"):
             paths_of = datasets.setdefault(r["task"], [])
             if r["dataset"] not in paths_of:

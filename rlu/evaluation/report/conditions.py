@@ -275,8 +275,12 @@ def stand_ins(domain: str, preset_steps: Mapping[str, int | None]) -> list[str]:
     out = []
     if fam["budget"].paper is None:
         steps = sorted({s for s in preset_steps.values() if s is not None})
-        at = ", ".join(_steps(s) for s in steps) or "its paper preset's num_steps"
-        out.append(f"the paper states no learner budget: compared at rlu's {at}")
+        at = (
+            f"rlu's {', '.join(_steps(s) for s in steps)} (its paper presets' learner steps)"
+            if steps
+            else "rlu's paper preset's learner steps (not given to the report)"
+        )
+        out.append(f"the paper states no learner budget: compared at {at}")
     for what, noun in (("seeds", "seeds"), ("episodes", "evaluation episodes")):
         if fam[what].paper is None:
             out.append(f"the paper states no number of {noun}: compared at rlu's "

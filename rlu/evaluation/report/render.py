@@ -899,12 +899,14 @@ def render_aggregates(dom: Mapping[str, Any], domain: str, figures: Figures | No
                 continue
             sources.update(e["provenance"])
             lo, hi = e["interval_25_75"]
+            # one task: nothing to resample, so no interval (it would be [x, x])
+            spread = f"[{lo:.1f}, {hi:.1f}]" if e["tasks"] > 1 else "(one task)"
             iqm = ci = ""
             if "iqm" in e:
                 iqm = f"{e['iqm']:.1f} ({e['iqm_seeds']} seed{'s' * (e['iqm_seeds'] > 1)})"
                 if e["iqm_ci95"] is not None:
                     ci = f"[{e['iqm_ci95'][0]:.1f}, {e['iqm_ci95'][1]:.1f}]"
-            texts = [str(e["tasks"]), f"{e[stat]:.1f}", f"[{lo:.1f}, {hi:.1f}]", iqm, ci]
+            texts = [str(e["tasks"]), f"{e[stat]:.1f}", spread, iqm, ci]
             rows.append(
                 (Cell(label, numeric=False), Cell(a + _tags(dom, e["provenance"]), numeric=False),
                  *(Cell(t) for t in texts))
@@ -917,8 +919,9 @@ def render_aggregates(dom: Mapping[str, Any], domain: str, figures: Figures | No
         f"online policy selection (best configuration per task) over the online-selection "
         f"tasks; the paper's naive offline selection over the offline-selection tasks (one "
         f"configuration per agent, the best {stat} over the online-selection tasks{chosen}). "
-        f"{stat.capitalize()} with bootstrapped [25, 75] interval; IQM over the seeds every "
-        "task has, with 95 % stratified bootstrap CI over those seeds (none with one seed). "
+        f"{stat.capitalize()} with a bootstrapped [25, 75] percentile interval over tasks "
+        "(none with one task); IQM over the seeds every task has, with a 95 % stratified "
+        "bootstrap CI over those seeds (none with one seed). "
         + produced_by(dom, sorted(sources))
         + "".join(f" {s}: left out, {why}." for s, why in agg.get("missing", {}).items())
         + _skipped(agg.get("offline", {}).get("skipped", {}))
@@ -980,10 +983,10 @@ def render_task_bars(dom: Mapping[str, Any], domain: str, figures: Figures | Non
     )
     blocks: list[Block] = [Text(text)]
     p90 = dom.get("dataset_p90") or {}
-    if any(v is not None for v in p90.values()):
+    if any(_p90_text(dom, t) for t in p90):
         rows = [
             (Cell(row["task"], numeric=False), Cell(sel, numeric=False),
-             Cell("" if p90.get(row["task"]) is None else f"{p90[row['task']]:.1f}"))
+             Cell(_p90_text(dom, row["task"])))
             for sel in ("online", "offline") for row in bars[sel]
         ]  # fmt: skip
         blocks.append(Table(("task", "selection", "dataset p90 return"), tuple(rows)))
@@ -991,6 +994,15 @@ def render_task_bars(dom: Mapping[str, Any], domain: str, figures: Figures | Non
         path = figures.save(tasks_figure(dom, domain, figures.plt), f"{domain}_tasks")
         blocks.append(Image(path, f"{domain}: per-task scores"))
     return blocks
+
+
+def _p90_text(dom: Mapping[str, Any], task: str) -> str:
+    """A task's dataset 90th-percentile return, or why it has none."""
+    value = (dom.get("dataset_p90") or {}).get(task)
+    if value is not None:
+        return f"{value:.1f}"
+    used = len((dom.get("datasets") or {}).get(task, []))
+    return f"none: its runs used {used} datasets" if used > 1 else ""
 
 
 def _status(flags: Sequence[bool]) -> str:
@@ -1191,22 +1203,31 @@ def render_provenance(dom: Mapping[str, Any], domain: str) -> list[Block]:
     comparable = sum(p["comparable_runs"] for p in entries)
     if comparable == runs:
         verdict = (
-            "every run here meets the run conditions (preset, budget, data, evaluation "
+            "Every run here meets the run conditions (preset, budget, data, evaluation "
             "episodes); each cell still says whether its seeds and its selection do."
         )
     elif comparable == 0:
         verdict = (
-            "no run here meets them: the paper's numbers are shown beside rlu's as a reference, "
+            "No run here meets them: the paper's numbers are shown beside rlu's as a reference, "
             "every column of them is headed not comparable, and each cell says which "
             "conditions it misses."
         )
     else:
         verdict = (
-            f"{comparable} of {runs} runs meet the run conditions (preset, budget, data, "
+            f"{comparable} of {runs} runs here meet the run conditions (preset, budget, data, "
             "evaluation episodes): the paper's numbers are a comparison only beside the cells "
             "labelled (comparable); the others say which conditions they miss."
         )
     states = dom.get("paper_states") or {}
+    if not states.get("table"):  # no numbers of the paper's to compare with
+        intro = (
+            "What produced these numbers: every run's preset, learner steps (pre-training "
+            "apart), data and evaluation episodes"
+            + (", one letter per combination, the letter each number below carries"
+               if len(entries) > 1 else "")  # fmt: skip
+            + ". The paper reports no numbers for these tasks."
+        )
+        return [Text(intro), Table(tuple(h for h, _ in PROVENANCE_COLUMNS), rows)]
     intro = (
         "What produced these numbers: every run's preset, learner steps (pre-training apart), "
         "data and evaluation episodes"
