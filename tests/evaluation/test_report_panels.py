@@ -102,7 +102,9 @@ def test_atari_median_halves_by_hand(tmp_path):
     md = (tmp_path / "r" / "report.md").read_text()
     # beside the paper's table, each row says which conditions of the paper's numbers it misses
     label = "(not comparable: preset, budget, data, episodes, seeds, selection)"
-    (row,) = [x for x in md.splitlines() if x.startswith(f"| online (tuning games) | dqn {label} |")]
+    (row,) = [
+        x for x in md.splitlines() if x.startswith(f"| online (tuning games) | dqn {label} |")
+    ]
     assert row.startswith(f"| online (tuning games) | dqn {label} | 3 of 9 | 50.0 | [")
     assert row.endswith(f"] | {same:.1f} |  |")  # no paper median over all 9 games here
     assert f"| naive offline (held-out) | dqn {label} | 2 of 37 | 47.5 |" in md

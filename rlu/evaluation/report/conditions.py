@@ -189,8 +189,8 @@ def _preset(
 ) -> str | None:
     if preset is None:
         return "the report knows no paper preset of this agent"
-    want = "paper_recurrent" if task in RECURRENT_TASKS and "paper_recurrent" in preset.presets \
-        else "paper"  # fmt: skip
+    recurrent = task in RECURRENT_TASKS and "paper_recurrent" in preset.presets
+    want = "paper_recurrent" if recurrent else "paper"
     if name != want:
         return f"preset {name or 'not recorded'}, not {want}"
     if overrides is None:
@@ -204,13 +204,14 @@ def _preset(
 
 def _budget(steps: int | None, domain: str, preset: PaperPreset | None) -> str | None:
     budget, stated = budget_of(domain, preset)
-    whose = "the paper's" if stated else "rlu's (the paper states no budget)"
     if budget is None:
         return "the paper preset's learner budget was not given to the report"
     if steps is None:
         return "learner steps not recorded"
     if steps != budget:
-        return f"{steps:,} learner steps, not {whose} {_steps(budget)}"
+        if stated:
+            return f"{steps:,} learner steps, not the paper's {_steps(budget)}"
+        return f"{steps:,} learner steps, not rlu's {_steps(budget)} (the paper states no budget)"
     return None
 
 
@@ -245,12 +246,10 @@ def at_least(n: int | None, what: str, domain: str) -> str | None:
     if n is None:
         return f"{noun}s not recorded"
     if n < need:
-        whose = (
-            "the paper's"
-            if s.paper is not None
-            else f"rlu's (the paper states no number of {noun}s)"
-        )  # noqa: E501
-        return f"{n} {noun}{'s' * (n != 1)}, under {whose} {need}"
+        got = f"{n} {noun}{'s' * (n != 1)}"
+        if s.paper is not None:
+            return f"{got}, under the paper's {need}"
+        return f"{got}, under rlu's {need} (the paper states no number of {noun}s)"
     return None
 
 

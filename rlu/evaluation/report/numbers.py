@@ -282,7 +282,8 @@ class DomainContext:
         return out
 
     def selection_condition(self, s: Selection, protocol: str) -> str | None:
-        """Whether the protocol that chose a cell's configuration had comparable inputs: online
+        """Whether the protocol that chose a cell's configuration had comparable inputs (the
+        runs it chose among, besides the cell's own, which the run conditions judge): online
         selection, comparable runs of every configuration of the paper's grid on the task;
         naive offline selection, the same on every online-selection task of the domain; an
         agent that ran one configuration, the paper's grid of one configuration."""
@@ -302,7 +303,9 @@ class DomainContext:
                     f"chosen on {len(self.online_tasks)} of the domain's {len(every)} "
                     "online-selection tasks"
                 )
-        bad = _not_comparable_inputs(self, recs)
+        # the cell's own runs are judged by the run conditions; the selection by the others
+        others = [r for r in recs if (r["task"], r["config"]) != (s.task, s.config)]
+        bad = _not_comparable_inputs(self, others)
         if bad:
             why.append(f"chosen among runs that are not comparable ({bad})")
         grid = _grid_combinations(preset)

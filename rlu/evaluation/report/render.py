@@ -808,7 +808,7 @@ def _paper_note(dom: Mapping[str, Any], table: Mapping[str, Any]) -> str:
     why = missing_reasons(cells)
     if not why:
         return text + "; every cell here meets them all."
-    return text + ": " + "; ".join(f"{c}: {', '.join(r)}" for c, r in why.items()) + "."
+    return text + ": " + "; ".join(f"{c}: {' / '.join(r)}" for c, r in why.items()) + "."
 
 
 def missing_reasons(numbers: Sequence[Mapping[str, Any]]) -> dict[str, list[str]]:
@@ -1223,8 +1223,11 @@ def render_provenance(dom: Mapping[str, Any], domain: str) -> list[Block]:
         intro = (
             "What produced these numbers: every run's preset, learner steps (pre-training "
             "apart), data and evaluation episodes"
-            + (", one letter per combination, the letter each number below carries"
-               if len(entries) > 1 else "")  # fmt: skip
+            + (
+                ", one letter per combination, the letter each number below carries"
+                if len(entries) > 1
+                else ""
+            )  # fmt: skip
             + ". The paper reports no numbers for these tasks."
         )
         return [Text(intro), Table(tuple(h for h, _ in PROVENANCE_COLUMNS), rows)]
