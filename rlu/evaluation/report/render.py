@@ -415,20 +415,39 @@ def _bars(ax: Any, dom: Mapping[str, Any], cells: Mapping[str, Any], agents: Seq
 
 
 def _bars_line(dom: Mapping[str, Any], sources: Sequence[int]) -> str:
-    """What produced the bars: every bar's settings spelled out where one entry drew them all,
-    else each letter's."""
+    """What produced the bars: every bar's settings spelled out where one entry drew them all;
+    else what the bars share, then what each letter's entry adds (the bars carry the letters)."""
     entries = dom.get("provenance", [])
     if len(entries) < 2:
         return f"every bar: {provenance_summary(dom, sources)}"
-    return "; ".join(f"[{_label(i)}] {short_provenance(entries[i])}" for i in sources)
+    parts = {i: provenance_parts(entries[i]) for i in sources}
+    keys = list(next(iter(parts.values()))) if parts else []
+    shared = [k for k in keys if len({parts[i][k] for i in parts}) == 1]
+    head = ", ".join(parts[sources[0]][k] for k in shared if parts[sources[0]][k])
+    each = "; ".join(
+        f"[{_label(i)}] " + (", ".join(p[k] for k in keys if k not in shared and p[k]) or "-")
+        for i, p in parts.items()
+    )
+    return (f"every bar: {head}; " if head else "") + each
 
 
-def short_provenance(p: Mapping[str, Any]) -> str:
-    """One provenance entry in a figure's few words: preset, learner steps, data (with the
-    release's shards), evaluation episodes."""
+def provenance_parts(p: Mapping[str, Any]) -> dict[str, str]:
+    """One provenance entry in a figure's few words, field by field: preset, learner steps,
+    pre-training, data (with the release's shards, or the command that generated it),
+    evaluation episodes."""
+    data = p["data"]
+    what = _data_short(data)
+    if data["source"] == "generated" and data.get("command"):
+        what += f" by `{_command(data['command'])}`"
     episodes = "unknown" if p["eval_episodes"] is None else p["eval_episodes"]
-    return (f"preset {p['preset'] or 'unknown'}, {steps_text(p['steps'])} steps, "
-            f"{_data_short(p['data'])} data, {episodes} episodes")  # fmt: skip
+    pretrain = p["pretrain_steps"]
+    return {
+        "preset": f"preset {p['preset'] or 'unknown'}",
+        "steps": f"{steps_text(p['steps'])} steps",
+        "pretrain": f"+{steps_text(pretrain)} pre-training" if pretrain else "",
+        "data": f"{what} data",
+        "episodes": f"{episodes} episodes",
+    }
 
 
 def _paper_marker(dom: Mapping[str, Any], beside: Sequence[Mapping[str, Any]]) -> str:
