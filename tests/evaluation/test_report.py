@@ -55,12 +55,15 @@ def test_markdown_and_html_hold_every_number_of_the_json(tmp_path):
     for row in dom["online"]["rows"] + dom["offline_naive"]["rows"]:
         for agent, c in row["cells"].items():
             assert c["std"] == pytest.approx(np.std(c["scores"], ddof=1))  # the sample std
-            text = f"{c['mean']:.1f} ± {c['std']:.1f}"
+            text = number = f"{c['mean']:.1f} ± {c['std']:.1f}"
+            html_text = f"<b>{number}</b>" if c["bold"] else f">{number}<"
             if agent in row["paper"]:  # beside the paper's number: which conditions it misses
                 assert not c["comparable"]
-                text += f" (not comparable: {', '.join(c['missing'])})"
+                label = f"(not comparable: {', '.join(c['missing'])})"
+                text += f" {label}"  # Markdown: on the same line; HTML: on a line under it
+                html_text = html_text.rstrip("<") + f'<br><span class="note">{label}</span>'
             assert (f"| **{text}** |" if c["bold"] else f"| {text} |") in md, (agent, text)
-            assert (f"<b>{text}</b>" if c["bold"] else f">{text}<") in html
+            assert html_text in html, html_text
     # a '|' in a name is escaped in Markdown, '<' and '&' in HTML
     assert "tests.train.fake\\|agent" in md and "fake|agent" in html
     table_lines = [line for line in md.splitlines() if "| " in line]

@@ -131,7 +131,7 @@ def test_paper_number_stays_where_rlu_has_no_cell():
     line = next(x for x in md.splitlines() if x.startswith("| control_suite/cartpole_swingup"))
     cols = [c.strip() for c in line.strip("|").split("|")]
     # task, bc, bc (paper), d4pg (empty: not run), d4pg (paper)
-    label = "(1 seed) (not comparable: preset, budget, data, episodes, seeds, selection)"
+    label = "(1 seed) (not comparable: preset, budget, data, episodes, seeds)"
     assert cols[1:] == [f"**300.0 {label}**", "386.0 ± 6.0", "", "856.0 ± 13.0"], cols
 
 

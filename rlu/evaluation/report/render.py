@@ -45,6 +45,9 @@ class Cell:
     text: str
     bold: bool = False
     numeric: bool = True
+    note: str = ""
+    """Words after the number (whether it compares with the paper's): Markdown puts them on
+    the same line, HTML on a line of their own under it."""
 
 
 @dataclass(frozen=True)
@@ -79,16 +82,15 @@ def _fmt(mean: float, std: float | None) -> str:
     return f"{mean:.1f}" if std is None else f"{mean:.1f} ± {std:.1f}"
 
 
-def _cell_text(cell: Mapping[str, Any], most: int, tags: str = "", label: bool = False) -> str:
+def _cell_text(cell: Mapping[str, Any], most: int, tags: str = "") -> str:
     """mean ± sample std; a cell of one seed is its mean and says "1 seed" (it has no spread),
     one of fewer seeds than the table's most says how many; ``tags``: the cell's provenance
-    letters, where the domain has several; ``label``: the paper's number stands beside it, so
-    the cell says whether it is comparable and, if not, which conditions it misses."""
+    letters, where the domain has several."""
     n = len(cell["seeds"])
     text = _fmt(cell["mean"], cell["std"])
     if n == 1 or n < most:
         text += f" ({n} seed{'s' * (n != 1)})"
-    return text + tags + (f" {comparable_label(cell)}" if label else "")
+    return text + tags
 
 
 def comparable_label(number: Mapping[str, Any]) -> str:
@@ -722,10 +724,18 @@ def improvement_figure(dom: Mapping[str, Any], plt: Any) -> Any:
             if pr["ci"] is not None:
                 lo, hi = pr["ci"]
                 ax.barh(yi, hi - lo, 0.6, left=lo, color=color[pr["x"]], alpha=0.7)
-            ax.vlines(pr["probability"], yi - 0.3, yi + 0.3, color="k", linewidth=2)
+            ax.vlines(pr["probability"], yi - 0.3, yi + 0.3, color="k", linewidth=2.5)
+            # the number beside its tick, on the side with room (an interval of zero width,
+            # from runs that all agree, is no bar: the number says it)
+            ci = "" if pr["ci"] is None else f" [{pr['ci'][0]:.2f}, {pr['ci'][1]:.2f}]"
+            left = pr["probability"] > 0.5
+            ax.annotate(f"{pr['probability']:.2f}{ci}", (pr["probability"], yi + 0.32),
+                        xytext=(-3 if left else 3, 0), textcoords="offset points",
+                        ha="right" if left else "left", va="bottom", fontsize=7)  # fmt: skip
         ax.axvline(0.5, color="0.4", linestyle=":", linewidth=1)
         ax.set_yticks(y, [f"P({_short(p['x'])} > {_short(p['y'])})" for p in pairs], fontsize=7)
-        ax.set_xlim(0.0, 1.0)
+        ax.set_xlim(-0.02, 1.02)
+        ax.set_ylim(-0.6, len(pairs) - 0.1)
         ax.set_xlabel("probability of improvement", fontsize=8)
         ax.tick_params(axis="x", labelsize=7)
         sub = f"{PROFILE_SPLITS[split]}: {_count(len(splits[split]['tasks']), 'task')}"
@@ -800,8 +810,10 @@ def _score_table(dom: Mapping[str, Any], table: Mapping[str, Any]) -> Table:
                 cells.append(Cell("", False))
             else:
                 beside = a in row["paper"]
-                text = _cell_text(c, most, _tags(dom, c["provenance"]), label=beside)
-                cells.append(Cell(text, c["bold"]))
+                text = _cell_text(c, most, _tags(dom, c["provenance"]))
+                # beside the paper's number: whether it compares and, if not, what it misses
+                note = comparable_label(c) if beside else ""
+                cells.append(Cell(text, c["bold"], note=note))
             if with_paper:
                 p = row["paper"].get(a)
                 cells.append(Cell("" if p is None else _fmt(p["mean"], p["std"])))
@@ -1051,7 +1063,7 @@ def render_atari_median(
     rows = []
     for label, a, half, e in entries:
         lo, hi = e["interval_25_75"]
-        mark = f" {comparable_label(e)}" if e in with_paper else ""
+        mark = comparable_label(e) if e in with_paper else ""
         texts = [
             f"{e['games']} of {half['of']}",
             f"{e['median']:.1f}",
@@ -1060,7 +1072,7 @@ def render_atari_median(
             _pct(e["paper_all_games"]),
         ]
         rows.append((Cell(label, numeric=False),
-                     Cell(a + _tags(dom, e["provenance"]) + mark, numeric=False),
+                     Cell(a + _tags(dom, e["provenance"]), numeric=False, note=mark),
                      *(Cell(t) for t in texts)))  # fmt: skip
     sources = sorted({i for *_, e in entries for i in e["provenance"]})
     text = (
@@ -1116,12 +1128,10 @@ def render_atari_per_game(
         for a in agents:
             b = by[a].get(task)
             beside = b is not None and b["paper_improvement"] is not None
-            ours = "" if b is None else (
-                f"{b['improvement']:+.1f}" + _tags(dom, b["provenance"])
-                + (f" {comparable_label(b)}" if beside else "")
-            )  # fmt: skip
+            ours = "" if b is None else f"{b['improvement']:+.1f}" + _tags(dom, b["provenance"])
             paper = f"{b['paper_improvement']:+.1f}" if beside else ""
-            cells += [Cell(ours, bold=bool(b and b["improvement"] >= 0)), Cell(paper)]
+            cells += [Cell(ours, bold=bool(b and b["improvement"] >= 0),
+                           note=comparable_label(b) if beside else ""), Cell(paper)]  # fmt: skip
         rows.append(tuple(cells))
     text = (
         "The paper's appendix figure (Atari normalized performance): per game and agent, the "
@@ -1201,7 +1211,7 @@ CONDITION_NAMES = {
     "preset": "preset",
     "budget": "budget",
     "data": "data",
-    "episodes": "evaluation episodes (episodes)",
+    "episodes": "episodes (evaluation episodes per run)",
     "seeds": "seeds",
     "selection": "selection",
 }
