@@ -273,3 +273,72 @@ def test_cells_of_fewer_seeds_say_how_many(tmp_path):
     assert f"{d4pg['mean']:.1f} ± " not in md
     assert "seeds" in d4pg["missing"] and "seeds" in brac["missing"]
     assert "seeds" not in bc["missing"]
+
+
+def _with_curves(recs, seed=0):
+    """Records as runs read back: each with its evaluations (three of them, the last one its
+    score), as ``rlu.runs.learning_curve`` gives them."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for r in recs:
+        means = [*rng.uniform(0, r["score"], 2), r["score"]]
+        out.append({**r, "curve": [{"step": 100 * (i + 1), "mean": float(m), "episodes": 2}
+                                   for i, m in enumerate(means)]})  # fmt: skip
+    return out
+
+
+@pytest.mark.parametrize("agents", [["bc"], ["bc", "d4pg", "bcq"]])
+def test_curves_profiles_and_improvement_figures_are_labelled_and_fit(agents):
+    """The learning curves (seeds thin, mean thick, its band ± sample std), the performance
+    profiles and the probability of improvement: titles that name what is drawn and how the
+    band or interval is made, axes labelled, legends inside the figure and apart."""
+    pytest.importorskip("matplotlib")
+    from rlu.evaluation.report.render import (
+        curves_figure,
+        improvement_figure,
+        profiles_figure,
+        pyplot,
+    )
+
+    plt = pyplot()
+    rep = build_report(_with_curves(records(CONTROL, agents)), reps=50)
+    dom = rep["domains"]["control_suite"]
+    fig = curves_figure(dom, "control_suite", plt)
+    try:
+        assert _layout_problems(fig) == []
+        title = fig._suptitle.get_text().replace("\n", " ")
+        assert "learning curves" in title and "band: ± sample std (ddof 1) over seeds" in title
+        drawn = [ax for ax in fig.axes if ax.axison]
+        assert [ax.get_title() for ax in drawn] == ["cartpole_swingup", "fish_swim", "walker_walk"]
+        assert all(ax.get_xlabel() == "learner steps" for ax in drawn)
+        # per agent: 3 seed lines and the mean; the mean is the seeds' mean
+        (t0,) = [t for t in dom["curves"]["tasks"] if t["task"] == CONTROL[0]]
+        c = t0["agents"]["bc"]
+        assert c["mean"] == pytest.approx(np.mean([s["means"] for s in c["seeds"]], axis=0))
+        assert c["std"] == pytest.approx(np.std([s["means"] for s in c["seeds"]], axis=0, ddof=1))
+        assert len(drawn[0].lines) == 4 * len(agents)
+        labels = [t.get_text() for leg in fig.legends for t in leg.get_texts()]
+        assert "one seed" in labels and "bc (3 seeds)" in labels
+    finally:
+        plt.close(fig)
+    if len(agents) < 2:
+        assert "improvement" in dom["absent"]  # no pair of agents to compare
+    for make, name, words in (
+        (profiles_figure, "profiles", "Performance profiles"),
+        (improvement_figure, "improvement", "Probability of improvement"),
+    ):
+        if name not in dom:
+            continue
+        fig = make(dom, plt)
+        try:
+            assert _layout_problems(fig) == []
+            title = fig._suptitle.get_text().replace("\n", " ")
+            assert words in title and "95 % stratified bootstrap CI over seeds" in title
+            axes = [ax for ax in fig.axes if ax.axison]
+            assert [ax.get_title().split(":")[0] for ax in axes] == [
+                "online policy selection, online-selection tasks",
+                "naive offline selection, offline-selection tasks",
+            ]
+            assert all(ax.get_xlabel() for ax in axes)
+        finally:
+            plt.close(fig)  # fmt: skip

@@ -247,3 +247,75 @@ def test_fqe_results_hold_null_and_the_report_reads_them_back(local_sweep, tmp_p
     assert not any(
         isinstance(v, float) and math.isnan(v) for v in rep["domains"]["other"]["fqe"][0].values()
     )
+
+
+# --- the whole loop, for real, in a browser ------------------------------------------------------
+@pytest.mark.slow
+def test_report_of_train_runs_and_a_sweep_on_the_bundled_data_in_chromium(tmp_path):
+    """Three ``rlu train`` runs (BC seeds 0 and 1, D4PG seed 0; small presets, 200 learner
+    steps on the bundled cartpole swingup data, evaluated in dm_control) and one sweep (IQL,
+    seeds 0 and 1) in one report: its Markdown, its figures (learning curves, a performance
+    profile, the probability of improvement, each labelled) and report.html as headless
+    chromium draws it."""
+    pytest.importorskip("dm_control")
+    pytest.importorskip("matplotlib")
+    pytest.importorskip("PIL")
+    from rlu.data.bundled import bundled_dataset_path
+    from rlu.restore import report
+    from rlu.sweep import sweep
+    from rlu.train import train
+    from rlu.workers import Backend
+    from tests.evaluation.test_report import screenshot
+    from tests.fakes import sweep_config
+
+    task = "control_suite/cartpole_swingup"
+    data = str(bundled_dataset_path(task))
+    settings = dict(steps=200, eval_every=100, eval_episodes=1, eval_envs=1, eval_max_steps=100,
+                    checkpoint_every=200, log_every=100)  # fmt: skip
+    runs = []
+    for agent, seed in (("bc", 0), ("bc", 1), ("d4pg", 0)):
+        runs.append(tmp_path / f"{agent}_{seed}")
+        train(train_config(task=task, agent=agent, dataset=data, seed=seed, **settings), runs[-1])
+    cfg = sweep_config(tasks=(task,), agents=("iql",), datasets={task: data}, seeds=(0, 1),
+                       max_configs=1, **settings)  # fmt: skip
+    sweep(cfg, tmp_path / "sweep", Backend("local", 1))
+    out = tmp_path / "report"
+    paths = report([*runs, tmp_path / "sweep"], out)
+    names = sorted(p.name for p in paths)
+    assert names == ["control_suite_curves.png", "control_suite_improvement.png",
+                     "control_suite_profiles.png", "control_suite_tasks.png", "report.html",
+                     "report.json", "report.md"]  # fmt: skip
+    dom = json.loads((out / "report.json").read_text())["domains"]["control_suite"]
+    curves = {a: c for t in dom["curves"]["tasks"] for a, c in t["agents"].items()}
+    assert {a: c["n_seeds"] for a, c in curves.items()} == {"bc": 2, "d4pg": 1, "iql": 2}
+    assert all(c["steps"] == [100, 200] for c in curves.values())
+    md = (out / "report.md").read_text()
+    for words in (
+        "Learning curves: evaluation return against learner steps",
+        "Performance profiles (rliable's",
+        "Probability of improvement (rliable's",
+        "(1 seed) (not comparable: preset, budget, data, episodes, seeds)",
+        "the paper states no budget",
+    ):
+        assert words in md, words  # fmt: skip
+    for name in ("curves", "profiles", "improvement", "tasks"):
+        assert f"(figures/control_suite_{name}.png)" in md
+    from PIL import Image
+
+    for name in ("curves", "profiles", "improvement"):
+        png = out / "figures" / f"control_suite_{name}.png"
+        assert Image.open(png).size[0] >= 600 and png.stat().st_size > 20_000, name
+    img = screenshot(out / "report.html", tmp_path / "shot.png", tmp_path / "profile",
+                     size=(1200, 6000))  # fmt: skip
+    ink = np.any(img < 200, axis=2).mean()
+    assert 0.02 < ink < 0.6, f"{ink:.3f} of the page is ink: blank or unstyled"
+    # the figures are on screen: matplotlib's first three colours (bc, d4pg, iql) fill their
+    # bars and curves
+    colours = ((31, 119, 180), (255, 127, 14), (44, 160, 44))
+    drawn = [np.all(np.abs(img.astype(int) - c) <= 8, axis=2).sum() for c in colours]
+    assert min(drawn) > 1000, drawn
+    for png in (out / "figures").iterdir():
+        png.unlink()
+    img2 = screenshot(out / "report.html", tmp_path / "shot2.png", tmp_path / "p2",
+                      size=(1200, 6000))  # fmt: skip
+    assert np.all(np.abs(img2.astype(int) - colours[0]) <= 8, axis=2).sum() < 100
