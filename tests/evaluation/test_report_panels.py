@@ -474,13 +474,18 @@ def test_rlu_report_renders_every_panel_of_real_sweeps(tmp_path, capsys):
     a, c = rep["domains"]["atari"], rep["domains"]["control_suite"]
     assert a["absent"] == {} and c["absent"] == {}
     assert a["panels"] == ["online", "offline_naive", "aggregates", "dataset_p90", "atari_median",
-                           "atari_per_game", "iqn_tau", "bcq_threshold"]  # fmt: skip
-    assert c["panels"] == ["online", "offline_naive", "aggregates", "dataset_p90", "task_bars"]
+                           "atari_per_game", "iqn_tau", "bcq_threshold", "curves", "profiles",
+                           "improvement"]  # fmt: skip
+    assert c["panels"] == ["online", "offline_naive", "aggregates", "dataset_p90", "task_bars",
+                           "curves", "profiles", "improvement"]  # fmt: skip
     assert [v["value"] for v in a["iqn_tau"]["values"]] == [8, 16]
     assert [v["value"] for v in a["bcq_threshold"]["values"]] == [0.25, 0.5]
     figures = sorted(p.name for p in (out / "figures").iterdir())
-    assert figures == ["atari_median.png", "atari_per_game.png", "bcq_threshold.png",
-                       "control_suite_tasks.png", "iqn_tau.png"]  # fmt: skip
+    assert figures == ["atari_curves.png", "atari_improvement.png", "atari_median.png",
+                       "atari_per_game.png", "atari_profiles.png", "bcq_threshold.png",
+                       "control_suite_curves.png", "control_suite_improvement.png",
+                       "control_suite_profiles.png", "control_suite_tasks.png",
+                       "iqn_tau.png"]  # fmt: skip
     md, html = (out / "report.md").read_text(), (out / "report.html").read_text()
     for f in figures:
         png = (out / "figures" / f).read_bytes()
@@ -504,5 +509,6 @@ def test_rlu_report_renders_every_panel_of_real_sweeps(tmp_path, capsys):
             per_game.append(float(normalized_score(raw, rnd[game], best[game])))
         got = a["atari_median"]["online"]["agents"][agent]
         assert got["median"] == pytest.approx(np.median(per_game)) and got["games"] == 2
-    assert "| online (tuning games) | iqn | 2 of 9 |" in md
-    assert "| naive offline (held-out) | bcq | 2 of 37 |" in md
+    label = "(not comparable: preset, budget, data, episodes, seeds, selection)"
+    assert f"| online (tuning games) | iqn {label} | 2 of 9 |" in md
+    assert f"| naive offline (held-out) | bcq {label} | 2 of 37 |" in md
