@@ -168,10 +168,11 @@ def clear_temporary(run: str | os.PathLike) -> None:
 
 @contextlib.contextmanager
 def append_log(path: str | os.PathLike) -> Iterator[Any]:
-    """A run log opened for appending, refusing a planted symlink instead of writing through."""
-    flags = os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_NOFOLLOW | os.O_CLOEXEC
+    """A run log opened for appending (``rlu.files.open_private``): a planted symlink, a hard
+    link or anything but a plain file is refused instead of written through."""
+    flags = os.O_WRONLY | os.O_CREAT | os.O_APPEND
     try:
-        fd = os.open(path, flags, 0o644)
+        fd = files.open_private(path, flags, "run log")
     except OSError as e:
         raise RluError(
             f"{path}: cannot be opened for appending ({e.strerror}); remove it"

@@ -30,7 +30,7 @@ from typing import Any
 
 from rlu import runs
 from rlu.devices import check_ray_gpus
-from rlu.files import bounds, check_output, shape_of
+from rlu.files import bounds, check_output, make_folder, shape_of
 from rlu.loggers import LOGGERS
 from rlu.settings import RunSettings
 from rlu.types import DiscreteSpec, RluError
@@ -229,7 +229,7 @@ def sweep(
                     "arguments to continue it or choose a new --out"
                 )
         specs = expand(config, out)
-        out.mkdir(parents=True, exist_ok=True)
+        make_folder(out)
         runs.write_json(cfg_path, config.to_json())
         todo = [s for s in specs if not (Path(s.run_dir) / runs.RESULT).exists()]
         if progress:

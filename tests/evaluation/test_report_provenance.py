@@ -425,3 +425,38 @@ def test_figures_label_the_paper_markers_and_say_what_drew_each_bar():
         assert len(errs.lines[2][0].get_segments()) == 1  # bc's only: d4pg has one seed
     finally:
         plt.close(fig)
+
+
+def test_a_converted_release_dataset_records_the_shards_it_holds():
+    """What the data condition reads: a release dataset's manifest names its shard files; they
+    count against the registry's names for the task's dataset (a file named otherwise, such as
+    a one-shard test fixture, counts as no release shard)."""
+    from rlu.data.provenance import data_source
+    from rlu.tasks import get_task
+
+    names = get_task(CARTPOLE).release_dataset("dm_control_suite").shard_names("")
+    prov = {"source": "rl_unplugged release", "family": "dm_control_suite", "task": CARTPOLE}
+    some = [{"name": n.rsplit("/", 1)[-1]} for n in names[:3]]
+    counts = {"steps": 1234}
+    data = data_source({"provenance": {**prov, "files": some}, "counts": counts})
+    assert data == {"source": "release", "family": "dm_control_suite", "files": 3,
+                    "shards": {"used": 3, "of": 100, "dataset": ""}, "steps": 1234}  # fmt: skip
+    every = [{"name": n.rsplit("/", 1)[-1]} for n in names]
+    assert data_source({"provenance": {**prov, "files": every}})["shards"]["used"] == 100
+    fixture = [{"name": "train-00000-of-00001"}]
+    assert data_source({"provenance": {**prov, "files": fixture}})["shards"] == {
+        "used": 0, "of": None, "dataset": None}  # fmt: skip
+    # Atari: one run's shards are the dataset (run_1 of the five)
+    pong = get_task("atari/Pong").release_dataset("atari").shard_names("run_2")[:4]
+    data = data_source(
+        {
+            "provenance": {
+                "source": "rl_unplugged release",
+                "family": "atari",
+                "task": "atari/Pong",
+                "run": 2,
+                "files": [{"name": n.rsplit("/", 1)[-1]} for n in pong],
+            }
+        }
+    )
+    assert data["shards"] == {"used": 4, "of": 100, "dataset": "run_2"}  # fmt: skip
