@@ -346,3 +346,33 @@ def test_curves_profiles_and_improvement_figures_are_labelled_and_fit(agents):
             assert all(ax.get_xlabel() for ax in axes)
         finally:
             plt.close(fig)  # fmt: skip
+
+
+def test_profiles_and_probability_of_improvement_are_rliables_number_for_number():
+    """rlu computes rliable's performance profiles and probability of improvement vectorised
+    (bench/report_profiles.py: ~100x rliable's per-replicate Python); the same resamples from
+    the same generator give the same numbers, intervals included."""
+    rly = pytest.importorskip("rliable.library")
+    metrics = pytest.importorskip("rliable.metrics")
+    from rlu.evaluation.report.profiles import performance_profile, probability_of_improvement
+
+    rng = np.random.default_rng(3)
+    scores = {"a": rng.integers(0, 6, (3, 4)).astype(float),  # ties, within and across agents
+              "b": rng.normal(3, 2, (5, 4)), "c": rng.normal(3, 2, (1, 4))}  # fmt: skip
+    taus = np.linspace(-1, 7, 17)
+    np.random.seed(0)
+    want, want_ci = rly.create_performance_profile(scores, taus, reps=120)
+    got, got_ci = performance_profile(scores, taus, reps=120, random_state=0)
+    for k in scores:
+        assert np.array_equal(got[k], want[k]) and np.array_equal(got_ci[k], want_ci[k]), k
+    pairs = {"a,b": (scores["a"], scores["b"]), "b,c": (scores["b"], scores["c"]),
+             "a,a": (scores["a"], scores["a"])}  # fmt: skip
+    np.random.seed(0)
+    want, want_ci = rly.get_interval_estimates(
+        {k: list(v) for k, v in pairs.items()}, metrics.probability_of_improvement, reps=120
+    )
+    got, got_ci = probability_of_improvement(pairs, reps=120, random_state=0)
+    for k in pairs:
+        assert got[k] == pytest.approx(float(want[k]), abs=1e-12), k
+        assert np.allclose(got_ci[k], np.ravel(want_ci[k]), rtol=0, atol=1e-12), k
+    assert got["a,a"] == 0.5  # an agent against itself: ties count half
