@@ -3,8 +3,10 @@
 The run options (preset, budget, evaluation, checkpoints, threads, runtime) are the fields of
 ``rlu.settings.RunSettings``, flags and help derived from them, so the library and the command
 line share every default. ``--preset small`` is the default: a first ``rlu train`` takes
-minutes on a laptop CPU; ``--preset paper`` runs the paper's settings and budget, the only
-numbers that stand beside the paper's (with release data). ``--device auto`` (the first CUDA
+minutes on a laptop CPU; ``--preset paper`` runs rlu's paper presets (the paper's settings; the
+paper's budget where it states one, Atari's 2M, rlu's elsewhere), and ``rlu report`` checks
+every other condition of the paper's numbers before it calls a number comparable
+(``rlu.evaluation.report.conditions``). ``--device auto`` (the first CUDA
 GPU if PyTorch sees one, else the CPU) is the command line's device; the library's stays cpu.
 """
 

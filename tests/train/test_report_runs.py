@@ -133,6 +133,13 @@ def test_the_cli_reports_run_folders(hand_runs, tmp_path, capsys):
     assert f"wrote {tmp_path / 'r' / 'report.md'}" in capsys.readouterr().out
     assert main(["report", *runs]) == 2  # several folders: --out
     assert "pass --out" in capsys.readouterr().err
+    # the library's one call is the command's
+    import rlu
+    from rlu.restore import report
+
+    assert rlu.report is report
+    written = rlu.report(runs, tmp_path / "r2", figures=False)
+    assert sorted(p.name for p in written) == ["report.html", "report.json", "report.md"]
     # one run folder: its own report subfolder by default
     assert main(["report", runs[0]]) == 0
     assert (Path(runs[0]) / "report" / "report.html").is_file()
