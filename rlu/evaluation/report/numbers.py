@@ -498,14 +498,17 @@ def curves_panel(ctx: DomainContext) -> dict[str, Any] | Absent:
     return curves(ctx, chosen)
 
 
-def _split_selections(ctx: DomainContext) -> dict[str, dict[tuple[str, str], Selection]]:
-    """Per split, its protocol's selections on the scores the aggregates use."""
+def _split_selections(
+    ctx: DomainContext,
+) -> dict[str, tuple[dict[tuple[str, str], Selection], Protocol]]:
+    """Per split, its protocol's selections on the scores the aggregates use, and how each
+    agent's configuration was chosen."""
     out = {}
     if ctx.online_tasks:
-        out["online"] = _online(ctx, ctx.scored)
+        out["online"] = (_online(ctx, ctx.scored), _ONLINE)
     naive = _naive(ctx, ctx.scored)
     if ctx.offline_tasks and naive.chosen:
-        out["offline"] = naive.sel
+        out["offline"] = (naive.sel, naive.protocol)
     return out
 
 
@@ -516,7 +519,7 @@ def _rliable_panel(ctx: DomainContext, which: str) -> dict[str, Any] | Absent | 
         return Absent(_NO_REFERENCE)
     splits = _split_selections(ctx)
     tasks = {"online": ctx.online_tasks, "offline": ctx.offline_tasks}
-    mats = profiles.matrices(splits, tasks, ctx.agents)
+    mats = profiles.matrices({k: sel for k, (sel, _) in splits.items()}, tasks, ctx.agents)
     if which == "improvement":
         out = profiles.improvement(mats, ctx.reps)
         if not out:
@@ -527,10 +530,9 @@ def _rliable_panel(ctx: DomainContext, which: str) -> dict[str, Any] | Absent | 
         if not out:
             return Absent("no split has a task under its protocol")
     for split, half in out.items():
-        half.update(_merge_sourced(
-            [_sourced(ctx, sel, _ONLINE if split == "online" else _naive(ctx, ctx.scored).protocol)
-             for (t, _), sel in splits[split].items() if t in half["tasks"]]
-        ))  # fmt: skip
+        sel, protocol = splits[split]
+        cells = [_sourced(ctx, s, protocol) for (t, _), s in sel.items() if t in half["tasks"]]
+        half.update(_merge_sourced(cells))
     return {"splits": out, "normalised": ctx.normalised}
 
 
@@ -1021,8 +1023,7 @@ def _table(
         # (a cell of one seed has no spread: its mean alone)
         best = max(cells.values(), key=lambda c: c["mean"], default=None)
         for c in cells.values():
-            reach, low = (c["std"] or 0.0), (best["std"] or 0.0) if best else 0.0
-            c["bold"] = c["mean"] + reach >= best["mean"] - low
+            c["bold"] = c["mean"] + (c["std"] or 0.0) >= best["mean"] - (best["std"] or 0.0)
         # the paper's number of every agent it has one for, rlu's cell or not (a sweep still
         # running, or an agent not run on this task, leaves the paper's column filled)
         beside = {a: paper_entry(task, a, ctx.paper) for a in ctx.agents}
