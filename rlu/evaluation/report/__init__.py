@@ -261,8 +261,11 @@ def write_report(
     files.write_atomic(paths_out[0], render.render("report.md.j2", "rlu report", parts), out)
     files.write_atomic(paths_out[1], render.render("report.html.j2", "rlu report", parts), out)
     inputs = [str(p) for p in _items(paths)]
-    files.write_json(paths_out[2], {"written_by": runs.REPORT_WRITER, "inputs": inputs,
-                                    "figures": images, **rep}, root=out)  # fmt: skip
+    files.write_json(
+        paths_out[2],
+        {"written_by": runs.REPORT_WRITER, "inputs": inputs, "figures": images, **rep},
+        root=out,
+    )
     for rel in old - set(images):  # figures of an earlier report that this one does not draw
         stale = out / rel
         if stale.is_file() and not stale.is_symlink():

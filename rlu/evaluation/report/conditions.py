@@ -195,8 +195,11 @@ def _preset(
         return f"preset {name or 'not recorded'}, not {want}"
     if overrides is None:
         return "its overrides of the preset were not recorded"
-    off = [f"{k}={v}" for k, v in sorted(overrides.items())
-           if k not in preset.grid or v not in preset.grid[k]]  # fmt: skip
+    off = [
+        f"{k}={v}"
+        for k, v in sorted(overrides.items())
+        if k not in preset.grid or v not in preset.grid[k]
+    ]
     if off:
         return f"the paper preset changed outside the paper's grid ({', '.join(off)})"
     return None
@@ -282,8 +285,9 @@ def stand_ins(domain: str, preset_steps: Mapping[str, int | None]) -> list[str]:
         out.append(f"the paper states no learner budget: compared at {at}")
     for what, noun in (("seeds", "seeds"), ("episodes", "evaluation episodes")):
         if fam[what].paper is None:
-            out.append(f"the paper states no number of {noun}: compared at rlu's "
-                       f"{fam[what].rlu} or more")  # fmt: skip
+            out.append(
+                f"the paper states no number of {noun}: compared at rlu's {fam[what].rlu} or more"
+            )
     return out
 
 
@@ -295,8 +299,10 @@ def needs(domain: str, preset_steps: Mapping[str, int | None]) -> dict[str, str]
         budget = f"{_steps(int(fam['budget'].paper))} learner steps (the paper's)"
     else:
         per = ", ".join(f"{a} {_steps(s)}" for a, s in sorted(preset_steps.items()) if s)
-        budget = (f"rlu's paper preset's learner steps ({per or 'not given to the report'}): "
-                  "rlu's choice, the paper states none")  # fmt: skip
+        budget = (
+            f"rlu's paper preset's learner steps ({per or 'not given to the report'}): "
+            "rlu's choice, the paper states none"
+        )
     if family(domain) == "atari":
         data = "the release's files, at least the paper's 2M steps (which 2M is not stated)"
     else:

@@ -38,10 +38,14 @@ def curves(
             config, protocol = chosen[(task, agent)]
             runs = sorted((k[3], r) for k, r in by_key.items() if k[:3] == (task, agent, config))
             seeds = [
-                {"seed": s, "steps": [e["step"] for e in r["curve"]],
-                 "means": [e["mean"] for e in r["curve"]]}
-                for s, r in runs if r.get("curve")
-            ]  # fmt: skip
+                {
+                    "seed": s,
+                    "steps": [e["step"] for e in r["curve"]],
+                    "means": [e["mean"] for e in r["curve"]],
+                }
+                for s, r in runs
+                if r.get("curve")
+            ]
             missing = [s for s, r in runs if not r.get("curve")]
             without += [f"{task} {agent} seed {s}" for s in missing]
             if not seeds:

@@ -338,8 +338,9 @@ def _grid_combinations(preset: PaperPreset | None) -> list[dict[str, Any]]:
     if preset is None or not preset.grid:
         return [{}]
     keys = sorted(preset.grid)
-    return [dict(zip(keys, v, strict=True))
-            for v in itertools.product(*(preset.grid[k] for k in keys))]  # fmt: skip
+    return [
+        dict(zip(keys, v, strict=True)) for v in itertools.product(*(preset.grid[k] for k in keys))
+    ]
 
 
 def online_panel(ctx: DomainContext) -> dict[str, Any] | Absent:
@@ -523,8 +524,10 @@ def _rliable_panel(ctx: DomainContext, which: str) -> dict[str, Any] | Absent | 
     if which == "improvement":
         out = profiles.improvement(mats, ctx.reps)
         if not out:
-            return Absent("the probability of improvement compares two agents on the same "
-                          "tasks, and no split has two")  # fmt: skip
+            return Absent(
+                "the probability of improvement compares two agents on the same "
+                "tasks, and no split has two"
+            )
     else:
         out = profiles.profiles(mats, ctx.reps)
         if not out:
@@ -947,8 +950,10 @@ def _preset_json(ctx: DomainContext, agent: str) -> dict[str, Any]:
 def _statements(ctx: DomainContext) -> dict[str, Any]:
     """What the paper states of each condition for this domain, where, and rlu's stand-in."""
     fam = cond.PAPER[cond.family(ctx.domain)]
-    out = {k: {"paper": v.paper, "where": v.where, "rlu": v.rlu, "rlu_where": v.rlu_where}
-           for k, v in fam.items()}  # fmt: skip
+    out = {
+        k: {"paper": v.paper, "where": v.where, "rlu": v.rlu, "rlu_where": v.rlu_where}
+        for k, v in fam.items()
+    }
     out["table"] = cond.PAPER_TABLES.get(ctx.domain)
     steps = {a: p.steps for a, p in ctx.presets.items() if p is not None}
     out["stand_ins"] = cond.stand_ins(ctx.domain, steps)
@@ -1027,8 +1032,13 @@ def _table(
         # the paper's number of every agent it has one for, rlu's cell or not (a sweep still
         # running, or an agent not run on this task, leaves the paper's column filled)
         beside = {a: paper_entry(task, a, ctx.paper) for a in ctx.agents}
-        rows.append({"task": task, "cells": cells,
-                     "paper": {a: e for a, e in beside.items() if e is not None}})  # fmt: skip
+        rows.append(
+            {
+                "task": task,
+                "cells": cells,
+                "paper": {a: e for a, e in beside.items() if e is not None},
+            }
+        )
     return {"rows": rows, "paper_columns": _paper_columns(ctx, rows)}
 
 

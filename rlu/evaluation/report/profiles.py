@@ -63,8 +63,11 @@ def performance_profile(
 ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
     """(profile, (2, len(taus)) interval) per agent of (runs, tasks) score matrices:
     ``rliable.library.create_performance_profile`` number for number."""
-    rs = random_state if isinstance(random_state, np.random.RandomState) else \
-        np.random.RandomState(random_state)  # fmt: skip
+    rs = (
+        random_state
+        if isinstance(random_state, np.random.RandomState)
+        else np.random.RandomState(random_state)
+    )
     point, ci = {}, {}
     for name, x in scores.items():
         x = np.asarray(x, np.float64)
@@ -96,8 +99,11 @@ def probability_of_improvement(
     """(P(X > Y), its (2,) interval) per pair of (runs, tasks) score matrices over the same
     tasks: ``rliable.library.get_interval_estimates(pairs,
     rliable.metrics.probability_of_improvement)`` number for number."""
-    rs = random_state if isinstance(random_state, np.random.RandomState) else \
-        np.random.RandomState(random_state)  # fmt: skip
+    rs = (
+        random_state
+        if isinstance(random_state, np.random.RandomState)
+        else np.random.RandomState(random_state)
+    )
     point, ci = {}, {}
     for name, (x, y) in pairs.items():
         x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
@@ -107,10 +113,12 @@ def probability_of_improvement(
         for r in range(reps):  # rliable's order: X's resample, then Y's, per replicate
             ix[r] = rs.choice(x.shape[0], x.shape, replace=True)
             iy[r] = rs.choice(y.shape[0], y.shape, replace=True)
-        stats = np.concatenate([
-            _improvement(x[ix[lo : lo + 200], cols], y[iy[lo : lo + 200], cols])
-            for lo in range(0, reps, 200)
-        ])  # fmt: skip
+        stats = np.concatenate(
+            [
+                _improvement(x[ix[lo : lo + 200], cols], y[iy[lo : lo + 200], cols])
+                for lo in range(0, reps, 200)
+            ]
+        )
         point[name] = float(_improvement(x, y))
         ci[name] = _percentile(stats, size)
     return point, ci
