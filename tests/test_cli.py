@@ -109,7 +109,8 @@ def test_train_and_evaluate_defaults_are_quick():
     assert five.eval_period(20) == 5 and RunSettings().eval_period(20) == 20  # library = CLI
     never = from_args(RunSettings, parser.parse_args([*base, "--eval-every", "-1"]))
     assert never.eval_period(9) == 0
-    assert parser.parse_args(["evaluate", "run"]).threads == 1
+    evaluate = from_args(RunSettings, parser.parse_args(["evaluate", "run"]))
+    assert evaluate.torch_threads == 1 and evaluate.eval_episodes == RunSettings().eval_episodes
 
 
 def test_evaluate_sets_its_threads(tmp_path, capsys):
@@ -127,7 +128,8 @@ def test_evaluate_sets_its_threads(tmp_path, capsys):
     before = torch.get_num_threads()
     try:
         torch.set_num_threads(2)
-        argv = ["evaluate", str(tmp_path / "run"), "--episodes", "2", "--envs", "2", "--json"]
+        argv = ["evaluate", str(tmp_path / "run"), "--eval-episodes", "2", "--eval-envs", "2",
+                "--json"]  # fmt: skip
         assert main(argv) == 2  # the run's env factory is named in its config.json only
         assert f"if you trust it, name it yourself: --env {env}" in capsys.readouterr().err
         argv += ["--env", env]

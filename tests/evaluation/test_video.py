@@ -120,7 +120,7 @@ def test_rlu_evaluate_video_films_a_trained_run(tmp_path, capsys):
     run = RunSettings(steps=20, eval_every=-1, checkpoint_every=20)
     cfg = TrainConfig(task=CARTPOLE, agent="bc", dataset=data, run=run)
     train(cfg, tmp_path / "run", progress=False)
-    argv = ["evaluate", str(tmp_path / "run"), "--episodes", "2", "--envs", "1", "--max-steps",
+    argv = ["evaluate", str(tmp_path / "run"), "--eval-episodes", "2", "--eval-envs", "1", "--eval-max-steps",
             "30", "--video", str(tmp_path / "v"), "--video-episodes", "2"]  # fmt: skip
     assert main(argv) == 0
     lines = capsys.readouterr().out.splitlines()
