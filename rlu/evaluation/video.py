@@ -393,7 +393,7 @@ def _ffmpeg(exe: str, path: Path, shape: tuple, fps: float) -> _Writer:
             try:
                 code = proc.wait(timeout=ENCODER_TIMEOUT)
             except subprocess.TimeoutExpired:
-                why = f"did not finish the video {ENCODER_TIMEOUT:.0f} s after its last frame"
+                why = f"did not finish the video {ENCODER_TIMEOUT:g} s after its last frame"
                 raise failed(f"{why}; it may be hung (check `ffmpeg -version` runs)") from None
             if code != 0:
                 raise failed(f"exited with code {code}")
@@ -409,7 +409,7 @@ def _ffmpeg(exe: str, path: Path, shape: tuple, fps: float) -> _Writer:
             ready = select.select([], [fd], [], max(0.0, left))[1] if left > 0 else []
             if not ready:
                 raise failed(
-                    f"took no video frame for {ENCODER_TIMEOUT:.0f} s; it may be hung, or not "
+                    f"took no video frame for {ENCODER_TIMEOUT:g} s; it may be hung, or not "
                     "read its input (check `ffmpeg -version` runs; $IMAGEIO_FFMPEG_EXE picks "
                     "another ffmpeg)"
                 )
