@@ -191,7 +191,6 @@ def test_help_names_real_commands():
     import argparse
     import re
 
-    from rlu.agents import AGENTS
     from rlu.cli import build_parser
 
     parser = build_parser()

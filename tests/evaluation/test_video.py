@@ -143,9 +143,8 @@ def test_rlu_evaluate_video_films_the_episodes_it_scores(trained, tmp_path, caps
     meta, frames = _frames(tmp_path / "v" / "episode_001.mp4")
     assert len(frames) == 31 and frames[0].shape == (240 + 24, 320, 3)  # --video-size
     err = captured.err.splitlines()
-    assert f"filming episodes 0-1 of the 3 it scores, as they are played, into {tmp_path / 'v'}" in (
-        err[0]
-    )
+    says = f"filming episodes 0-1 of the 3 it scores, as they are played, into {tmp_path / 'v'}"
+    assert says in err[0]
     assert [line for line in err if line.startswith("evaluate: 100% 3/3 episodes")] == [err[-1]]
     assert err[-1].endswith("steps=90")
     assert sorted(p.name for p in (tmp_path / "v").iterdir()) == [
@@ -248,7 +247,8 @@ def test_the_video_extra_holds_what_gymnasiums_record_video_needs(tmp_path):
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[2]
-    extras = tomllib.loads((root / "pyproject.toml").read_text())["project"]["optional-dependencies"]
+    project = tomllib.loads((root / "pyproject.toml").read_text())["project"]
+    extras = project["optional-dependencies"]
     assert any(r.startswith("moviepy") for r in extras["video"])
     pytest.importorskip("moviepy")
     pytest.importorskip("dm_control")
