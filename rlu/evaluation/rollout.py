@@ -32,6 +32,8 @@ EnvFactory = Callable[[], Any]
 
 @dataclass(frozen=True)
 class EvalResult:
+    """The outcome of :func:`evaluate`: each episode's return and length, in episode order."""
+
     returns: tuple[float, ...]
     """Undiscounted return of each episode, in episode order."""
     lengths: tuple[int, ...]
@@ -39,9 +41,11 @@ class EvalResult:
 
     @property
     def mean(self) -> float:
+        """The mean return over the episodes."""
         return float(np.mean(self.returns))
 
     def to_json(self) -> dict[str, Any]:
+        """``{returns, lengths, mean}``: what ``rlu evaluate --json`` prints, eval.jsonl holds."""
         return {"returns": list(self.returns), "lengths": list(self.lengths), "mean": self.mean}
 
 

@@ -31,6 +31,15 @@ from rlu.data.store import Dataset, open_dataset
 from rlu.files import open_private
 from rlu.types import RluError
 
+__all__ = [
+    "dataset_folder",
+    "download_command",
+    "load_release_dataset",
+    "load_task_dataset",
+    "open_cached",
+    "release_dataset_path",
+]
+
 # Keywords of load_release_dataset that pick a release dataset (so not the shipped one).
 _PICKS = ("family", "run", "challenge", "size", "shards")
 
