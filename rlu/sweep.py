@@ -44,7 +44,7 @@ class SweepConfig:
     """Task ids, e.g. control_suite/cartpole_swingup atari/Pong."""
     agents: tuple[str, ...]
     """Agent names (bc, d4pg, ...) or agent module paths you typed."""
-    datasets: Mapping[str, str]
+    datasets: Mapping[str, str] = field(default_factory=dict)
     """The data of each task, as rlu.load_dataset names it (a task id, a TFDS name or a folder;
     a task left out trains on its own id's dataset), stored as the resolved folder: a sweep
     folder reports from anywhere."""
