@@ -641,6 +641,8 @@ class SourceWriter:
     def __init__(self, fmt: str, folder: Path):
         self.fmt = fmt
         self.info: dict[str, Any] = {"format": fmt, "arrays": {}}
+        self._folder = folder
+        self._spools: dict[str, _Spool] = {}
         self._fd, self._tmp = tempfile.mkstemp(dir=folder, prefix=".rlu-source-", suffix=".npz")
         os.close(self._fd)
         self.npz = NpzWriter(self._tmp)
@@ -663,9 +665,27 @@ class SourceWriter:
         self.info["arrays"][key] = {"shape": list(shape), "dtype": np.dtype(col.dtype).name}
         return key
 
+    def spool(self, key: str, dtype: Any, row_shape: tuple[int, ...]) -> _Spool:
+        """Rows of array ``key`` appended as they come (an anonymous temporary holds them until
+        :meth:`attach` writes the array)."""
+        if key not in self._spools:
+            self._spools[key] = _Spool(self._folder, np.dtype(dtype), tuple(row_shape))
+        return self._spools[key]
+
     def attach(self, w: DatasetWriter) -> None:
         from rlu.files import write_atomic
 
+        for key, sp in self._spools.items():
+            shape = (sp.rows, *sp.row_shape)
+            with self.npz.member(key, shape, sp.dtype) as write:
+                sp.fh.seek(0)
+                row = max(1, math.prod(sp.row_shape) * sp.dtype.itemsize)
+                for a, b in iter_blocks(sp.rows, row):
+                    data = sp.fh.read((b - a) * row)
+                    write(np.frombuffer(data, sp.dtype).reshape(b - a, *sp.row_shape))
+            self.info["arrays"][key] = {"shape": list(shape), "dtype": sp.dtype.name}
+            sp.fh.close()
+        self._spools.clear()
         self.npz.zf.close()
         w.attach(source_npz_name(self.fmt), self._tmp)
         text = json.dumps(self.info, sort_keys=True, allow_nan=False)
@@ -677,10 +697,25 @@ class SourceWriter:
             os.unlink(jtmp)
 
     def close(self) -> None:
+        for sp in self._spools.values():
+            sp.fh.close()
         with contextlib.suppress(Exception):
             self.npz.zf.close()
         with contextlib.suppress(FileNotFoundError):
             os.unlink(self._tmp)
+
+
+class _Spool:
+    def __init__(self, folder: Path, dtype: np.dtype, row_shape: tuple[int, ...]):
+        self.fh = tempfile.TemporaryFile(dir=folder)
+        self.dtype, self.row_shape, self.rows = dtype, row_shape, 0
+
+    def append(self, rows: Any) -> None:
+        a = np.asarray(rows)
+        if a.dtype != self.dtype or tuple(a.shape[1:]) != self.row_shape:
+            raise RluError(f"rows of {a.dtype}{list(a.shape[1:])} for a spool of {self.dtype}")
+        self.fh.write(np.ascontiguousarray(a).tobytes())
+        self.rows += len(a)
 
 
 def read_source(ds: Dataset, fmt: str) -> tuple[dict[str, Any], NpzFile] | None:
