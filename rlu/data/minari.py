@@ -409,10 +409,10 @@ def export_minari(
         dataset_id = str(info["metadata"]["dataset_id"])
     base = Path(root) if root is not None else default_root()
     final = dataset_dir(dataset_id, base)
-    check_output(final, [ds.path], what="Minari dataset", flag="--id")
-    check_exportable(ds, "Minari", windows=True)
     if os.path.lexists(final):
         raise RluError(f"{final}: Minari dataset {dataset_id} already exists; use another --id")
+    check_output(final, [ds.path], what="Minari dataset folder", flag="--minari-dir")
+    check_exportable(ds, "Minari", windows=True)
     make_folder(base)
     export_id = new_export_id()
     length = np.asarray(ds.length)
@@ -515,7 +515,9 @@ def _write_minari(
             mds.update_dataset_from_buffer(buffers)
         if extras is not None:
             attrs = [extras.attrs(index + j) for j in range(len(chunk))]
-            mds.storage.update_episode_metadata(attrs, range(index, index + len(chunk)))
+        else:  # for Minari's users: which episode this is (rlu's import reads the sidecar)
+            attrs = [{f"rlu_{k}": v for k, v in s.metadata.items()} for _, s in chunk]
+        mds.storage.update_episode_metadata(attrs, range(index, index + len(chunk)))
         index += len(chunk)
     if mds is None:
         raise RluError(f"{ds.path}: every segment is a single step; Minari cannot store it")
@@ -729,6 +731,12 @@ def _check_episode(f: Any, i: int, h5: Path, spaces: Mapping, jpeg: bool, fix: s
             raise FormatError(f"{where}: {name!r} is missing or not an array of rows; {fix}")
         return d
 
+    for name in ("rewards", "terminations", "truncations"):
+        if arr(name).dtype.kind not in "biuf":
+            raise FormatError(
+                f"{where}: {name!r} holds {arr(name).dtype} values; a Minari episode's {name} are "
+                f"numbers: {fix}"
+            )
     t = arr("rewards").shape[0]
     size = 0
     for name in ("rewards", "terminations", "truncations"):
