@@ -1027,7 +1027,7 @@ class _Source:
                     e["origin"] = "rows"
             elif e["origin"] == "kept":
                 e["value"] = src.column(f"arrays/{name}", f.extra[name], str(f.path))
-            e["dtype"] = np.dtype(e["dtype"]).name if e.get("dtype") else None
+            e["dtype"] = np.dtype(e["dtype"]).str if e.get("dtype") else None
             entries.append(e)
         for key, a in f.attr_arrays.items():
             src.add(key, a)
