@@ -229,6 +229,8 @@ def test_minari_datacollector_dataset_comes_back_whole(tmp_path, monkeypatch):
     assert seeds[0] == 0 and max(seeds) >= 1 << 63  # uint64 seeds, which int64 cannot hold
     ds = open_dataset(import_minari("cartpole/random-v0", tmp_path / "ds"))
     assert validate(tmp_path / "ds").ok
+    assert ds.recover_environment().spec.max_episode_steps == 80  # the recorded time limit
+    assert ds.recover_environment(eval_env=True).spec.max_episode_steps == 200
     assert ds.metadata("seed")[0] == 0  # the seeds that fit int64 are rlu's seed metadata
     orig = tmp_path / "orig"
     shutil.move(root / "cartpole" / "random-v0", orig)
@@ -242,3 +244,30 @@ def test_minari_datacollector_dataset_comes_back_whole(tmp_path, monkeypatch):
     assert back.recover_environment(eval_env=True).spec.max_episode_steps == 200
     ep = next(back.iterate_episodes([3]))
     assert ep.rewards.dtype == np.float64
+
+
+def test_recover_environment_makes_no_unregistered_entry_point(tmp_path, monkeypatch):
+    """Files are data, never code: a recorded spec whose entry point Gymnasium has not
+    registered for its id is refused, not imported."""
+    minari = pytest.importorskip("minari")
+    gym = pytest.importorskip("gymnasium")
+    from gymnasium.envs.registration import EnvSpec
+    from minari.data_collector import EpisodeBuffer
+
+    from rlu.data.minari import import_minari
+    from rlu.types import RluError
+
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "m"))
+    box = gym.spaces.Box(-1, 1, (2,), np.float32)
+    buf = EpisodeBuffer(observations=np.zeros((3, 2), np.float32),
+                        actions=np.zeros((2, 2), np.float32), rewards=np.zeros(2),
+                        terminations=np.array([False, True]), truncations=np.zeros(2, bool))  # fmt: skip
+    mds = minari.create_dataset_from_buffers(
+        "evil/spec-v0", [buf], observation_space=box, action_space=box
+    )
+    spec = EnvSpec("CartPole-v1", entry_point="os:system", kwargs={"command": "touch x"})
+    mds.storage.update_metadata({"env_spec": spec.to_json()})
+    ds = open_dataset(import_minari("evil/spec-v0", tmp_path / "ds"))
+    with pytest.raises(RluError, match="not registered in Gymnasium with that entry point"):
+        ds.recover_environment()
+    assert not (tmp_path / "x").exists()
