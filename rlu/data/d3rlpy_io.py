@@ -614,6 +614,8 @@ def export_d3rlpy(
     from rlu.files import atomic_path, check_output_file, interrupts_deferred, make_folder
     from rlu.locks import OutputLock
 
+    if not str(out).strip():
+        raise RluError("-o is empty; give the d3rlpy dump's path")
     out = Path(out)
     if out.suffix.lower() not in (".h5", ".hdf5"):
         raise RluError(

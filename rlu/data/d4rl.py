@@ -312,6 +312,8 @@ def export_d4rl(
     from rlu.files import atomic_path, check_output_file, interrupts_deferred, make_folder
     from rlu.locks import OutputLock
 
+    if not str(out).strip():
+        raise RluError("-o is empty; give the D4RL file's path")
     out = Path(out)
     suffix = out.suffix.lower()
     if suffix not in (*HDF5_SUFFIXES, ".npz"):

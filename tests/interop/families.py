@@ -127,7 +127,9 @@ def make_family(
     elif name == "locomotion":
         family, task = "dm_locomotion_episodes", "locomotion/rodent_two_touch"
         spec = get_task(task).observation_spec
-        dims = {k.removeprefix("walker/"): v.shape[0] for k, v in spec.items() if v.shape != (64, 64, 3)}
+        dims = {
+            k.removeprefix("walker/"): v.shape[0] for k, v in spec.items() if v.shape != (64, 64, 3)
+        }
         dims = {f"walker/{k}": d for k, d in dims.items()}
         records = [
             _control_episode(rng, t, term, outside, dims, 38, camera=True) for t, term in ends

@@ -172,7 +172,8 @@ def test_d4rl_truncated_last_rows_without_next_observations_are_kept(tmp_path):
 
 # --- d3rlpy, written by d3rlpy 2.8.1's own dump ---------------------------------------------------
 @pytest.mark.parametrize(
-    ("name", "task"), [("d3rlpy_walker", "control_suite/walker_walk"), ("d3rlpy_pong", "atari/Pong")]
+    ("name", "task"),
+    [("d3rlpy_walker", "control_suite/walker_walk"), ("d3rlpy_pong", "atari/Pong")],
 )
 def test_d3rlpy_dump_comes_back_whole(tmp_path, name, task):
     orig = FIXTURES / f"{name}.h5"
@@ -259,9 +260,13 @@ def test_recover_environment_makes_no_unregistered_entry_point(tmp_path, monkeyp
 
     monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "m"))
     box = gym.spaces.Box(-1, 1, (2,), np.float32)
-    buf = EpisodeBuffer(observations=np.zeros((3, 2), np.float32),
-                        actions=np.zeros((2, 2), np.float32), rewards=np.zeros(2),
-                        terminations=np.array([False, True]), truncations=np.zeros(2, bool))  # fmt: skip
+    buf = EpisodeBuffer(
+        observations=np.zeros((3, 2), np.float32),
+        actions=np.zeros((2, 2), np.float32),
+        rewards=np.zeros(2),
+        terminations=np.array([False, True]),
+        truncations=np.zeros(2, bool),
+    )
     mds = minari.create_dataset_from_buffers(
         "evil/spec-v0", [buf], observation_space=box, action_space=box
     )

@@ -203,8 +203,10 @@ def test_export_d3rlpy_keeps_single_steps_in_the_sidecar(tmp_path):
                 one,
                 observation={k: v[-1:] for k, v in one.observation.items()},
                 is_first=np.ones(1, bool),
-                **{f: getattr(one, f)[-1:]
-                   for f in ("action", "reward", "discount", "is_last", "is_terminal")},
+                **{
+                    f: getattr(one, f)[-1:]
+                    for f in ("action", "reward", "discount", "is_last", "is_terminal")
+                },
             )  # fmt: skip
         )
         w.append(src.segment(1))
