@@ -737,7 +737,9 @@ def _check_episode(f: Any, i: int, h5: Path, spaces: Mapping, jpeg: bool, fix: s
                 f"{where}: {name!r} holds {arr(name).dtype} values; a Minari episode's {name} are "
                 f"numbers: {fix}"
             )
-    t = arr("rewards").shape[0]
+    steps = g.attrs.get("total_steps")  # Minari writes it; a damaged one falls back to rewards
+    ok = isinstance(steps, int | np.integer) and not isinstance(steps, bool) and steps >= 0
+    t = int(steps) if ok else arr("rewards").shape[0]
     size = 0
     for name in ("rewards", "terminations", "truncations"):
         d = arr(name)

@@ -66,8 +66,9 @@ SIDECAR_VERSION = 1
 SIDECAR_SUFFIX = ".rlu.npz"
 MINARI_SIDECAR = "rlu_sidecar.npz"
 MAX_SIDECAR_JSON = 64 << 20
-MAX_TABLE_BYTES = 1 << 30
-"""The most a sidecar's per-segment table may declare (16 M segments of a 64-float action)."""
+MAX_TABLE_BYTES = 256 << 20
+"""The most a sidecar's per-segment table may declare (about 3 M segments of a 38-float action:
+the most release windows a dataset of one task holds is far less)."""
 MAX_ATTACHMENT_BYTES = 4 << 30
 MAX_SOURCE_JSON = 64 << 20
 
