@@ -12,21 +12,29 @@ dict observation whose arrays share one floating dtype is one ``observations`` a
 keys flattened in the task's key order as D4RL's, d3rlpy's and dm_control's
 ``flatten_observation`` lay them out (import splits it back by the task's keys); other dict
 observations (a camera beside features) keep one array per key. ``metadata/rlu/...`` records the
-task id, the observation keys and sizes and the manifest's provenance (JSON); D4RL files keep
-their own ``metadata/...`` the same way, and import ignores both.
+task id, the observation keys and sizes, the manifest's provenance (JSON) and the export id of
+the sidecar ``<file>.rlu.npz`` that holds what the file cannot (each segment's final step,
+one-step segments, metadata, attachments: rlu.data.roundtrip); import reads both back. The file
+is written a block of rows at a time. A dataset imported from a D4RL file is exported in that
+file's layout (``source/d4rl.json``, below). Release windows and actions outside the action space
+are refused (rlu.data.roundtrip.check_exportable).
 
 ``terminals[i]`` is True when transition i enters a terminal state (discount 0); ``timeouts[i]`` is
-True on the last transition of every other segment (a time-limit end, or the end of a release
-window), so that import cuts the rows back into the same segments.
+True on the last transition of every other episode, so that import cuts the rows back into the
+same episodes.
 
 Import cuts episodes at terminals and timeouts, and also wherever ``next_observations[i]`` differs
 from ``observations[i + 1]`` (files in the wild miss some timeouts); a trailing run with neither
-counts as truncated. D4RL's own .hdf5 files (flat ``observations``, ``infos/...`` and
-``metadata/...`` groups, which are never read) are read as they are; those without
-``next_observations`` are cut at terminals and timeouts only and read as d3rlpy reads them: after
-a terminal the final observation is zeros; a timeout row (or a trailing run's last row) holds the
-final observation, and its action and reward, which no transition uses, stay in the episode's
-final step (d3rlpy counts that reward in the return and the returns-to-go; it used to be dropped).
+counts as truncated. Files without ``next_observations`` are cut at terminals and timeouts only
+and read as d3rlpy reads them: after a terminal the final observation is zeros (not known); a
+timeout row (or a trailing run's last row) is the episode's final step: it holds the final
+observation, and its action and reward, which no transition uses, stay there (d3rlpy counts that
+reward in the return and the returns-to-go). Frame stacks must continue each other (rlu stores
+each frame once). What the store does not hold is kept in the dataset's ``source/d4rl.json`` and
+``.npz``: the file's arrays in order with their dtypes, shapes, HDF5 storage and attributes, its
+other arrays (``infos/*``, ``metadata/*``), step arrays the store's dtypes would change (float64
+rewards), and the rows whose ``timeouts`` flag differs from the episodes' ends; export gives the
+file back from them.
 
 Import is wary of the file (rlu.data.foreign): every array's declared shape is checked against
 the others and against the task's schema before a row is read, then the rows are read, cut and

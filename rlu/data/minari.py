@@ -25,20 +25,28 @@ encoding off so that image observations stay exact):
 - the description says where the data came from, written from the manifest's provenance (the
   original release's files, the ``rlu generate`` command, the imported file); the whole
   provenance is in the dataset metadata as JSON (``rlu_provenance``);
-- episode metadata: rlu's per-segment metadata as episode attributes ``rlu_<field>``, plus
-  ``rlu_is_first`` / ``rlu_is_last`` so that release windows (segments that are not whole
-  episodes) come back as windows; a window's last step (which starts the next, unstored,
-  transition) keeps its action, reward and discount in ``rlu_final_action`` / ``_reward`` /
-  ``_discount``; so does a whole episode's final step that holds an action or reward (the last
-  row of a truncated episode imported from d3rlpy or D4RL: no transition's, kept);
-- dataset metadata: ``rlu_task_id``, the schema's task, which import reads back.
+- episode metadata: rlu's per-segment metadata as episode attributes ``rlu_<field>``, for
+  Minari's users; dataset metadata: ``rlu_task_id``, the schema's task, and ``rlu_export_id``;
+- what Minari cannot hold goes to the sidecar ``rlu_sidecar.npz`` in the dataset's folder
+  (rlu.data.roundtrip): one-step segments (Minari stores no episode without a step), every
+  segment's final step (the action, reward and discount no transition uses), release windows'
+  first and last flags, the metadata columns, schema, provenance and attached files;
+- the dataset is written into a staging folder of the datasets directory and renamed into
+  place when complete; a dataset imported from Minari is written back as it was (below).
 
 Import (``import_minari``) reads any Minari dataset (an id in ``MINARI_DATASETS_PATH`` or a
-dataset directory) with Minari's own iteration; an episode that ends with neither a termination
-nor a truncation (a recording cut short) counts as truncated. The final step of each imported
-episode holds no action or reward (rlu's step semantics) unless rlu's export kept one there.
-Without ``--task``, the task rlu's export recorded is the dataset's (if its schema gives the
-dataset's spaces). rlu's segments, windows included, round-trip column for column.
+dataset directory) with Minari's own iteration, after checking every episode's arrays against its
+``total_steps`` and the spaces, and its declared size, from the HDF5 metadata alone; an episode
+that ends with neither a termination nor a truncation (a recording cut short) counts as
+truncated. The final step of each imported episode holds no action or reward (rlu's step
+semantics); rlu's own export is restored from its sidecar. Without ``--task``, the task rlu's
+export recorded is the dataset's (if its schema gives the dataset's spaces). What the store does
+not hold is kept in ``source/minari.json`` and ``.npz`` (every ``metadata.json`` field:
+``env_spec``, ``eval_env_spec``, authors, permalink, description, reference scores; each
+episode's HDF5 attributes with their dtypes, such as ``DataCollector``'s uint64 seeds, which
+rlu's int64 ``seed`` column keeps only when they fit; the arrays' dtypes; float64 rewards;
+``infos``; the last termination and truncation flags), from which ``export_minari`` writes the
+dataset back, by default under its own id.
 """
 
 from __future__ import annotations
