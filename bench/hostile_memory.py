@@ -390,7 +390,7 @@ def measure(label: str, argv: list[str], limit: int = 1800, root: Path = ROOT) -
         env.pop(k, None)  # the endless server is on 127.0.0.1
     out = subprocess.run(
         ["/usr/bin/time", "-v", "timeout", str(limit), *argv],
-        cwd=ROOT,
+        cwd=root,  # python -m puts the working folder first on the path
         env=env,
         capture_output=True,
         text=True,
@@ -465,6 +465,8 @@ def interop(work: Path, total: int, rlu: list[str], gib: float, steps: int, base
     sys.path.insert(0, str(ROOT))
     from tests.hostile.bombs import large_dataset, minari_bomb, sidecar_bomb
 
+    for old in ("minari_bombs", "sidecar_bomb"):
+        shutil.rmtree(work / old, ignore_errors=True)
     print(f"\ninterop: bombs of {gib:g} GiB, exports of {steps:,} steps\n")
     print("| command | peak RSS | wall | exit | message |\n|---|---:|---:|---:|---|")
     for kind in ("rewards", "consistent", "infos"):

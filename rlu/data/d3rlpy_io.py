@@ -521,10 +521,17 @@ def d3rlpy_episodes(
     obs_parts = layout["observations"]
     view = DatasetView(ds)
     k = schema.frame_stack
+    from rlu.data.roundtrip import release_all
+
+    read = 0
     for i in range(len(ds)):
-        seg = ds.segment(i)
-        if len(seg) < 2:
+        if ds.length[i] < 2:
             continue
+        seg = ds.segment(i)
+        read += int(ds.length[i])
+        if read > 1 << 16:  # the pages read so far go back (rlu.data.roundtrip.release_all)
+            release_all(ds)
+            read = 0
         terminal = bool(seg.is_terminal[-1])
         t = len(seg) - 1 if terminal else len(seg)  # d3rlpy keeps no state after a terminal
         if keys is not None:

@@ -394,6 +394,12 @@ def _kept(source: Any, a: _Array) -> Column:
     return col
 
 
+def release_all(ds: Dataset) -> None:
+    from rlu.data.roundtrip import release_all as release
+
+    release(ds)
+
+
 def _write_hdf5(f: Any, arrays: list[_Array], rows: _Rows, flat: Any, flips: Any, source: Any,
                 info: Any) -> None:  # fmt: skip
     import h5py
@@ -424,6 +430,7 @@ def _write_hdf5(f: Any, arrays: list[_Array], rows: _Rows, flat: Any, flips: Any
         block = _Block(rows, lo, hi, flat, flips)
         for a in steps:
             made[a.name][lo:hi] = _as_array(block.values(a.name), a)
+        release_all(rows.ds)
     for a in arrays:
         if a.origin == "kept":
             col = _kept(source, a)
@@ -468,6 +475,7 @@ def _write_npz(tmp: Path, arrays: list[_Array], rows: _Rows, flat: Any, flips: A
                 with w.member(a.name, a.shape, a.dtype, a.compress) as write:
                     for lo, hi in iter_blocks(rows.n, _row_bytes([a]) * 2):
                         write(_as_array(_Block(rows, lo, hi, flat, flips).values(a.name), a))
+                        release_all(rows.ds)
 
 
 def is_rlu_d4rl(path: Path) -> bool:

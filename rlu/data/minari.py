@@ -585,6 +585,9 @@ def _chunks(ds: Dataset, chunk_steps: int) -> Iterator[list[tuple[int, Segment]]
         if steps >= chunk_steps:
             yield chunk
             chunk, steps = [], 0
+            from rlu.data.roundtrip import release_all
+
+            release_all(ds)
     if chunk:
         yield chunk
 

@@ -150,6 +150,14 @@ def spool(folder: Path) -> Iterator[Any]:
         yield fh
 
 
+def release_all(ds: Dataset) -> None:
+    """Give every column's resident pages back (``Dataset.release_pages``): an export reads the
+    columns front to back once, and without this the pages it read would stay in its resident
+    memory, the whole dataset's size by the end."""
+    for name in (*ds.schema.step_columns(), *ds.schema.frame_columns()):
+        ds.release_pages(name, min_bytes=0)
+
+
 # --- what an export can hold ----------------------------------------------------------------
 def check_exportable(ds: Dataset, fmt: str, windows: bool) -> None:
     """Refuse, before anything is written, a dataset the format cannot hold so that its import
@@ -173,20 +181,16 @@ def check_exportable(ds: Dataset, fmt: str, windows: bool) -> None:
             "windows would come back as episodes: export it with --format minari, which keeps "
             "them, or convert the release's whole-episode files (the *_episodes families)"
         )
-    # per step: its segment's last transition (T - 2) and whether the step is live (not final)
-    n = ds.num_steps
-    last_transition = np.zeros(n, bool)
-    ok = length >= 2
-    last_transition[(last - 1)[ok]] = True
-    final = np.zeros(n, bool)
-    final[last] = True
     seg_terminal = np.asarray(ds.column("is_terminal"))[last]
-    term_at = np.zeros(n, bool)
-    term_at[(last - 1)[ok]] = seg_terminal[ok]
     action, discount = ds.column("action"), ds.column("discount")
     row = max(1, np.asarray(action[:1]).nbytes + 4)
-    for a, b in iter_blocks(n, row):
-        live = ~final[a:b]
+    for a, b in iter_blocks(ds.num_steps, row):
+        release_all(ds)
+        steps = np.arange(a, b)
+        seg = np.searchsorted(start, steps, side="right") - 1
+        live = steps != last[seg]  # the final step's action and discount are no transition's
+        lt = (steps == last[seg] - 1)[live]  # the segment's last transition
+        tm = lt & seg_terminal[seg][live]
         bad = action_problem(ds.schema.action, np.asarray(action[a:b])[live])
         if bad is not None:
             step = a + int(np.flatnonzero(live)[bad[0]])
@@ -197,7 +201,6 @@ def check_exportable(ds: Dataset, fmt: str, windows: bool) -> None:
                 "clipped them, or keep the dataset in rlu's store"
             )
         d = np.asarray(discount[a:b])[live]
-        lt, tm = last_transition[a:b][live], term_at[a:b][live]
         wrong = ~np.isin(d, (0.0, 1.0)) | ((d == 0) & ~lt) | (lt & ((d == 0) != tm))
         if wrong.any():
             step = a + int(np.flatnonzero(live)[int(np.flatnonzero(wrong)[0])])
