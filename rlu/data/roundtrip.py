@@ -255,6 +255,14 @@ def write_sidecar(
         "attachments": rels,
     }
     held_rows = np.flatnonzero(held).astype(np.int64)
+    per = 8 + 1 + 1 + 4 + 4 + 1 + np.dtype(schema.action.dtype).itemsize * schema.action.size
+    per += sum(np.dtype(d).itemsize for d in METADATA_FIELDS.values())
+    if len(length) * per > MAX_TABLE_BYTES:  # what read_sidecar would refuse: refused here first
+        raise RluError(
+            f"{ds.path}: {len(length):,} segments make a sidecar table of {len(length) * per:,} "
+            f"bytes, more than the {MAX_TABLE_BYTES:,} rlu reads back; export fewer segments "
+            "(release windows: convert the *_episodes files instead)"
+        )
     with atomic_path(out, suffix=True) as tmp, NpzWriter(tmp) as w:
         w.add("rlu/sidecar", np.frombuffer(json.dumps(info, sort_keys=True).encode(), np.uint8))
         w.add("segments/length", length)
