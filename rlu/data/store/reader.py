@@ -378,6 +378,43 @@ class Dataset:
             "provenance": self.manifest["provenance"],
         }
 
+    # -- Minari's episode API (rlu.data.episodes) ------------------------------------------------
+    def set_seed(self, seed: int | None) -> None:
+        """Seed the generator of :meth:`sample_episodes` (``MinariDataset.set_seed``)."""
+        from rlu.data.episodes import set_seed
+
+        set_seed(self, seed)
+
+    def sample_episodes(self, n_episodes: int) -> list[Any]:
+        """``n_episodes`` distinct episodes at random, as Minari's ``EpisodeData``."""
+        from rlu.data.episodes import sample_episodes
+
+        return sample_episodes(self, n_episodes)
+
+    def iterate_episodes(self, episode_indices: Any = None) -> Iterator[Any]:
+        """The episodes (all, or those at ``episode_indices``) as Minari's ``EpisodeData``."""
+        from rlu.data.episodes import iterate_episodes
+
+        return iterate_episodes(self, episode_indices)
+
+    def filter_episodes(self, condition: Any) -> Dataset:
+        """The dataset of the episodes for which ``condition(episode)`` holds (Minari's)."""
+        from rlu.data.episodes import filter_episodes
+
+        return filter_episodes(self, condition)
+
+    def split(self, sizes: Any, seed: int | None = None) -> list[Dataset]:
+        """Disjoint random parts: episode counts or fractions (``minari.split_dataset``)."""
+        from rlu.data.episodes import split
+
+        return split(self, sizes, seed)
+
+    def recover_environment(self, eval_env: bool = False, **kwargs: Any) -> Any:
+        """The Gymnasium env the data come from (``MinariDataset.recover_environment``)."""
+        from rlu.data.episodes import recover_environment
+
+        return recover_environment(self, eval_env, **kwargs)
+
 
 def _compress_bound(n: int) -> int:
     """The most bytes zlib's deflate can make of ``n`` bytes (zlib.h ``compressBound``)."""

@@ -10,6 +10,8 @@ Layout of a dataset directory::
     segments/<field>.bin          per-segment index (start, length, frame_start) and metadata
     policies/...                  attachments (optional): files that are not columns, e.g. the
                                   behaviour policies ``rlu generate`` keeps (rlu.generate.policies)
+    source/...                    attachments: what an import kept of a D4RL, d3rlpy or Minari
+                                  file that the columns do not hold (rlu.data.roundtrip)
 
 Step columns: ``action``, ``reward``, ``discount``, ``is_first``, ``is_last``, ``is_terminal``
 and one per observation key. With ``frame_stack > 1`` (Atari) the single observation column holds
@@ -57,7 +59,7 @@ ENCODINGS = ("raw", "zlib")
 """How a column's bytes are stored: ``raw`` (a flat memory-mapped file) or ``zlib`` (one deflated
 stream per image frame)."""
 SEGMENT_INDEX = ("start", "length", "frame_start")
-ATTACHMENT_DIRS = ("policies",)
+ATTACHMENT_DIRS = ("policies", "source")
 """Top-level folders that may hold attachments: files listed in the manifest (sha256 and size,
 checked like the columns) besides the schema's own files."""
 
