@@ -47,7 +47,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--task",
         help="task id, e.g. control_suite/cartpole_swingup (d4rl and d3rlpy: required unless "
-        "rlu exported the file; minari: default, the schema of the dataset's spaces)",
+        "the file is an export of rlu's; minari: default, the schema of the dataset's spaces)",
     )
     p.add_argument("--out", required=True, help="new dataset directory")
     p.add_argument("--minari-dir", help="Minari datasets directory, for a dataset id (minari)")
