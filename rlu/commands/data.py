@@ -4,15 +4,20 @@ from __future__ import annotations
 
 import argparse
 
+_DATASET_HELP = (
+    "the dataset: a folder, or a name as rlu.load_dataset takes it (a task id: the bundled or "
+    "converted release data; a TFDS name)"
+)
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("validate", help="check a stored dataset; exit code 1 on any problem")
-    p.add_argument("path")
+    p.add_argument("path", help=_DATASET_HELP)
     p.add_argument("--no-checksums", action="store_true", help="skip the sha256 of every file")
     p.set_defaults(func=_validate)
 
     p = sub.add_parser("export", help="export a stored dataset to another format")
-    p.add_argument("path")
+    p.add_argument("path", help=_DATASET_HELP)
     p.add_argument("--format", required=True, choices=["d4rl", "d3rlpy", "minari"])
     p.add_argument(
         "-o",
@@ -55,9 +60,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _validate(args: argparse.Namespace) -> int:
+    import os
+
+    from rlu.data import load_dataset
     from rlu.data.validate import validate
 
-    report = validate(args.path, checksums=not args.no_checksums)
+    # a folder is validated as it is (problems reported, not raised); a name is resolved first
+    path = args.path if os.path.exists(args.path) else str(load_dataset(args.path).path)
+    report = validate(path, checksums=not args.no_checksums)
     for c in report.checked:
         print(f"ok   {c}")
     for n in report.notes:
@@ -73,10 +83,10 @@ def _note(line: str) -> None:
 
 
 def _export(args: argparse.Namespace) -> int:
-    from rlu.data.store import open_dataset
+    from rlu.data import load_dataset
     from rlu.types import RluError
 
-    ds = open_dataset(args.path)
+    ds = load_dataset(args.path)
     if args.format == "d4rl":
         if args.out is None:
             raise RluError("--format d4rl needs -o/--out FILE.hdf5 (or FILE.npz)")
