@@ -11,6 +11,7 @@ import importlib
 from typing import Any
 
 __version__ = "0.1.0"
+"""rlu's version (``rlu --version`` prints it)."""
 
 _LAZY = {
     "list_tasks": "rlu.tasks",

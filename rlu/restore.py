@@ -108,11 +108,16 @@ def evaluate_run(
     max_steps: int | None = None,
     challenge: str | None = None,
     device: Any = "cpu",
+    observer: Any = None,
+    render: Mapping[str, Any] | None = None,
 ) -> Any:
     """Roll out the greedy policy of a run folder's newest checkpoint (or a given checkpoint) in
     the env the run evaluated in (an RWRL run: its data's challenge, unless ``challenge``),
     acting on ``device``. ``env``: an env factory 'module:function' the caller trusts (a run
-    trained with one needs it named again: the one in its config.json is not imported)."""
+    trained with one needs it named again: the one in its config.json is not imported).
+    ``observer`` watches the episodes (``rlu.evaluation.rollout.EpisodeObserver``: a video
+    ``Recorder``, progress); ``render`` adds the env's render settings (``render_mode``,
+    ``render_size``) for one that films them."""
     from rlu.evaluation.rollout import evaluate, task_env_factory
     from rlu.tasks import check_challenge
 
@@ -133,8 +138,8 @@ def evaluate_run(
         check_challenge(train_cfg["task"], challenge, keys, settings["challenge"], str(path))
         settings["challenge"] = challenge
     policy, _ = load_policy(path, device)
-    env_fn = task_env_factory(train_cfg["task"], env, **settings)
-    return evaluate(policy, env_fn, episodes, seed, num_envs, max_steps)
+    env_fn = task_env_factory(train_cfg["task"], env, **settings, **(render or {}))
+    return evaluate(policy, env_fn, episodes, seed, num_envs, max_steps, observer)
 
 
 def fqe_selection(

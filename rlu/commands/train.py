@@ -16,7 +16,12 @@ import argparse
 import json
 from typing import Any
 
-from rlu.commands._video import add_video_options, check_video_options, write_run_videos
+from rlu.commands._video import (
+    add_video_options,
+    check_video_options,
+    evaluation_watch,
+    report_videos,
+)
 from rlu.loggers import LOGGERS
 from rlu.settings import EVAL_EVERY_MIN, add_options, checked, from_args
 
@@ -113,33 +118,25 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.set_defaults(func=_train, parser=p)
 
-    p = sub.add_parser("evaluate", help="roll out a trained run's greedy policy in its env")
+    p = sub.add_parser(
+        "evaluate",
+        help="roll out a trained run's greedy policy in its env",
+        description="Roll out the greedy policy of a run's newest checkpoint (or of a given "
+        "checkpoint) in the env the run evaluated in. The evaluation options are rlu train's, "
+        "with the same names and defaults.",
+    )
     p.add_argument("run", metavar="RUN_OR_CHECKPOINT")
-    p.add_argument(
-        "--episodes", type=_count, default=10, metavar="N", help="env episodes (default: 10)"
-    )
     p.add_argument("--seed", type=_seed, default=0, help="seeds the episodes (default: 0)")
-    p.add_argument(
-        "--envs",
-        type=_count,
-        default=4,
-        metavar="N",
-        help="envs stepped in lockstep (default: 4; returns do not depend on it)",
+    add_options(
+        p,
+        RunSettings,
+        only=("eval_episodes", "eval_envs", "eval_max_steps", "env", "challenge", "torch_threads"),
     )
-    p.add_argument(
-        "--max-steps",
-        type=_count,
-        default=None,
-        metavar="N",
-        help="cap on an episode's steps (default: the env's limit)",
-    )
-    p.add_argument(
-        "--env",
-        default=None,
-        metavar="MODULE:FUNCTION",
-        help="env factory (a run trained with one needs it named again here: a module named in "
-        "a run's files is never imported)",
-    )
+    for old, dest, lo in (("--episodes", "eval_episodes", 1), ("--envs", "eval_envs", 1),
+                          ("--max-steps", "eval_max_steps", 1)):  # fmt: skip
+        # the names evaluate had before it took train's: still read, no longer shown
+        p.add_argument(old, dest=dest, type=checked(int, {"min": lo}, old),
+                       default=argparse.SUPPRESS, help=argparse.SUPPRESS)  # fmt: skip
     p.add_argument(
         "--agent",
         default=None,
@@ -147,20 +144,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="the agent module a run of an agent outside rlu was trained with (imported because "
         "you typed it; it must be the one its config.json names)",
     )
-    p.add_argument(
-        "--challenge",
-        default=None,
-        choices=["none", "easy"],
-        help="RWRL: evaluate under this challenge (default: the run's)",
-    )
-    p.add_argument(
-        "--threads",
-        type=_count,
-        default=1,
-        metavar="N",
-        help="torch threads (default: 1; small batches per step)",
-    )
     p.add_argument("--json", action="store_true", help="print the result as JSON")
+    p.add_argument(
+        "--quiet",
+        "--no-progress",
+        dest="no_progress",
+        action="store_true",
+        help="no progress (a bar on a terminal, else a plain line every 10 s, on stderr)",
+    )
     add_device_option(p)
     add_video_options(p)
     p.set_defaults(func=_evaluate)
@@ -187,9 +178,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--dataset",
         action="append",
-        default=None,
-        metavar="TASK=PATH",
-        help="dataset of a task (repeat per task; required, here or in --config)",
+        default=[],
+        metavar="[TASK=]DATASET",
+        help="the data of a task, as rlu.load_dataset names it (a task id, a TFDS name or a "
+        "folder; TASK= may be left out: the dataset's own task); repeat per task (default: "
+        "the --config file's, else each task's own dataset, the one rlu ships or the release's "
+        "in the cache)",
     )
     p.add_argument(
         "--grid",
@@ -268,10 +262,14 @@ def _train(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
         loggers=args.log_to,
     )
-    print(
-        f"{args.out}: {result['steps']} steps ({result['preset']} preset), final evaluation "
-        f"return {_score(result['score'])} over {result['eval_episodes']} episodes"
-    )
+    done = f"{args.out}: {result['steps']} steps ({result['preset']} preset)"
+    if result["score"] is None:  # --eval-every -1: the run never met its env
+        print(f"{done}, not evaluated (--eval-every -1); score it with `rlu evaluate {args.out}`")
+    else:
+        print(
+            f"{done}, final evaluation return {result['score']:.1f} over "
+            f"{result['eval_episodes']} episodes"
+        )
     return 0
 
 
@@ -303,10 +301,6 @@ def _from_config_file(args: argparse.Namespace) -> dict[str, Any]:
     return dict(data.get("overrides", {}))
 
 
-def _score(value: float | None) -> str:
-    return "not evaluated" if value is None else f"{value:.1f}"
-
-
 def _evaluate(args: argparse.Namespace) -> int:
     from rlu.restore import evaluate_run
 
@@ -319,21 +313,29 @@ def _evaluate(args: argparse.Namespace) -> int:
 
         trust_env_factory(args.env)
     if args.video is not None:
-        check_video_options(args)
+        check_video_options(args)  # before any work: a bad folder or a missing extra fails now
     import torch
 
-    torch.set_num_threads(args.threads)
+    torch.set_num_threads(args.torch_threads)
 
-    res = evaluate_run(
-        args.run,
-        args.episodes,
-        args.seed,
-        args.envs,
-        args.env,
-        args.max_steps,
-        args.challenge,
-        device=args.device,
-    )
+    from rlu.progress import Progress
+
+    with (
+        Progress(args.eval_episodes, "evaluate", "episodes", quiet=args.no_progress) as bar,
+        evaluation_watch(args, bar) as watch,
+    ):
+        res = evaluate_run(
+            args.run,
+            args.eval_episodes,
+            args.seed,
+            args.eval_envs,
+            args.env,
+            args.eval_max_steps,
+            args.challenge,
+            device=args.device,
+            observer=watch,
+            render=watch.render,
+        )
     if args.json:
         print(json.dumps(res.to_json()))
     else:
@@ -341,8 +343,8 @@ def _evaluate(args: argparse.Namespace) -> int:
             f"{len(res.returns)} episodes: mean return {res.mean:.1f}, returns "
             + ", ".join(f"{r:.1f}" for r in res.returns)
         )
-    if args.video is not None:
-        write_run_videos(args)
+    if watch.recorder is not None:
+        report_videos(args, watch.recorder)
     return 0
 
 
@@ -358,6 +360,28 @@ def _pairs(items: list[str], flag: str, what: str) -> dict[str, str]:
     return out
 
 
+def _datasets(items: list[str]) -> dict[str, str]:
+    """``--dataset [TASK=]DATASET`` of a sweep: a bare DATASET is the data of its own task (the
+    task a task id or TFDS name names, or a folder's manifest)."""
+    from rlu.data import load_dataset
+    from rlu.types import RluError
+
+    out: dict[str, str] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep:
+            value = item
+            key = load_dataset(item).schema.task_id
+            if not key:
+                raise RluError(f"--dataset {item}: its manifest names no task; write TASK={item}")
+        elif not key or not value:
+            raise RluError(f"--dataset {item!r}; write it as TASK=DATASET or DATASET")
+        if key in out:
+            raise RluError(f"--dataset: two datasets for {key} ({out[key]}, {value}); give one")
+        out[key] = value
+    return out
+
+
 def _sweep(args: argparse.Namespace) -> int:
     from rlu.settings import RunSettings
     from rlu.sweep import SweepConfig, results_table, sweep
@@ -365,8 +389,7 @@ def _sweep(args: argparse.Namespace) -> int:
     from rlu.types import RluError
 
     given = _sweep_config_file(args) if args.config is not None else {}
-    datasets = {**given.get("datasets", {}),
-                **_pairs(args.dataset or [], "--dataset", "TASK=PATH")}  # fmt: skip
+    datasets = {**given.get("datasets", {}), **_datasets(args.dataset)}
     task_presets = {**given.get("task_presets", {}),
                     **_pairs(args.task_preset or [], "--task-preset", "TASK=PRESET")}  # fmt: skip
     grid = given.get("grid")
@@ -378,8 +401,6 @@ def _sweep(args: argparse.Namespace) -> int:
     for name, flag in (("tasks", "--tasks"), ("agents", "--agents")):
         if not getattr(args, name):
             raise RluError(f"{flag} is missing: give it on the command line or in --config")
-    if not datasets:
-        raise RluError("--dataset is missing: give TASK=PATH per task, here or in --config")
     config = from_args(
         SweepConfig,
         args,

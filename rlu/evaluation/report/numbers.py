@@ -132,6 +132,8 @@ def task_info(task_id: str) -> tuple[str, str, str]:
 
 
 def load_paper_results() -> dict[str, Any]:
+    """The paper's numbers shipped with rlu (``rlu/resources/paper_results.json``): per task and
+    agent the mean, std and whether the paper bolds it."""
     return json.loads(resources.files("rlu.resources").joinpath("paper_results.json").read_text())
 
 
