@@ -4,7 +4,9 @@ ends, sampling and validating a dataset with a zlib bomb frame, importing an .np
 claims 1e12 values; and (issue 30) importing HDF5 files with gzip datasets and .npz archives with
 deflated members that inflate to gigabytes (one array, or every array of consistent shape), and
 loading and validating kept behaviour policies whose .npz claims 1e12 values or inflates to
-gigabytes.
+gigabytes; and (issue 39) importing Minari datasets whose gzip arrays inflate to gigabytes (one
+array, a whole episode, an infos array), an export's sidecar whose segment table does, and
+exporting a large dataset (4.8M steps) to every format, beside a baseline tree's exports.
 
 Each command runs as its own process under GNU ``/usr/bin/time -v`` (and ``timeout``, so a
 command that would run forever is stopped and its figure is still printed); its "Maximum
@@ -14,7 +16,7 @@ this script on 127.0.0.1, which also prints how many bytes it sent before the cl
 The bar (issues 15 and 30): under 512 MB.
 
     PYTHONPATH=. .venv/bin/python bench/hostile_memory.py [--workdir DIR] [--gib 2.5]
-        [--only WORD...]
+        [--only WORD...] [--interop-only] [--steps 4800000] [--baseline OTHER_RLU_TREE]
 """
 
 from __future__ import annotations
@@ -378,17 +380,17 @@ def wanted(label: str) -> bool:
     return not ONLY or any(word in label for word in ONLY)
 
 
-def measure(label: str, argv: list[str], limit: int = 1800) -> None:
+def measure(label: str, argv: list[str], limit: int = 1800, root: Path = ROOT) -> None:
     """One row: peak RSS, wall time, exit code (124: stopped by ``timeout`` after ``limit`` s)
-    and the first line of its error."""
+    and the first line of its error. ``root``: the rlu tree on the path (a baseline's)."""
     if not wanted(label):
         return
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    env = {**os.environ, "PYTHONPATH": str(root)}
     for k in ("http_proxy", "https_proxy", "HTTP_PROXY", "HTTPS_PROXY", "all_proxy", "ALL_PROXY"):
         env.pop(k, None)  # the endless server is on 127.0.0.1
     out = subprocess.run(
         ["/usr/bin/time", "-v", "timeout", str(limit), *argv],
-        cwd=ROOT,
+        cwd=root,  # python -m puts the working folder first on the path
         env=env,
         capture_output=True,
         text=True,
@@ -456,11 +458,57 @@ def foreign_bombs(work: Path, total: int, rlu: list[str], gib: float) -> None:
         measure(f"validate: {label}", [*rlu, "validate", str(dest)])
 
 
+def interop(work: Path, total: int, rlu: list[str], gib: float, steps: int, base: Path | None):
+    """Issue 39 item 5: Minari bombs (one array, a whole episode, an infos array), an export's
+    sidecar bomb, and the peak of exporting a large dataset (D4RL .hdf5 / .npz, d3rlpy, Minari);
+    with ``base``, the same exports by that rlu tree, side by side."""
+    sys.path.insert(0, str(ROOT))
+    from tests.hostile.bombs import large_dataset, minari_bomb, sidecar_bomb
+
+    for old in ("minari_bombs", "sidecar_bomb"):
+        shutil.rmtree(work / old, ignore_errors=True)
+    print(f"\ninterop: bombs of {gib:g} GiB, exports of {steps:,} steps\n")
+    print("| command | peak RSS | wall | exit | message |\n|---|---:|---:|---:|---|")
+    for kind in ("rewards", "consistent", "infos"):
+        label = f"import minari: {kind} a {gib:g} GiB gzip bomb"
+        if not wanted(label):
+            continue
+        path = minari_bomb(work / "minari_bombs", total, kind)
+        shutil.rmtree(work / "out", ignore_errors=True)
+        measure(label, [*rlu, "import", str(path), "--format", "minari", "--out",
+                        str(work / "out")])  # fmt: skip
+    label = f"import d4rl: its sidecar's segment table a {gib:g} GiB deflate bomb"
+    if wanted(label):
+        out = sidecar_bomb(work / "sidecar_bomb", total)
+        shutil.rmtree(work / "out", ignore_errors=True)
+        measure(label, [*rlu, "import", str(out), "--format", "d4rl", "--out", str(work / "out")])
+    big = work / f"large_{steps}"
+    if not big.exists():
+        large_dataset(big, steps)
+    trees = [("", ROOT)] + ([(f" (baseline {base})", base)] if base else [])
+    for name, args in (
+        ("d4rl .hdf5", ["--format", "d4rl", "-o", str(work / "x.hdf5")]),
+        ("d4rl .npz", ["--format", "d4rl", "-o", str(work / "x.npz")]),
+        ("d3rlpy", ["--format", "d3rlpy", "-o", str(work / "x.h5")]),
+        ("minari", ["--format", "minari", "--id", "rlu/large-v0", "--minari-dir",
+                    str(work / "minari_large")]),
+    ):  # fmt: skip
+        for tag, tree in trees:
+            for p in work.glob("x.*"):
+                p.unlink()
+            shutil.rmtree(work / "minari_large", ignore_errors=True)
+            measure(f"export {steps:,} steps to {name}{tag}", [*rlu, "export", str(big), *args],
+                    root=tree)  # fmt: skip
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--workdir", default=None)
     p.add_argument("--gib", type=float, default=2.5, help="inflated size of the gzip bombs")
     p.add_argument("--only", nargs="*", default=[], help="run the commands whose label has one")
+    p.add_argument("--steps", type=int, default=4_800_000, help="steps of the large export")
+    p.add_argument("--baseline", type=Path, default=None, help="an rlu tree to export with too")
+    p.add_argument("--interop-only", action="store_true", help="only the interop section")
     args = p.parse_args()
     ONLY[:] = args.only
     work = Path(args.workdir or tempfile.mkdtemp(prefix="rlu-bombs-"))
@@ -468,6 +516,9 @@ def main() -> None:
     total = int(args.gib * (1 << 30))
     py = sys.executable
     rlu = [py, "-m", "rlu"]
+    if args.interop_only:
+        interop(work, total, rlu, args.gib, args.steps, args.baseline)
+        return
     zeros, record, windows = work / "zeros", work / "record", work / "windows"
     zeros_bomb(zeros, total)
     record_bomb(record, total)
@@ -540,6 +591,7 @@ def main() -> None:
          "--out", str(work / "imported")],
     )  # fmt: skip
     foreign_bombs(work, total, rlu, args.gib)
+    interop(work, total, rlu, args.gib, args.steps, args.baseline)
     if args.workdir is None:
         shutil.rmtree(work)
 

@@ -1,7 +1,8 @@
 """rlu: RL Unplugged without TensorFlow.
 
 The public API is imported lazily so that ``import rlu`` needs numpy only:
-``load_dataset``, ``make_env``, ``make_agent``, ``evaluate``, ``list_tasks``, ``get_task``.
+``load_dataset``, ``make_env``, ``make_agent``, ``evaluate``, ``list_tasks``, ``get_task``,
+``report`` (tables and figures of run and sweep folders).
 """
 
 from __future__ import annotations
@@ -10,6 +11,7 @@ import importlib
 from typing import Any
 
 __version__ = "0.1.0"
+"""rlu's version (``rlu --version`` prints it)."""
 
 _LAZY = {
     "list_tasks": "rlu.tasks",
@@ -20,6 +22,7 @@ _LAZY = {
     "make_env": "rlu.envs",
     "make_agent": "rlu.agents",
     "evaluate": "rlu.evaluation",
+    "report": "rlu.restore",
 }
 
 __all__ = sorted(_LAZY) + ["__version__"]

@@ -14,10 +14,13 @@ command quietly. Exit codes are ``EXIT_CODES``.
 from __future__ import annotations
 
 import argparse
+import difflib
 import importlib
 import os
 import pkgutil
+import re
 import sys
+from typing import Any
 
 from rlu.types import RluError
 
@@ -30,14 +33,51 @@ EXIT_CODES = {
 }
 
 
+class Parser(argparse.ArgumentParser):
+    """argparse's parser that says "did you mean" for a mistyped subcommand or option: every
+    parser of the ``rlu`` command is one (subcommands' parsers take their parent's class)."""
+
+    def parse_known_args(self, args=None, namespace=None):  # type: ignore[no-untyped-def]
+        namespace, extras = super().parse_known_args(args, namespace)
+        leaf = not any(isinstance(a, argparse._SubParsersAction) for a in self._actions)
+        if extras and leaf:  # the command's own parser: the options it cannot read are typos
+            self.error(f"unrecognized arguments: {self._suggest(extras)}")
+        return namespace, extras
+
+    def _suggest(self, extras: list[str]) -> str:
+        """The tokens, each mistyped option followed by the closest one it has."""
+        known = [o for o in self._option_string_actions if o.startswith("--")]
+        words, hinted = [], False
+        for token in extras:
+            flag = token.split("=", 1)[0]
+            close = difflib.get_close_matches(flag, known, n=1, cutoff=0.6)
+            if token.startswith("--") and close:
+                words.append(f"{token} (did you mean {close[0]}?)")
+                hinted = True
+            else:
+                words.append(token)
+        return " ".join(words) + ("" if hinted else f"; `{self.prog} --help` lists the options")
+
+    def error(self, message: str) -> Any:  # type: ignore[override]
+        m = re.search(r"invalid choice: '([^']*)' \(choose from (.*)\)", message)
+        if m:
+            choices = re.findall(r"'([^']*)'", m.group(2))
+            close = difflib.get_close_matches(m.group(1), choices, n=1, cutoff=0.5)
+            if close:
+                message += f"; did you mean {close[0]!r}?"
+        super().error(message)
+
+
 def build_parser() -> argparse.ArgumentParser:
     import rlu.commands
+    from rlu import __version__
 
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="rlu",
         description="RL Unplugged: datasets, environments, baselines, evaluation.",
         epilog="exit codes: " + "; ".join(f"{k} {v}" for k, v in EXIT_CODES.items()),
     )
+    parser.add_argument("--version", action="version", version=f"rlu {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for info in sorted(pkgutil.iter_modules(rlu.commands.__path__), key=lambda m: m.name):
         if info.name.startswith("_"):
@@ -98,6 +138,7 @@ EXTRA_OF = {
     "jinja2": "report",
     "jax": "jax",
     "imageio_ffmpeg": "video",
+    "moviepy": "video",
 }
 """The extra that installs each optional module rlu imports (pyproject.toml's extras)."""
 

@@ -30,6 +30,15 @@ that is a terminal or a terminal that wants lines; an explicit ``mode`` or ``qui
 over it. Output goes to ``sys.stderr`` unless ``stream`` says otherwise, so a command's stdout
 stays what it prints as its result.
 
+A job in a worker process (a sweep's run, a quick-start agent) reports through a
+:class:`Relay`: its counts go to the process that started it (``rlu.workers.send``, on every
+backend), where one :class:`Tally` adds every job's up into one display (steps, rate, ETA of
+the whole fan-out) and keeps it alive with a line every ``interval`` seconds in a log even while
+no job moves (an evaluation, a worker starting).
+
+The final line is written once: a display whose last plain line already showed the whole job
+done writes no second one at close.
+
 The ETA and rate count only what this display saw (``initial`` units done before it started,
 e.g. by a resumed run, move the bar but not the rate). ``total`` may be unknown (``None``) or
 grow (``Progress.set_total``, e.g. bytes as downloads announce their sizes). Updates are
@@ -50,9 +59,25 @@ import time
 from collections.abc import Callable
 from typing import Any, TextIO
 
+__all__ = [
+    "ENV",
+    "MODES",
+    "RELAY_TAG",
+    "Progress",
+    "Relay",
+    "Tally",
+    "choose_mode",
+    "format_duration",
+    "format_size",
+]
+
 MODES = ("bar", "lines", "quiet")
+"""The display modes: a redrawn bar, plain lines, nothing."""
 _BAR = 20  # characters of the bar itself
 ENV = "RLU_PROGRESS"
+"""The environment variable that overrides the automatic mode (``bar``, ``lines``, ``quiet``)."""
+RELAY_TAG = "rlu.progress"
+"""The first item of every message a :class:`Relay` sends (``(RELAY_TAG, key, done, total)``)."""
 
 
 def choose_mode(stream: TextIO, mode: str | None = None, quiet: bool = False) -> str:
@@ -137,6 +162,7 @@ class Progress:
         self._closed = False
         self._width = 0  # characters of the bar now on the terminal's line
         self._shown = False  # a line or a bar was written
+        self._printed: tuple[Any, ...] | None = None  # (n, total, postfix) of the last line
 
     # --- what callers do -------------------------------------------------------------------
     def update(self, n: float = 1) -> None:
@@ -161,6 +187,19 @@ class Progress:
         """Facts shown after the counts, ``key=value`` in the order given; replaces the last."""
         with self._lock:
             self._postfix = " ".join(f"{k}={_value(v)}" for k, v in fields.items())
+            self._tick()
+
+    def _set(self, n: float, total: float | None, **fields: Any) -> None:
+        """Counts, total and postfix at once, then one redraw (a Tally's)."""
+        with self._lock:
+            self.n, self.total = n, total
+            self._postfix = " ".join(f"{k}={_value(v)}" for k, v in fields.items())
+            self._tick()
+
+    def refresh(self) -> None:
+        """Redraw the bar, or write a plain line if one is due, though nothing moved (the
+        elapsed time goes on): a display that must show it is alive while its job waits."""
+        with self._lock:
             self._tick()
 
     def note(self, text: str) -> None:
@@ -194,7 +233,9 @@ class Progress:
                     self._bar()
                     self._write("\n")
             elif self.mode == "lines" and (self._shown or (worked and not failed)):
-                self._line(final=True)
+                done = self.total is not None and self.n >= self.total
+                if not (done and self._printed == self._state()):  # that line is on screen
+                    self._line(final=True)
 
     def __enter__(self) -> Progress:
         return self
@@ -251,8 +292,12 @@ class Progress:
         elif self.mode == "lines" and now - self._last >= self.interval:
             self._line()
 
+    def _state(self) -> tuple[Any, ...]:
+        return (self.n, self.total, self._postfix)
+
     def _line(self, final: bool = False) -> None:
         self._last = self._clock()
+        self._printed = self._state()
         self._write(self.render(final) + "\n")
 
     def _bar(self) -> None:
@@ -293,3 +338,183 @@ def _value(v: Any) -> str:
     if isinstance(v, int) and not isinstance(v, bool):
         return f"{v:,}"
     return str(v)
+
+
+# --- jobs in other processes ------------------------------------------------------------------
+class Relay:
+    """The progress of one job running in a worker (``rlu.workers.run_jobs``), sent to the
+    :class:`Tally` of the process that started it; it takes what a :class:`Progress` takes from
+    the job (``update``, ``set_postfix``, ``note``, ``close``, a ``with`` block).
+
+    ``rlu.train.train(..., progress=Relay(key))`` is how a sweep's runs report: the counts of
+    this session's work (``start(total, initial)``: units done before it, a resumed run's, are
+    left out) go out at most every ``interval`` seconds and at the end, as ``(RELAY_TAG, key,
+    done, total)`` through ``rlu.workers.send`` (nothing when the parent listens to none).
+    """
+
+    def __init__(
+        self, key: str, interval: float = 1.0, clock: Callable[[], float] = time.monotonic
+    ) -> None:
+        self.key = key
+        self.interval = interval
+        self._clock = clock
+        self.n: float = 0
+        self.total: float | None = None
+        self._initial: float = 0
+        self._last = -float("inf")
+
+    def start(self, total: float | None, initial: float = 0) -> Relay:
+        """The job is ``total`` units, ``initial`` of them done before; returns the relay."""
+        self.total, self.n, self._initial = total, initial, initial
+        self._send()
+        return self
+
+    def update(self, n: float = 1) -> None:
+        """``n`` more units done."""
+        self.n += n
+        if self._clock() - self._last >= self.interval:
+            self._send()
+
+    def set_postfix(self, **fields: Any) -> None:
+        """Facts of one job (an evaluation's return) stay in the job's own logs: not sent."""
+
+    def note(self, text: str) -> None:
+        """A line for the parent's display, above its bar."""
+        from rlu.workers import send
+
+        send((RELAY_TAG, self.key, "note", text))
+
+    def close(self, failed: bool = False) -> None:
+        """Send the last counts."""
+        self._send()
+
+    def __enter__(self) -> Relay:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _send(self) -> None:
+        from rlu.workers import send
+
+        self._last = self._clock()
+        total = None if self.total is None else self.total - self._initial
+        send((RELAY_TAG, self.key, self.n - self._initial, total))
+
+
+class Tally:
+    """One display of many jobs, each reporting through a :class:`Relay`: the sum of their
+    counts against the sum of their totals (a job not yet started counts as ``estimate``, or as
+    the mean of the totals known), ``runs=done/jobs`` after it, and every ``interval`` seconds
+    a plain line in a log (a bar redrawn on a terminal) while no job moves.
+
+    Pass :meth:`message` as ``rlu.workers.run_jobs``' ``on_message``; call :meth:`finish` as
+    each job ends (its count goes to its total) or :meth:`drop` when it failed.
+    ``Progress``'s keywords (``stream``, ``mode``, ``interval``, ``clock``) pass through.
+    """
+
+    def __init__(
+        self,
+        jobs: int,
+        desc: str = "",
+        unit: str = "steps",
+        estimate: float | None = None,
+        *,
+        quiet: bool = False,
+        heartbeat: bool = True,
+        **display: Any,
+    ) -> None:
+        self.jobs = jobs
+        self.estimate = estimate
+        self.bar = Progress(self._expected({}, 0), desc, unit, quiet=quiet, **display)
+        self._done: dict[str, float] = {}
+        self._totals: dict[str, float] = {}
+        self._finished = 0
+        self._dropped = 0
+        self._extra: dict[str, Any] = {}
+        self._lock = threading.RLock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.bar._set(0, self.bar.total, runs=f"0/{jobs}")
+        if heartbeat and self.bar.mode != "quiet":
+            self._thread = threading.Thread(target=self._beat, name="rlu-progress", daemon=True)
+            self._thread.start()
+
+    def message(self, m: Any) -> bool:
+        """Take one message of a job; False (and nothing done) when it is no Relay's."""
+        if not (isinstance(m, tuple) and len(m) == 4 and m[0] == RELAY_TAG):
+            return False
+        _, key, done, total = m
+        with self._lock:
+            if done == "note":
+                self.bar.note(str(total))
+                return True
+            if key in self._totals and key not in self._done:
+                return True  # finished already: a late message changes nothing
+            self._done[key] = float(done)
+            if total is not None:
+                self._totals[key] = float(total)
+            self._show()
+        return True
+
+    def finish(self, key: str) -> None:
+        """Job ``key`` ended: all of its units count as done."""
+        with self._lock:
+            total = self._totals.get(key, self._done.get(key, 0.0))
+            self._totals[key] = max(total, self._done.pop(key, 0.0))
+            self._finished += 1
+            self._show()
+
+    def drop(self, key: str) -> None:
+        """Job ``key`` failed: what it did still counts, what it had left does not."""
+        with self._lock:
+            self._totals[key] = self._done.pop(key, 0.0)
+            self._finished += 1
+            self._dropped += 1
+            self._show()
+
+    def note(self, text: str) -> None:
+        """One line among the progress (see :meth:`Progress.note`)."""
+        self.bar.note(text)
+
+    def set_postfix(self, **fields: Any) -> None:
+        """Facts shown after ``runs=...`` (e.g. ``failed=1``)."""
+        with self._lock:
+            self._extra = dict(fields)
+            self._show()
+
+    def close(self, failed: bool = False) -> None:
+        """Stop the heartbeat and close the display (see :meth:`Progress.close`)."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+        self.bar.close(failed)
+
+    def __enter__(self) -> Tally:
+        return self
+
+    def __exit__(self, exc_type: object, *exc: object) -> None:
+        self.close(failed=exc_type is not None)
+
+    def _expected(self, totals: dict[str, float], started: int) -> float | None:
+        known = sum(totals.values())
+        waiting = self.jobs - started
+        if waiting <= 0:
+            return known
+        each = self.estimate
+        if each is None and totals:
+            each = known / len(totals)
+        return None if each is None else known + waiting * each
+
+    def _show(self) -> None:
+        started = set(self._totals) | set(self._done)
+        done = sum(self._done.values()) + sum(
+            v for k, v in self._totals.items() if k not in self._done
+        )
+        total = self._expected(self._totals, len(started))
+        self.bar._set(done, total, runs=f"{self._finished}/{self.jobs}", **self._extra)
+
+    def _beat(self) -> None:
+        step = min(1.0, max(0.05, self.bar.interval / 10))
+        while not self._stop.wait(step):
+            self.bar.refresh()

@@ -1,5 +1,7 @@
-"""A finished run, rebuilt from its folder: its agent, its greedy policy, its evaluation, and
-offline selection by FQE over a sweep of such runs.
+"""A finished run, rebuilt from its folder: its agent, its greedy policy, its evaluation,
+offline selection by FQE over a sweep of such runs, and the report of any runs and sweeps
+(``report``: the report's package may not import the agents, so what it needs of their paper
+presets is read here).
 
 Everything here reads files (``rlu.runs``: each checked against its shape), so every name those
 files hold is looked up, never imported: the agent in the registry (``rlu.agents``; a module
@@ -106,11 +108,16 @@ def evaluate_run(
     max_steps: int | None = None,
     challenge: str | None = None,
     device: Any = "cpu",
+    observer: Any = None,
+    render: Mapping[str, Any] | None = None,
 ) -> Any:
     """Roll out the greedy policy of a run folder's newest checkpoint (or a given checkpoint) in
     the env the run evaluated in (an RWRL run: its data's challenge, unless ``challenge``),
     acting on ``device``. ``env``: an env factory 'module:function' the caller trusts (a run
-    trained with one needs it named again: the one in its config.json is not imported)."""
+    trained with one needs it named again: the one in its config.json is not imported).
+    ``observer`` watches the episodes (``rlu.evaluation.rollout.EpisodeObserver``: a video
+    ``Recorder``, progress); ``render`` adds the env's render settings (``render_mode``,
+    ``render_size``) for one that films them."""
     from rlu.evaluation.rollout import evaluate, task_env_factory
     from rlu.tasks import check_challenge
 
@@ -131,8 +138,8 @@ def evaluate_run(
         check_challenge(train_cfg["task"], challenge, keys, settings["challenge"], str(path))
         settings["challenge"] = challenge
     policy, _ = load_policy(path, device)
-    env_fn = task_env_factory(train_cfg["task"], env, **settings)
-    return evaluate(policy, env_fn, episodes, seed, num_envs, max_steps)
+    env_fn = task_env_factory(train_cfg["task"], env, **settings, **(render or {}))
+    return evaluate(policy, env_fn, episodes, seed, num_envs, max_steps, observer)
 
 
 def fqe_selection(
@@ -153,5 +160,50 @@ def fqe_selection(
 
     out = select(runs.load_results(sweep_dir), datasets, policy_of, config, device, quiet)
     out["fqe_config"] = dataclasses.asdict(config)
+    # a number FQE does not have (the rank correlation of one configuration, an estimate that
+    # diverged) is null: JSON has no NaN, and the report reads this file back
+    out = runs.finite_or_none(out)
     runs.write_json(Path(sweep_dir) / runs.FQE, out)
     return out
+
+
+def paper_preset(agent: str, discrete: bool) -> Any:
+    """What the report checks of an agent's ``paper`` preset
+    (``rlu.evaluation.report.PaperPreset``): its learner steps and the paper's grid (None: no
+    such agent, no paper preset, or torch missing, so the agent module cannot be read)."""
+    from rlu.agents import agent_module
+    from rlu.evaluation.report import PaperPreset
+
+    try:
+        module = agent_module(agent, discrete)
+    except (RluError, ImportError):
+        return None
+    config = module.PRESETS.get("paper")
+    if config is None:
+        return None
+    steps = config.atari.num_steps if discrete else config.num_steps
+    return PaperPreset(steps=int(steps), grid={k: tuple(v) for k, v in module.GRID.items()})
+
+
+def report(
+    paths: Any,
+    out: str | os.PathLike | None = None,
+    fqe_steps: int | None = None,
+    device: Any = "cpu",
+    figures: bool = True,
+) -> list[Path]:
+    """Report run folders (``rlu train --out``) and sweep folders (``rlu sweep --out``), any
+    mix, together (``rlu.evaluation.report.write_report``); returns the files written.
+    ``fqe_steps``: first run offline selection by FQE over every sweep (``SWEEP/fqe.json``)
+    with that many FQE steps. ``rlu.report(paths)`` is this function."""
+    from rlu.evaluation.report import check_report_output, write_report
+
+    items = [paths] if isinstance(paths, str | os.PathLike) else list(paths)
+    check_report_output(items, out)  # before FQE: nothing is computed for a refused folder
+    if fqe_steps is not None:
+        from rlu.evaluation.fqe import FQEConfig
+
+        for item in items:
+            if runs.is_sweep(item):
+                fqe_selection(item, FQEConfig(steps=fqe_steps), device)
+    return write_report(items, out, figures=figures, paper=paper_preset)

@@ -15,7 +15,8 @@ A sweep folder (``rlu sweep --out SWEEP``)::
     results.jsonl      one record per finished run (task, agent, config, seed, score, run, and
                        what produced the score: preset, steps, data source, evaluation episodes)
     <task>/<agent>/<config>/seed_<s>/   the run folders (``run`` in a record: relative to SWEEP)
-    fqe.json           offline selection by FQE (``rlu report --fqe``)
+    fqe.json           offline selection by FQE (``rlu report --fqe``; null where FQE has no
+                       number, e.g. the rank correlation of one configuration)
 
 Every file is written to a temporary name, synced and renamed, so a kill leaves either the old
 file or the new one; the ``.jsonl`` logs are appended line by line and cut back to the last
@@ -36,7 +37,7 @@ from typing import Any
 from rlu import files
 from rlu.checkpoints import save_state
 from rlu.files import AnyJSON, Float, Int, ListOf, MapOf, Optional, Record, Shape, Str
-from rlu.types import RluError
+from rlu.types import FormatError, RluError
 
 CONFIG = "config.json"
 METRICS = "metrics.jsonl"
@@ -46,6 +47,10 @@ CHECKPOINTS = "checkpoints"
 SWEEP_CONFIG = "sweep.json"
 RESULTS = "results.jsonl"
 FQE = "fqe.json"
+REPORT = "report.json"
+"""The marker of a report folder (``rlu report --out``): its numbers, with ``"written_by"``
+:data:`REPORT_WRITER`; a folder holding another ``report.json`` is not a report of rlu's."""
+REPORT_WRITER = "rlu report"
 
 FIX_RUN = "rlu writes it whole (temporary file + rename), so it was damaged or replaced: restore it or train into a new --out"  # noqa: E501
 FIX_SWEEP = "rlu writes it whole, so it was damaged or replaced: restore it, or run the sweep again into a new --out"  # noqa: E501
@@ -140,6 +145,16 @@ RUN_RECORD = Record(
     },
 )
 FQE_SHAPE = Record({"selections": ListOf(MapOf(AnyJSON(depth=6)), max_len=100_000)})
+RUN_FACTS = Record(
+    {
+        "train": Record(
+            {"task": Str(), "agent": Str(), "seed": Int(min=0)},
+            {"overrides": MapOf(AnyJSON(depth=4), max_len=256)},
+        ),
+        "dataset": Record({"path": Str(), "num_steps": Int(min=0)}),
+    }
+)
+"""What a report reads of a run's config.json (the rest is ``rlu.train``'s to check)."""
 
 
 # --- run folders ----------------------------------------------------------------------------
@@ -153,10 +168,11 @@ def clear_temporary(run: str | os.PathLike) -> None:
 
 @contextlib.contextmanager
 def append_log(path: str | os.PathLike) -> Iterator[Any]:
-    """A run log opened for appending, refusing a planted symlink instead of writing through."""
-    flags = os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_NOFOLLOW | os.O_CLOEXEC
+    """A run log opened for appending (``rlu.files.open_private``): a planted symlink, a hard
+    link or anything but a plain file is refused instead of written through."""
+    flags = os.O_WRONLY | os.O_CREAT | os.O_APPEND
     try:
-        fd = os.open(path, flags, 0o644)
+        fd = files.open_private(path, flags, "run log")
     except OSError as e:
         raise RluError(
             f"{path}: cannot be opened for appending ({e.strerror}); remove it"
@@ -172,6 +188,77 @@ def read_config(run: str | os.PathLike, train_shape: Shape) -> dict[str, Any]:
 
 def read_result(run: str | os.PathLike) -> dict[str, Any]:
     return files.read_json(Path(run) / RESULT, RESULT_SHAPE, FIX_RUN)
+
+
+def config_label(overrides: Mapping[str, Any]) -> str:
+    """The label of a hyper-parameter setting, ``"learning_rate=0.001"`` (``"default"``: no
+    override); a sweep names its run folders and records by it, a report groups runs by it."""
+    return ",".join(f"{k}={overrides[k]}" for k in sorted(overrides)) or "default"
+
+
+def is_run(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is a run folder (``rlu train --out``: it holds config.json)."""
+    return (Path(path) / CONFIG).is_file() and not (Path(path) / SWEEP_CONFIG).exists()
+
+
+def is_sweep(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is a sweep folder (``rlu sweep --out``: sweep.json or results.jsonl)."""
+    p = Path(path)
+    return (p / SWEEP_CONFIG).is_file() or (p / RESULTS).is_file()
+
+
+def run_record(run: str | os.PathLike) -> dict[str, Any]:
+    """A finished run folder as the record a sweep keeps in results.jsonl (task, agent,
+    config label, overrides, seed, score, what produced it), from its result.json and
+    config.json, plus ``dataset`` (the path it trained on). A run without result.json is still
+    training or was stopped: an RluError saying so."""
+    run = Path(run)
+    if not (run / RESULT).is_file():
+        raise RluError(
+            f"{run / RESULT} is missing: the run is still training or stopped before its end; "
+            f"finish it (rlu train ... --out {run} --resume) or leave it out"
+        )
+    result = read_result(run)
+    facts = files.read_json(run / CONFIG, RUN_FACTS, FIX_RUN)
+    train = facts["train"]
+    for key in ("task", "agent", "seed"):
+        if train[key] != result[key]:
+            raise FormatError(
+                f"{run / RESULT}: field {key!r} is {result[key]!r} but {run / CONFIG} has "
+                f"{train[key]!r}; {FIX_RUN}"
+            )
+    overrides = dict(train.get("overrides") or {})
+    data = dict(result.get("data") or {"source": "unknown"})
+    data.setdefault("steps", facts["dataset"]["num_steps"])
+    return {
+        "task": result["task"],
+        "agent": result["agent"],
+        "config": config_label(overrides),
+        "overrides": overrides,
+        "seed": result["seed"],
+        "preset": result.get("preset"),
+        "steps": result["steps"],
+        "pretrain_steps": result.get("pretrain_steps", 0),
+        "eval_episodes": result.get("eval_episodes"),
+        "data": data,
+        "env_settings": result.get("env_settings", {}),
+        "score": result["score"],
+        "returns": (result.get("final_eval") or {}).get("returns"),
+        "run": str(run),
+        "dataset": facts["dataset"]["path"],
+    }
+
+
+def learning_curve(run: str | os.PathLike) -> list[dict[str, Any]]:
+    """A run's evaluations in order: ``[{"step", "mean", "episodes"}]`` from its eval.jsonl
+    (empty when the folder or the file is gone)."""
+    path = Path(run) / EVAL
+    if not path.is_file():
+        return []
+    return [
+        {"step": r["step"], "mean": r["mean"], "episodes": len(r["returns"])}
+        for r in read_log(path)
+    ]
 
 
 def read_log(path: str | os.PathLike, max_step: int | None = None) -> list[dict[str, Any]]:
@@ -261,4 +348,24 @@ def write_results(sweep_dir: str | os.PathLike, records: Sequence[Mapping[str, A
 
 
 def read_fqe(sweep_dir: str | os.PathLike) -> dict[str, Any]:
-    return files.read_json(Path(sweep_dir) / FQE, FQE_SHAPE, "run rlu report --fqe again")
+    """A sweep's fqe.json. rlu writes null where FQE has no number; a file from before that
+    (NaN, which is not JSON) is read with each NaN as null, never refused as rlu's own."""
+    fix = "run rlu report --fqe again"
+    path = Path(sweep_dir) / FQE
+    value = files.parse_json(files.read_bytes(path, files.MAX_JSON_BYTES, fix), str(path), fix,
+                             allow_nan=True)  # fmt: skip
+    return files.check_value(FQE_SHAPE, finite_or_none(value), str(path), fix)
+
+
+def finite_or_none(value: Any) -> Any:
+    """``value`` with every NaN or infinity (anywhere in lists and objects) as None: what JSON
+    can hold of a number that is not one."""
+    import math
+
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, Mapping):
+        return {k: finite_or_none(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [finite_or_none(v) for v in value]
+    return value

@@ -315,3 +315,66 @@ def flat_values(cls: type, data: dict[str, Any], dest_prefix: str = "") -> dict[
             value = data[f.name]
             out[dest_prefix + f.name] = list(value) if isinstance(value, tuple) else value
     return out
+
+
+def config_from_file(cls: type, path: str, given: dict[str, Any] | None = None) -> Any:
+    """The ``cls`` value of config file ``path`` (:func:`read_config_file`): nested objects
+    become their dataclasses, lists tuples where the field is a tuple; ``given`` fills or
+    replaces top-level fields (what code names itself). A module path the file names (a dotted
+    agent, an env factory) is refused unless ``given`` names it too: names in files are never
+    imported (``given`` replaces that field). A required field that neither holds is an error
+    naming the file and the field."""
+    from rlu.types import RluError
+
+    given = dict(given or {})
+    data = read_config_file(path, cls)
+    for key in ("agent", "agents"):
+        names = data.get(key)
+        names = [names] if isinstance(names, str) else list(names or ())
+        dotted = [n for n in names if "." in n]
+        if dotted and key not in given:
+            raise RluError(
+                f"{path}: field {key!r} names the agent module {dotted[0]!r}, and a module named "
+                f"in a file is never imported; if you trust it, pass {key}=... yourself (or type "
+                f"--agent {dotted[0]})"
+            )
+    env = data.get("run", {}).get("env")
+    if env is not None and "run" not in given:
+        raise RluError(
+            f"{path}: field 'run.env' names the env factory {env!r}, and a module named in a "
+            f"file is never imported; if you trust it, pass run=RunSettings(env={env!r}, ...) "
+            f"yourself (or type --env {env})"
+        )
+    data.update(given)
+    try:
+        return _build(cls, data)
+    except TypeError as e:
+        missing = [
+            f.name
+            for f in dataclasses.fields(cls)
+            if f.name not in data
+            and f.default is dataclasses.MISSING
+            and f.default_factory is dataclasses.MISSING
+        ]
+        if missing:
+            raise RluError(
+                f"{path}: field {missing[0]!r} is missing; add it to the file or pass it "
+                f"({missing[0]}=...)"
+            ) from None
+        raise RluError(f"{path}: {e}") from None
+
+
+def _build(cls: type, data: dict[str, Any]) -> Any:
+    hints = typing.get_type_hints(cls)
+    values: dict[str, Any] = {}
+    for f in dataclasses.fields(cls):
+        if f.name not in data:
+            continue
+        value = data[f.name]
+        hint, _ = _scalar(hints[f.name])
+        if dataclasses.is_dataclass(hint) and isinstance(value, dict):
+            value = _build(hint, value)
+        elif typing.get_origin(hint) is tuple and isinstance(value, list):
+            value = tuple(value)
+        values[f.name] = value
+    return cls(**values)

@@ -30,7 +30,8 @@ from typing import Any
 
 from rlu import runs
 from rlu.devices import check_ray_gpus
-from rlu.files import bounds, check_output, shape_of
+from rlu.files import bounds, check_output, make_folder, shape_of
+from rlu.loggers import LOGGERS
 from rlu.settings import RunSettings
 from rlu.types import DiscreteSpec, RluError
 from rlu.workers import Backend, run_jobs
@@ -44,8 +45,10 @@ class SweepConfig:
     """Task ids, e.g. control_suite/cartpole_swingup atari/Pong."""
     agents: tuple[str, ...]
     """Agent names (bc, d4pg, ...) or agent module paths you typed."""
-    datasets: Mapping[str, str]
-    """Dataset path per task (stored resolved: a sweep folder reports from anywhere)."""
+    datasets: Mapping[str, str] = field(default_factory=dict)
+    """The data of each task, as rlu.load_dataset names it (a task id, a TFDS name or a folder;
+    a task left out trains on its own id's dataset), stored as the resolved folder: a sweep
+    folder reports from anywhere."""
     seeds: tuple[int, ...] = field(default=(0,), metadata=bounds(min=0, max=2**63 - 1))
     """Seeds of every configuration."""
     grid: Mapping[str, Sequence[Any]] | None = None
@@ -58,6 +61,21 @@ class SweepConfig:
     "paper_recurrent"}."""
     run: RunSettings = field(default_factory=RunSettings)
     """How every run is run (preset, budget, evaluation, checkpoints, runtime)."""
+    loggers: tuple[str, ...] = field(
+        default=(), metadata=bounds(choices=LOGGERS, flag="--log-to", metavar="LOGGER")
+    )
+    """Where every run also logs its metrics (rlu train --log-to: csv, tensorboard, wandb);
+    loggers change nothing a run computes, so a sweep may be continued with others."""
+
+    @classmethod
+    def from_file(cls, path: str | os.PathLike, **fields: Any) -> SweepConfig:
+        """The sweep config of a JSON or YAML file with SweepConfig's fields (``run:`` holding
+        RunSettings'), or a sweep folder's sweep.json; ``fields`` fill or replace top-level
+        fields. A module path in the file (a dotted agent, ``run.env``) is refused unless
+        ``fields`` names that field (names in files are never imported)."""
+        from rlu.settings import config_from_file
+
+        return config_from_file(cls, os.fspath(path), fields)
 
     def to_json(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
@@ -84,8 +102,7 @@ def _slug(text: str) -> str:
     return "".join(c if c.isalnum() or c in "-_.=," else "_" for c in text.replace("/", "__"))
 
 
-def config_label(overrides: Mapping[str, Any]) -> str:
-    return ",".join(f"{k}={overrides[k]}" for k in sorted(overrides)) or "default"
+config_label = runs.config_label
 
 
 def agent_grid(agent: str, discrete: bool) -> dict[str, list[Any]]:
@@ -136,7 +153,9 @@ def expand(config: SweepConfig, out: str | os.PathLike) -> list[RunSpec]:
 
 
 def run_one(spec: RunSpec, config: SweepConfig) -> dict[str, Any]:
-    """Train one run (resuming or skipping it if it exists) and return its result record."""
+    """Train one run (resuming or skipping it if it exists) and return its result record; its
+    steps go to the sweep's display as they are done (``rlu.progress.Relay``)."""
+    from rlu.progress import Relay
     from rlu.train import TrainConfig, train
 
     run = Path(spec.run_dir)
@@ -151,7 +170,7 @@ def run_one(spec: RunSpec, config: SweepConfig) -> dict[str, Any]:
             overrides=dict(spec.overrides),
             run=dataclasses.replace(config.run, preset=spec.preset),
         )
-        result = train(tc, run, resume=True)
+        result = train(tc, run, resume=True, progress=Relay(spec.run_dir), loggers=config.loggers)
     return {
         "task": spec.task,
         "agent": spec.agent,
@@ -207,10 +226,11 @@ def sweep(
 
     out = Path(out)
     where = backend or Backend()
-    config = dataclasses.replace(
-        config, datasets={t: str(Path(p).resolve()) for t, p in config.datasets.items()}
-    )
+    config = dataclasses.replace(config, datasets=resolve_datasets(config))
     check_output(out, list(config.datasets.values()), runs.SWEEP_CONFIG, "sweep folder")
+    unknown = [n for n in config.loggers if n not in LOGGERS]
+    if unknown:
+        raise RluError(f"logger {unknown[0]!r}; loggers are {', '.join(LOGGERS)}")
     with OutputLock(out, "sweep folder"):
         cfg_path = out / runs.SWEEP_CONFIG
         if cfg_path.exists():
@@ -221,7 +241,7 @@ def sweep(
                     "arguments to continue it or choose a new --out"
                 )
         specs = expand(config, out)
-        out.mkdir(parents=True, exist_ok=True)
+        make_folder(out)
         runs.write_json(cfg_path, config.to_json())
         todo = [s for s in specs if not (Path(s.run_dir) / runs.RESULT).exists()]
         if progress:
@@ -233,7 +253,7 @@ def sweep(
                     f"  {len(specs) - len(todo)} already finished (skipped), {len(todo)} to run",
                     file=sys.stderr,
                 )
-        finished = _Finished(out, len(specs), progress, len(todo))
+        finished = _Finished(out, len(specs), progress, len(todo), config.run.steps)
         for spec in specs:
             if spec not in todo:
                 finished.add(run_one(spec, config), quiet=True)
@@ -250,6 +270,7 @@ def sweep(
                 where,
                 on_result=lambda i, rec: finished.add(rec),
                 on_error=lambda i, e: finished.fail(todo[i], e),
+                on_message=finished.bar.message,
                 ray_check=check,
             )
         finally:
@@ -258,11 +279,28 @@ def sweep(
         return finished.records
 
 
+def resolve_datasets(config: SweepConfig) -> dict[str, str]:
+    """The dataset folder of every task of ``config``: what ``rlu.load_dataset`` makes of its
+    ``datasets`` entry (a task without one: of the task id itself), resolved."""
+    from rlu.data import load_dataset
+
+    unknown = sorted(set(config.datasets) - set(config.tasks))
+    if unknown:
+        raise RluError(
+            f"a dataset is given for {unknown[0]!r}, which is not one of the sweep's tasks "
+            f"({', '.join(config.tasks)}); add it to the tasks or drop its dataset"
+        )
+    return {
+        t: str(Path(load_dataset(config.datasets.get(t, t)).path).resolve()) for t in config.tasks
+    }
+
+
 def _what(sweep_json: Mapping[str, Any]) -> dict[str, Any]:
-    """A sweep config without how its runs compute (runtime): what must match to continue a
-    sweep in the same folder."""
+    """A sweep config without how its runs compute (runtime) and where they also log: what
+    must match to continue a sweep in the same folder."""
     out = json.loads(json.dumps(sweep_json))
     out.get("run", {}).pop("runtime", None)
+    out.pop("loggers", None)
     return out
 
 
@@ -271,20 +309,21 @@ class _Finished:
     one, so ``rlu report`` reads a sweep that is still running or was interrupted (its finished
     runs so far)."""
 
-    def __init__(self, out: Path, total: int, progress: bool, todo: int):
-        from rlu.progress import Progress
+    def __init__(self, out: Path, total: int, progress: bool, todo: int, steps: int | None):
+        from rlu.progress import Tally
 
         self.out, self.total, self.progress = out, total, progress
         self.records: list[dict[str, Any]] = []
         self.failed: list[str] = []
-        self.bar = Progress(todo, "sweep", "runs", quiet=not progress)
+        # the learner steps of every run to do, as their workers report them
+        self.bar = Tally(todo, "sweep", "steps", estimate=steps, quiet=not progress)
 
     def fail(self, spec: RunSpec, error: BaseException) -> None:
         """A run that raised: the others go on; ``check`` names it at the end."""
         why = (str(error).splitlines() or [""])[0]
         self.failed.append(f"{spec.run_dir}: {type(error).__name__}: {why}")
         self.bar.note(f"[failed] {spec.task} {spec.agent} {spec.config} seed {spec.seed}: {why}")
-        self.bar.update(1)
+        self.bar.drop(spec.run_dir)
         self.bar.set_postfix(failed=len(self.failed))
 
     def check(self) -> None:
@@ -305,7 +344,7 @@ class _Finished:
                 f"{rec['task']} {rec['agent']} {rec['config']} seed {rec['seed']}: "
                 f"{score} ({rec['preset']} preset, {rec['steps']:,} steps)"
             )
-            self.bar.update(1)
+            self.bar.finish(rec["run"])
 
 
 def results_table(records: Sequence[Mapping[str, Any]]) -> str:

@@ -107,6 +107,7 @@ class TaskSpec:
 
     @property
     def discrete(self) -> bool:
+        """Whether the task's actions are discrete (Atari)."""
         return isinstance(self.action_spec, DiscreteSpec)
 
     @property
@@ -125,11 +126,14 @@ class TaskSpec:
 
     @property
     def action_dim(self) -> int:
+        """Discrete actions: how many; continuous: the action vector's size."""
         if isinstance(self.action_spec, DiscreteSpec):
             return self.action_spec.num_values
         return self.action_spec.size
 
     def release_dataset(self, family: str | None = None) -> ReleaseDataset:
+        """The task's release dataset of ``family`` (None: its first, the default family); an
+        unknown family raises an error listing the task's."""
         if family is None:
             return self.release[0]
         for r in self.release:
@@ -139,6 +143,7 @@ class TaskSpec:
         raise RluError(f"task {self.id!r} has no release family {family!r}; it has: {known}")
 
     def to_json(self) -> dict[str, Any]:
+        """The task as JSON: what ``rlu info TASK --json`` and ``rlu list --json`` print."""
         return {
             "id": self.id,
             "domain": self.domain,

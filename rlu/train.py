@@ -52,11 +52,13 @@ class TrainConfig:
     task: str
     """Task id (the env to evaluate in), e.g. control_suite/cartpole_swingup."""
     agent: str
-    """Agent name (bc, d4pg, ...; rlu list-agents) or a module path following the agent-module
-    convention (imported because you typed it; docs/agents.md)."""
+    """Agent name (bc, d4pg, ...; `rlu agents` lists them) or a module path following the
+    agent-module convention (imported because you typed it; docs/agents.md)."""
     dataset: str | tuple[str, ...]
-    """Path of an rlu dataset (rlu convert / rlu generate / rlu import output), or several of
-    one schema: a mixture, streamed (the first is the evaluation task's)."""
+    """The data, as rlu.load_dataset names it: a task id (the dataset rlu ships, or the release's
+    converted in the cache), a TFDS name (rlu_control_suite/cartpole_swingup) or a dataset
+    folder (rlu convert / rlu generate / rlu import output); or several of one schema: a
+    mixture, streamed (the first is the evaluation task's)."""
     seed: int = field(default=0, metadata=bounds(min=0, max=2**63 - 1))
     """Seeds the agent, the sampler and the evaluation episodes."""
     overrides: Mapping[str, Any] = field(default_factory=dict)
@@ -100,6 +102,17 @@ class TrainConfig:
     def shape() -> Any:
         """The shape of ``to_json()`` in a run's config.json (``rlu.files``)."""
         return shape_of(TrainConfig)
+
+    @classmethod
+    def from_file(cls, path: str | os.PathLike, **fields: Any) -> TrainConfig:
+        """The run config of a file, as ``rlu train --config FILE`` reads it: JSON or YAML with
+        TrainConfig's fields (``run:`` holding RunSettings'), or a run folder's config.json.
+        ``fields`` fill or replace top-level fields (``TrainConfig.from_file("bc.yaml",
+        seed=1)``); a module path in the file (a dotted agent, ``run.env``) is refused unless
+        ``fields`` names that field (names in files are never imported)."""
+        from rlu.settings import config_from_file
+
+        return config_from_file(cls, os.fspath(path), fields)
 
 
 # --- agents ---------------------------------------------------------------------------------
@@ -191,11 +204,13 @@ def train(
     config: TrainConfig,
     out: str | os.PathLike,
     resume: bool = False,
-    progress: bool = False,
+    progress: bool | Any = False,
     loggers: Sequence[str] = (),
 ) -> dict[str, Any]:
     """Train ``config.agent`` on ``config.dataset``; returns the content of ``result.json``.
     ``loggers``: where the metrics go besides the run's own logs (``rlu.loggers.LOGGERS``).
+    ``progress``: True shows the steps on stderr (``rlu.progress.Progress``); a
+    ``rlu.progress.Relay`` sends them to the process that started this one (a sweep's run).
 
     One process per run folder: a second ``train`` into the same ``out`` fails with "in use by
     PID N" (:class:`rlu.locks.OutputLock`) while the first lives.
@@ -211,23 +226,24 @@ def _train(
     config: TrainConfig,
     out: str | os.PathLike,
     resume: bool,
-    progress: bool,
+    progress: bool | Any,
     logger_names: tuple[str, ...],
 ) -> dict[str, Any]:
     import torch
 
     from rlu.agents import agent_module
     from rlu.checkpoints import load_state
-    from rlu.data import StreamSampler, open_dataset
+    from rlu.data import StreamSampler, load_dataset
     from rlu.data.provenance import data_source
     from rlu.data.torch import prefetched
     from rlu.evaluation.rollout import evaluate, task_env_factory
-    from rlu.progress import Progress
+    from rlu.progress import Progress, Relay
 
     run = Path(out)
     settings = config.run
     runtime = settings.runtime.resolve()
-    opened = [open_dataset(path) for path in config.datasets()]
+    # a task id, a TFDS name or a folder: the one resolver, once per dataset
+    opened = [load_dataset(name) for name in config.datasets()]
     ds = opened[0]  # the evaluation task's; a mixture's others share its schema
     check_output(run, [d.path for d in opened], runs.CONFIG, "run folder")
     obs_spec, action_spec = dataset_specs(ds)
@@ -343,8 +359,13 @@ def _train(
         bar.set_postfix(eval=f"{result.mean:.1f}")
         return record
 
+    if isinstance(progress, Relay):
+        display: Any = progress.start(total, initial=start)
+    else:
+        desc = f"train {config.agent}"
+        display = Progress(total, desc, "steps", quiet=not progress, initial=start)
     with (
-        Progress(total, f"train {config.agent}", "steps", quiet=not progress, initial=start) as bar,
+        display as bar,
         runs.append_log(metrics_path) as mlog,
         runs.append_log(eval_path) as elog,
         numerics(runtime) as update_context,

@@ -17,6 +17,29 @@ from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 
+__all__ = [
+    "BATCH_KINDS",
+    "BATCH_LIMITS",
+    "STATISTICS",
+    "ActionSpec",
+    "Agent",
+    "ArraySpec",
+    "BatchSpec",
+    "BoundedSpec",
+    "DataStatistics",
+    "DiscreteSpec",
+    "FormatError",
+    "Observation",
+    "ObservationSpec",
+    "Policy",
+    "RluError",
+    "Sequence",
+    "SpecError",
+    "Transition",
+    "observation_spec_from_json",
+    "observation_spec_to_json",
+]
+
 
 class RluError(Exception):
     """Base of every error rlu raises on bad input; the message names the thing and the fix."""
@@ -40,16 +63,20 @@ class ArraySpec:
 
     @property
     def size(self) -> int:
+        """Elements of one array of this spec (the product of its shape)."""
         return int(np.prod(self.shape, dtype=np.int64))
 
     def zeros(self, *leading: int) -> np.ndarray:
+        """Zeros of this spec with ``leading`` axes in front (batch, time)."""
         return np.zeros((*leading, *self.shape), dtype=self.dtype)
 
     def to_json(self) -> dict[str, Any]:
+        """``{shape, dtype}`` (subclasses add their bounds or number of values)."""
         return {"shape": list(self.shape), "dtype": self.dtype}
 
     @staticmethod
     def from_json(d: Mapping[str, Any]) -> ArraySpec:
+        """The spec of ``to_json``'s output: ArraySpec, BoundedSpec or DiscreteSpec by its keys."""
         if "num_values" in d:
             return DiscreteSpec.from_json(d)
         if "minimum" in d:
@@ -65,10 +92,12 @@ class BoundedSpec(ArraySpec):
     maximum: float = 1.0
 
     def to_json(self) -> dict[str, Any]:
+        """``{shape, dtype, minimum, maximum}``."""
         return {**super().to_json(), "minimum": self.minimum, "maximum": self.maximum}
 
     @staticmethod
     def from_json(d: Mapping[str, Any]) -> BoundedSpec:
+        """The BoundedSpec of :meth:`to_json`'s output."""
         return BoundedSpec(
             tuple(int(x) for x in d["shape"]),
             str(d["dtype"]),
@@ -84,27 +113,34 @@ class DiscreteSpec(ArraySpec):
     num_values: int = 2
 
     def to_json(self) -> dict[str, Any]:
+        """``{shape, dtype, num_values}``."""
         return {**super().to_json(), "num_values": self.num_values}
 
     @staticmethod
     def from_json(d: Mapping[str, Any]) -> DiscreteSpec:
+        """The DiscreteSpec of :meth:`to_json`'s output."""
         return DiscreteSpec(
             tuple(int(x) for x in d["shape"]), str(d["dtype"]), int(d["num_values"])
         )
 
 
 ObservationSpec = ArraySpec | Mapping[str, ArraySpec]
+"""The spec of an observation: one array (Atari) or a flat dict of arrays keyed as the release."""
 ActionSpec = BoundedSpec | DiscreteSpec
+"""The spec of an action: bounded continuous, or discrete."""
 Observation = np.ndarray | Mapping[str, np.ndarray]
+"""An observation: one array, or a flat dict of arrays (batched: a leading batch axis on each)."""
 
 
 def observation_spec_to_json(spec: ObservationSpec) -> Any:
+    """An observation spec as JSON (one spec's ``to_json``, or a dict of them)."""
     if isinstance(spec, ArraySpec):
         return spec.to_json()
     return {k: v.to_json() for k, v in spec.items()}
 
 
 def observation_spec_from_json(d: Any) -> ObservationSpec:
+    """The observation spec of :func:`observation_spec_to_json`'s output."""
     if "shape" in d and "dtype" in d:
         return ArraySpec.from_json(d)
     return {k: ArraySpec.from_json(v) for k, v in d.items()}
@@ -159,6 +195,7 @@ class Policy(Protocol):
 
 
 BATCH_KINDS = ("transition", "sequence")
+"""The batches an agent may ask for (``BatchSpec.kind``): transitions or sequences."""
 STATISTICS = ("observation", "reward", "return")
 """Dataset statistics an agent may ask for (``BatchSpec.statistics``; ``DataStatistics``)."""
 BATCH_LIMITS = {"batch_size": 1 << 20, "n_step": 1000, "sequence_length": 100_000}
@@ -281,12 +318,23 @@ class Agent(Protocol):
     modules: Mapping[str, Any]
     device: Any
 
-    def update(self, batch: Any) -> dict[str, float]: ...
+    def update(self, batch: Any) -> dict[str, float]:
+        """One learner step on ``batch`` (what ``batch_spec`` says: numpy arrays or tensors on
+        the agent's device); returns the step's metrics (losses, ...) as floats."""
+        ...
 
     def act(
         self, observation: Observation, greedy: bool = True, is_first: np.ndarray | None = None
-    ) -> np.ndarray: ...
+    ) -> np.ndarray:
+        """Actions for a batch of observations (leading batch axis): the greedy policy, or its
+        exploration with ``greedy=False``; ``is_first`` marks rows whose episode starts here."""
+        ...
 
-    def state_dict(self) -> dict[str, Any]: ...
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to resume bit for bit (plain tensors, numbers and dicts), as a
+        snapshot that later updates leave alone."""
+        ...
 
-    def load_state_dict(self, state: dict[str, Any]) -> None: ...
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Load a :meth:`state_dict`, copying what it is given."""
+        ...

@@ -20,6 +20,8 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
+__all__ = ["Backend", "die_with_parent", "node_name", "run_jobs", "send"]
+
 
 def die_with_parent(parent: int) -> None:
     """End this process when process ``parent`` dies, ``kill -9`` included.

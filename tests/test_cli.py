@@ -109,7 +109,8 @@ def test_train_and_evaluate_defaults_are_quick():
     assert five.eval_period(20) == 5 and RunSettings().eval_period(20) == 20  # library = CLI
     never = from_args(RunSettings, parser.parse_args([*base, "--eval-every", "-1"]))
     assert never.eval_period(9) == 0
-    assert parser.parse_args(["evaluate", "run"]).threads == 1
+    evaluate = from_args(RunSettings, parser.parse_args(["evaluate", "run"]))
+    assert evaluate.torch_threads == 1 and evaluate.eval_episodes == RunSettings().eval_episodes
 
 
 def test_evaluate_sets_its_threads(tmp_path, capsys):
@@ -127,7 +128,8 @@ def test_evaluate_sets_its_threads(tmp_path, capsys):
     before = torch.get_num_threads()
     try:
         torch.set_num_threads(2)
-        argv = ["evaluate", str(tmp_path / "run"), "--episodes", "2", "--envs", "2", "--json"]
+        argv = ["evaluate", str(tmp_path / "run"), "--eval-episodes", "2", "--eval-envs", "2",
+                "--json"]  # fmt: skip
         assert main(argv) == 2  # the run's env factory is named in its config.json only
         assert f"if you trust it, name it yourself: --env {env}" in capsys.readouterr().err
         argv += ["--env", env]
@@ -157,3 +159,86 @@ def test_info_of_a_missing_path_or_a_file_says_so_not_unknown_task(tmp_path, cap
     assert main(["info", "runs/nope"]) == 2  # an id or a relative path: both are said
     err = capsys.readouterr().err
     assert "unknown task id 'runs/nope'" in err and "Nor is runs/nope a dataset directory" in err
+
+
+def test_version_and_did_you_mean(capsys):
+    from rlu import __version__
+
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0 and capsys.readouterr().out.strip() == f"rlu {__version__}"
+    for argv, says in [
+        (["trian"], "invalid choice: 'trian'"),
+        (["list", "--jsn"], "unrecognized arguments: --jsn (did you mean --json?)"),
+        (["train", "--out", "o", "--stpes", "3"], "--stpes (did you mean --steps?)"),
+        (["evaluate", "run", "--eval-episods", "2"], "(did you mean --eval-episodes?)"),
+    ]:
+        with pytest.raises(SystemExit) as e:
+            main(argv)
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and says in err, err
+    with pytest.raises(SystemExit):
+        main(["trian"])
+    assert "did you mean 'train'?" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["list", "--zzzzzz"])
+    assert "`rlu list --help` lists the options" in capsys.readouterr().err
+
+
+def test_help_names_real_commands():
+    """Every `rlu WORD` in any help text is a command (--agent's help named `rlu list-agents`,
+    which did not exist), and `rlu agents` lists every agent --agent takes."""
+    import argparse
+    import re
+
+    from rlu.cli import build_parser
+
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    commands = set(sub.choices)
+    prose = {"ships", "was", "writes", "reads", "wrote", "made", "makes", "does", "is", "has"}
+
+    def texts(p):
+        yield p.description or ""
+        yield p.epilog or ""
+        for a in p._actions:
+            if isinstance(a, argparse._SubParsersAction):
+                for child in a.choices.values():
+                    yield from texts(child)
+            yield a.help or ""
+
+    named = [w for text in texts(parser) for w in re.findall(r"\brlu ([a-z][a-z-]*)", text)]
+    assert "agents" in named  # --agent's help
+    assert [w for w in named if w not in commands and w not in prose] == []
+    assert "agents" in commands
+
+
+def test_rlu_agents_lists_the_registry(capsys):
+    from rlu.agents import AGENTS
+
+    assert main(["agents", "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    assert [(r["name"], r["actions"] == "discrete") for r in rows] == list(AGENTS)
+    assert all(r["summary"] for r in rows)
+    assert main(["agents"]) == 0
+    text = capsys.readouterr().out
+    assert text.splitlines()[1].split()[:2] == ["bc", "continuous"]
+    assert "et al" in text and f"{len(AGENTS)} agents" in text
+
+
+def test_a_run_that_never_evaluates_says_so(tmp_path, capsys):
+    pytest.importorskip("torch")
+    pytest.importorskip("gymnasium")
+    from tests.train.pendulum import write_dataset
+
+    data = write_dataset(tmp_path / "data", "test/pendulum", episodes=2)
+    argv = ["train", "--task", "test/pendulum", "--agent", "tests.train.fake_agent", "--dataset",
+            str(data), "--out", str(tmp_path / "run"), "--steps", "3", "--eval-every", "-1",
+            "--env", "tests.train.pendulum:make_env", "--quiet"]  # fmt: skip
+    assert main(argv) == 0
+    out = capsys.readouterr().out.strip()
+    assert out == (
+        f"{tmp_path / 'run'}: 3 steps (small preset), not evaluated (--eval-every -1); score it "
+        f"with `rlu evaluate {tmp_path / 'run'}`"
+    )
+    assert "final evaluation return not evaluated" not in out

@@ -153,3 +153,92 @@ def test_formats():
     assert format_size(3_210_000_000) == "3.21 GB"
     assert format_duration(59.6) == "1:00"
     assert format_duration(3725) == "1:02:05"
+
+
+def test_the_final_line_is_written_once():
+    """A last plain line that already showed the whole job done is not written again at close
+    (the quick start's last line used to be printed twice)."""
+    log, clock = io.StringIO(), Clock()
+    with Progress(2, "sweep", "runs", stream=log, clock=clock, mode="lines", interval=10) as bar:
+        clock.t += 5
+        bar.update(1)
+        clock.t += 6
+        bar.update(1)  # 100%, and 11 s since the start: a line now
+    assert log.getvalue().splitlines() == ["sweep: 100% 2/2 runs [0:11, 5.5 s/run]"]
+    log = io.StringIO()
+    with Progress(2, "x", "runs", stream=log, clock=clock, mode="lines", interval=10) as bar:
+        clock.t += 11
+        bar.update(1)
+        bar.update(1)  # done within the interval of the last line: close writes the final one
+    assert [line.split(" [")[0] for line in log.getvalue().splitlines()] == [
+        "x:  50% 1/2 runs",
+        "x: 100% 2/2 runs",
+    ]
+
+
+def test_refresh_writes_a_due_line_though_nothing_moved():
+    log, clock = io.StringIO(), Clock()
+    bar = Progress(100, "sweep", "steps", stream=log, clock=clock, mode="lines", interval=10)
+    clock.t += 4
+    bar.update(10)
+    bar.refresh()  # not due
+    clock.t += 8
+    bar.refresh()  # due: 12 s in, still 10 steps
+    assert log.getvalue() == "sweep:  10% 10/100 steps [0:12 ETA 1:48, 1.2 s/step]\n"
+
+
+def _relayed_job(key: str, total: int) -> str:
+    """A job in a worker: its steps go to the parent's Tally through a Relay."""
+    from rlu.progress import Relay
+
+    with Relay(key, interval=0).start(total) as relay:
+        for _ in range(total):
+            relay.update(1)
+    return key
+
+
+@pytest.mark.parametrize("workers", [1, 2], ids=["in_process", "process_pool"])
+def test_jobs_in_workers_add_up_in_one_tally(workers):
+    from rlu.progress import Tally
+    from rlu.workers import Backend, run_jobs
+
+    log, clock = io.StringIO(), Clock()
+    tally = Tally(3, "sweep", "steps", stream=log, clock=clock, mode="lines", interval=10,
+                  heartbeat=False)  # fmt: skip
+    seen = []
+
+    def message(m):
+        seen.append(m)
+        clock.t += 1  # one second a message: lines every 10 of them
+        assert tally.message(m)
+
+    jobs = [(f"run{i}", 10 * (i + 1)) for i in range(3)]  # 10, 20 and 30 steps
+    run_jobs(_relayed_job, jobs, Backend("local", workers), on_result=lambda i, key:
+             tally.finish(key), on_message=message)  # fmt: skip
+    tally.close()
+    assert not tally.message(("something", "else"))  # another sender's message is left alone
+    # every step reached the parent: start, 10 + 20 + 30 updates, close
+    assert len(seen) == 3 * 2 + 60
+    lines = log.getvalue().splitlines()
+    assert lines[-1].startswith("sweep: 100% 60/60 steps [") and lines[-1].endswith("runs=3/3")
+    assert len(lines) == 7 and "ETA" in lines[0]  # one every 10 s of 66, then the final one
+    assert sum(line.startswith("sweep: 100%") for line in lines) == 1
+
+
+def test_a_tally_estimates_the_runs_not_started_and_counts_a_failed_one_as_done():
+    from rlu.progress import RELAY_TAG, Tally
+
+    log, clock = io.StringIO(), Clock()
+    tally = Tally(4, "sweep", "steps", estimate=100, stream=log, clock=clock, mode="lines",
+                  heartbeat=False)  # fmt: skip
+    assert tally.bar.total == 400
+    tally.message((RELAY_TAG, "a", 0, 150))  # a run of 150 steps (its pre-training too)
+    assert tally.bar.total == 150 + 3 * 100
+    tally.message((RELAY_TAG, "b", 40, 100))
+    tally.drop("b")  # failed after 40 steps: they count, its 60 left do not
+    assert (tally.bar.n, tally.bar.total) == (40, 150 + 40 + 2 * 100)
+    tally.message((RELAY_TAG, "a", 150, 150))
+    tally.finish("a")
+    tally.message((RELAY_TAG, "a", 10, 150))  # a late message of a finished run: ignored
+    assert tally.bar.n == 190 and "runs=2/4" in tally.bar.render()
+    tally.close()

@@ -20,7 +20,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         "taken, and the returns of its checkpoint's episodes (recorded by the run, and kept in "
         "the dataset).",
     )
-    p.add_argument("dataset", help="dataset directory written by rlu generate")
+    p.add_argument(
+        "dataset",
+        help="a dataset rlu generate wrote, as rlu.load_dataset names it (a folder, or a task id: "
+        "control_suite/cartpole_swingup is the one rlu ships)",
+    )
     p.add_argument("--json", action="store_true", help="print the list as JSON")
     p.set_defaults(func=_list)
 
@@ -33,7 +37,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         "estimates with the rolled-out returns (FQE values the discounted return; the "
         "roll-outs are undiscounted: compare ranks).",
     )
-    p.add_argument("dataset", help="dataset directory written by rlu generate")
+    p.add_argument(
+        "dataset",
+        help="a dataset rlu generate wrote, as rlu.load_dataset names it (a folder, or a task id: "
+        "control_suite/cartpole_swingup is the one rlu ships)",
+    )
     p.add_argument("--run", type=_index, default=None, help="run (default: every kept policy)")
     p.add_argument("--checkpoint", type=_index, default=None, help="checkpoint id (with --run)")
     p.add_argument("--episodes", type=_count, default=10, help="episodes rolled out per policy")
@@ -75,9 +83,10 @@ def _fmt(x: float) -> str:
 def _list(args: argparse.Namespace) -> int:
     from dataclasses import asdict
 
+    from rlu.data import load_dataset
     from rlu.generate.policies import list_policies
 
-    rows = list_policies(args.dataset)
+    rows = list_policies(load_dataset(args.dataset))
     if args.json:
         # NaN (no recorded episodes) is not JSON: null
         print(json.dumps([{k: None if isinstance(v, float) and math.isnan(v) else v
@@ -107,12 +116,12 @@ def _evaluate(args: argparse.Namespace) -> int:
         raise RluError(f"--threads {args.threads}; use 1 or more")
     import torch
 
-    from rlu.data import open_dataset
+    from rlu.data import load_dataset
     from rlu.generate.policies import behaviour_ope, list_policies, rollout_behaviour
 
     torch.set_num_threads(args.threads)
     device = args.device
-    ds = open_dataset(args.dataset)
+    ds = load_dataset(args.dataset)
     which = None if args.run is None else [(args.run, args.checkpoint)]
     if args.fqe:
         if args.exploration:

@@ -54,7 +54,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--dataset",
         default=None,
-        help="another rlu dataset of a control-suite task (default: the bundled one)",
+        help="another dataset of a control-suite task, as rlu.load_dataset names it (a task id, "
+        "a TFDS name or a folder; default: the bundled one)",
     )
     p.add_argument("--seed", type=_seed, default=0, help="seed of every run (default: 0)")
     p.add_argument(
@@ -102,7 +103,7 @@ def _run(args: argparse.Namespace) -> int:
         )
     from rlu.agents import agent_module
     from rlu.commands.train import backend_from_args
-    from rlu.data import open_dataset
+    from rlu.data import load_dataset, open_dataset
     from rlu.data.validate import validate
     from rlu.devices import Runtime
     from rlu.evaluation.report.quickstart import MARKER, policy_row, write_quickstart_report
@@ -113,8 +114,8 @@ def _run(args: argparse.Namespace) -> int:
     from rlu.sweep import SweepConfig, sweep
 
     t0 = time.perf_counter()
-    path = Path(args.dataset) if args.dataset else bundled_dataset()
-    ds = open_dataset(path)
+    ds = load_dataset(args.dataset) if args.dataset else open_dataset(bundled_dataset())
+    path = Path(ds.path)
     task_id = ds.schema.task_id
     discrete = isinstance(ds.schema.action, DiscreteSpec)
     # every argument is checked before anything on disk is touched

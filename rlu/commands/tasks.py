@@ -1,10 +1,11 @@
-"""``rlu list`` and ``rlu info TASK|PATH``."""
+"""``rlu list``, ``rlu agents`` and ``rlu info TASK|PATH``."""
 
 from __future__ import annotations
 
 import argparse
 import json
 import os
+import re
 
 from rlu.types import RluError
 
@@ -15,6 +16,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--selection", choices=["online", "offline"])
     p.add_argument("--json", action="store_true", help="print a JSON array")
     p.set_defaults(func=_list)
+
+    p = sub.add_parser("agents", help="list every agent (the names --agent and --agents take)")
+    p.add_argument("--json", action="store_true", help="print a JSON array")
+    p.set_defaults(func=_agents)
 
     p = sub.add_parser("info", help="describe a task id or a dataset directory")
     p.add_argument("target", help="a task id (control_suite/cartpole_swingup) or a dataset path")
@@ -42,6 +47,44 @@ def _list(args: argparse.Namespace) -> int:
         print("  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip())
     print(f"{len(tasks)} tasks")
     return 0
+
+
+def _agents(args: argparse.Namespace) -> int:
+    """The registry (``rlu.agents.AGENTS``), each agent's summary read from its module's
+    docstring without importing it (no torch needed to list them)."""
+    from rlu.agents import AGENTS
+
+    rows = [
+        {"name": name, "actions": "discrete" if discrete else "continuous", "module": module,
+         "summary": _summary(module)}
+        for (name, discrete), module in AGENTS.items()
+    ]  # fmt: skip
+    if args.json:
+        print(json.dumps(rows, indent=1))
+        return 0
+    table = [("name", "actions", "summary")] + [
+        (r["name"], r["actions"], r["summary"]) for r in rows
+    ]
+    widths = [max(len(r[i]) for r in table) for i in range(2)]
+    for r in table:
+        print(f"{r[0].ljust(widths[0])}  {r[1].ljust(widths[1])}  {r[2]}".rstrip())
+    print(f"{len(rows)} agents; rlu train --agent NAME (docs/agents.md: adding one)")
+    return 0
+
+
+def _summary(module: str) -> str:
+    """The first sentence of a module's docstring, read from its source."""
+    import ast
+    import importlib.util
+
+    spec = importlib.util.find_spec(module)
+    if spec is None or spec.origin is None:
+        return ""
+    with open(spec.origin, encoding="utf-8") as fh:
+        doc = ast.get_docstring(ast.parse(fh.read())) or ""
+    text = " ".join(doc.split("\n\n")[0].split())
+    first = re.split(r"(?<!\bal)\.\s", text)[0].rstrip(".")  # "et al." ends no sentence
+    return first if len(first) <= 100 else first[:97].rstrip() + "..."
 
 
 def _info(args: argparse.Namespace) -> int:

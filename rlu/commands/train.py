@@ -3,8 +3,10 @@
 The run options (preset, budget, evaluation, checkpoints, threads, runtime) are the fields of
 ``rlu.settings.RunSettings``, flags and help derived from them, so the library and the command
 line share every default. ``--preset small`` is the default: a first ``rlu train`` takes
-minutes on a laptop CPU; ``--preset paper`` runs the paper's settings and budget, the only
-numbers that stand beside the paper's (with release data). ``--device auto`` (the first CUDA
+minutes on a laptop CPU; ``--preset paper`` runs rlu's paper presets (the paper's settings; the
+paper's budget where it states one, Atari's 2M, rlu's elsewhere), and ``rlu report`` checks
+every other condition of the paper's numbers before it calls a number comparable
+(``rlu.evaluation.report.conditions``). ``--device auto`` (the first CUDA
 GPU if PyTorch sees one, else the CPU) is the command line's device; the library's stays cpu.
 """
 
@@ -14,7 +16,12 @@ import argparse
 import json
 from typing import Any
 
-from rlu.commands._video import add_video_options, check_video_options, write_run_videos
+from rlu.commands._video import (
+    add_video_options,
+    check_video_options,
+    evaluation_watch,
+    report_videos,
+)
 from rlu.loggers import LOGGERS
 from rlu.settings import EVAL_EVERY_MIN, add_options, checked, from_args
 
@@ -89,9 +96,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         nargs="+",
         default=None,
         metavar="PATH",
-        help="rlu dataset folder; several (repeated, or a glob such as 'runs/Pong_*'): a mixture "
-        "of one schema, streamed, weighted by --weights (the first is the evaluation task's) "
-        "(required, on the command line or in --config)",
+        help="the data, as rlu.load_dataset names it (a task id, a TFDS name or a dataset "
+        "folder); several (repeated, or a glob such as 'runs/Pong_*'): a mixture of one schema, "
+        "streamed, weighted by --weights (the first is the evaluation task's) (required, on the "
+        "command line or in --config)",
     )
     p.add_argument("--out", required=True, help="run folder (created; an existing one: --resume)")
     p.add_argument("--resume", action="store_true", help="continue from the last checkpoint")
@@ -121,33 +129,25 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.set_defaults(func=_train, parser=p)
 
-    p = sub.add_parser("evaluate", help="roll out a trained run's greedy policy in its env")
+    p = sub.add_parser(
+        "evaluate",
+        help="roll out a trained run's greedy policy in its env",
+        description="Roll out the greedy policy of a run's newest checkpoint (or of a given "
+        "checkpoint) in the env the run evaluated in. The evaluation options are rlu train's, "
+        "with the same names and defaults.",
+    )
     p.add_argument("run", metavar="RUN_OR_CHECKPOINT")
-    p.add_argument(
-        "--episodes", type=_count, default=10, metavar="N", help="env episodes (default: 10)"
-    )
     p.add_argument("--seed", type=_seed, default=0, help="seeds the episodes (default: 0)")
-    p.add_argument(
-        "--envs",
-        type=_count,
-        default=4,
-        metavar="N",
-        help="envs stepped in lockstep (default: 4; returns do not depend on it)",
+    add_options(
+        p,
+        RunSettings,
+        only=("eval_episodes", "eval_envs", "eval_max_steps", "env", "challenge", "torch_threads"),
     )
-    p.add_argument(
-        "--max-steps",
-        type=_count,
-        default=None,
-        metavar="N",
-        help="cap on an episode's steps (default: the env's limit)",
-    )
-    p.add_argument(
-        "--env",
-        default=None,
-        metavar="MODULE:FUNCTION",
-        help="env factory (a run trained with one needs it named again here: a module named in "
-        "a run's files is never imported)",
-    )
+    for old, dest, lo in (("--episodes", "eval_episodes", 1), ("--envs", "eval_envs", 1),
+                          ("--max-steps", "eval_max_steps", 1)):  # fmt: skip
+        # the names evaluate had before it took train's: still read, no longer shown
+        p.add_argument(old, dest=dest, type=checked(int, {"min": lo}, old),
+                       default=argparse.SUPPRESS, help=argparse.SUPPRESS)  # fmt: skip
     p.add_argument(
         "--agent",
         default=None,
@@ -155,20 +155,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="the agent module a run of an agent outside rlu was trained with (imported because "
         "you typed it; it must be the one its config.json names)",
     )
-    p.add_argument(
-        "--challenge",
-        default=None,
-        choices=["none", "easy"],
-        help="RWRL: evaluate under this challenge (default: the run's)",
-    )
-    p.add_argument(
-        "--threads",
-        type=_count,
-        default=1,
-        metavar="N",
-        help="torch threads (default: 1; small batches per step)",
-    )
     p.add_argument("--json", action="store_true", help="print the result as JSON")
+    p.add_argument(
+        "--quiet",
+        "--no-progress",
+        dest="no_progress",
+        action="store_true",
+        help="no progress (a bar on a terminal, else a plain line every 10 s, on stderr)",
+    )
     add_device_option(p)
     add_video_options(p)
     p.set_defaults(func=_evaluate)
@@ -178,17 +172,29 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="tasks x agents x grids x seeds, locally or on Ray",
         description="Train every (task, agent, grid configuration, seed) and collect the final "
         "scores. Without --grid each agent's paper grid is expanded (the plan is printed "
-        "first). Runs default to --preset small (minutes each on a CPU); numbers to stand "
-        "beside the paper's need --preset paper (the paper's settings and budget) on release "
-        "data.",
+        "first). Runs default to --preset small (minutes each on a CPU); a number that "
+        "compares with the paper's needs --preset paper on the release's data, and rlu report "
+        "checks every condition of the paper's number (docs/evaluation.md).",
+        allow_abbrev=False,  # a config file's values yield to the options typed in full
     )
-    add_options(p, SweepConfig, only=("tasks", "agents", "seeds", "max_configs"))
+    p.add_argument(
+        "--config",
+        metavar="FILE",
+        help="sweep config as JSON or YAML (the fields of SweepConfig: tasks, agents, datasets, "
+        "seeds, grid, max_configs, task_presets, loggers, run: {steps, preset, ...}), a sweep "
+        "folder's sweep.json, or a run config that rlu train --config takes (its task, agent, "
+        "dataset, seed and overrides: a sweep of one run); options typed here override it",
+    )
+    add_options(p, SweepConfig, only=("tasks", "agents", "seeds", "max_configs"), require=False)
     p.add_argument(
         "--dataset",
         action="append",
-        required=True,
-        metavar="TASK=PATH",
-        help="dataset of a task (repeat per task)",
+        default=[],
+        metavar="[TASK=]DATASET",
+        help="the data of a task, as rlu.load_dataset names it (a task id, a TFDS name or a "
+        "folder; TASK= may be left out: the dataset's own task); repeat per task (default: "
+        "the --config file's, else each task's own dataset, the one rlu ships or the release's "
+        "in the cache)",
     )
     p.add_argument(
         "--grid",
@@ -200,31 +206,41 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--task-preset",
         action="append",
-        default=[],
+        default=None,
         metavar="TASK=PRESET",
         help="preset of one task for the agents that have it (e.g. paper_recurrent)",
     )
+    add_options(p, SweepConfig, only=("loggers",))
     add_backend_options(p, default_workers=2)
     p.add_argument("--out", required=True, help="sweep folder (an existing one is continued)")
     add_options(p, RunSettings)
-    p.set_defaults(func=_sweep)
+    p.set_defaults(func=_sweep, parser=p)
 
-    p = sub.add_parser("report", help="tables and figures of sweeps (Markdown, HTML, PNG)")
+    p = sub.add_parser(
+        "report",
+        help="tables and figures of runs and sweeps (Markdown, HTML, PNG)",
+        description="Report run folders (rlu train --out) and sweep folders (rlu sweep --out), "
+        "any mix, together: runs are grouped by the task, agent, configuration and seed each "
+        "recorded. Tables under the paper's protocols, learning curves, rliable's performance "
+        "profiles and probability of improvement, each number labelled with what produced it "
+        "and, beside the paper's, which of the paper's conditions it meets.",
+    )
     p.add_argument(
-        "sweep_dirs",
+        "paths",
         nargs="+",
-        metavar="SWEEP_DIR",
-        help="one or more sweep folders, reported together (e.g. an Atari and a control sweep)",
+        metavar="RUN_OR_SWEEP",
+        help="run folders and sweep folders, reported together",
     )
     p.add_argument(
         "--out",
         default=None,
-        help="report folder (default: SWEEP_DIR/report; required with several sweeps)",
+        help="report folder (default: RUN_OR_SWEEP/report for one folder; required with "
+        "several); a folder holding anything but an earlier rlu report is refused",
     )
     p.add_argument(
         "--fqe",
         action="store_true",
-        help="first run offline policy selection by FQE (writes SWEEP_DIR/fqe.json per sweep)",
+        help="first run offline policy selection by FQE (writes SWEEP/fqe.json per sweep)",
     )
     add_options(p, FQEConfig, only=("steps",), flag_prefix="--fqe-", dest_prefix="fqe_")
     add_device_option(p)
@@ -265,10 +281,14 @@ def _train(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
         loggers=args.log_to,
     )
-    print(
-        f"{args.out}: {result['steps']} steps ({result['preset']} preset), final evaluation "
-        f"return {_score(result['score'])} over {result['eval_episodes']} episodes"
-    )
+    done = f"{args.out}: {result['steps']} steps ({result['preset']} preset)"
+    if result["score"] is None:  # --eval-every -1: the run never met its env
+        print(f"{done}, not evaluated (--eval-every -1); score it with `rlu evaluate {args.out}`")
+    else:
+        print(
+            f"{done}, final evaluation return {result['score']:.1f} over "
+            f"{result['eval_episodes']} episodes"
+        )
     return 0
 
 
@@ -319,10 +339,6 @@ def _from_config_file(args: argparse.Namespace) -> dict[str, Any]:
     return dict(data.get("overrides", {}))
 
 
-def _score(value: float | None) -> str:
-    return "not evaluated" if value is None else f"{value:.1f}"
-
-
 def _evaluate(args: argparse.Namespace) -> int:
     from rlu.restore import evaluate_run
 
@@ -335,21 +351,29 @@ def _evaluate(args: argparse.Namespace) -> int:
 
         trust_env_factory(args.env)
     if args.video is not None:
-        check_video_options(args)
+        check_video_options(args)  # before any work: a bad folder or a missing extra fails now
     import torch
 
-    torch.set_num_threads(args.threads)
+    torch.set_num_threads(args.torch_threads)
 
-    res = evaluate_run(
-        args.run,
-        args.episodes,
-        args.seed,
-        args.envs,
-        args.env,
-        args.max_steps,
-        args.challenge,
-        device=args.device,
-    )
+    from rlu.progress import Progress
+
+    with (
+        Progress(args.eval_episodes, "evaluate", "episodes", quiet=args.no_progress) as bar,
+        evaluation_watch(args, bar) as watch,
+    ):
+        res = evaluate_run(
+            args.run,
+            args.eval_episodes,
+            args.seed,
+            args.eval_envs,
+            args.env,
+            args.eval_max_steps,
+            args.challenge,
+            device=args.device,
+            observer=watch,
+            render=watch.render,
+        )
     if args.json:
         print(json.dumps(res.to_json()))
     else:
@@ -357,8 +381,8 @@ def _evaluate(args: argparse.Namespace) -> int:
             f"{len(res.returns)} episodes: mean return {res.mean:.1f}, returns "
             + ", ".join(f"{r:.1f}" for r in res.returns)
         )
-    if args.video is not None:
-        write_run_videos(args)
+    if watch.recorder is not None:
+        report_videos(args, watch.recorder)
     return 0
 
 
@@ -374,23 +398,53 @@ def _pairs(items: list[str], flag: str, what: str) -> dict[str, str]:
     return out
 
 
+def _datasets(items: list[str]) -> dict[str, str]:
+    """``--dataset [TASK=]DATASET`` of a sweep: a bare DATASET is the data of its own task (the
+    task a task id or TFDS name names, or a folder's manifest)."""
+    from rlu.data import load_dataset
+    from rlu.types import RluError
+
+    out: dict[str, str] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep:
+            value = item
+            key = load_dataset(item).schema.task_id
+            if not key:
+                raise RluError(f"--dataset {item}: its manifest names no task; write TASK={item}")
+        elif not key or not value:
+            raise RluError(f"--dataset {item!r}; write it as TASK=DATASET or DATASET")
+        if key in out:
+            raise RluError(f"--dataset: two datasets for {key} ({out[key]}, {value}); give one")
+        out[key] = value
+    return out
+
+
 def _sweep(args: argparse.Namespace) -> int:
     from rlu.settings import RunSettings
     from rlu.sweep import SweepConfig, results_table, sweep
     from rlu.train import parse_overrides
+    from rlu.types import RluError
 
-    grid = None
+    given = _sweep_config_file(args) if args.config is not None else {}
+    datasets = {**given.get("datasets", {}), **_datasets(args.dataset)}
+    task_presets = {**given.get("task_presets", {}),
+                    **_pairs(args.task_preset or [], "--task-preset", "TASK=PRESET")}  # fmt: skip
+    grid = given.get("grid")
     if args.grid:
         grid = {
             key: [parse_overrides([f"v={v}"])["v"] for v in values.split(",")]
             for key, values in _pairs(args.grid, "--grid", "FIELD=V1,V2").items()
         }
+    for name, flag in (("tasks", "--tasks"), ("agents", "--agents")):
+        if not getattr(args, name):
+            raise RluError(f"{flag} is missing: give it on the command line or in --config")
     config = from_args(
         SweepConfig,
         args,
-        datasets=_pairs(args.dataset, "--dataset", "TASK=PATH"),
+        datasets=datasets,
         grid=grid,
-        task_presets=_pairs(args.task_preset, "--task-preset", "TASK=PRESET"),
+        task_presets=task_presets,
         run=from_args(RunSettings, args),
     )
     records = sweep(config, args.out, backend_from_args(args), progress=True)
@@ -398,21 +452,63 @@ def _sweep(args: argparse.Namespace) -> int:
     return 0
 
 
+def _sweep_config_file(args: argparse.Namespace) -> dict[str, Any]:
+    """Fill the sweep options the user did not type from ``--config`` (a sweep config, a sweep
+    folder's sweep.json, or a run config, which becomes a sweep of its one run); returns the
+    file's datasets, grid and task presets for the caller to merge with the typed ones. An
+    agent module or env factory named in the file is refused unless typed too: names in files
+    are never imported."""
+    from rlu.settings import RunSettings, flat_values, read_config_file, typed_dests
+    from rlu.sweep import SweepConfig
+    from rlu.train import TrainConfig
+    from rlu.types import FormatError, RluError
+
+    try:
+        data = read_config_file(args.config, SweepConfig)
+    except FormatError as not_a_sweep:
+        try:
+            run = read_config_file(args.config, TrainConfig)
+        except FormatError:
+            raise not_a_sweep from None
+        data = {
+            "tasks": [run["task"]] if "task" in run else None,
+            "agents": [run["agent"]] if "agent" in run else None,
+            "seeds": [run["seed"]] if "seed" in run else None,
+            "datasets": {run["task"]: run["dataset"]} if {"task", "dataset"} <= set(run) else {},
+            "grid": {k: [v] for k, v in run.get("overrides", {}).items()} or None,
+            "run": run.get("run", {}),
+        }
+        data = {k: v for k, v in data.items() if v is not None}
+    typed = typed_dests(args.parser, args.argv)
+    plain = {k: v for k, v in data.items() if k not in ("run", "datasets", "grid", "task_presets")}
+    values = flat_values(SweepConfig, plain)
+    values.update(flat_values(RunSettings, data.get("run", {})))
+    for dest, value in values.items():
+        if dest not in typed:
+            setattr(args, dest, value)
+    named = [a for a in (args.agents or []) if "." in a] if "agents" not in typed else []
+    if named:
+        raise RluError(
+            f"{args.config}: field 'agents' names the agent module {named[0]!r}, and a module "
+            f"named in a file is never imported; if you trust it, type it: --agents {named[0]}"
+        )
+    if "env" not in typed and args.env is not None:
+        raise RluError(
+            f"{args.config}: field 'env' names the env factory {args.env!r}, and a module "
+            f"named in a file is never imported; if you trust it, type it: --env {args.env}"
+        )
+    return {k: data[k] for k in ("datasets", "grid", "task_presets") if data.get(k) is not None}
+
+
 def _report(args: argparse.Namespace) -> int:
-    from rlu.evaluation.report import write_report
-    from rlu.types import RluError
+    from rlu.restore import report
 
-    if args.out is None and len(args.sweep_dirs) > 1:
-        raise RluError(f"{len(args.sweep_dirs)} sweep folders: pass --out for the report folder")
-    if args.fqe:
-        from rlu.evaluation.fqe import FQEConfig
-        from rlu.restore import fqe_selection
-
-        for sweep_dir in args.sweep_dirs:
-            fqe_selection(sweep_dir, FQEConfig(steps=args.fqe_steps), args.device)
-    from rlu.agents import paper_steps
-
-    paths = write_report(args.sweep_dirs, args.out, paper_steps=paper_steps)
+    paths = report(
+        args.paths,
+        args.out,
+        fqe_steps=args.fqe_steps if args.fqe else None,
+        device=args.device,
+    )
     for p in paths:
         print(f"wrote {p}")
     return 0

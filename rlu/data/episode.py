@@ -45,6 +45,11 @@ METADATA_MISSING = {"uint64": np.iinfo(np.uint64).max, "float64": np.nan, "int64
 
 @dataclass(frozen=True)
 class Segment:
+    """One segment of steps (an episode, or a window of one) as in-memory arrays: the observation of
+    every step, the action taken there and the reward and discount that followed, the flags, per-
+    segment metadata (``episode_return``, run, ...) and, for frame-stacked Atari data, the frames
+    before its first step (``frame_prefix``)."""
+
     observation: Observation
     action: np.ndarray
     reward: np.ndarray
@@ -60,6 +65,7 @@ class Segment:
 
     @property
     def num_transitions(self) -> int:
+        """Transitions in the segment: one fewer than its steps (the last step has no next one)."""
         return len(self) - 1
 
 

@@ -434,8 +434,8 @@ def h5_check(obj: Any, path: Path, name: str, numeric: bool = True) -> None:
 class H5Column(Column):
     """An HDF5 dataset (checked by :func:`h5_check`), read a hyperslab of rows at a time."""
 
-    def __init__(self, obj: Any, path: Path, name: str):
-        h5_check(obj, path, name)
+    def __init__(self, obj: Any, path: Path, name: str, numeric: bool = True):
+        h5_check(obj, path, name, numeric)
         self.obj, self.path, self.name = obj, path, name
         self.shape = tuple(int(x) for x in (obj.shape or ()))
         self.dtype = obj.dtype

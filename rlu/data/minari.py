@@ -25,20 +25,28 @@ encoding off so that image observations stay exact):
 - the description says where the data came from, written from the manifest's provenance (the
   original release's files, the ``rlu generate`` command, the imported file); the whole
   provenance is in the dataset metadata as JSON (``rlu_provenance``);
-- episode metadata: rlu's per-segment metadata as episode attributes ``rlu_<field>``, plus
-  ``rlu_is_first`` / ``rlu_is_last`` so that release windows (segments that are not whole
-  episodes) come back as windows; a window's last step (which starts the next, unstored,
-  transition) keeps its action, reward and discount in ``rlu_final_action`` / ``_reward`` /
-  ``_discount``; so does a whole episode's final step that holds an action or reward (the last
-  row of a truncated episode imported from d3rlpy or D4RL: no transition's, kept);
-- dataset metadata: ``rlu_task_id``, the schema's task, which import reads back.
+- episode metadata: rlu's per-segment metadata as episode attributes ``rlu_<field>``, for
+  Minari's users; dataset metadata: ``rlu_task_id``, the schema's task, and ``rlu_export_id``;
+- what Minari cannot hold goes to the sidecar ``rlu_sidecar.npz`` in the dataset's folder
+  (rlu.data.roundtrip): one-step segments (Minari stores no episode without a step), every
+  segment's final step (the action, reward and discount no transition uses), release windows'
+  first and last flags, the metadata columns, schema, provenance and attached files;
+- the dataset is written into a staging folder of the datasets directory and renamed into
+  place when complete; a dataset imported from Minari is written back as it was (below).
 
 Import (``import_minari``) reads any Minari dataset (an id in ``MINARI_DATASETS_PATH`` or a
-dataset directory) with Minari's own iteration; an episode that ends with neither a termination
-nor a truncation (a recording cut short) counts as truncated. The final step of each imported
-episode holds no action or reward (rlu's step semantics) unless rlu's export kept one there.
-Without ``--task``, the task rlu's export recorded is the dataset's (if its schema gives the
-dataset's spaces). rlu's segments, windows included, round-trip column for column.
+dataset directory) with Minari's own iteration, after checking every episode's arrays against its
+``total_steps`` and the spaces, and its declared size, from the HDF5 metadata alone; an episode
+that ends with neither a termination nor a truncation (a recording cut short) counts as
+truncated. The final step of each imported episode holds no action or reward (rlu's step
+semantics); rlu's own export is restored from its sidecar. Without ``--task``, the task rlu's
+export recorded is the dataset's (if its schema gives the dataset's spaces). What the store does
+not hold is kept in ``source/minari.json`` and ``.npz`` (every ``metadata.json`` field:
+``env_spec``, ``eval_env_spec``, authors, permalink, description, reference scores; each
+episode's HDF5 attributes with their dtypes, such as ``DataCollector``'s uint64 seeds, which
+rlu's int64 ``seed`` column keeps only when they fit; the arrays' dtypes; float64 rewards;
+``infos``; the last termination and truncation flags), from which ``export_minari`` writes the
+dataset back, by default under its own id.
 """
 
 from __future__ import annotations
@@ -46,6 +54,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
+import math
 import os
 import shutil
 import warnings
@@ -278,11 +287,17 @@ def _stacked(frames: np.ndarray, k: int) -> np.ndarray:
     return np.ascontiguousarray(win)
 
 
-def episode_buffer(seg: Segment, schema: Schema) -> Any:
-    """One stored segment as a Minari ``EpisodeBuffer`` (see the module docstring)."""
+def episode_buffer(
+    seg: Segment, schema: Schema, layout: Mapping[str, Any] | None = None, extra: Any = None
+) -> Any:
+    """One stored segment as a Minari ``EpisodeBuffer`` (see the module docstring); ``layout``
+    (the dtypes of the Minari dataset the segment was imported from) and ``extra`` (its kept
+    rewards, infos and end flags) give that dataset's episode back."""
     from minari.data_collector import EpisodeBuffer
 
     n = len(seg) - 1
+    layout = layout or {}
+    dtypes = layout.get("observations") or {}
     if schema.frame_stack > 1:
         k = schema.frame_stack
         prefix = seg.frame_prefix
@@ -292,146 +307,313 @@ def episode_buffer(seg: Segment, schema: Schema) -> Any:
             )
         obs: Any = _stacked(np.concatenate([prefix, seg.observation]), k)
     elif isinstance(seg.observation, Mapping):
-        obs = _nest({k: np.asarray(v) for k, v in seg.observation.items()})
+        obs = {k: np.asarray(v).astype(dtypes.get(k, v.dtype), copy=False)
+               for k, v in seg.observation.items()}  # fmt: skip
+        obs = _nest(obs)
     else:
         obs = np.asarray(seg.observation)
+        if "" in dtypes:
+            obs = obs.astype(dtypes[""], copy=False)
     action = np.asarray(seg.action)[:n]
-    if isinstance(schema.action, DiscreteSpec):
+    if layout.get("actions"):
+        action = action.astype(layout["actions"], copy=False)
+    elif isinstance(schema.action, DiscreteSpec):
         action = action.astype(np.int64)
     terminal = bool(seg.is_terminal[-1])
-    terminations = np.zeros(n, bool)
-    truncations = np.zeros(n, bool)
+    terminations = np.zeros(n, layout.get("terminations", "bool"))
+    truncations = np.zeros(n, layout.get("truncations", "bool"))
+    rewards = np.asarray(seg.reward, np.float32)[:n].astype(layout.get("rewards", "float32"))
+    infos = None
     if n:
         terminations[-1] = terminal
         truncations[-1] = not terminal
+    if extra is not None:
+        if extra.get("rewards") is not None:
+            rewards = extra["rewards"]
+        if extra.get("actions") is not None:
+            action = extra["actions"]
+        kept = extra.get("observations") or {}
+        if "" in kept:
+            obs = kept[""]
+        elif kept:
+            flat = _flatten(obs)
+            flat.update(kept)
+            obs = _nest(flat)
+        terminations[-1], truncations[-1] = extra["ends"]
+        infos = extra.get("infos")
     return EpisodeBuffer(
         observations=obs,
         actions=action,
-        rewards=np.asarray(seg.reward, np.float32)[:n],
+        rewards=rewards,
         terminations=terminations,
         truncations=truncations,
+        infos=infos,
     )
 
 
-def _episode_attrs(seg: Segment) -> dict[str, Any]:
-    attrs = {f"rlu_{k}": v for k, v in seg.metadata.items()}
-    attrs["rlu_is_first"] = bool(seg.is_first[0])
-    attrs["rlu_is_last"] = bool(seg.is_last[-1])
-    if not seg.is_last[-1]:  # a window's last step holds real data (the next transition's start)
-        attrs["rlu_final_action"] = np.asarray(seg.action[-1])
-        attrs["rlu_final_reward"] = np.float32(seg.reward[-1])
-        attrs["rlu_final_discount"] = np.float32(seg.discount[-1])
-    elif seg.reward[-1] != 0 or np.any(seg.action[-1]):  # a truncated end's last row, imported
-        attrs["rlu_final_action"] = np.asarray(seg.action[-1])  # from d3rlpy or D4RL
-        attrs["rlu_final_reward"] = np.float32(seg.reward[-1])
-    return attrs
+def default_root() -> Path:
+    """Minari's datasets directory: ``MINARI_DATASETS_PATH`` or ``~/.minari/datasets``."""
+    env = os.environ.get("MINARI_DATASETS_PATH")
+    return Path(env) if env else Path.home() / ".minari" / "datasets"
 
 
-def export_minari(
-    ds: Dataset,
-    dataset_id: str,
-    root: str | os.PathLike | None = None,
-    description: str | None = None,
-    chunk_steps: int = CHUNK_STEPS,
-) -> Path:
-    """Write ``ds`` as Minari dataset ``dataset_id`` (``namespace/name-vN``); returns its directory.
-
-    ``root`` is the Minari datasets directory (default: ``MINARI_DATASETS_PATH`` or
-    ``~/.minari/datasets``). Episodes go to Minari in chunks of about ``chunk_steps`` steps. A
-    single-step segment holds no transition and Minari cannot store it: it is left out, with a
-    warning, and its index listed in the dataset metadata (``rlu_skipped_single_step_segments``).
-    On any error the half-written dataset is removed.
-    """
-    minari = _require_minari()
+def dataset_dir(dataset_id: str, root: str | os.PathLike | None = None) -> Path:
+    """The folder Minari keeps dataset ``dataset_id`` in under ``root``."""
     from minari.dataset.minari_dataset import parse_dataset_id
 
     try:
-        parse_dataset_id(dataset_id)
+        namespace, name, version = parse_dataset_id(dataset_id)
     except Exception as e:  # noqa: BLE001 (minari raises several types)
         raise RluError(f"--id {dataset_id!r}: {e}; use NAMESPACE/NAME-vN") from None
     if "-v" not in dataset_id.rsplit("/", 1)[-1]:
         raise RluError(f"--id {dataset_id!r} has no version; use NAMESPACE/NAME-vN")
+    base = Path(root) if root is not None else default_root()
+    parts = [*(namespace.split("/") if namespace else []), f"{name}-v{version}"]
+    if any(p in ("", ".", "..") for p in parts):
+        raise RluError(f"--id {dataset_id!r}: a name part is empty, '.' or '..'")
+    return base.joinpath(*parts)
+
+
+def export_minari(
+    ds: Dataset,
+    dataset_id: str | None = None,
+    root: str | os.PathLike | None = None,
+    description: str | None = None,
+    chunk_steps: int = CHUNK_STEPS,
+    note: Any = None,
+) -> Path:
+    """Write ``ds`` as Minari dataset ``dataset_id`` (``namespace/name-vN``); returns its directory.
+
+    ``root`` is the Minari datasets directory (default: ``MINARI_DATASETS_PATH`` or
+    ``~/.minari/datasets``); it is made if missing and checked against the dataset
+    (rlu.files.check_output: the new dataset's folder may not lie in, or hold, the input).
+    Minari writes the dataset into a staging folder inside ``root``, which is renamed into place
+    once it is complete, with its sidecar ``rlu_sidecar.npz`` (rlu.data.roundtrip: one-step
+    segments, which Minari cannot store, final steps, flags, metadata; ``note`` gets the line
+    saying so); on any error nothing is left. Episodes go to Minari in chunks of about
+    ``chunk_steps`` steps. A dataset imported from Minari is written back as it was
+    (``source/minari.*``: its dtypes, float64 rewards, infos, episode attributes and every
+    metadata field: ``env_spec``, ``eval_env_spec``, authors, reference scores...), by default
+    under its own id. Actions outside the action space are refused before anything is written.
+    """
+    import tempfile
+
+    minari = _require_minari()
+    from rlu.data.roundtrip import (
+        MINARI_SIDECAR,
+        check_exportable,
+        new_export_id,
+        read_source,
+        write_sidecar,
+    )
+    from rlu.files import check_output, make_folder
     from rlu.locks import OutputLock
 
-    with _datasets_root(root), warnings.catch_warnings(), contextlib.ExitStack() as stack:
-        from minari.storage import get_dataset_path
-
-        path = Path(get_dataset_path(dataset_id))
-        stack.enter_context(OutputLock(path, "Minari dataset"))  # one writer per dataset
-        if path.exists():
-            raise RluError(f"{path}: Minari dataset {dataset_id} already exists; use another --id")
-        obs_space, act_space = spaces_for(ds.schema)
-        prov = ds.manifest.get("provenance", {})
-        spec = env_spec_for(ds.schema, prov)
-        desc = description or (
-            describe_provenance(prov, ds.schema.task_id)
-            + f" Exported to Minari by rlu from {ds.path}."
-        )
-        skipped: list[int] = []
-        try:
-            mds = None
-            index = 0
+    source = read_source(ds, "minari")
+    info = source[0] if source else None
+    if dataset_id is None:
+        if info is None:
+            raise RluError("--format minari needs --id NAMESPACE/NAME-vN")
+        dataset_id = str(info["metadata"]["dataset_id"])
+    base = Path(root) if root is not None else default_root()
+    final = dataset_dir(dataset_id, base)
+    if os.path.lexists(final):
+        raise RluError(f"{final}: Minari dataset {dataset_id} already exists; use another --id")
+    check_output(final, [ds.path], what="Minari dataset folder", flag="--minari-dir")
+    check_exportable(ds, "Minari", windows=True)
+    make_folder(base)
+    export_id = new_export_id()
+    length = np.asarray(ds.length)
+    with contextlib.ExitStack() as stack:
+        stack.enter_context(OutputLock(final, "Minari dataset"))  # one writer per dataset
+        if source is not None:
+            stack.callback(source[1].__exit__)
+        staging = Path(tempfile.mkdtemp(dir=base, prefix=".rlu-minari-"))
+        stack.callback(shutil.rmtree, staging, True)
+        with _datasets_root(staging), warnings.catch_warnings():
             warnings.filterwarnings("ignore", module="minari")  # author, permalink unset
-            for chunk in _chunks(ds, chunk_steps, skipped):
-                buffers = [episode_buffer(s, ds.schema) for s in chunk]
-                if mds is None:
-                    mds = minari.create_dataset_from_buffers(
-                        dataset_id,
-                        buffers,
-                        observation_space=obs_space,
-                        action_space=act_space,
-                        algorithm_name="rlu export",
-                        description=desc,
-                        data_format="hdf5",
-                        jpeg_encoding=False,
-                    )
-                else:
-                    mds.update_dataset_from_buffer(buffers)
-                mds.storage.update_episode_metadata(
-                    [_episode_attrs(s) for s in chunk], range(index, index + len(chunk))
-                )
-                index += len(chunk)
-            if mds is None:
-                raise RluError(f"{ds.path}: every segment is a single step; nothing to export")
-            # the spec goes in after creation: given to create_dataset_from_buffers, Minari would
-            # build the env (and need the env's extra) just to read spaces rlu already gives it
-            meta: dict[str, Any] = {"rlu_provenance": json.dumps(prov, sort_keys=True)}
-            if ds.schema.task_id:
-                meta["rlu_task_id"] = ds.schema.task_id
-            if spec is not None:
-                meta["env_spec"] = spec.to_json()
-            mds.storage.update_metadata(meta)
-            if skipped:
-                mds.storage.update_metadata({"rlu_skipped_single_step_segments": skipped})
-        except BaseException:
-            shutil.rmtree(path, ignore_errors=True)
-            raise
-    if skipped:
-        warnings.warn(
-            f"{len(skipped)} single-step segment(s) of {ds.path} hold no transition and were left "
-            f"out (Minari cannot store an episode without a step): {skipped[:10]}",
-            stacklevel=2,
+            path = dataset_dir(dataset_id, staging)
+            _write_minari(minari, ds, dataset_id, info, source, description, chunk_steps)
+            meta = _read_own_json(path / "data" / "metadata.json")
+            if info is not None:
+                meta.update({k: v for k, v in info["metadata"].items() if k != "dataset_id"})
+            else:
+                prov = ds.manifest.get("provenance", {})
+                spec = env_spec_for(ds.schema, prov)
+                meta["rlu_provenance"] = json.dumps(prov, sort_keys=True)
+                if ds.schema.task_id:
+                    meta["rlu_task_id"] = ds.schema.task_id
+                if spec is not None:
+                    meta["env_spec"] = spec.to_json()
+            meta["rlu_export_id"] = export_id
+            from rlu.files import write_json
+
+            write_json(path / "data" / "metadata.json", meta, indent=None)
+            what = write_sidecar(ds, path / MINARI_SIDECAR, "minari", export_id, length < 2)
+        _move_into_place(staging, path, base)
+    if note is not None:
+        note(
+            f"Minari datasets cannot hold {', '.join(what)}: kept in {MINARI_SIDECAR} inside "
+            f"{final}, which rlu import reads back"
         )
-    return path
+    return final
 
 
-def _chunks(ds: Dataset, chunk_steps: int, skipped: list[int]) -> Iterator[list[Segment]]:
-    """Segments with at least one transition, in chunks of about ``chunk_steps`` steps; the
-    indices of the others (single-step segments, which Minari cannot store) go to ``skipped``."""
-    chunk: list[Segment] = []
-    steps = 0
+def _read_own_json(path: Path) -> dict[str, Any]:
+    from rlu.files import read_bytes
+
+    return json.loads(read_bytes(path, MAX_METADATA_BYTES, "export again"))
+
+
+def _move_into_place(staging: Path, path: Path, base: Path) -> None:
+    """Rename the staged dataset (or the first namespace folder ``base`` lacks) into ``base``."""
+    rel = path.relative_to(staging)
+    for i in range(1, len(rel.parts) + 1):
+        part = Path(*rel.parts[:i])
+        if not os.path.lexists(base / part):
+            os.rename(staging / part, base / part)
+            return
+        if (base / part).is_symlink() or not (base / part).is_dir():
+            raise RluError(f"{base / part}: not a folder; Minari's namespace folders must be")
+    raise RluError(f"{base / rel}: already exists; use another --id")
+
+
+def _write_minari(
+    minari: Any,
+    ds: Dataset,
+    dataset_id: str,
+    info: Mapping[str, Any] | None,
+    source: Any,
+    description: str | None,
+    chunk_steps: int,
+) -> None:
+    """Minari's own writer, fed ``ds``'s segments of at least one transition in chunks."""
+    if info is not None:
+        from minari.serialization import deserialize_space
+
+        obs_space = deserialize_space(info["metadata"]["observation_space"])
+        act_space = deserialize_space(info["metadata"]["action_space"])
+    else:
+        obs_space, act_space = spaces_for(ds.schema)
+    prov = ds.manifest.get("provenance", {})
+    desc = description or (
+        describe_provenance(prov, ds.schema.task_id) + f" Exported to Minari by rlu from {ds.path}."
+    )
+    extras = _SourceEpisodes(info, source) if info is not None else None
+    layout = info.get("layout") if info is not None else None
+    mds = None
+    index = 0
+    for chunk in _chunks(ds, chunk_steps):
+        buffers = [
+            episode_buffer(s, ds.schema, layout, extras.next(i) if extras else None)
+            for i, s in chunk
+        ]
+        if mds is None:
+            mds = minari.create_dataset_from_buffers(
+                dataset_id,
+                buffers,
+                observation_space=obs_space,
+                action_space=act_space,
+                algorithm_name="rlu export",
+                description=desc,
+                data_format="hdf5",
+                jpeg_encoding=False,
+            )
+        else:
+            mds.update_dataset_from_buffer(buffers)
+        if extras is not None:
+            attrs = [extras.attrs(index + j) for j in range(len(chunk))]
+        else:  # for Minari's users: which episode this is (rlu's import reads the sidecar)
+            attrs = [{f"rlu_{k}": v for k, v in s.metadata.items()} for _, s in chunk]
+        mds.storage.update_episode_metadata(attrs, range(index, index + len(chunk)))
+        index += len(chunk)
+    if mds is None:
+        raise RluError(f"{ds.path}: every segment is a single step; Minari cannot store it")
+
+
+class _SourceEpisodes:
+    """The kept parts of the Minari dataset a dataset was imported from, episode by episode."""
+
+    def __init__(self, info: Mapping[str, Any], source: Any):
+        self.info, self.z = info, source[1]
+        self.cols = {k: self.z.column(k) for k in self.z.infos}
+        self.at: dict[str, int] = {}
+        self.ends = self.z.read("ends") if "ends" in self.z.infos else None
+
+    def _rows(self, key: str, n: int) -> np.ndarray:
+        a = self.at.get(key, 0)
+        self.at[key] = a + n
+        return self.cols[key].rows(a, a + n)
+
+    def next(self, i: int) -> dict[str, Any]:
+        """Episode ``i``'s kept rewards, infos and end flags (called in episode order)."""
+        e = self.info["episodes"][i] if i < len(self.info["episodes"]) else {}
+        out: dict[str, Any] = {"ends": tuple(bool(x) for x in self.ends[i])}
+        steps = int(e.get("steps", 0))
+        if "rewards" in self.cols:
+            out["rewards"] = self._rows("rewards", steps)
+        if "actions" in self.cols:
+            out["actions"] = self._rows("actions", steps)
+        kept = dict.fromkeys(self.info.get("layout", {}).get("observations_kept") or [])
+        for k in kept:
+            kept[k] = self._rows(f"observations/{k}", steps + 1)
+        if kept:
+            out["observations"] = kept
+        if e.get("infos") is not None:
+            infos = {p: self._rows(f"infos/{p}", int(n)) for p, n in e["infos"].items()}
+            out["infos"] = _nest(infos)
+        return out
+
+    def attrs(self, i: int) -> dict[str, Any]:
+        e = self.info["episodes"][i] if i < len(self.info["episodes"]) else {}
+        return {k: _attr_value(v) for k, v in (e.get("attrs") or {}).items()}
+
+
+def _chunks(ds: Dataset, chunk_steps: int) -> Iterator[list[tuple[int, Segment]]]:
+    """(index among the segments Minari stores, segment) for the segments with at least one
+    transition, in chunks of about ``chunk_steps`` steps (one-step segments go to the
+    sidecar)."""
+    chunk: list[tuple[int, Segment]] = []
+    steps = index = 0
     for i in range(len(ds)):
-        seg = ds.segment(i)
-        if len(seg) < 2:
-            skipped.append(i)
+        if int(ds.length[i]) < 2:
             continue
-        chunk.append(seg)
+        seg = ds.segment(i)
+        chunk.append((index, seg))
+        index += 1
         steps += len(seg)
         if steps >= chunk_steps:
             yield chunk
             chunk, steps = [], 0
+            from rlu.data.roundtrip import release_all
+
+            release_all(ds)
     if chunk:
         yield chunk
+
+
+def _attr_json(v: Any) -> dict[str, Any] | None:
+    """An HDF5 attribute's value as JSON with its dtype (None: not a kind rlu keeps)."""
+    if isinstance(v, str):
+        return {"str": v}
+    a = np.asarray(v)
+    if a.dtype.kind not in "biuf" or a.dtype.fields is not None:
+        return None
+    values = a.tolist()
+    if a.dtype.kind == "f" and not np.isfinite(a).all():
+        values = np.vectorize(repr)(a.astype(np.float64)).tolist() if a.ndim else repr(float(a))
+    return {"dtype": a.dtype.name, "shape": list(a.shape), "value": values}
+
+
+def _attr_value(j: Mapping[str, Any]) -> Any:
+    if "str" in j:
+        return j["str"]
+    dtype = np.dtype(j["dtype"])
+    v = j["value"]
+    if dtype.kind == "f":
+        v = np.vectorize(float)(np.asarray(v, dtype=object)) if isinstance(v, list) else float(v)
+    a = np.asarray(v, dtype=dtype).reshape(j["shape"])
+    return a[()] if a.ndim == 0 else a
 
 
 class _datasets_root:
@@ -511,6 +693,101 @@ def _check_metadata(data: Path) -> None:
                 f.visititems(visit)
             except (OSError, RuntimeError, ValueError) as e:
                 raise FormatError(f"{h5}: damaged HDF5 structure ({e}); {fix}") from None
+            _check_episodes(f, h5, meta, fix)
+
+
+def _space_shapes(d: Mapping[str, Any], prefix: str = "") -> dict[str, tuple[int, ...]]:
+    """A serialised space's leaves (checked by ``_check_space``): '' or 'a/b' -> row shape."""
+    if d.get("type") == "Dict":
+        out: dict[str, tuple[int, ...]] = {}
+        for k, v in d["subspaces"].items():
+            out.update(_space_shapes(v, f"{prefix}{k}/"))
+        return out
+    shape = tuple(d.get("shape") or ()) if d.get("type") == "Box" else ()
+    return {prefix.rstrip("/"): shape}
+
+
+def _check_episodes(f: Any, h5: Path, meta: Mapping[str, Any], fix: str) -> None:
+    """Every episode's arrays as their HDF5 metadata declares them, before Minari reads a byte:
+    one row per step (observations one more), rows of the spaces' shapes, infos of at most one
+    row per observation, and at most ``MAX_EPISODE_BYTES`` in all; the steps add up to
+    ``total_steps``. A small file declaring gigabytes is refused here, at no memory cost."""
+    spaces = {k: _space_shapes(json.loads(meta[k])) for k in ("observation_space", "action_space")}
+    jpeg = bool(meta.get("jpeg_encoding", True))
+    total = sum(
+        _check_episode(f, i, h5, spaces, jpeg, fix) for i in range(int(meta["total_episodes"]))
+    )
+    steps = meta.get("total_steps")
+    if isinstance(steps, int) and not isinstance(steps, bool) and steps != total:
+        raise FormatError(
+            f"{h5.with_name('metadata.json')}: field 'total_steps' is {steps}; the episodes hold "
+            f"{total}: {fix}"
+        )
+
+
+def _check_episode(f: Any, i: int, h5: Path, spaces: Mapping, jpeg: bool, fix: str) -> int:
+    """Episode ``i``'s declared shapes and size (``_check_episodes``); returns its steps."""
+    import h5py
+
+    from rlu.data.foreign import MAX_EPISODE_BYTES
+
+    where = f"{h5}: episode {i}"
+    g = f.get(f"episode_{i}")
+    if not isinstance(g, h5py.Group):
+        raise FormatError(f"{where}: no group 'episode_{i}'; {fix}")
+
+    def arr(name: str) -> Any:
+        d = g.get(name)
+        if not isinstance(d, h5py.Dataset) or d.shape is None or not d.shape:
+            raise FormatError(f"{where}: {name!r} is missing or not an array of rows; {fix}")
+        return d
+
+    for name in ("rewards", "terminations", "truncations"):
+        if arr(name).dtype.kind not in "biuf":
+            raise FormatError(
+                f"{where}: {name!r} holds {arr(name).dtype} values; a Minari episode's {name} are "
+                f"numbers: {fix}"
+            )
+    steps = g.attrs.get("total_steps")  # Minari writes it; a damaged one falls back to rewards
+    ok = isinstance(steps, int | np.integer) and not isinstance(steps, bool) and steps >= 0
+    t = int(steps) if ok else arr("rewards").shape[0]
+    size = 0
+    for name in ("rewards", "terminations", "truncations"):
+        d = arr(name)
+        if d.shape != (t,):
+            raise FormatError(f"{where}: {name!r} has shape {d.shape}; want ({t},): {fix}")
+        size += d.size * d.dtype.itemsize
+    leaves = (("observations", "observation_space", t + 1), ("actions", "action_space", t))
+    for field, space, rows in leaves:
+        for key, shape in spaces[space].items():
+            name = f"{field}/{key}" if key else field
+            d = arr(name)
+            # JPEG-encoded frames (Minari's default for images): one blob per row, which Minari
+            # decodes to the space's shape
+            image = jpeg and len(shape) in (2, 3) and tuple(d.shape[1:]) != shape
+            if d.shape[0] != rows or (not image and tuple(d.shape[1:]) != shape):
+                raise FormatError(
+                    f"{where}: {name!r} has shape {d.shape}; its space wants {rows} rows of "
+                    f"{shape}: {fix}"
+                )
+            size += rows * math.prod(shape) if image else d.size * d.dtype.itemsize
+    infos = g.get("infos")
+    if isinstance(infos, h5py.Group):
+        found: list[Any] = []
+        infos.visititems(lambda n, o: found.append((n, o)) if isinstance(o, h5py.Dataset) else None)
+        for name, obj in found:
+            if obj.shape and obj.shape[0] > t + 1:
+                raise FormatError(
+                    f"{where}: 'infos/{name}' has {obj.shape[0]} rows; an episode of {t} steps "
+                    f"holds at most {t + 1}: {fix}"
+                )
+            size += (obj.size or 0) * max(obj.dtype.itemsize, 1)
+    if size > MAX_EPISODE_BYTES:
+        raise FormatError(
+            f"{where}: its arrays declare {size} bytes, more than the {MAX_EPISODE_BYTES} one "
+            f"episode may hold; the file is damaged or not what it claims: {fix}"
+        )
+    return t
 
 
 _SPACE_TYPES = ("Box", "Discrete", "Dict")
@@ -572,11 +849,12 @@ def load_minari(id_or_path: str | os.PathLike, root: str | os.PathLike | None = 
         ) from None
 
 
-def minari_segments(mds: Any, schema: Schema) -> Iterator[Segment]:
+def minari_segments(mds: Any, schema: Schema, on_episode: Any = None) -> Iterator[Segment]:
     """The episodes of Minari dataset ``mds`` as segments in ``schema`` (see module docstring).
 
     Whatever Minari raises on a damaged episode (a missing ``actions`` dataset, a bad attribute)
-    becomes a :class:`FormatError` naming the dataset and the episode.
+    becomes a :class:`FormatError` naming the dataset and the episode. ``on_episode(i, ep)``
+    sees each of Minari's episodes first.
     """
     where = f"Minari dataset {mds.storage.data_path}"
     try:
@@ -592,6 +870,8 @@ def minari_segments(mds: Any, schema: Schema) -> Iterator[Segment]:
                 raise FormatError(f"{where}: episode {i} is missing") from None
             if not isinstance(meta, Mapping):
                 raise FormatError(f"{where}: episode {i}'s metadata is not a mapping")
+            if on_episode is not None:
+                on_episode(i, ep)
             yield _segment(ep, dict(meta), schema, where)
     except RluError:
         raise
@@ -633,8 +913,10 @@ def _segment(ep: Any, meta: Mapping[str, Any], schema: Schema, source: str = "Mi
             meta_out[k] = np.asarray(meta[f"rlu_{k}"]).item()
     if "episode_id" not in meta_out:
         meta_out["episode_id"] = int(ep.id)
-    if "seed" not in meta_out and meta.get("seed") is not None:
-        meta_out["seed"] = np.asarray(meta["seed"]).item()
+    seed = meta.get("seed")
+    if "seed" not in meta_out and isinstance(seed, int | np.integer) and not isinstance(seed, bool):
+        if -(1 << 63) <= int(seed) < 1 << 63:  # DataCollector's seeds are uint64: those beyond
+            meta_out["seed"] = int(seed)  # int64 stay in source/minari.json (module docstring)
     try:
         seg = make_episode(obs, actions, rewards, terminal, meta_out, prefix)
     except SpecError as e:
@@ -703,28 +985,168 @@ def import_minari(
     With ``task_id`` the task's schema is used (observations cast to its dtypes); without, the
     task rlu's export recorded (``rlu_task_id``, or the task of an ``env_spec`` with rlu's entry
     point) when its schema gives the dataset's spaces, else a schema from the spaces alone (no
-    task). The recorded id is only looked up in rlu's task registry: no env is built.
+    task). The recorded id is only looked up in rlu's task registry: no env is built. What the
+    store does not hold (every metadata field, episode attributes such as uint64 seeds, float64
+    rewards, infos, dtypes) is kept in ``source/minari.*`` for ``export_minari``; a dataset rlu
+    exported is restored from its sidecar (rlu.data.roundtrip).
     """
     from rlu.data.d4rl import append_checked
+    from rlu.data.roundtrip import (
+        MINARI_SIDECAR,
+        attach_from_sidecar,
+        find_sidecar,
+        restore,
+        restored_schema,
+    )
 
+    dest = Path(dest)
     mds = load_minari(id_or_path, root)
-    if task_id is not None:
-        from rlu.tasks import get_task
+    data = Path(mds.storage.data_path)
+    meta = _read_own_json(data / "metadata.json")
+    where = f"Minari dataset {data.parent}"
+    mark = meta.get("rlu_export_id") if isinstance(meta.get("rlu_export_id"), str) else None
+    with contextlib.ExitStack() as stack:
+        sc = find_sidecar(data.parent / MINARI_SIDECAR, mark, where)
+        if sc is not None:
+            stack.callback(sc.close)
+        if task_id is not None:
+            from rlu.tasks import get_task
 
-        schema = Schema.for_task(get_task(task_id))
-    else:
-        try:
-            schema = schema_from_spaces(mds.observation_space, mds.action_space)
-        except SpecError as e:
-            raise SpecError(
-                f"{id_or_path}: {e}; import it with --task for a known schema"
-            ) from None
-        schema = _recorded_schema(mds, schema)
-    prov = {"source": "minari", "minari_id": str(mds.id), "from": str(id_or_path)}
-    with DatasetWriter(dest, schema, prov) as w:
-        for i, seg in enumerate(minari_segments(mds, schema)):
-            append_checked(w, seg, schema, i, str(id_or_path))
-    return Path(dest)
+            schema = Schema.for_task(get_task(task_id))
+        else:
+            try:
+                schema = schema_from_spaces(mds.observation_space, mds.action_space)
+            except SpecError as e:
+                raise SpecError(
+                    f"{id_or_path}: {e}; import it with --task for a known schema"
+                ) from None
+            schema = _recorded_schema(mds, schema)
+        if sc is not None:
+            schema = restored_schema(sc, schema if task_id else None, where)
+            prov: dict[str, Any] = dict(sc.info["provenance"])
+            keep = None
+        else:
+            prov = {"source": "minari", "minari_id": str(mds.id), "from": str(id_or_path)}
+            keep = _MinariSource(mds, meta, schema, dest.parent)
+            stack.callback(keep.close)
+        segments: Iterator[Segment] = minari_segments(mds, schema, keep.episode if keep else None)
+        if sc is not None:
+            segments = restore(segments, sc, where)
+        with DatasetWriter(dest, schema, prov) as w:
+            for i, seg in enumerate(segments):
+                append_checked(w, seg, schema, i, str(id_or_path), index_meta=sc is None)
+            if sc is not None:
+                attach_from_sidecar(w, sc, dest.parent)
+            elif keep is not None:
+                keep.finish(w)
+    return dest
+
+
+class _MinariSource:
+    """What an import keeps of a Minari dataset that the store does not hold
+    (``source/minari.json`` and ``.npz``): every field of its ``metadata.json``, each episode's
+    HDF5 attributes with their dtypes (``seed``, ``options/*``, Minari's reward statistics...),
+    the dtypes of its arrays, arrays the store would change (float64 rewards; observations or
+    actions cast to a task's dtypes) and ``infos/*``, all episodes' rows concatenated, and each
+    episode's last termination and truncation flags (an episode cut short ends with neither)."""
+
+    def __init__(self, mds: Any, meta: Mapping[str, Any], schema: Schema, folder: Path):
+        import h5py
+
+        from rlu.data.roundtrip import SourceWriter
+
+        self.mds, self.meta, self.schema = mds, dict(meta), schema
+        self.w = SourceWriter("minari", folder)
+        self.episodes: list[dict[str, Any]] = []
+        self.ends: list[tuple[bool, bool]] = []
+        self.layout: dict[str, Any] = {}
+        self.skipped: list[str] = []
+        h5 = Path(mds.storage.data_path) / "main_data.hdf5"
+        self.h5 = h5py.File(h5, "r") if h5.is_file() else None
+
+    def _stored(self, name: str, key: str = "") -> np.dtype | None:
+        if name == "rewards":
+            return np.dtype("float32")
+        if name == "actions":
+            return np.dtype(self.schema.action.dtype)
+        spec = self.schema.observation
+        if isinstance(spec, Mapping):
+            return np.dtype(spec[key].dtype) if key in spec else None
+        return np.dtype(spec.dtype)
+
+    def _keep(self, key: str, a: np.ndarray, stored: np.dtype | None) -> bool:
+        if stored is not None and not np.can_cast(a.dtype, stored, "safe"):
+            self.w.spool(key, a.dtype, a.shape[1:]).append(a)
+            return True
+        return False
+
+    def episode(self, i: int, ep: Any) -> None:
+        e: dict[str, Any] = {"steps": len(ep.rewards)}
+        rewards = np.asarray(ep.rewards)
+        self.layout["rewards"] = rewards.dtype.name
+        self._keep("rewards", rewards.reshape(len(rewards)), self._stored("rewards"))
+        actions = np.asarray(ep.actions) if not isinstance(ep.actions, Mapping) else None
+        if actions is not None:
+            self.layout["actions"] = actions.dtype.name
+            if self._keep("actions", actions, self._stored("actions")):
+                self.layout["actions_kept"] = True
+        obs = ep.observations
+        flat = _flatten(obs) if isinstance(obs, Mapping) else {"": obs}
+        dtypes = self.layout.setdefault("observations", {})
+        for k, v in flat.items():
+            v = np.asarray(v)
+            dtypes[k] = v.dtype.name
+            kept = self.schema.frame_stack == 1 and self._keep(
+                f"observations/{k}", v, self._stored("o", k)
+            )
+            if kept:
+                self.layout.setdefault("observations_kept", []).append(k)
+        for name in ("terminations", "truncations"):
+            self.layout[name] = np.asarray(getattr(ep, name)).dtype.name
+        term, trunc = np.asarray(ep.terminations), np.asarray(ep.truncations)
+        self.ends.append((bool(len(term) and term[-1]), bool(len(trunc) and trunc[-1])))
+        infos = {}
+        for path, v in _flatten(ep.infos or {}).items():
+            a = np.asarray(v)
+            if a.dtype.kind not in "biuf" or a.ndim == 0:
+                self.skipped.append(f"episode {i} infos/{path} ({a.dtype})")
+                continue
+            try:
+                self.w.spool(f"infos/{path}", a.dtype, a.shape[1:]).append(a)
+            except RluError:
+                self.skipped.append(f"episode {i} infos/{path} (its shape or dtype changes)")
+                continue
+            infos[path] = len(a)
+        if ep.infos is not None:  # an empty infos group is kept as one
+            e["infos"] = infos
+        if self.h5 is not None:
+            g = self.h5[f"episode_{i}"]
+            attrs = {}
+            for name in g.attrs:
+                j = _attr_json(g.attrs[name])
+                if j is None:
+                    self.skipped.append(f"episode {i} attribute {name}")
+                else:
+                    attrs[name] = j
+            e["attrs"] = attrs
+        self.episodes.append(e)
+
+    def finish(self, w: DatasetWriter) -> None:
+        self.w.add("ends", np.asarray(self.ends, bool).reshape(-1, 2))
+        self.w.info.update(
+            metadata=self.meta, layout=self.layout, episodes=self.episodes, skipped=self.skipped
+        )
+        self.w.attach(w)
+        if self.skipped:
+            warnings.warn(
+                f"{self.mds.storage.data_path}: not kept: {'; '.join(self.skipped[:5])}",
+                stacklevel=3,
+            )
+
+    def close(self) -> None:
+        if self.h5 is not None:
+            self.h5.close()
+        self.w.close()
 
 
 def recorded_task(meta: Mapping[str, Any]) -> str | None:

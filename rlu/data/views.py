@@ -203,6 +203,8 @@ class TransitionView(DatasetView):
         return self.index.size
 
     def batch(self, ids: np.ndarray) -> Transition:
+        """The transitions with index ``ids`` (n-step rewards and discounts, next observations and
+        actions) as one ``Transition`` batch."""
         seg, t = self.index.locate(ids)
         reward, discount, nxt = n_step_targets(
             self.ds.column("reward"),
@@ -227,6 +229,7 @@ class TransitionView(DatasetView):
         )
 
     def all(self) -> Transition:
+        """Every transition of the view, in order, as one batch."""
         return self.batch(np.arange(len(self)))
 
 
@@ -251,6 +254,8 @@ class SequenceView(DatasetView):
         return self.index.size
 
     def batch(self, ids: np.ndarray) -> Sequence:
+        """The windows with index ``ids`` as one ``Sequence`` batch (``mask`` marks the steps inside
+        the segment)."""
         seg, t = self.index.locate(ids)
         steps = t[:, None] + np.arange(self.seq_length)
         mask = steps <= self.last[seg][:, None]
@@ -291,6 +296,7 @@ class Sampler:
         self.rng = np.random.default_rng(seed)
 
     def sample(self):
+        """One batch of ``batch_size`` items drawn uniformly with replacement from the view."""
         return self.view.batch(self.rng.integers(0, len(self.view), size=self.batch_size))
 
     def __iter__(self) -> Iterator:
@@ -305,9 +311,12 @@ class Sampler:
             yield self.view.batch(order[i : i + self.batch_size])
 
     def get_state(self) -> dict:
+        """The sampler's generator state (for checkpoints)."""
         return {"bit_generator": self.rng.bit_generator.state}
 
     def set_state(self, state: dict) -> None:
+        """Restore a generator state from :meth:`get_state`, so the batches go on as they would
+        have."""
         self.rng.bit_generator.state = state["bit_generator"]
 
 
@@ -336,12 +345,17 @@ def transition_sampler(
     gamma: float = 1.0,
     reward_clip: float | None = None,
 ) -> Sampler:
+    """A sampler of ``Transition`` batches of ``batch_size`` from ``ds`` (``n_step`` returns
+    discounted by ``gamma``, rewards clipped to ``reward_clip``), seeded with ``seed``:
+    ``transition_sampler(ds, 256, seed=0).sample()``."""
     return Sampler(TransitionView(ds, n_step, gamma, reward_clip), batch_size, seed)
 
 
 def sequence_sampler(
     ds: Dataset, batch_size: int, length: int, seed: int = 0, stride: int = 1
 ) -> Sampler:
+    """A sampler of ``Sequence`` batches: ``batch_size`` windows of ``length`` steps (starting every
+    ``stride`` steps), seeded with ``seed``."""
     return Sampler(SequenceView(ds, length, stride), batch_size, seed)
 
 

@@ -60,6 +60,9 @@ __all__ = ["make_env", "make_vector_env", "gym_id", "ATARI_ORIGINAL_EVAL_STEPS"]
 # rl_unplugged/atari.py's evaluation env truncated after 108,000 *wrapper* (agent) steps,
 # i.e. 432K frames; rlu's default is the paper's 108K frames = 27,000 agent steps.
 ATARI_ORIGINAL_EVAL_STEPS = 108_000
+"""The agent steps after which the original rl_unplugged Atari evaluation env truncated (108,000
+wrapper steps = 432K frames); ``make_env(..., max_episode_steps=ATARI_ORIGINAL_EVAL_STEPS)``
+reproduces it (rlu's default is the paper's 27,000)."""
 
 
 def _factory(domain: str):

@@ -26,6 +26,9 @@ from rlu.types import DiscreteSpec, Policy, RluError
 
 @dataclass(frozen=True)
 class FQEConfig:
+    """Fitted Q Evaluation's settings: discount, network, optimiser, steps and batches (``rlu report
+    --fqe`` takes ``--fqe-steps``)."""
+
     gamma: float = 0.99
     """Discount of the estimated value."""
     hidden: tuple[int, ...] = (128, 128)

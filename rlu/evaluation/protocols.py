@@ -38,10 +38,12 @@ class Selection:
 
     @property
     def mean(self) -> float:
+        """The mean score over seeds."""
         return float(np.mean(self.scores))
 
     @property
     def std(self) -> float:
+        """The standard deviation of the scores over seeds."""
         return float(np.std(self.scores))
 
 
@@ -140,6 +142,9 @@ def spearman(a: Any, b: Any) -> float:
 
 @dataclass(frozen=True)
 class EstimateSelection:
+    """Offline selection by an estimate (FQE's): the candidate it chose, how its ranking correlates
+    with the true returns, and the regret of the choice."""
+
     chosen: str
     """The candidate with the highest estimate."""
     spearman: float

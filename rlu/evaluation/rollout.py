@@ -19,7 +19,7 @@ import importlib
 import sys
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -32,6 +32,8 @@ EnvFactory = Callable[[], Any]
 
 @dataclass(frozen=True)
 class EvalResult:
+    """The outcome of :func:`evaluate`: each episode's return and length, in episode order."""
+
     returns: tuple[float, ...]
     """Undiscounted return of each episode, in episode order."""
     lengths: tuple[int, ...]
@@ -39,9 +41,11 @@ class EvalResult:
 
     @property
     def mean(self) -> float:
+        """The mean return over the episodes."""
         return float(np.mean(self.returns))
 
     def to_json(self) -> dict[str, Any]:
+        """``{returns, lengths, mean}``: what ``rlu evaluate --json`` prints, eval.jsonl holds."""
         return {"returns": list(self.returns), "lengths": list(self.lengths), "mean": self.mean}
 
 
@@ -111,6 +115,17 @@ def _inference_mode() -> contextlib.AbstractContextManager:
     return torch.inference_mode() if torch is not None else contextlib.nullcontext()
 
 
+class EpisodeObserver(Protocol):
+    """What ``evaluate(..., observer=...)`` tells while it plays: each episode's reset and steps,
+    on the env that plays it (to film it, ``rlu.evaluation.video.Recorder``, or show progress)."""
+
+    def reset(self, episode: int, env: Any) -> None:
+        """Episode ``episode`` was reset on ``env`` (its first observation is there)."""
+
+    def step(self, episode: int, env: Any, reward: float, done: bool) -> None:
+        """Episode ``episode`` took a step on ``env`` with ``reward``; ``done``: its last."""
+
+
 def evaluate(
     policy: Policy,
     env_fn: EnvFactory,
@@ -118,11 +133,13 @@ def evaluate(
     seed: int = 0,
     num_envs: int = 4,
     max_steps: int | None = None,
+    observer: EpisodeObserver | None = None,
 ) -> EvalResult:
     """Run ``num_episodes`` episodes of ``policy`` (batched observations and episode starts ->
     batched actions).
 
-    ``max_steps`` caps an episode's length on top of the env's own time limit.
+    ``max_steps`` caps an episode's length on top of the env's own time limit. ``observer``
+    hears of every reset and step (:class:`EpisodeObserver`), before the env moves on.
     """
     if num_episodes < 1:
         raise RluError(f"num_episodes={num_episodes}; evaluate at least one episode")
@@ -139,6 +156,8 @@ def evaluate(
             for i in range(num_envs):
                 obs[i], _ = envs[i].reset(seed=episode_seed(seed, next_episode))
                 episode[i] = next_episode
+                if observer is not None:
+                    observer.reset(next_episode, envs[i])
                 next_episode += 1
             while True:
                 active = [i for i in range(num_envs) if episode[i] >= 0]
@@ -153,10 +172,14 @@ def evaluate(
                     lengths[e] += 1
                     if max_steps is not None and lengths[e] >= max_steps:
                         truncated = True
+                    if observer is not None:
+                        observer.step(e, envs[i], float(r), bool(terminated or truncated))
                     if terminated or truncated:
                         if next_episode < num_episodes:
                             o, _ = envs[i].reset(seed=episode_seed(seed, next_episode))
                             episode[i] = next_episode
+                            if observer is not None:
+                                observer.reset(next_episode, envs[i])
                             is_first[i] = True
                             next_episode += 1
                         else:

@@ -7,52 +7,78 @@
     videos = record_video(policy, env_fn, "videos", num_episodes=2, seed=0)
     videos[0].path, videos[0].episode_return      # videos/episode_000.mp4, its return
 
-``rlu evaluate RUN --video DIR`` does this for a trained run. The policy is a
-``rlu.types.Policy`` (batched observations and episode starts -> batched actions), called with a
-batch of one.
+``rlu evaluate RUN --video DIR`` films the episodes it scores: a :class:`Recorder` watches the
+evaluation (``rlu.evaluation.rollout.evaluate(..., observer=recorder)``) and films the episodes
+it is given as they are played and scored, so each video's return is the one the evaluation
+lists for that episode, whatever the number of envs stepped in lockstep. ``record_video`` is the
+same with one env. The policy is a ``rlu.types.Policy`` (batched observations and episode starts
+-> batched actions).
 
-- Episode ``i`` is reset with the seed that episode ``i`` of
-  ``rlu.evaluation.rollout.evaluate(..., seed=seed)`` gets, so a deterministic policy's video
-  shows the very episode whose return the evaluation lists. A network acting on a batch of one
-  here and on the evaluation's batch of ``num_envs`` may round its actions' last bits
-  differently, and a long episode can drift from that: a trained IQL's filmed cartpole episode
-  returned 336.3 where ``rlu evaluate`` (4 envs) listed 336.8 for it.
+- Episode ``i`` is episode ``i`` of the evaluation: reset with ``episode_seed(seed, i)``.
 - Frames: one at the reset and one after every step, from ``env.render()`` (the env must be made
-  with ``render_mode="rgb_array"``), played at the env's ``metadata["render_fps"]``, i.e. in real
-  time. Frames under 240 pixels high (Atari's 210x160 screen) are enlarged by an integer factor,
-  pixels kept square and sharp. A strip under each frame says the episode, step and return so far
-  (``caption=False`` leaves it out).
+  with ``render_mode="rgb_array"``; MuJoCo envs take ``render_size=(height, width)``), played at
+  the env's ``metadata["render_fps"]``, i.e. in real time. Frames under 240 pixels high (Atari's
+  210x160 screen) are enlarged by an integer factor, pixels kept square and sharp. A strip under
+  each frame says the episode, step and return so far (``caption=False`` leaves it out).
 - MP4: H.264 (yuv420p, what browsers and players read) encoded by the ffmpeg binary that the
-  imageio-ffmpeg wheel ships, so nothing outside pip is needed (the ``video`` extra). Frames
-  stream to ffmpeg as they come: any episode length fits in memory. GIF (``fmt="gif"``) needs
-  only Pillow but holds every frame (one byte a pixel) until the episode ends: for short
-  episodes; it plays at most 50 frames a second, so a faster env keeps every k-th frame.
-- Each video is written under a temporary name and renamed when its episode is over, and
-  ``DIR/videos.json`` lists every video with its seed, return and length, so an interrupted
-  recording leaves no half-written file.
+  imageio-ffmpeg wheel ships (or ``$IMAGEIO_FFMPEG_EXE``), so nothing outside pip is needed (the
+  ``video`` extra). Frames stream to ffmpeg as they come: any episode length fits in memory. An
+  ffmpeg that takes no frame for ``ENCODER_TIMEOUT`` seconds, or does not finish the file that
+  long after its last frame, is stopped and the recording fails with an error saying so. GIF
+  (``fmt="gif"``) needs only Pillow but holds every frame (one byte a pixel) until the episode
+  ends: for short episodes; it plays at most 50 frames a second, so a faster env keeps every
+  k-th frame.
+- Each video is written to a temporary with an unpredictable name beside it
+  (``rlu.files.atomic_path``) and renamed when its episode is over; a link planted at a video's
+  name is refused, and ``DIR/videos.json`` lists every video with its seed, return and length,
+  so an interrupted recording leaves no half-written file.
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
-from collections.abc import Callable
+import select
+import subprocess
+import tempfile
+import time
+from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass
+from fractions import Fraction
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from rlu.evaluation.rollout import EnvFactory, _inference_mode, _stack, episode_seed
-from rlu.files import write_json
+from rlu.evaluation.rollout import EnvFactory, episode_seed, evaluate
+from rlu.files import atomic_path, make_folder, write_json
 from rlu.system import install_hint
 from rlu.types import Policy, RluError
 
+__all__ = [
+    "CAPTION_HEIGHT",
+    "ENCODER_TIMEOUT",
+    "FORMATS",
+    "INDEX",
+    "MIN_HEIGHT",
+    "Recorder",
+    "Video",
+    "check_format",
+    "record_video",
+]
+
 FORMATS = ("mp4", "gif")
+"""The video formats: H.264 MP4 (the ``video`` extra) or GIF (Pillow only)."""
 INDEX = "videos.json"
+"""The file in a video folder that lists its videos (seed, return, length of each)."""
 MIN_HEIGHT = 240
 """Frames lower than this are enlarged by the smallest integer factor that reaches it."""
 CAPTION_HEIGHT = 24
+"""Pixels of the caption strip under each frame."""
+ENCODER_TIMEOUT = 60.0
+"""Seconds ffmpeg may take to accept one frame, or to finish a file after its last frame,
+before it is stopped and the recording fails."""
 
 
 @dataclass(frozen=True)
@@ -71,7 +97,104 @@ class Video:
     fps: float
 
     def to_json(self) -> dict[str, Any]:
+        """The video's entry in ``videos.json``."""
         return asdict(self)
+
+
+class Recorder:
+    """Films episodes of an evaluation while it scores them: pass it as
+    ``evaluate(..., observer=recorder)`` on envs made with ``render_mode="rgb_array"``.
+
+    Args:
+        out_dir: the video folder (made if missing; a symbolic link there is refused).
+        episodes: the episode indices to film (``3``: the first three).
+        seed: the evaluation's seed (recorded with each video).
+        fmt: ``"mp4"`` or ``"gif"``.
+        caption: draw the strip with the episode, step and return under each frame.
+        name: videos are ``out_dir/<name>_<i>.<fmt>``.
+
+    Use it as a context manager (or call :meth:`close`): on success it writes ``videos.json``;
+    after an error it removes every video still being written. ``videos`` holds the finished
+    ones, in episode order.
+    """
+
+    def __init__(
+        self,
+        out_dir: str | os.PathLike,
+        episodes: int | Iterable[int],
+        seed: int = 0,
+        fmt: str = "mp4",
+        caption: bool = True,
+        name: str = "episode",
+    ) -> None:
+        self.out = Path(out_dir)
+        self.episodes = frozenset(range(episodes) if isinstance(episodes, int) else episodes)
+        if not self.episodes or min(self.episodes) < 0:
+            raise RluError(f"episodes {sorted(self.episodes)}; film at least one episode (>= 0)")
+        self.seed = seed
+        self.fmt = fmt
+        self.caption = caption
+        self.name = name
+        self.open_writer = check_format(fmt)
+        self.videos: list[Video] = []
+        self._open: dict[int, _Filming] = {}
+        self._closed = False
+
+    # --- the observer (rlu.evaluation.rollout.EpisodeObserver) ------------------------------
+    def reset(self, episode: int, env: Any) -> None:
+        """Episode ``episode`` starts on ``env``: its first frame, if it is filmed."""
+        if episode not in self.episodes:
+            return
+        if env.render_mode != "rgb_array":
+            raise RluError(
+                f"the env renders {env.render_mode!r}; a video needs one made with "
+                "render_mode='rgb_array' (task_env_factory(task, render_mode='rgb_array'))"
+            )
+        make_folder(self.out)
+        path = self.out / f"{self.name}_{episode:03d}.{self.fmt}"
+        fps = float(env.metadata["render_fps"])
+        frames = _Frames(self.caption, f"episode {episode}")
+        film = _Filming(path, episode, episode_seed(self.seed, episode), fps, frames)
+        self._open[episode] = film
+        film.start(env.render(), self.open_writer)
+
+    def step(self, episode: int, env: Any, reward: float, done: bool) -> None:
+        """Episode ``episode`` took a step on ``env``: its frame; its file when ``done``."""
+        film = self._open.get(episode)
+        if film is None:
+            return
+        film.add(env.render(), reward)
+        if done:
+            del self._open[episode]
+            self.videos.append(film.finish())
+            self.videos.sort(key=lambda v: v.episode)
+
+    # --- the end ------------------------------------------------------------------------------
+    def close(self, failed: bool = False) -> None:
+        """Write ``videos.json`` (unless ``failed``); drop every video not finished."""
+        if self._closed:
+            return
+        self._closed = True
+        for film in self._open.values():
+            film.abort()
+        unfinished = sorted(self._open)
+        self._open.clear()
+        if failed:
+            return
+        if unfinished:
+            raise RluError(
+                f"episodes {unfinished} were being filmed when the evaluation ended; their "
+                "videos were dropped"
+            )
+        if self.videos:
+            index = {"seed": self.seed, "videos": [v.to_json() for v in self.videos]}
+            write_json(self.out / INDEX, index, indent=1)
+
+    def __enter__(self) -> Recorder:
+        return self
+
+    def __exit__(self, exc_type: object, *exc: object) -> None:
+        self.close(failed=exc_type is not None)
 
 
 def record_video(
@@ -86,61 +209,63 @@ def record_video(
     name: str = "episode",
 ) -> list[Video]:
     """Film ``num_episodes`` episodes of ``policy`` in envs from ``env_fn`` (which must render
-    ``rgb_array``) into ``out_dir/<name>_<i>.<fmt>``; see the module docstring."""
+    ``rgb_array``) into ``out_dir/<name>_<i>.<fmt>``: an evaluation of those episodes on one env
+    (the same seeds, the same returns) with a :class:`Recorder`; see the module docstring."""
     if num_episodes < 1:
         raise RluError(f"num_episodes={num_episodes}; film at least one episode")
-    open_writer = check_format(fmt)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    env = env_fn()
-    videos = []
-    try:
-        if env.render_mode != "rgb_array":
-            raise RluError(
-                f"the env renders {env.render_mode!r}; a video needs one made with "
-                "render_mode='rgb_array' (task_env_factory(task, render_mode='rgb_array'))"
-            )
-        fps = float(env.metadata["render_fps"])
-        with _inference_mode():
-            for i in range(num_episodes):
-                path = out / f"{name}_{i:03d}.{fmt}"
-                s = episode_seed(seed, i)
-                ret, length = _film(policy, env, i, s, max_steps, path, open_writer, fps, caption)
-                videos.append(Video(str(path), i, s, ret, length, fps))
-    finally:
-        env.close()
-    index = {"seed": seed, "videos": [v.to_json() for v in videos]}
-    write_json(out / INDEX, index, indent=1)
-    return videos
+    recorder = Recorder(out_dir, num_episodes, seed, fmt, caption, name)
+    make_folder(out_dir)
+    with recorder:
+        evaluate(policy, env_fn, num_episodes, seed, 1, max_steps, observer=recorder)
+    return recorder.videos
 
 
-def _film(policy, env, episode, seed, max_steps, path, open_writer, fps, caption) -> tuple:
-    obs, _ = env.reset(seed=seed)
-    total, t = 0.0, 0
-    frames = _Frames(caption, f"episode {episode}")
-    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
-    first = frames(env.render(), t, total)
-    writer = open_writer(tmp, first.shape, fps)
-    try:
-        writer(first)
-        is_first = np.ones(1, bool)
-        done = False
-        while not done:
-            action = np.asarray(policy(_stack([obs]), is_first.copy()))[0]
-            is_first[:] = False
-            obs, r, terminated, truncated, _ = env.step(action)
-            total += float(r)
-            t += 1
-            done = terminated or truncated or (max_steps is not None and t >= max_steps)
-            writer(frames(env.render(), t, total))
-        writer(None)  # finish the file
-    except BaseException:
-        writer.abort()
-        if tmp.exists():
-            tmp.unlink()
-        raise
-    os.replace(tmp, path)
-    return total, t
+class _Filming:
+    """One episode being filmed: its frames into a temporary, renamed when it ends."""
+
+    def __init__(self, path: Path, episode: int, seed: int, fps: float, frames: _Frames):
+        self.path, self.episode, self.seed, self.fps, self.frames = path, episode, seed, fps, frames
+        self.total, self.t = 0.0, 0
+        self._stack = contextlib.ExitStack()
+        self._writer: _Writer | None = None
+
+    def start(self, frame: Any, open_writer: Callable[[Path, tuple, float], _Writer]) -> None:
+        try:
+            tmp = self._stack.enter_context(atomic_path(self.path, suffix=True))
+            first = self.frames(frame, 0, 0.0)
+            self._writer = open_writer(tmp, first.shape, self.fps)
+            self._writer(first)
+        except BaseException:
+            self.abort()
+            raise
+
+    def add(self, frame: Any, reward: float) -> None:
+        self.total += float(reward)
+        self.t += 1
+        try:
+            assert self._writer is not None
+            self._writer(self.frames(frame, self.t, self.total))
+        except BaseException:
+            self.abort()
+            raise
+
+    def finish(self) -> Video:
+        try:
+            assert self._writer is not None
+            self._writer(None)  # finish the file
+            self._writer = None
+        except BaseException:
+            self.abort()
+            raise
+        self._stack.close()  # the temporary renamed over the video's name
+        return Video(str(self.path), self.episode, self.seed, self.total, self.t, self.fps)
+
+    def abort(self) -> None:
+        """Stop the encoder and remove the temporary."""
+        if self._writer is not None:
+            self._writer.abort()
+            self._writer = None
+        self._stack.__exit__(RluError, RluError("dropped"), None)  # the temporary removed
 
 
 def check_format(fmt: str) -> Callable[[Path, tuple, float], _Writer]:
@@ -208,32 +333,96 @@ def _mp4_writer() -> Callable[[Path, tuple, float], _Writer]:
             f"MP4 videos need the 'video' extra (imageio-ffmpeg, which ships ffmpeg): "
             f"{install_hint('video')}; or pass fmt='gif' (Pillow only)"
         ) from None
+    try:
+        exe = imageio_ffmpeg.get_ffmpeg_exe()
+    except RuntimeError as e:
+        raise RluError(f"no ffmpeg for MP4 videos ({e}); {install_hint('video')}") from None
 
     def open_writer(path: Path, shape: tuple, fps: float) -> _Writer:
-        h, w = shape[:2]
-        gen = imageio_ffmpeg.write_frames(
-            str(path),
-            (w, h),
-            fps=fps,
-            codec="libx264",
-            pix_fmt_out="yuv420p",
-            macro_block_size=1,  # sides are made even here; no rescaling by imageio-ffmpeg
-            quality=7,  # crf 15: sharp edges on the flat colours of these scenes
-            ffmpeg_log_level="error",
-        )
-        gen.send(None)
-
-        def add(frame: np.ndarray | None) -> None:
-            if frame is None:
-                gen.close()
-                return
-            if frame.shape != shape:
-                raise RluError(f"env.render() changed frame size mid-episode: {frame.shape}")
-            gen.send(frame)
-
-        return _Writer(add, gen.close)
+        return _ffmpeg(exe, path, shape, fps)
 
     return open_writer
+
+
+def _ffmpeg(exe: str, path: Path, shape: tuple, fps: float) -> _Writer:
+    """An ffmpeg process encoding raw RGB frames from a pipe into H.264 ``path``, every write
+    and the final wait bounded by ``ENCODER_TIMEOUT``."""
+    h, w = shape[:2]
+    rate = str(Fraction(fps).limit_denominator())
+    cmd = [exe, "-y", "-loglevel", "error", "-f", "rawvideo", "-vcodec", "rawvideo",
+           "-s", f"{w}x{h}", "-pix_fmt", "rgb24", "-r", rate, "-i", "-", "-an",
+           "-vcodec", "libx264", "-pix_fmt", "yuv420p",
+           "-crf", "15",  # sharp edges on the flat colours of these scenes
+           "-f", "mp4", str(path)]  # fmt: skip
+    log = tempfile.TemporaryFile()  # noqa: SIM115 (closed with the writer; read on failure)
+    try:
+        proc = subprocess.Popen(
+            cmd, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=log, close_fds=True
+        )
+    except OSError as e:
+        log.close()
+        raise RluError(
+            f"ffmpeg {exe} cannot be started ({e.strerror}); {install_hint('video')}"
+        ) from None
+    assert proc.stdin is not None
+    fd = proc.stdin.fileno()
+    os.set_blocking(fd, False)
+
+    def said() -> str:
+        log.seek(0)
+        text = " ".join(log.read(2000).decode(errors="replace").split())
+        return f": {text}" if text else ""
+
+    def stop() -> None:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        with contextlib.suppress(OSError):
+            proc.stdin.close()
+        log.close()
+
+    def failed(why: str) -> RluError:
+        stop_text = said() if not log.closed else ""
+        stop()
+        return RluError(f"ffmpeg ({exe}) {why} while writing {path}{stop_text}")
+
+    def add(frame: np.ndarray | None) -> None:
+        if frame is None:
+            with contextlib.suppress(OSError):
+                proc.stdin.close()
+            try:
+                code = proc.wait(timeout=ENCODER_TIMEOUT)
+            except subprocess.TimeoutExpired:
+                why = f"did not finish the video {ENCODER_TIMEOUT:g} s after its last frame"
+                raise failed(f"{why}; it may be hung (check `ffmpeg -version` runs)") from None
+            if code != 0:
+                raise failed(f"exited with code {code}")
+            log.close()
+            return
+        if frame.shape != shape:
+            why = f"got a frame of size {frame.shape} after {shape}"
+            raise failed(f"{why} (the env's frames changed size mid-episode)")
+        data = memoryview(np.ascontiguousarray(frame)).cast("B")
+        deadline = time.monotonic() + ENCODER_TIMEOUT
+        while len(data):
+            left = deadline - time.monotonic()
+            ready = select.select([], [fd], [], max(0.0, left))[1] if left > 0 else []
+            if not ready:
+                raise failed(
+                    f"took no video frame for {ENCODER_TIMEOUT:g} s; it may be hung, or not "
+                    "read its input (check `ffmpeg -version` runs; $IMAGEIO_FFMPEG_EXE picks "
+                    "another ffmpeg)"
+                )
+            try:
+                n = os.write(fd, data)
+            except BlockingIOError:
+                continue
+            except (BrokenPipeError, OSError):
+                proc.wait()
+                raise failed(f"stopped reading frames (exit code {proc.returncode})") from None
+            data = data[n:]
+
+    return _Writer(add, stop)
 
 
 def _gif_writer() -> Callable[[Path, tuple, float], _Writer]:

@@ -66,6 +66,8 @@ def stream_rng(seed: int, *key: int) -> np.random.Generator:
 
 
 def success_rule(task: TaskSpec) -> str:
+    """What counts as a successful episode of ``task`` when generation keeps successes, in words
+    (the control suite: a return of at least 80% of 1000)."""
     if task.domain == "atari":
         return "none: Atari keeps every recorded episode (the paper keeps DQN's replay)"
     if task.domain == "locomotion":

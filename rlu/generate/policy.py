@@ -53,6 +53,8 @@ class PolicyScale:
 
 
 def policy_scale(task: TaskSpec, scale: str) -> PolicyScale:
+    """The behaviour-policy runs, episodes per run and episodes per saved part of ``task`` at
+    ``scale`` (``tiny``, ``laptop``, ``paper``)."""
     runs = 5 if task.env.get("walker") == "rodent" else 3
     target = int(task.episodes.get("", 100))
     return {

@@ -51,6 +51,8 @@ from rlu.tasks import RWRL_SIZES, TaskSpec, rwrl_observation_spec
 from rlu.types import FormatError
 
 SNAPSHOT_FRACTION = 0.75
+"""An RWRL run's snapshot is its first policy whose chunk mean reaches this fraction of the run's
+converged return (the paper's "≈75 % of converged return")."""
 CHALLENGES = ("none", "easy")
 SIZE_FRACTION = {"tiny": None, "laptop": 0.1, "paper": 1.0}
 TINY_EPISODES = {"small": 1, "medium": 1, "large": 2}

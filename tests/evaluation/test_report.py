@@ -43,17 +43,27 @@ def test_markdown_and_html_hold_every_number_of_the_json(tmp_path):
     md = (tmp_path / "r" / "report.md").read_text()
     html = (tmp_path / "r" / "report.html").read_text()
     dom = rep["domains"]["control_suite"]
-    assert dom["panels"] == ["online", "offline_naive", "aggregates", "task_bars"]
-    # what produced the numbers, the online and naive offline tables, the aggregates
-    assert html.count("<table>") == 4 and html.count("<section") == 1
+    assert dom["panels"] == ["online", "offline_naive", "aggregates", "task_bars", "profiles",
+                             "improvement"]  # fmt: skip
+    assert "curves" in dom["absent"]  # records without run folders: no eval.jsonl to draw
+    # what produced the numbers, the paper's conditions, the online and naive offline tables,
+    # the aggregates, the performance profiles and the probability of improvement
+    assert html.count("<table>") == 7 and html.count("<section") == 1
     # each table scrolls in its own box: a wide one (five agents and the paper's columns) does
     # not push the page past the window
-    assert html.count('<div class="table"><table>') == 4 and "overflow-x: auto" in html
+    assert html.count('<div class="table"><table>') == 7 and "overflow-x: auto" in html
     for row in dom["online"]["rows"] + dom["offline_naive"]["rows"]:
         for agent, c in row["cells"].items():
-            text = f"{c['mean']:.1f} ± {c['std']:.1f}"
+            assert c["std"] == pytest.approx(np.std(c["scores"], ddof=1))  # the sample std
+            text = number = f"{c['mean']:.1f} ± {c['std']:.1f}"
+            html_text = f"<b>{number}</b>" if c["bold"] else f">{number}<"
+            if agent in row["paper"]:  # beside the paper's number: which conditions it misses
+                assert not c["comparable"]
+                label = f"(not comparable: {', '.join(c['missing'])})"
+                text += f" {label}"  # Markdown: on the same line; HTML: on a line under it
+                html_text = html_text.rstrip("<") + f'<br><span class="note">{label}</span>'
             assert (f"| **{text}** |" if c["bold"] else f"| {text} |") in md, (agent, text)
-            assert (f"<b>{text}</b>" if c["bold"] else f">{text}<") in html
+            assert html_text in html, html_text
     # a '|' in a name is escaped in Markdown, '<' and '&' in HTML
     assert "tests.train.fake\\|agent" in md and "fake|agent" in html
     table_lines = [line for line in md.splitlines() if "| " in line]
@@ -189,21 +199,25 @@ def test_report_html_in_headless_chromium(tmp_path):
     pytest.importorskip("PIL")
     sweep = write_sweep(tmp_path / "s", records(CONTROL, ["bc", "d4pg", "bcq"]))
     paths = write_report(sweep, tmp_path / "r")
-    img = screenshot(tmp_path / "r" / "report.html", tmp_path / "shot.png", tmp_path / "profile")
-    assert img.shape == (1600, 1200, 3)
+    img = screenshot(tmp_path / "r" / "report.html", tmp_path / "shot.png", tmp_path / "profile",
+                     size=(1200, 5000))  # fmt: skip
+    assert img.shape == (5000, 1200, 3)
     ink = np.any(img < 200, axis=2).mean()
     assert 0.02 < ink < 0.6, f"{ink:.3f} of the page is ink: blank or unstyled"
-    # table borders (#bbb) as long horizontal lines: 3 tables, a line per row edge
+    # table borders (#bbb) as long horizontal lines: the tables, a line per row edge
     assert _rows_with_run(img, (187, 187, 187), 300) >= 10
     assert _rows_with_run(img, (242, 242, 242), 100) >= 40  # header rows (3 x ~25 px)
     # the PNG is on screen: matplotlib's first colours fill the bars
     for color in ((31, 119, 180), (255, 127, 14), (44, 160, 44)):
         assert np.all(np.abs(img.astype(int) - color) <= 8, axis=2).sum() > 2000, color
-    # and the page without its figure draws no bar colour (the check above can fail)
-    (tmp_path / "r" / "figures" / "control_suite_tasks.png").unlink()
-    img2 = screenshot(tmp_path / "r" / "report.html", tmp_path / "shot2.png", tmp_path / "p2")
+    # and the page without its figures draws no bar colour (the check above can fail)
+    for png in (tmp_path / "r" / "figures").iterdir():
+        png.unlink()
+    img2 = screenshot(tmp_path / "r" / "report.html", tmp_path / "shot2.png", tmp_path / "p2",
+                      size=(1200, 5000))  # fmt: skip
     assert np.all(np.abs(img2.astype(int) - (31, 119, 180)) <= 8, axis=2).sum() < 50
-    assert len(paths) == 4
+    # the per-task bars, the performance profiles, the probability of improvement
+    assert len(paths) == 6
 
 
 def test_a_new_panel_is_one_function_and_one_renderer(tmp_path, monkeypatch):
@@ -250,10 +264,115 @@ def test_cells_of_fewer_seeds_say_how_many(tmp_path):
     assert [line.count(" | ") for line in table] == [6, 6]  # task, 3 x (ours, the paper's)
     # walker walk: bc's paper cell, no brac of ours, then the paper's brac all the same
     assert "| 380.0 ± 32.0 |  | 786.0 ± 294.0 |" in table[1]
+    assert "seeds" not in table[0].split(" | ")[1]  # bc's 3 seeds meet rlu's 3
     cells = json.loads((tmp_path / "r" / "report.json").read_text())["domains"]["control_suite"]
     cells = cells["online"]["rows"][0]["cells"]
     md = (tmp_path / "r" / "report.md").read_text().replace("**", "")  # bold or not
     bc, brac, d4pg = cells["bc"], cells["brac"], cells["d4pg"]
-    assert f"{bc['mean']:.1f} ± {bc['std']:.1f} |" in md  # all the seeds: as before
-    assert f"{brac['mean']:.1f} ± {brac['std']:.1f} (2 seeds)" in md
-    assert f"{d4pg['mean']:.1f} (1 seed)" in md and f"{d4pg['mean']:.1f} ± " not in md
+    assert f"{bc['mean']:.1f} ± {bc['std']:.1f} (not comparable:" in md  # all the seeds
+    assert f"{brac['mean']:.1f} ± {brac['std']:.1f} (2 seeds) (not comparable:" in md
+    # one seed: its mean, no spread (not a ± 0.0), and "seeds" among what it misses
+    assert d4pg["std"] is None and d4pg["mean"] == d4pg["scores"][0]
+    assert f"{d4pg['mean']:.1f} (1 seed) (not comparable: " in md
+    assert f"{d4pg['mean']:.1f} ± " not in md
+    assert "seeds" in d4pg["missing"] and "seeds" in brac["missing"]
+    assert "seeds" not in bc["missing"]
+
+
+def _with_curves(recs, seed=0):
+    """Records as runs read back: each with its evaluations (three of them, the last one its
+    score), as ``rlu.runs.learning_curve`` gives them."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for r in recs:
+        means = [*rng.uniform(0, r["score"], 2), r["score"]]
+        out.append({**r, "curve": [{"step": 100 * (i + 1), "mean": float(m), "episodes": 2}
+                                   for i, m in enumerate(means)]})  # fmt: skip
+    return out
+
+
+@pytest.mark.parametrize("agents", [["bc"], ["bc", "d4pg", "bcq"]])
+def test_curves_profiles_and_improvement_figures_are_labelled_and_fit(agents):
+    """The learning curves (seeds thin, mean thick, its band ± sample std), the performance
+    profiles and the probability of improvement: titles that name what is drawn and how the
+    band or interval is made, axes labelled, legends inside the figure and apart."""
+    pytest.importorskip("matplotlib")
+    from rlu.evaluation.report.render import (
+        curves_figure,
+        improvement_figure,
+        profiles_figure,
+        pyplot,
+    )
+
+    plt = pyplot()
+    rep = build_report(_with_curves(records(CONTROL, agents)), reps=50)
+    dom = rep["domains"]["control_suite"]
+    fig = curves_figure(dom, "control_suite", plt)
+    try:
+        assert _layout_problems(fig) == []
+        title = fig._suptitle.get_text().replace("\n", " ")
+        assert "learning curves" in title and "band: ± sample std (ddof 1) over seeds" in title
+        drawn = [ax for ax in fig.axes if ax.axison]
+        assert [ax.get_title() for ax in drawn] == ["cartpole_swingup", "fish_swim", "walker_walk"]
+        assert all(ax.get_xlabel() == "learner steps" for ax in drawn)
+        # per agent: 3 seed lines and the mean; the mean is the seeds' mean
+        (t0,) = [t for t in dom["curves"]["tasks"] if t["task"] == CONTROL[0]]
+        c = t0["agents"]["bc"]
+        assert c["mean"] == pytest.approx(np.mean([s["means"] for s in c["seeds"]], axis=0))
+        assert c["std"] == pytest.approx(np.std([s["means"] for s in c["seeds"]], axis=0, ddof=1))
+        assert len(drawn[0].lines) == 4 * len(agents)
+        labels = [t.get_text() for leg in fig.legends for t in leg.get_texts()]
+        assert "one seed" in labels and "bc (3 seeds)" in labels
+    finally:
+        plt.close(fig)
+    if len(agents) < 2:
+        assert "improvement" in dom["absent"]  # no pair of agents to compare
+    for make, name, words in (
+        (profiles_figure, "profiles", "Performance profiles"),
+        (improvement_figure, "improvement", "Probability of improvement"),
+    ):
+        if name not in dom:
+            continue
+        fig = make(dom, plt)
+        try:
+            assert _layout_problems(fig) == []
+            title = fig._suptitle.get_text().replace("\n", " ")
+            assert words in title and "95 % stratified bootstrap CI over seeds" in title
+            axes = [ax for ax in fig.axes if ax.axison]
+            assert [ax.get_title().split(":")[0] for ax in axes] == [
+                "online policy selection, online-selection tasks",
+                "naive offline selection, offline-selection tasks",
+            ]
+            assert all(ax.get_xlabel() for ax in axes)
+        finally:
+            plt.close(fig)  # fmt: skip
+
+
+def test_profiles_and_probability_of_improvement_are_rliables_number_for_number():
+    """rlu computes rliable's performance profiles and probability of improvement vectorised
+    (bench/report_profiles.py: ~100x rliable's per-replicate Python); the same resamples from
+    the same generator give the same numbers, intervals included."""
+    rly = pytest.importorskip("rliable.library")
+    metrics = pytest.importorskip("rliable.metrics")
+    from rlu.evaluation.report.profiles import performance_profile, probability_of_improvement
+
+    rng = np.random.default_rng(3)
+    scores = {"a": rng.integers(0, 6, (3, 4)).astype(float),  # ties, within and across agents
+              "b": rng.normal(3, 2, (5, 4)), "c": rng.normal(3, 2, (1, 4))}  # fmt: skip
+    taus = np.linspace(-1, 7, 17)
+    np.random.seed(0)
+    want, want_ci = rly.create_performance_profile(scores, taus, reps=120)
+    got, got_ci = performance_profile(scores, taus, reps=120, random_state=0)
+    for k in scores:
+        assert np.array_equal(got[k], want[k]) and np.array_equal(got_ci[k], want_ci[k]), k
+    pairs = {"a,b": (scores["a"], scores["b"]), "b,c": (scores["b"], scores["c"]),
+             "a,a": (scores["a"], scores["a"])}  # fmt: skip
+    np.random.seed(0)
+    want, want_ci = rly.get_interval_estimates(
+        {k: list(v) for k, v in pairs.items()}, metrics.probability_of_improvement, reps=120
+    )
+    got, got_ci = probability_of_improvement(pairs, reps=120, random_state=0)
+    for k in pairs:
+        assert got[k] == pytest.approx(float(want[k]), abs=1e-12), k
+        assert np.allclose(got_ci[k], np.ravel(want_ci[k]), rtol=0, atol=1e-12), k
+    assert got["a,a"] == 0.5  # an agent against itself: ties count half

@@ -1,39 +1,53 @@
-"""rlu report says what produced every number (issue 29): each cell's preset, learner steps,
-data and evaluation episodes; the paper's numbers beside them headed as a comparison only where
-the cell ran the paper's settings (paper preset, its full budget, the release's data); and each
-split's aggregate under its own protocol, never mixed."""
+"""rlu report says what produced every number and compares it with the paper's only when every
+condition of the paper's number holds (issue 40): the paper preset, the paper's budget (or,
+where the paper states none, rlu's, said so), every release shard of the task, enough seeds and
+evaluation episodes, and a selection whose inputs were themselves comparable. Each condition in
+turn is missing here and the cell says which; with all of them it is comparable. The paper is
+credited only with what it states."""
 
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import pytest
 
-from rlu.evaluation.report import build_report, not_comparable, run_provenance, write_report
+from rlu.evaluation.report import build_report, run_provenance, write_report
 from rlu.types import RluError
 
 CARTPOLE, STAND = "control_suite/cartpole_swingup", "control_suite/walker_stand"  # online
 WALK = "control_suite/walker_walk"  # offline
-RELEASE = {"source": "release", "family": "control_suite", "files": 1}
+ONLINE = ["control_suite/cartpole_swingup", "control_suite/cheetah_run",
+          "control_suite/humanoid_run", "control_suite/manipulator_insert_ball", STAND]  # fmt: skip
+ALL_SHARDS = {"source": "release", "family": "dm_control_suite", "files": 100, "steps": 40_000,
+              "shards": {"used": 100, "of": 100, "dataset": ""}}  # fmt: skip
 GENERATED = {"source": "generated", "scale": "laptop", "command": "rlu generate x --scale laptop"}
 
 
-def paper_steps(agent: str, discrete: bool) -> int | None:
+def paper(agent: str, discrete: bool):
     """What ``rlu report`` passes to ``write_report`` (the report's package may not import the
-    agents)."""
+    agents): the agent's paper preset, read from its module."""
     pytest.importorskip("torch")
-    from rlu.agents import paper_steps as budget
+    from rlu.restore import paper_preset
 
-    return budget(agent, discrete)
+    return paper_preset(agent, discrete)
 
 
 def rec(task, agent, config, seed, score, **fields):
     r = {"task": task, "agent": agent, "config": config, "seed": seed, "score": float(score),
-         "run": f"{task}/{agent}/{config}/{seed}"}  # fmt: skip
+         "run": f"{task}/{agent}/{config}/{seed}", "overrides": {}}  # fmt: skip
     defaults = {"preset": "small", "steps": 300, "pretrain_steps": 0, "eval_episodes": 5,
                 "data": GENERATED}  # fmt: skip
     return {**r, **defaults, **fields}
+
+
+FULL = {"preset": "paper", "steps": 1_000_000, "eval_episodes": 5, "data": ALL_SHARDS}
+"""Every run condition of the paper's numbers for a continuous agent without a grid (bc)."""
+
+
+def full(task, agent="bc", seeds=(0, 1, 2), base=380.0, **change):
+    return [rec(task, agent, "default", s, base + s, **{**FULL, **change}) for s in seeds]
 
 
 def sweep(path: Path, recs) -> Path:
@@ -50,83 +64,235 @@ def md_rows(md: str, start: str) -> list[list[str]]:
     ]
 
 
-# --- the protocols ---------------------------------------------------------------------------
-def disagreeing_sweep():
-    """A grid whose two protocols disagree: online selection per task would take config b on
-    the offline task (1200), naive offline selection keeps a (400), the config that is best on
-    the online task (500 against 400). The old headline, online selection over every task,
-    averaged 500 and 1200 into 850; each task under its own protocol averages to 450."""
-    table = {(CARTPOLE, "a"): 500, (CARTPOLE, "b"): 400, (WALK, "a"): 400, (WALK, "b"): 1200}
-    return [
-        rec(t, "bc", c, s, v + d) for (t, c), v in table.items() for s, d in ((0, -10.0), (1, 10.0))
-    ]
+def cell(recs, task=CARTPOLE, agent="bc", table="online"):
+    dom = build_report(recs, reps=50, paper=paper)["domains"]["control_suite"]
+    (row,) = [r for r in dom[table]["rows"] if r["task"] == task]
+    return row["cells"][agent]
 
 
-def test_aggregates_follow_each_splits_protocol_and_never_mix(tmp_path):
+# --- each condition in turn ------------------------------------------------------------------
+def test_every_condition_holds_and_the_cell_is_comparable(tmp_path):
     pytest.importorskip("jinja2")
-    dom = build_report(disagreeing_sweep(), reps=200)["domains"]["control_suite"]
-    agg = dom["aggregates"]
-    on, off = agg["online"], agg["offline"]
-    assert on["tasks"] == [CARTPOLE] and on["agents"]["bc"]["mean"] == pytest.approx(500.0)
-    assert off["tasks"] == [WALK] and off["chosen"] == {"bc": "a"}
-    assert off["agents"]["bc"]["mean"] == pytest.approx(400.0)
-    assert off["agents"]["bc"]["iqm"] == pytest.approx(400.0)  # 390, 410: nothing trimmed
-    # neither the mixed oracle (850) nor a mix of the two protocols (450) is an aggregate
-    every = [e["mean"] for half in (on, off) for e in half["agents"].values()]
-    assert not {850.0, 450.0} & {round(x, 6) for x in every}
-    # the online table holds the online task only; the offline task is under naive selection
-    assert [r["task"] for r in dom["online"]["rows"]] == [CARTPOLE]
-    assert [r["task"] for r in dom["offline_naive"]["rows"]] == [WALK]
-    assert dom["offline_naive"]["rows"][0]["cells"]["bc"]["config"] == "a"
-    # the Markdown names each row's protocol, and the caption says they are never mixed
-    write_report(sweep(tmp_path / "s", disagreeing_sweep()), tmp_path / "r", figures=False)
+    c = cell(full(CARTPOLE))
+    assert c["comparable"] and c["missing"] == [] and not any(c["conditions"].values())
+    write_report(sweep(tmp_path / "s", full(CARTPOLE)), tmp_path / "r", figures=False,
+                 paper=paper)  # fmt: skip
     md = (tmp_path / "r" / "report.md").read_text()
-    rows = md_rows(md, "| online policy selection, ") + md_rows(md, "| naive offline selection")
-    assert [(r[0], r[1], r[2], r[3]) for r in rows] == [
-        ("online policy selection, online-selection tasks", "bc", "1", "500.0"),
-        ("naive offline selection, offline-selection tasks", "bc", "1", "400.0"),
+    (head,) = md_rows(md, "| task |")
+    # the paper states no budget for the continuous baselines: the comparison is rlu's 1M, and
+    # the heading says so
+    assert head[2] == (
+        "bc: paper (appendix B, table 'DM Control suite results'; the paper states no budget): "
+        "comparable at rlu's 1M steps"
+    )
+    (row,) = md_rows(md, f"| {CARTPOLE}")
+    assert row[1:3] == ["**381.0 ± 1.0 (comparable)**", "386.0 ± 6.0"]
+    assert "Every run here meets the run conditions" in md
+
+
+@pytest.mark.parametrize(
+    "condition,change,why",
+    [
+        ("preset", {"preset": "small"}, "preset small, not paper"),
+        ("budget", {"steps": 500_000},
+         "500,000 learner steps, not rlu's 1M (the paper states no budget)"),
+        ("data", {"data": {**ALL_SHARDS, "shards": {"used": 3, "of": 100, "dataset": ""}}},
+         "3 of the release's 100 shards of the task"),
+        ("data", {"data": GENERATED}, "generated data, not the release's"),
+        ("data", {"data": {**ALL_SHARDS, "shards": {"used": 0, "of": None, "dataset": None},
+                           "files": 1}},
+         "1 files, none named as a release shard of the task"),
+        ("episodes", {"eval_episodes": 2},
+         "2 evaluation episodes, under rlu's 5 (the paper states no number of evaluation "
+         "episodes)"),
+    ],
+)  # fmt: skip
+def test_a_run_condition_missing_is_named_in_the_cell(condition, change, why):
+    c = cell(full(CARTPOLE, **change))
+    assert not c["comparable"] and c["missing"] == [condition]
+    assert c["conditions"][condition] == why
+
+
+def test_a_cell_of_too_few_seeds_says_seeds(tmp_path):
+    pytest.importorskip("jinja2")
+    c = cell(full(CARTPOLE, seeds=(0, 1)))
+    assert c["missing"] == ["seeds"]
+    assert c["conditions"]["seeds"] == (
+        "2 seeds, under rlu's 3 (the paper states no number of seeds)"
+    )
+    write_report(sweep(tmp_path / "s", full(CARTPOLE, seeds=(0, 1))), tmp_path / "r",
+                 figures=False, paper=paper)  # fmt: skip
+    md = (tmp_path / "r" / "report.md").read_text()
+    (row,) = md_rows(md, f"| {CARTPOLE}")
+    assert row[1] == "**380.5 ± 0.7 (not comparable: seeds)**"
+
+
+def test_overrides_outside_the_papers_grid_are_not_the_paper_preset():
+    recs = [{**r, "config": "learning_rate=0.001", "overrides": {"learning_rate": 1e-3}}
+            for r in full(CARTPOLE)]  # fmt: skip
+    c = cell(recs)
+    assert c["missing"] == ["preset"]
+    assert c["conditions"]["preset"] == (
+        "the paper preset changed outside the paper's grid (learning_rate=0.001)"
+    )
+
+
+def test_online_selection_among_runs_that_are_not_comparable_is_not():
+    """The chosen configuration's runs meet every condition, but it was chosen over a
+    configuration of small-preset runs: the selection's inputs were not comparable."""
+    other = [rec(CARTPOLE, "bc", "learning_rate=0.001", s, 100.0 + s,
+                 overrides={"learning_rate": 1e-3}) for s in (0, 1, 2)]  # fmt: skip
+    c = cell(full(CARTPOLE) + other)
+    assert c["config"] == "default" and c["missing"] == ["selection"]
+    assert c["conditions"]["selection"] == (
+        "chosen among runs that are not comparable (preset, budget, data)"
+    )
+
+
+def test_online_selection_must_have_seen_the_papers_whole_grid():
+    """BRAC's paper grid is 3 x 3: one configuration of it, run with every other condition
+    met, is not the paper's selection."""
+    brac = paper("brac", False)
+    assert brac.steps == 1_000_000 and len(brac.grid["alpha"]) * len(brac.grid["policy_lr"]) == 9
+    overrides = {"alpha": 0.1, "policy_lr": 3e-5}
+    recs = [{**r, "agent": "brac", "config": "alpha=0.1,policy_lr=3e-05", "overrides": overrides}
+            for r in full(CARTPOLE)]  # fmt: skip
+    c = cell(recs, agent="brac")
+    assert c["missing"] == ["selection"]
+    assert (
+        c["conditions"]["selection"] == "1 of the paper grid's 9 configurations on cartpole_swingup"
+    )
+    every = [
+        {**r, "agent": "brac", "config": f"a={a},p={p}", "overrides": {"alpha": a, "policy_lr": p},
+         "score": r["score"] + (100 if (a, p) == (0.1, 3e-5) else 0)}
+        for a in brac.grid["alpha"] for p in brac.grid["policy_lr"] for r in full(CARTPOLE)
+    ]  # fmt: skip
+    c = cell(every, agent="brac")
+    assert c["comparable"] and c["config"] == "a=0.1,p=3e-05"
+
+
+def test_naive_offline_selection_needs_comparable_runs_on_every_online_task():
+    """An offline-selection task's cell: its configuration was chosen on the domain's
+    online-selection tasks; with one of the five, or with one of them run on the small preset,
+    the selection's inputs were not the paper's."""
+    one = full(CARTPOLE) + full(WALK)
+    c = cell(one, task=WALK, table="offline_naive")
+    # bc ran one configuration: nothing to choose, and its grid has one
+    assert c["comparable"], c["conditions"]
+    two = one + [rec(CARTPOLE, "bc", "x", s, 10.0, overrides={"x": 1}) for s in (0, 1, 2)]
+    c = cell(two, task=WALK, table="offline_naive")
+    assert c["missing"] == ["selection"]
+    assert c["conditions"]["selection"] == (
+        "chosen on 1 of the domain's 5 online-selection tasks; chosen among runs that are not "
+        "comparable (preset, budget, data)"
+    )
+    every = [r for t in ONLINE for r in full(t)] + full(WALK)
+    every += [rec(t, "bc", "x", s, 10.0, **FULL, overrides={"x": 1}) for t in ONLINE
+              for s in (0, 1, 2)]  # fmt: skip
+    c = cell(every, task=WALK, table="offline_naive")
+    # the second configuration changes a field outside BC's (empty) grid: not comparable input
+    assert c["missing"] == ["selection"] and "(preset)" in c["conditions"]["selection"]
+    every = [r for r in every if r["config"] == "default"]
+    assert cell(every, task=WALK, table="offline_naive")["comparable"]
+
+
+def test_atari_compares_at_the_papers_stated_budget_and_replay():
+    """On Atari the paper states 2M learner steps and a 2M-step replay memory: those are the
+    paper's numbers, and a run at them (and every other condition) is comparable."""
+    pytest.importorskip("jinja2")
+    lrs = paper("dqn", True).grid["learning_rate"]
+    data = {"source": "release", "family": "atari", "files": 4, "steps": 2_000_000,
+            "shards": {"used": 4, "of": 100, "dataset": "run_1"}}  # fmt: skip
+    game = "atari/BeamRider"
+
+    def runs(**change):
+        base = {"preset": "paper", "steps": 2_000_000, "eval_episodes": 5, "data": data}
+        return [rec(game, "dqn", f"learning_rate={lr}", s, 1000.0 + 100 * i + s,
+                    overrides={"learning_rate": lr}, **{**base, **change})
+                for i, lr in enumerate(lrs) for s in (0, 1, 2)]  # fmt: skip
+
+    def atari_cell(recs):
+        dom = build_report(recs, reps=50, paper=paper)["domains"]["atari"]
+        return dom, dom["online"]["rows"][0]["cells"]["dqn"]
+
+    dom, c = atari_cell(runs())
+    assert c["comparable"], c["conditions"]
+    assert dom["paper_presets"]["dqn"] == {"known": True, "steps": 2_000_000,
+                                           "grid": {"learning_rate": list(lrs)},
+                                           "budget": 2_000_000, "budget_stated": True}  # fmt: skip
+    _, c = atari_cell(runs(steps=1_000_000))
+    assert c["missing"] == ["budget", "selection"]
+    assert c["conditions"]["budget"] == "1,000,000 learner steps, not the paper's 2M"
+    _, c = atari_cell(runs(data={**data, "steps": 500_000}))
+    assert c["conditions"]["data"] == (
+        "500,000 steps of the release, under the paper's 2M-step replay"
+    )
+
+
+# --- the paper credited with what it states ----------------------------------------------------
+def _paper_headings(md: str) -> list[str]:
+    heads = [c for line in md.splitlines() if line.startswith("| ")
+             for c in (x.strip() for x in line.strip("|").split("|"))]  # fmt: skip
+    return [h for h in heads if re.match(r"^[\w.|' ,]+: paper \(", h)]
+
+
+def test_no_budget_is_attributed_to_the_paper_that_it_does_not_state(tmp_path):
+    """The column headings, the intro and the figure legend give the paper a budget only on
+    Atari (its table 'Atari experiments hyperparameters': 2M); for the continuous baselines
+    they say the paper states none, and name 1M as rlu's."""
+    pytest.importorskip("matplotlib")
+    cont = full(CARTPOLE) + full(CARTPOLE, agent="d4pg", steps=300, preset="small")
+    games = ["atari/BeamRider", "atari/Pong"]
+    atari = [rec(g, "dqn", "default", s, 50 + s, data={"source": "synthetic"})
+             for g in games for s in (0, 1)]  # fmt: skip
+    refs = {g: 0.0 for g in games}, {g: 100.0 for g in games}
+    write_report([sweep(tmp_path / "c", cont), sweep(tmp_path / "a", atari)], tmp_path / "r",
+                 *refs, paper=paper)  # fmt: skip
+    md = (tmp_path / "r" / "report.md").read_text()
+    heads = _paper_headings(md)
+    cont_heads = [h for h in heads if "DM Control suite results" in h]
+    atari_heads = [h for h in heads if "Atari 2600 results" in h]
+    # control: bc and d4pg over the online table; Atari: dqn over the online and the naive
+    # offline tables, the median figure's and the per-game table's
+    assert len(cont_heads) == 2 and len(atari_heads) == 4
+    for h in cont_heads:
+        source = h.split(": paper (", 1)[1].split(")", 1)[0]
+        assert source == "appendix B, table 'DM Control suite results'; the paper states no budget"
+    assert cont_heads[0].endswith(": comparable at rlu's 1M steps")  # bc, every condition met
+    assert cont_heads[1].endswith(": not comparable to these cells")  # d4pg, small preset
+    for h in atari_heads:
+        assert "appendix D, table 'Atari 2600 results'; 2M learner steps" in h
+    intro = md.split("## control_suite", 1)[1].split("\n\n", 2)[1]
+    assert "the paper states no learner budget: compared at rlu's 1M" in intro
+    assert "1M" not in intro.replace("compared at rlu's 1M", "")
+    control = md.split("## control_suite", 1)[1]
+    (budget,) = md_rows(control, "| budget |")
+    assert budget[1:] == [
+        "nothing",
+        "appendix A.1 gives no learner steps for the continuous baselines",
+        "rlu's paper preset's learner steps (bc 1M, d4pg 1M): rlu's choice, the paper states none",
     ]
-    assert "each split under its own protocol and never mixed" in md
-    assert "1200.0" not in md and "850.0" not in md
+    atari_budget = md_rows(md.split("## atari", 1)[1].split("## control_suite")[0], "| budget |")
+    assert atari_budget[0][1:3] == [
+        "2M steps",
+        "appendix A.2, table 'Atari experiments hyperparameters': 'Training Steps: 2M learning "
+        "steps'",
+    ]
+    # the figure's legend of the paper's diamonds: the same source, no budget for the paper
+    from rlu.evaluation.report.render import pyplot, tasks_figure
 
-
-def test_an_agent_with_one_configuration_needs_no_selection():
-    """Offline tasks only, one configuration per agent: nothing to select, so the naive table
-    holds it; with two configurations and no online task, the reason is given."""
-    one = [rec(WALK, "bc", "default", s, 300 + s) for s in (0, 1)]
-    dom = build_report(one, reps=50)["domains"]["control_suite"]
-    assert dom["offline_naive"]["only_configuration"] == ["bc"]
-    assert dom["aggregates"]["offline"]["agents"]["bc"]["mean"] == pytest.approx(300.5)
-    assert "no online-selection task" in dom["absent"]["online"]
-    two = one + [rec(WALK, "bc", "other", s, 900) for s in (0, 1)]
-    dom = build_report(two, reps=50)["domains"]["control_suite"]
-    assert "ran 2 configurations" in dom["absent"]["offline_naive"]
-    assert "aggregates" in dom["absent"] and "offline_naive" not in dom["panels"]
+    plt = pyplot()
+    dom = json.loads((tmp_path / "r" / "report.json").read_text())["domains"]["control_suite"]
+    fig = tasks_figure(dom, "control_suite", plt)
+    try:
+        labels = [t.get_text().replace("\n", " ") for leg in fig.legends for t in leg.get_texts()]
+        assert ("paper (appendix B, table 'DM Control suite results'; the paper states no "
+                "budget): comparable only where the tables say so") in labels  # fmt: skip
+    finally:
+        plt.close(fig)
 
 
 # --- what produced a number ------------------------------------------------------------------
-def test_comparable_only_with_the_paper_preset_its_budget_and_the_release():
-    budget = paper_steps("bc", False)
-    assert budget == 1_000_000 and paper_steps("dqn", True) == 2_000_000
-    assert paper_steps("no_such_agent", False) is None
-    full = run_provenance(rec(CARTPOLE, "bc", "a", 0, 1, preset="paper", steps=budget,
-                              data=RELEASE))  # fmt: skip
-    assert not_comparable(full, budget) == []
-    cases = {
-        "preset small, not paper": {"preset": "small"},
-        "999,999 of the paper preset's 1,000,000 learner steps": {"steps": budget - 1},
-        "generated data, not the release's": {"data": GENERATED},
-        "learner steps not recorded": {"steps": None},
-    }
-    for why, change in cases.items():
-        p = run_provenance(rec(CARTPOLE, "bc", "a", 0, 1, **{**full, **change}))
-        assert not_comparable(p, budget) == [why]
-    # a report not told the budget claims no comparison
-    assert not_comparable(full, None) == [
-        "the paper preset's learner budget was not given to the report"
-    ]
-
-
 def test_older_records_and_bad_sources():
     """A record from before runs recorded their data counts as source unknown, its evaluation
     episodes its final returns; a source that is not one of the five is an error naming it."""
@@ -139,168 +305,158 @@ def test_older_records_and_bad_sources():
         "eval_episodes": 3,
         "data": {"source": "unknown"},
     }
-    dom = build_report([old], reps=20)["domains"]["control_suite"]
-    assert dom["online"]["rows"][0]["cells"]["bc"]["not_comparable"] == [
-        "preset small, not paper",
-        "the paper preset's learner budget was not given to the report",
-        "unknown data, not the release's",
-    ]
+    c = build_report([old], reps=20)["domains"]["control_suite"]["online"]["rows"][0]["cells"]
+    assert c["bc"]["conditions"] == {
+        "preset": "the report knows no paper preset of this agent",
+        "budget": "the paper preset's learner budget was not given to the report",
+        "data": "unknown data, not the release's",
+        "episodes": "3 evaluation episodes, under rlu's 5 (the paper states no number of "
+        "evaluation episodes)",
+        "seeds": "1 seed, under rlu's 3 (the paper states no number of seeds)",
+        "selection": None,  # its only configuration: no other runs chosen among
+    }
     with pytest.raises(RluError, match=r"run r0: field data.source is 'laptop'"):
         build_report([{**old, "data": {"source": "laptop"}}])
 
 
 def mixed_sweep():
-    """bc ran the paper's settings on cartpole and walker stand; d4pg the small preset on
-    cartpole; bc's walker-stand seeds stopped at half the budget."""
-    budget = 1_000_000
-    paper = {"preset": "paper", "steps": budget, "data": RELEASE, "eval_episodes": 10}
+    """bc ran every condition on cartpole and stopped at half the budget on walker stand;
+    d4pg the small preset on cartpole."""
     return (
-        [rec(CARTPOLE, "bc", "default", s, 380 + s, **paper) for s in (0, 1)]
-        + [rec(STAND, "bc", "default", s, 390 + s, **{**paper, "steps": budget // 2})
-           for s in (0, 1)]
-        + [rec(CARTPOLE, "d4pg", "default", s, 700 + s) for s in (0, 1)]
-    )  # fmt: skip
+        full(CARTPOLE)
+        + full(STAND, steps=500_000, base=390.0)
+        + [rec(CARTPOLE, "d4pg", "default", s, 700 + s) for s in (0, 1, 2)]
+    )
 
 
 def test_every_cell_says_what_produced_it_and_the_paper_columns_say_if_they_compare(tmp_path):
     pytest.importorskip("jinja2")
     write_report(sweep(tmp_path / "s", mixed_sweep()), tmp_path / "r", figures=False,
-                 paper_steps=paper_steps)  # fmt: skip
+                 paper=paper)  # fmt: skip
     rep = json.loads((tmp_path / "r" / "report.json").read_text())
     dom = rep["domains"]["control_suite"]
-    assert dom["paper_budgets"] == {"bc": 1_000_000, "d4pg": 1_000_000}
+    assert {a: p["budget"] for a, p in dom["paper_presets"].items()} == {
+        "bc": 1_000_000, "d4pg": 1_000_000}  # fmt: skip
     entries = [(p["preset"], p["steps"], p["data"]["source"], p["runs"], p["comparable_runs"])
                for p in dom["provenance"]]  # fmt: skip
     assert sorted(entries) == [
-        ("paper", 500_000, "release", 2, 0),
-        ("paper", 1_000_000, "release", 2, 2),
-        ("small", 300, "generated", 2, 0),
+        ("paper", 500_000, "release", 3, 0),
+        ("paper", 1_000_000, "release", 3, 3),
+        ("small", 300, "generated", 3, 0),
     ]
     letter = {(p["preset"], p["steps"]): "ABC"[i] for i, p in enumerate(dom["provenance"])}
     rows = {r["task"]: r for r in dom["online"]["rows"]}
     assert rows[CARTPOLE]["cells"]["bc"]["comparable"]
-    assert not rows[STAND]["cells"]["bc"]["comparable"]
+    assert rows[STAND]["cells"]["bc"]["missing"] == ["budget"]
     assert dom["online"]["paper_columns"] == {
-        "bc": {"budget": 1_000_000, "comparable": "some"},
-        "d4pg": {"budget": 1_000_000, "comparable": "none"},
+        "bc": {"budget": 1_000_000, "budget_stated": False, "comparable": "some"},
+        "d4pg": {"budget": 1_000_000, "budget_stated": False, "comparable": "none"},
     }
     md = (tmp_path / "r" / "report.md").read_text()
     (head,) = md_rows(md, "| task |")
+    source = "appendix B, table 'DM Control suite results'; the paper states no budget"
     assert head == [
         "task",
         "bc",
-        "bc: paper (1M steps, paper preset, release data): comparable only where marked",
+        f"bc: paper ({source}): comparable only where marked at rlu's 1M steps",
         "d4pg",
-        "d4pg: paper (1M steps, paper preset, release data): not comparable to these cells",
+        f"d4pg: paper ({source}): not comparable to these cells",
     ]
     cart, stand = md_rows(md, f"| {CARTPOLE}"), md_rows(md, f"| {STAND}")
     a, b, c = letter[("paper", 1_000_000)], letter[("paper", 500_000)], letter[("small", 300)]
-    assert cart[0][1:] == [f"380.5 ± 0.5 [{a}]", "386.0 ± 6.0 (comparable)",
-                           f"**700.5 ± 0.5 [{c}]**", "856.0 ± 13.0"]  # fmt: skip
-    assert stand[0][1:3] == [f"**390.5 ± 0.5 [{b}]**", "386.0 ± 7.0 (not comparable)"]
+    assert cart[0][1:] == [
+        f"381.0 ± 1.0 [{a}] (comparable)",
+        "386.0 ± 6.0",
+        f"**701.0 ± 1.0 [{c}] (not comparable: preset, budget, data)**",
+        "856.0 ± 13.0",
+    ]
+    assert stand[0][1:3] == [f"**391.0 ± 1.0 [{b}] (not comparable: budget)**", "386.0 ± 7.0"]
     # the legend of the letters: every cell's preset, steps, data and evaluation episodes
     assert (
         f"[{c}] preset small, 300 learner steps, data generated by rlu (scale laptop, "
         "`rlu generate x --scale laptop`), 5 evaluation episodes per run" in md
     )
-    assert f"[{b}] preset paper, 500,000 learner steps, data the release's files (family " in md
-    assert "500,000 of the paper preset's 1,000,000 learner steps" in md
-    (prov,) = [r for r in md_rows(md, f"| {c} |")]
-    assert prov[1:4] == ["small", "300", ""] and prov[-1] == "0 of 2"
-    assert "2 of 6 runs did" in md
-    html = (tmp_path / "r" / "report.html").read_text()
-    assert "d4pg: paper (1M steps, paper preset, release data): not comparable to these cells" in (
-        html
+    assert (
+        f"[{b}] preset paper, 500,000 learner steps, data the release's files (family "
+        "dm_control_suite, 100 of its 100 shards, 40,000 steps)" in md
     )
+    assert ("budget: 300 learner steps, not rlu's 1M (the paper states no budget) / 500,000 "
+            "learner steps, not rlu's 1M (the paper states no budget); data: ") in md  # fmt: skip
+    (prov,) = [r for r in md_rows(md, f"| {c} |")]
+    assert prov[1:4] == ["small", "300", ""] and prov[-1] == "0 of 3"
+    assert "3 of 9 runs here meet the run conditions" in md
 
 
 def test_one_provenance_is_spelled_out_once_per_table(tmp_path):
     pytest.importorskip("jinja2")
     recs = [rec(CARTPOLE, a, "default", s, 300 + s) for a in ("bc", "d4pg") for s in (0, 1)]
-    write_report(sweep(tmp_path / "s", recs), tmp_path / "r", figures=False,
-                 paper_steps=paper_steps)  # fmt: skip
+    write_report(sweep(tmp_path / "s", recs), tmp_path / "r", figures=False, paper=paper)
     md = (tmp_path / "r" / "report.md").read_text()
     assert "[A]" not in md  # one provenance: no letters on the cells
-    assert md.count("Every number here: preset small, 300 learner steps, data generated") == 2
-    (row,) = md_rows(md, f"| {CARTPOLE}")
-    assert row[1:3] == ["**300.5 ± 0.5**", "386.0 ± 6.0"]
-    assert "no run here did" in md
-    # every cell ran the paper's settings: the paper's columns are a comparison
-    full = [{**r, "preset": "paper", "steps": 1_000_000, "data": RELEASE} for r in recs]
-    write_report(sweep(tmp_path / "s2", full), tmp_path / "r2", figures=False,
-                 paper_steps=paper_steps)  # fmt: skip
-    md = (tmp_path / "r2" / "report.md").read_text()
-    (head,) = md_rows(md, "| task |")
-    assert head[2] == "bc: paper (1M steps, paper preset, release data): comparable"
-    assert "every run here ran them" in md
+    assert md.count("Every number here: preset small, 300 learner steps, data generated") >= 2
+    assert "No run here meets them" in md
 
 
-def test_figures_label_the_paper_markers_and_say_what_drew_the_bars():
+def test_figures_label_the_paper_markers_and_say_what_drew_each_bar():
     pytest.importorskip("matplotlib")
-    from rlu.evaluation.report.render import atari_median_figure, pyplot, tasks_figure
+    from rlu.evaluation.report.render import pyplot, tasks_figure
     from tests.evaluation.test_report import _layout_problems
 
     plt = pyplot()
-    dom = build_report(mixed_sweep(), reps=50, paper_steps=paper_steps)["domains"]
-    fig = tasks_figure(dom["control_suite"], "control_suite", plt)
+    recs = mixed_sweep() + [rec(STAND, "d4pg", "default", 0, 500.0)]  # a cell of one seed
+    dom = build_report(recs, reps=50, paper=paper)["domains"]["control_suite"]
+    fig = tasks_figure(dom, "control_suite", plt)
     try:
         assert _layout_problems(fig) == []
-        labels = [t.get_text() for leg in fig.legends for t in leg.get_texts()]
-        assert labels == [
-            "paper (1M steps, paper preset, release data): comparable only where the tables say so"
-        ]
         title = fig._suptitle.get_text().replace("\n", " ")
-        assert (
-            "rlu's bars: preset small/paper, 300/1M/500k learner steps, data generated/release, "
-            "5/10 evaluation episodes per run" in title
-        )
-    finally:
-        plt.close(fig)
-    games = ["atari/BeamRider", "atari/Pong"]
-    atari = [rec(g, "dqn", "default", s, 50 + s, data={"source": "synthetic"})
-             for g in games for s in (0, 1)]  # fmt: skip
-    refs = {g: 0.0 for g in games}, {g: 100.0 for g in games}
-    dom = build_report(atari, random_scores=refs[0], best_behaviour=refs[1], reps=50,
-                       paper_steps=paper_steps)["domains"]["atari"]  # fmt: skip
-    fig = atari_median_figure(dom, plt)
-    try:
-        assert _layout_problems(fig) == []
-        labels = [t.get_text() for leg in fig.legends for t in leg.get_texts()]
-        assert (
-            "paper's table, same games, normalised (2M steps, paper preset, release data): not "
-            "comparable to these bars" in labels
-        )
-        assert "data synthetic" in fig._suptitle.get_text().replace("\n", " ")
+        assert "mean ± sample std (ddof 1) over seeds" in title
+        for i, p in enumerate(dom["provenance"]):  # every letter's data in the title
+            assert f"[{'ABC'[i]}] preset {p['preset']}" in title
+        assert "release (100 of 100 shards) data" in title
+        (stand,) = [ax for ax in fig.axes if ax.get_title() == "walker_stand"]
+        # each bar's letter above it; the one-seed bar hatched, without an error bar, "1" on it
+        texts = sorted(t.get_text() for t in stand.texts)
+        b = next("ABC"[i] for i, p in enumerate(dom["provenance"]) if p["steps"] == 500_000)
+        c = next("ABC"[i] for i, p in enumerate(dom["provenance"]) if p["preset"] == "small")
+        assert texts == sorted([b, f"1 {c}"])
+        bars = [p for p in stand.patches if p.get_height() == p.get_height()]  # not the NaN key
+        assert [bool(p.get_hatch()) for p in bars[:2]] == [False, True]
+        (errs,) = [c for c in stand.containers if type(c).__name__ == "ErrorbarContainer"]
+        assert len(errs.lines[2][0].get_segments()) == 1  # bc's only: d4pg has one seed
     finally:
         plt.close(fig)
 
 
-def test_atari_panels_head_the_papers_table_as_not_comparable(tmp_path):
-    pytest.importorskip("jinja2")
-    games = ["atari/BeamRider", "atari/Zaxxon", "atari/Pong", "atari/Breakout"]
-    recs = [rec(g, a, c, s, v + s, data={"source": "synthetic"}, steps=200)
-            for g in games for a in ("dqn", "rem") for c, v in (("a", 40), ("b", 60))
-            for s in (0, 1)]  # fmt: skip
-    refs = {g: 0.0 for g in games}, {g: 100.0 for g in games}
-    write_report(sweep(tmp_path / "s", recs), tmp_path / "r", *refs, figures=False,
-                 paper_steps=paper_steps)  # fmt: skip
-    md = (tmp_path / "r" / "report.md").read_text()
-    (head,) = md_rows(md, "| selection | agent | games |")
-    assert head[5] == (
-        "paper's table, same games: paper (2M steps, paper preset, release data): not "
-        "comparable to these cells"
+def test_a_converted_release_dataset_records_the_shards_it_holds():
+    """What the data condition reads: a release dataset's manifest names its shard files; they
+    count against the registry's names for the task's dataset (a file named otherwise, such as
+    a one-shard test fixture, counts as no release shard)."""
+    from rlu.data.provenance import data_source
+    from rlu.tasks import get_task
+
+    names = get_task(CARTPOLE).release_dataset("dm_control_suite").shard_names("")
+    prov = {"source": "rl_unplugged release", "family": "dm_control_suite", "task": CARTPOLE}
+    some = [{"name": n.rsplit("/", 1)[-1]} for n in names[:3]]
+    counts = {"steps": 1234}
+    data = data_source({"provenance": {**prov, "files": some}, "counts": counts})
+    assert data == {"source": "release", "family": "dm_control_suite", "files": 3,
+                    "shards": {"used": 3, "of": 100, "dataset": ""}, "steps": 1234}  # fmt: skip
+    every = [{"name": n.rsplit("/", 1)[-1]} for n in names]
+    assert data_source({"provenance": {**prov, "files": every}})["shards"]["used"] == 100
+    fixture = [{"name": "train-00000-of-00001"}]
+    assert data_source({"provenance": {**prov, "files": fixture}})["shards"] == {
+        "used": 0, "of": None, "dataset": None}  # fmt: skip
+    # Atari: one run's shards are the dataset (run_1 of the five)
+    pong = get_task("atari/Pong").release_dataset("atari").shard_names("run_2")[:4]
+    data = data_source(
+        {
+            "provenance": {
+                "source": "rl_unplugged release",
+                "family": "atari",
+                "task": "atari/Pong",
+                "run": 2,
+                "files": [{"name": n.rsplit("/", 1)[-1]} for n in pong],
+            }
+        }
     )
-    (head,) = md_rows(md, "| game | selection |")
-    assert (
-        head[3]
-        == "dqn: paper (2M steps, paper preset, release data): not comparable to these cells"
-    )
-    assert "Every number here: preset small, 200 learner steps, data synthetic" in md
-    # the aggregates: each split under its protocol, the median for Atari
-    rows = md_rows(md, "| online policy selection, ") + md_rows(md, "| naive offline selection")
-    assert [(r[1], r[2], r[3]) for r in rows] == [
-        ("dqn", "2", "60.5"),
-        ("rem", "2", "60.5"),
-        ("dqn", "2", "60.5"),
-        ("rem", "2", "60.5"),
-    ]
+    assert data["shards"] == {"used": 4, "of": 100, "dataset": "run_2"}  # fmt: skip

@@ -107,27 +107,161 @@ def test_a_failing_policy_leaves_no_half_written_video(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
-def test_rlu_evaluate_video_films_a_trained_run(tmp_path, capsys):
-    """A (very) short BC run on the shipped cartpole data, evaluated with --video."""
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """A (very) short BC run on the shipped cartpole data."""
     pytest.importorskip("torch")
     pytest.importorskip("dm_control")
-    import rlu
-    from rlu.cli import main
     from rlu.settings import RunSettings
     from rlu.train import TrainConfig, train
 
-    data = str(rlu.load_dataset(CARTPOLE).path)
+    out = tmp_path_factory.mktemp("trained") / "run"
     run = RunSettings(steps=20, eval_every=-1, checkpoint_every=20)
-    cfg = TrainConfig(task=CARTPOLE, agent="bc", dataset=data, run=run)
-    train(cfg, tmp_path / "run", progress=False)
-    argv = ["evaluate", str(tmp_path / "run"), "--episodes", "2", "--envs", "1", "--max-steps",
-            "30", "--video", str(tmp_path / "v"), "--video-episodes", "2"]  # fmt: skip
+    train(TrainConfig(task=CARTPOLE, agent="bc", dataset=CARTPOLE, run=run), out)
+    return out
+
+
+def test_rlu_evaluate_video_films_the_episodes_it_scores(trained, tmp_path, capsys, monkeypatch):
+    """Two of the three scored episodes, on two envs in lockstep, filmed as they are played:
+    each video's return is the very return the evaluation lists; progress on stderr."""
+    from rlu.cli import main
+
+    monkeypatch.setenv("RLU_PROGRESS", "lines")
+    argv = ["evaluate", str(trained), "--eval-episodes", "3", "--eval-envs", "2",
+            "--eval-max-steps", "30", "--video", str(tmp_path / "v"), "--video-episodes", "2",
+            "--video-size", "320x240"]  # fmt: skip
     assert main(argv) == 0
-    lines = capsys.readouterr().out.splitlines()
+    captured = capsys.readouterr()
+    lines = captured.out.splitlines()
     returns = [float(r) for r in lines[0].split("returns ")[1].split(", ")]
     filmed = [float(line.split("return ")[1].split(",")[0]) for line in lines[1:]]
-    assert len(filmed) == 2 and filmed == returns  # both printed with one decimal
+    assert len(returns) == 3 and filmed == returns[:2]
+    index = json.loads((tmp_path / "v" / INDEX).read_text())
+    ev = json.loads(_json_eval(trained, capsys))  # the same evaluation without the videos
+    assert [v["episode_return"] for v in index["videos"]] == ev["returns"][:2]  # exactly
     assert lines[1].startswith(str(tmp_path / "v" / "episode_000.mp4"))
-    assert len(_frames(tmp_path / "v" / "episode_001.mp4")[1]) == 31
-    assert main([*argv[:-2], "--video-episodes", "0"]) == 2
-    assert "--video-episodes 0; film at least one" in capsys.readouterr().err
+    meta, frames = _frames(tmp_path / "v" / "episode_001.mp4")
+    assert len(frames) == 31 and frames[0].shape == (240 + 24, 320, 3)  # --video-size
+    err = captured.err.splitlines()
+    says = f"filming episodes 0-1 of the 3 it scores, as they are played, into {tmp_path / 'v'}"
+    assert says in err[0]
+    assert [line for line in err if line.startswith("evaluate: 100% 3/3 episodes")] == [err[-1]]
+    assert err[-1].endswith("steps=90")
+    assert sorted(p.name for p in (tmp_path / "v").iterdir()) == [
+        "episode_000.mp4",
+        "episode_001.mp4",
+        INDEX,
+    ]
+
+
+def _json_eval(run, capsys):
+    from rlu.cli import main
+
+    argv = ["evaluate", str(run), "--eval-episodes", "3", "--eval-envs", "2", "--eval-max-steps",
+            "30", "--json", "--quiet"]  # fmt: skip
+    assert main(argv) == 0
+    return capsys.readouterr().out
+
+
+def test_video_folders_are_checked_before_any_work(trained, tmp_path, capsys):
+    """'' , the run itself, a dataset, a symbolic link, something else's folder: refused at once,
+    nothing written; counts that cannot be filmed too."""
+    from rlu.cli import main
+    from rlu.generate.recipe import bundled_dataset
+
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (tmp_path / "link").symlink_to(elsewhere)
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("mine")
+    before = {p: p.stat().st_mtime_ns for p in trained.rglob("*")}
+    cases = [
+        ("", "--video is empty"),
+        (str(trained), "is or contains the input"),
+        (str(trained / "checkpoints"), "is or contains the input"),
+        (str(bundled_dataset()), "is or contains the input"),
+        (str(tmp_path / "link"), "is a symbolic link"),
+        (str(mine), "is not an rlu video folder (it has no videos.json)"),
+    ]
+    for video, says in cases:
+        code = main(["evaluate", str(trained), "--eval-episodes", "1", "--video", video])
+        err = capsys.readouterr().err
+        assert code == 2 and says in err, (video, err)
+    for extra, says in [
+        (["--video-episodes", "0"], "--video-episodes 0; film at least one"),
+        (["--video-episodes", "2"], "more than the 1 episodes the evaluation scores"),
+    ]:
+        code = main(["evaluate", str(trained), "--eval-episodes", "1", "--video",
+                     str(tmp_path / "new"), *extra])  # fmt: skip
+        assert code == 2 and says in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["evaluate", str(trained), "--video", str(tmp_path / "new"), "--video-size", "9x9"])
+    assert "write it as WIDTHxHEIGHT" in capsys.readouterr().err
+    assert list(elsewhere.iterdir()) == [] and not (tmp_path / "new").exists()
+    assert (mine / "notes.txt").read_text() == "mine"
+    assert {p: p.stat().st_mtime_ns for p in trained.rglob("*")} == before
+
+
+def test_a_link_planted_at_a_video_is_refused_and_its_target_kept(tmp_path):
+    pytest.importorskip("dm_control")
+    target = tmp_path / "precious.mp4"
+    target.write_bytes(b"not yours")
+    out = tmp_path / "v"
+    out.mkdir()
+    (out / "episode_000.mp4").symlink_to(target)
+    env_fn = task_env_factory(CARTPOLE, render_mode="rgb_array", render_size=(48, 64))
+    with pytest.raises(RluError, match="episode_000.mp4: is a symbolic link"):
+        record_video(_swing, env_fn, out, max_steps=3)
+    assert target.read_bytes() == b"not yours"
+    assert sorted(p.name for p in out.iterdir()) == ["episode_000.mp4"]  # no temporary left
+
+
+@pytest.mark.parametrize(
+    ("script", "says"),
+    [
+        ("exec sleep 600\n", "took no video frame for 0.5 s; it may be hung"),
+        ("exit 3\n", "stopped reading frames (exit code 3)"),
+    ],
+    ids=["never_reads", "dies"],
+)
+def test_an_ffmpeg_that_hangs_or_dies_is_a_clear_error(tmp_path, monkeypatch, script, says):
+    pytest.importorskip("dm_control")
+    import rlu.evaluation.video as video
+
+    fake = tmp_path / "ffmpeg"
+    fake.write_text("#!/bin/sh\n" + script)
+    fake.chmod(0o755)
+    monkeypatch.setenv("IMAGEIO_FFMPEG_EXE", str(fake))
+    monkeypatch.setattr(video, "ENCODER_TIMEOUT", 0.5)
+    env_fn = task_env_factory(CARTPOLE, render_mode="rgb_array")  # 640x480: over a pipe's buffer
+    with pytest.raises(RluError) as e:
+        record_video(_swing, env_fn, tmp_path / "v", max_steps=5)
+    assert says in str(e.value) and str(fake) in str(e.value)
+    assert list((tmp_path / "v").iterdir()) == []  # the temporary removed
+
+
+def test_the_video_extra_holds_what_gymnasiums_record_video_needs(tmp_path):
+    """moviepy is in the extra, and Gymnasium's RecordVideo writes a real MP4 with it."""
+    import tomllib
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    project = tomllib.loads((root / "pyproject.toml").read_text())["project"]
+    extras = project["optional-dependencies"]
+    assert any(r.startswith("moviepy") for r in extras["video"])
+    pytest.importorskip("moviepy")
+    pytest.importorskip("dm_control")
+    from gymnasium.wrappers import RecordVideo
+
+    import rlu
+
+    env = rlu.make_env(CARTPOLE, seed=0, render_mode="rgb_array", render_size=(96, 128))
+    folder = tmp_path / "record"
+    env = RecordVideo(env, str(folder), episode_trigger=lambda e: True, disable_logger=True)
+    env.reset(seed=0)
+    for _ in range(5):
+        env.step(env.action_space.sample())
+    env.close()
+    (mp4,) = folder.glob("*.mp4")
+    assert len(_frames(mp4)[1]) >= 5

@@ -40,3 +40,39 @@ def assert_same_segments(
             np.testing.assert_array_equal(s.frame_prefix, t.frame_prefix)
         for f in fields:
             np.testing.assert_array_equal(getattr(s, f), getattr(t, f), err_msg=f"segment {i} {f}")
+
+
+def _column(ds, name):
+    col = ds.column(name)
+    return col[:] if hasattr(col, "take") else np.asarray(col)
+
+
+def assert_same_dataset(a, b) -> dict[str, int]:
+    """Two stored datasets are the same: schema, counts and provenance in the manifest, every
+    step (and frame) column row by row with its dtype (every episode's last row included), the
+    segment index, every metadata column (missing values included), the episode returns, and
+    every attached file byte for byte. Returns what was compared."""
+    from rlu.data.episode import METADATA_FIELDS
+    from rlu.data.roundtrip import attachments
+
+    for key in ("schema", "counts", "provenance"):
+        assert a.manifest[key] == b.manifest[key], key
+    n = {"columns": 0, "rows": 0, "segments": len(a), "metadata": 0, "attachments": 0}
+    names = [*a.schema.step_columns(), *a.schema.frame_columns()]
+    for name in names:
+        x, y = _column(a, name), _column(b, name)
+        assert x.dtype == y.dtype, name
+        np.testing.assert_array_equal(x, y, err_msg=name)
+        n["columns"] += 1
+        n["rows"] += len(x)
+    for name in ("start", "length", "frame_start"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    for key in METADATA_FIELDS:
+        np.testing.assert_array_equal(a.metadata(key), b.metadata(key), err_msg=key)
+        n["metadata"] += 1
+    np.testing.assert_array_equal(a.episode_returns(), b.episode_returns())
+    assert attachments(a) == attachments(b)
+    for rel in attachments(a):
+        assert a.file(rel).read_bytes() == b.file(rel).read_bytes(), rel
+        n["attachments"] += 1
+    return n

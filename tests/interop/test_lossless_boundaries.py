@@ -6,7 +6,6 @@ Minari export comes back with its task."""
 
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -190,29 +189,33 @@ def test_export_d3rlpy_of_a_camera_task_writes_tuple_observations(tmp_path):
     assert_same_segments(src, back)
 
 
-def test_export_d3rlpy_leaves_out_single_steps_with_a_warning(tmp_path):
+def test_export_d3rlpy_keeps_single_steps_in_the_sidecar(tmp_path):
+    """A one-step episode holds no transition: d3rlpy's buffers keep none, so the dump leaves it
+    out (d3rlpy reads 2 episodes), and the sidecar brings it back to rlu's import (3)."""
     src = open_dataset(write_synthetic(tmp_path / "src", Schema.for_task(CARTPOLE), 2, 4, seed=1))
+    one = src.segment(1)
     with DatasetWriter(tmp_path / "mixed", src.schema) as w:
         w.append(src.segment(0))
-        one = src.segment(1)
         import dataclasses
 
         w.append(
             dataclasses.replace(
                 one,
-                observation={k: v[:1] for k, v in one.observation.items()},
+                observation={k: v[-1:] for k, v in one.observation.items()},
+                is_first=np.ones(1, bool),
                 **{
                     f: getattr(one, f)[-1:]
-                    for f in ("action", "reward", "discount", "is_first", "is_last", "is_terminal")
+                    for f in ("action", "reward", "discount", "is_last", "is_terminal")
                 },
             )  # fmt: skip
         )
         w.append(src.segment(1))
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        out = export_d3rlpy(open_dataset(tmp_path / "mixed"), tmp_path / "m.h5")
-    assert any("single-step" in str(c.message) for c in caught)
+    mixed = open_dataset(tmp_path / "mixed")
+    out = export_d3rlpy(mixed, tmp_path / "m.h5")
     assert len(d3rlpy_load(out)) == 2
+    back = open_dataset(import_d3rlpy(out, tmp_path / "back"))
+    assert back.length.tolist() == [len(one), 1, len(one)]
+    assert_same_segments(mixed, back)
 
 
 def test_cli_export_d3rlpy(tmp_path, capsys):

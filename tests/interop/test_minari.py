@@ -346,7 +346,10 @@ def test_export_in_chunks_keeps_order_and_metadata(tmp_path):
     assert_same_segments(src, back)
 
 
-def test_single_step_segments_are_left_out_with_a_warning(tmp_path):
+def test_single_step_segments_go_to_the_sidecar(tmp_path):
+    """Minari cannot store an episode without a step: Minari reads the 2 longer ones, and the
+    sidecar gives rlu's import all 4 back, in order."""
+
     def ep(n, seed):
         rng = np.random.default_rng(seed)
         obs = {
@@ -364,17 +367,13 @@ def test_single_step_segments_are_left_out_with_a_warning(tmp_path):
         for n, seed in [(3, 0), (0, 1), (2, 2), (0, 3)]:
             w.append(ep(n, seed))
     src = open_dataset(tmp_path / "src")
-    with pytest.warns(UserWarning, match=r"2 single-step segment\(s\).*\[1, 3\]"):
-        path = export_minari(src, "rlu/short-v0", root=tmp_path / "m")
+    path = export_minari(src, "rlu/short-v0", root=tmp_path / "m")
     mds = minari.MinariDataset(path / "data")
     assert mds.total_episodes == 2
-    assert mds.storage.metadata["rlu_skipped_single_step_segments"] == [1, 3]
+    assert (path / "rlu_sidecar.npz").is_file()
     back = open_dataset(import_minari(path, tmp_path / "back", CARTPOLE.task_id))
-    for i, j in [(0, 0), (1, 2)]:
-        np.testing.assert_array_equal(back.segment(i).reward, src.segment(j).reward)
-        np.testing.assert_array_equal(
-            back.segment(i).observation["velocity"], src.segment(j).observation["velocity"]
-        )
+    assert back.length.tolist() == [4, 1, 3, 1]
+    assert_same_segments(src, back)
 
 
 @settings(

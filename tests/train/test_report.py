@@ -18,7 +18,8 @@ def test_report_tables_match_the_run_files(local_sweep, tmp_path):
     sweep_dir, _ = local_sweep
     paths = write_report(sweep_dir, tmp_path / "report")
     names = sorted(p.name for p in paths)
-    assert names == ["other_tasks.png", "report.html", "report.json", "report.md"]
+    assert names == ["other_curves.png", "other_improvement.png", "other_profiles.png",
+                     "other_tasks.png", "report.html", "report.json", "report.md"]  # fmt: skip
     rep = json.loads((tmp_path / "report" / "report.json").read_text())
     md = (tmp_path / "report" / "report.md").read_text()
 
@@ -39,7 +40,7 @@ def test_report_tables_match_the_run_files(local_sweep, tmp_path):
             chosen = max(means, key=means.get)
             assert len(by_cfg[chosen]) == 2  # two seeds
             assert cell["mean"] == pytest.approx(np.mean(by_cfg[chosen]), rel=1e-12)
-            assert cell["std"] == pytest.approx(np.std(by_cfg[chosen]), rel=1e-12)
+            assert cell["std"] == pytest.approx(np.std(by_cfg[chosen], ddof=1), rel=1e-12)
             text = f"{cell['mean']:.1f} ± {cell['std']:.1f}"
             bold = cell["mean"] + cell["std"] >= best["mean"] - best["std"]
             assert cell["bold"] == bold
@@ -58,10 +59,20 @@ def test_report_tables_match_the_run_files(local_sweep, tmp_path):
         assert e["mean"] == pytest.approx(np.mean(cells))
         lo, hi = e["interval_25_75"]
         assert lo <= e["mean"] <= hi or np.isclose(lo, hi)
+    # the learning curves are each run's eval.jsonl, the mean over seeds at the shared steps
+    for t in dom["curves"]["tasks"]:
+        for agent, c in t["agents"].items():
+            runs = sorted(Path(sweep_dir).glob(f"{t['task'].replace('/', '__')}/{agent}/"
+                                               f"{c['config']}/seed_*"))  # fmt: skip
+            logs = [[json.loads(x) for x in (r / "eval.jsonl").read_text().splitlines()]
+                    for r in runs]  # fmt: skip
+            assert [s["means"] for s in c["seeds"]] == [[e["mean"] for e in log] for log in logs]
+            assert c["mean"] == pytest.approx(np.mean([[e["mean"] for e in log] for log in logs],
+                                                      axis=0))  # fmt: skip
     html = (tmp_path / "report" / "report.html").read_text()
-    # what produced the numbers, the online table, the aggregates and the per-task figure's p90
-    # lines as a table
-    assert html.count("<table>") == 4 and "<b>" in html and "other_tasks.png" in html
+    # what produced the numbers, the paper's conditions (none here: test tasks), the online
+    # table, the aggregates, the p90 lines, the curves, the profiles, the improvement
+    assert html.count("<table>") == 7 and "<b>" in html and "other_tasks.png" in html
     for task, p90 in dom["dataset_p90"].items():
         assert f"| {task} | online | {p90:.1f} |" in md
     # a cell far below the best is not bold; one overlapping it is
@@ -120,7 +131,8 @@ def test_paper_number_stays_where_rlu_has_no_cell():
     line = next(x for x in md.splitlines() if x.startswith("| control_suite/cartpole_swingup"))
     cols = [c.strip() for c in line.strip("|").split("|")]
     # task, bc, bc (paper), d4pg (empty: not run), d4pg (paper)
-    assert cols[1:] == ["**300.0**", "386.0 ± 6.0", "", "856.0 ± 13.0"], cols
+    label = "(1 seed) (not comparable: preset, budget, data, episodes, seeds)"
+    assert cols[1:] == [f"**300.0 {label}**", "386.0 ± 6.0", "", "856.0 ± 13.0"], cols
 
 
 def test_iqm_says_how_many_seeds_and_claims_no_interval_from_one():

@@ -168,3 +168,65 @@ def test_a_sweep_made_with_relative_paths_reports_from_anywhere(pendulum_dataset
                          cwd=root, env=env, capture_output=True, text=True)  # fmt: skip
     assert res.returncode == 0, res.stderr
     assert load_results(tmp_path / "moved")[0]["run"].startswith(str(tmp_path / "moved"))
+
+
+def test_cli_sweep_takes_config_and_log_to_like_train(pendulum_datasets, tmp_path, capsys):
+    """``rlu sweep --config`` reads a sweep config (YAML here), a sweep folder's sweep.json, or
+    a run config (``rlu train --config``'s: a sweep of its one run); options typed beside it
+    win. ``--log-to csv`` writes each run's metrics.csv and eval.csv, and a sweep is continued
+    with other loggers (they change nothing the runs compute)."""
+    pytest.importorskip("yaml")
+    from rlu.cli import main
+
+    data = pendulum_datasets["test/pendulum"]
+    cfg = tmp_path / "sweep.yaml"
+    cfg.write_text(
+        "tasks: [test/pendulum]\n"
+        "agents: [tests.train.fake_agent]\n"
+        f"datasets: {{test/pendulum: {data}}}\n"
+        "seeds: [0, 1]\n"
+        "grid: {learning_rate: [0.01]}\n"
+        "run: {steps: 4, eval_episodes: 1, eval_max_steps: 5, log_every: 2}\n"
+    )
+    common = ["--env", "tests.train.pendulum:make_env", "--workers", "1"]
+    out = tmp_path / "s"
+    # the agent module is named in the file: typed too, as rlu train asks
+    argv = ["sweep", "--config", str(cfg), "--out", str(out), "--seeds", "3", *common]
+    assert main(argv) == 2
+    assert "never imported; if you trust it, type it: --agents" in capsys.readouterr().err
+    assert not out.exists()
+    assert main([*argv, "--agents", "tests.train.fake_agent", "--log-to", "csv"]) == 0
+    records = load_results(out)
+    assert [(r["seed"], r["config"], r["steps"]) for r in records] == [
+        (3, "learning_rate=0.01", 4)  # --seeds typed: 3, not the file's 0 and 1
+    ]
+    run = Path(records[0]["run"])
+    assert (run / "metrics.csv").is_file() and (run / "eval.csv").is_file()
+    saved = json.loads((out / "sweep.json").read_text())
+    assert saved["loggers"] == ["csv"] and saved["run"]["steps"] == 4
+    # the sweep folder's own sweep.json as --config continues it, here with no logger
+    again = ["sweep", "--config", str(out / "sweep.json"), "--out", str(out),
+             "--agents", "tests.train.fake_agent", *common]  # fmt: skip
+    assert main(again) == 0 and load_results(out) == records
+    # a run's config.json: a sweep of that one run, its overrides a grid of one value each
+    one = tmp_path / "one"
+    argv = ["sweep", "--config", str(run / "config.json"), "--out", str(one),
+            "--agents", "tests.train.fake_agent", *common]  # fmt: skip
+    assert main(argv) == 0
+    (rec,) = load_results(one)
+    assert (rec["task"], rec["seed"], rec["overrides"]) == ("test/pendulum", 3, {
+        "learning_rate": 0.01})  # fmt: skip
+    assert rec["score"] == records[0]["score"]  # the same run, trained again: the same number
+
+
+def test_cli_sweep_says_what_is_missing(tmp_path, capsys):
+    from rlu.cli import main
+
+    assert main(["sweep", "--out", str(tmp_path / "s")]) == 2
+    assert "--tasks is missing: give it on the command line or in --config" in (
+        capsys.readouterr().err
+    )
+    # no --dataset: each task's own dataset, as rlu.load_dataset names it (none for "t")
+    assert main(["sweep", "--tasks", "t", "--agents", "bc", "--out", str(tmp_path / "s")]) == 2
+    assert "t" in capsys.readouterr().err
+    assert not (tmp_path / "s").exists()

@@ -9,6 +9,11 @@ machine, never the network. The shipped dataset where one ships and the name pic
 dataset; else the converted release dataset in the cache; else its shards, downloaded into the
 cache earlier (``rlu download``), converted now; else an error naming the ``rlu download``
 command that fetches them.
+
+The cache is read as untrusted: an entry is opened only when every folder from the cache's
+``datasets/`` down to it is a real folder (a symbolic link there, which could lead out of the
+cache, is refused) and its manifest names the task asked for (a dataset of another task moved
+or copied there is refused, naming both).
 """
 
 from __future__ import annotations
@@ -25,6 +30,15 @@ from rlu.data.release.download import cache_root, download, read_manifest, relea
 from rlu.data.store import Dataset, open_dataset
 from rlu.files import open_private
 from rlu.types import RluError
+
+__all__ = [
+    "dataset_folder",
+    "download_command",
+    "load_release_dataset",
+    "load_task_dataset",
+    "open_cached",
+    "release_dataset_path",
+]
 
 # Keywords of load_release_dataset that pick a release dataset (so not the shipped one).
 _PICKS = ("family", "run", "challenge", "size", "shards")
@@ -71,19 +85,60 @@ def load_release_dataset(
     """
     sel = catalog.select(task_id, family, run, challenge, size, shards)
     dest = release_dataset_path(sel, cache_dir, all_shards=shards is None)
-    if os.path.isfile(os.path.join(dest, "manifest.json")):
-        return open_dataset(dest)
+    if _cached(dest, cache_dir):
+        return open_cached(dest, sel.task.id, cache_dir)
     os.makedirs(os.path.dirname(dest), exist_ok=True)
+    _check_inside_cache(os.path.dirname(dest), cache_dir)
     # never through a planted link (open_private refuses one)
     fd = open_private(dest + ".lock", os.O_RDWR | os.O_CREAT, "dataset lock")
     try:
         fcntl.flock(fd, fcntl.LOCK_EX)  # two processes loading one dataset: one converts
-        if os.path.isfile(os.path.join(dest, "manifest.json")):
-            return open_dataset(dest)
+        if _cached(dest, cache_dir):
+            return open_cached(dest, sel.task.id, cache_dir)
         _fetch_and_convert(sel, dest, cache_dir, base_url, workers, progress)
     finally:
         os.close(fd)
-    return open_dataset(dest)
+    return open_cached(dest, sel.task.id, cache_dir)
+
+
+def _datasets_root(cache_dir: str | os.PathLike | None) -> str:
+    return os.path.join(cache_root(cache_dir), "datasets")
+
+
+def _check_inside_cache(path: str, cache_dir: str | os.PathLike | None) -> None:
+    """Refuse ``path`` when a folder from the cache's ``datasets/`` (itself included) down to it
+    is a symbolic link: what lies behind it is outside the cache."""
+    root = os.path.abspath(_datasets_root(cache_dir))
+    here = os.path.abspath(path)
+    while True:
+        if os.path.islink(here):
+            raise RluError(
+                f"{here}: a symbolic link in rlu's dataset cache {root}, which rlu does not "
+                f"follow out of the cache; remove the link (rm {here}) and load the dataset "
+                "again, or open the folder it points to by its own path"
+            )
+        if here == root or os.path.dirname(here) == here:
+            return
+        here = os.path.dirname(here)
+
+
+def _cached(dest: str, cache_dir: str | os.PathLike | None) -> bool:
+    """Whether the cache holds an entry at ``dest`` (a link there counts: it is refused)."""
+    return os.path.lexists(os.path.join(dest, "manifest.json")) or os.path.islink(dest)
+
+
+def open_cached(dest: str, task_id: str, cache_dir: str | os.PathLike | None, **kw: Any) -> Dataset:
+    """The dataset of cache entry ``dest``, checked to lie inside the cache (no symbolic link
+    from the cache's ``datasets/`` down to its manifest) and to be a dataset of ``task_id``."""
+    _check_inside_cache(os.path.join(dest, "manifest.json"), cache_dir)
+    ds = open_dataset(dest, **kw)
+    if ds.schema.task_id != task_id:
+        raise RluError(
+            f"{dest}: rlu's cache entry for {task_id} holds a dataset of {ds.schema.task_id!r} "
+            f"(its manifest.json says so), not of {task_id}; remove it (rm -r {dest}) and load "
+            "the dataset again"
+        )
+    return ds
 
 
 def _fetch_and_convert(sel, dest, cache_dir, base_url, workers, progress) -> None:
@@ -105,37 +160,41 @@ def _fetch_and_convert(sel, dest, cache_dir, base_url, workers, progress) -> Non
     )
 
 
-def load_task_dataset(name: str, **kwargs: Any) -> Dataset:
-    """``rlu.load_dataset(name)`` for a task id or TFDS name: see the module docstring.
-
-    ``kwargs`` are ``load_release_dataset``'s; ``verify=True`` checks every sha256 of a dataset
-    opened as it is.
-    """
+def load_task_dataset(
+    name: str,
+    family: str | None = None,
+    run: str | int | None = None,
+    challenge: str | None = None,
+    size: str | None = None,
+    cache_dir: str | os.PathLike | None = None,
+    shards: str | Sequence[int] | None = None,
+    workers: int | None = None,
+    progress: bool | None = None,
+    verify: bool = False,
+) -> Dataset:
+    """``rlu.load_dataset(name)`` for a task id or TFDS name: see the module docstring. The
+    keywords are ``load_release_dataset``'s (no ``base_url``: this never downloads);
+    ``verify=True`` checks every sha256 of a dataset opened as it is."""
     from rlu.data.bundled import bundled_dataset_path, bundled_tasks
     from rlu.tasks import resolve_task
 
-    verify = bool(kwargs.pop("verify", False))
     ref = resolve_task(name)
     task = ref.task
-    picked = ref.family is not None or any(kwargs.get(k) is not None for k in _PICKS)
+    given = {"family": family, "run": run, "challenge": challenge, "size": size, "shards": shards}
+    picked = ref.family is not None or any(given[k] is not None for k in _PICKS)
     shipped = bundled_dataset_path(task.id)
     if shipped is not None and not picked:
         return open_dataset(shipped, verify=verify)
-    family, run, challenge, size = ref.dataset_settings(
-        kwargs.pop("family", None),
-        kwargs.pop("run", None),
-        kwargs.pop("challenge", None),
-        kwargs.pop("size", None),
-    )
-    shards = kwargs.get("shards")
+    family, run, challenge, size = ref.dataset_settings(family, run, challenge, size)
     sel = catalog.select(task.id, family, run, challenge, size, shards)
-    cache_dir = kwargs.get("cache_dir")
     dest = release_dataset_path(sel, cache_dir, all_shards=shards is None)
-    if os.path.isfile(os.path.join(dest, "manifest.json")):
-        return open_dataset(dest, verify=verify)
+    if _cached(dest, cache_dir):
+        return open_cached(dest, task.id, cache_dir, verify=verify)
     if _downloaded(sel, cache_dir):
-        kw = {k: v for k, v in kwargs.items() if k != "base_url"}
-        return load_release_dataset(task.id, sel.family, run, challenge, size, **kw)
+        ds = load_release_dataset(
+            task.id, sel.family, run, challenge, size, cache_dir, None, shards, workers, progress
+        )
+        return open_dataset(ds.path, verify=True) if verify else ds
     if shipped is not None:
         ships = f"the {task.id} dataset rlu ships is rlu-generated, not this release dataset"
     else:

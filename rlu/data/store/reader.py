@@ -292,11 +292,14 @@ class Dataset:
         return col
 
     def metadata(self, key: str) -> np.ndarray:
+        """One per-segment metadata field (``METADATA_FIELDS``: episode return, run, checkpoint,
+        ...) as an array, one value per segment (missing values are the field's sentinel)."""
         if key not in METADATA_FIELDS:
             raise RluError(f"no metadata field {key!r}; fields: {', '.join(METADATA_FIELDS)}")
         return self._segment_column(f"meta_{key}", METADATA_FIELDS[key])
 
     def observation_keys(self) -> list[str]:
+        """The observation column names (``observation`` or ``observation/<key>``)."""
         return list(self.schema.observation_columns())
 
     # -- segments ------------------------------------------------------------------------------
@@ -341,6 +344,7 @@ class Dataset:
         )
 
     def segments(self) -> Iterator[Segment]:
+        """Every segment in order, as in-memory arrays (:meth:`segment`)."""
         for i in range(self.num_segments):
             yield self.segment(i)
 
@@ -353,6 +357,8 @@ class Dataset:
         return sums[first & last]
 
     def info(self) -> dict[str, Any]:
+        """A summary: path, schema, counts, episode-return statistics (episodes, mean, std, min,
+        p90, max) and provenance; what ``rlu info`` prints."""
         returns = self.episode_returns()
         stats = {}
         if returns.size:
@@ -371,6 +377,43 @@ class Dataset:
             "returns": stats,
             "provenance": self.manifest["provenance"],
         }
+
+    # -- Minari's episode API (rlu.data.episodes) ------------------------------------------------
+    def set_seed(self, seed: int | None) -> None:
+        """Seed the generator of :meth:`sample_episodes` (``MinariDataset.set_seed``)."""
+        from rlu.data.episodes import set_seed
+
+        set_seed(self, seed)
+
+    def sample_episodes(self, n_episodes: int) -> list[Any]:
+        """``n_episodes`` distinct episodes at random, as Minari's ``EpisodeData``."""
+        from rlu.data.episodes import sample_episodes
+
+        return sample_episodes(self, n_episodes)
+
+    def iterate_episodes(self, episode_indices: Any = None) -> Iterator[Any]:
+        """The episodes (all, or those at ``episode_indices``) as Minari's ``EpisodeData``."""
+        from rlu.data.episodes import iterate_episodes
+
+        return iterate_episodes(self, episode_indices)
+
+    def filter_episodes(self, condition: Any) -> Dataset:
+        """The dataset of the episodes for which ``condition(episode)`` holds (Minari's)."""
+        from rlu.data.episodes import filter_episodes
+
+        return filter_episodes(self, condition)
+
+    def split(self, sizes: Any, seed: int | None = None) -> list[Dataset]:
+        """Disjoint random parts: episode counts or fractions (``minari.split_dataset``)."""
+        from rlu.data.episodes import split
+
+        return split(self, sizes, seed)
+
+    def recover_environment(self, eval_env: bool = False, **kwargs: Any) -> Any:
+        """The Gymnasium env the data come from (``MinariDataset.recover_environment``)."""
+        from rlu.data.episodes import recover_environment
+
+        return recover_environment(self, eval_env, **kwargs)
 
 
 def _compress_bound(n: int) -> int:
@@ -445,7 +488,8 @@ class ZlibColumn:
         return self._fd
 
     def take(self, rows: np.ndarray) -> np.ndarray:
-        """Frames at ``rows`` (any shape of row numbers), shape ``rows.shape + frame shape``."""
+        """The decoded frames of ``rows`` (any shape of row indices), as one array of ``rows.shape +
+        frame shape``."""
         rows = np.asarray(rows, np.int64)
         out = np.empty((*rows.shape, *self.spec.shape), self.dtype)
         flat = rows.ravel()
@@ -552,6 +596,7 @@ def open_dataset(path: str | os.PathLike, verify: bool = False) -> Dataset:
 
 
 def file_sha256(path: Path, chunk: int = 1 << 22) -> str:
+    """The sha256 of a file's bytes (hex), read in ``chunk``-byte blocks."""
     h = hashlib.sha256()
     with open(path, "rb") as fh:
         while block := fh.read(chunk):

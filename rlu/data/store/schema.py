@@ -10,6 +10,8 @@ Layout of a dataset directory::
     segments/<field>.bin          per-segment index (start, length, frame_start) and metadata
     policies/...                  attachments (optional): files that are not columns, e.g. the
                                   behaviour policies ``rlu generate`` keeps (rlu.generate.policies)
+    source/...                    attachments: what an import kept of a D4RL, d3rlpy or Minari
+                                  file that the columns do not hold (rlu.data.roundtrip)
 
 Step columns: ``action``, ``reward``, ``discount``, ``is_first``, ``is_last``, ``is_terminal``
 and one per observation key. With ``frame_stack > 1`` (Atari) the single observation column holds
@@ -46,12 +48,18 @@ from rlu.types import (
 )
 
 FORMAT = "rlu-episodes"
+"""The ``format`` field of every rlu manifest."""
 FORMAT_VERSION = 1
+"""The store format's version; a manifest of another version is refused."""
 MANIFEST = "manifest.json"
+"""The manifest's file name in a dataset folder."""
 FLAG_COLUMNS = ("is_first", "is_last", "is_terminal")
+"""The boolean step columns: episode starts, ends, and terminal ends (discount 0)."""
 ENCODINGS = ("raw", "zlib")
+"""How a column's bytes are stored: ``raw`` (a flat memory-mapped file) or ``zlib`` (one deflated
+stream per image frame)."""
 SEGMENT_INDEX = ("start", "length", "frame_start")
-ATTACHMENT_DIRS = ("policies",)
+ATTACHMENT_DIRS = ("policies", "source")
 """Top-level folders that may hold attachments: files listed in the manifest (sha256 and size,
 checked like the columns) besides the schema's own files."""
 
@@ -135,11 +143,15 @@ class Schema:
         return Schema(obs, task.action_spec, frame_stack, image_encoding, task.id)
 
     def observation_columns(self) -> dict[str, ArraySpec]:
+        """The observation columns by file name (``observation`` or ``observation/<key>``) and
+        spec."""
         if isinstance(self.observation, ArraySpec):
             return {"observation": self.observation}
         return {f"observation/{k}": v for k, v in self.observation.items()}
 
     def step_columns(self) -> dict[str, ArraySpec]:
+        """Every per-step column and its spec: observations (unless frame-stacked Atari, whose
+        frames are their own columns), action, reward, discount and the flags."""
         cols = {} if self.frame_stack > 1 else dict(self.observation_columns())
         cols["action"] = ArraySpec(self.action.shape, self.action.dtype)
         cols["reward"] = ArraySpec((), "float32")
@@ -149,9 +161,13 @@ class Schema:
         return cols
 
     def frame_columns(self) -> dict[str, ArraySpec]:
+        """The frame columns of frame-stacked (Atari) data, one frame per step plus each segment's
+        prefix; empty otherwise."""
         return dict(self.observation_columns()) if self.frame_stack > 1 else {}
 
     def encoding(self, spec: ArraySpec) -> str:
+        """How a column of ``spec`` is stored: ``zlib`` for uint8 images under a zlib schema, else
+        ``raw``."""
         if self.image_encoding == "zlib" and spec.dtype == "uint8" and len(spec.shape) >= 2:
             return "zlib"
         return "raw"
@@ -169,6 +185,7 @@ class Schema:
         return sorted(out)
 
     def to_json(self) -> dict[str, Any]:
+        """The schema as the manifest's ``schema`` object (``Schema.from_json`` reads it back)."""
         return {
             "observation": observation_spec_to_json(self.observation),
             "action": self.action.to_json(),

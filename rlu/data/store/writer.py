@@ -85,6 +85,8 @@ class Deflated:
 
     @staticmethod
     def of(values: np.ndarray, dtype: str, threaded: bool = True) -> Deflated:
+        """``values`` (uint8 frames) deflated one frame per zlib stream, in threads unless
+        ``threaded=False``."""
         values = np.ascontiguousarray(values, dtype=dtype)
         blobs = _compress_frames(values, threaded)
         lengths = np.fromiter(map(len, blobs), np.int64, len(blobs))
@@ -447,6 +449,8 @@ class DatasetWriter:
         self._attached.update(out.close())
 
     def close(self) -> Path:
+        """Write the manifest and move the dataset into place (atomically); returns its folder.
+        Calling it again does nothing; a failure removes the partial folder."""
         if self._closed:
             return self.dest
         self._closed = True

@@ -1,27 +1,32 @@
-"""The numbers of ``rlu report``: a sweep's result records in, one JSON-serialisable dict out.
+"""The numbers of ``rlu report``: the runs' result records in, one JSON-serialisable dict out.
 
 Pure: no files written, nothing drawn (``rlu.evaluation.report.render`` turns this dict into
 Markdown, HTML and PNG). Per domain, the report holds the domain's ``agents`` and ``tasks``, the
 ``provenance`` of its runs and one entry per *panel*.
 
 ``provenance`` lists every distinct (preset, learner steps, pre-training steps, evaluation
-episodes, data source) of the domain's runs (``run_provenance``); every cell, aggregate and bar
-names the entries of the runs behind it (indices into that list) and says whether it is
-*comparable* with the paper's numbers: only a cell whose every run trained the ``paper`` preset
-for at least that preset's learner budget on the release's own data is (``not_comparable`` gives
-the reasons of the others). The paper preset's budget comes from the caller (``paper_steps``,
-``(agent, discrete) -> steps``: this package may not import the agents); without it no cell is
-comparable. The paper's numbers stay beside every cell, and the renderer heads them as not
-comparable wherever the cell is not.
+episodes, data) of the domain's runs (``run_provenance``); every cell, aggregate and bar names
+the entries of the runs behind it (indices into that list) and carries ``conditions``: for
+each condition of the paper's numbers (``rlu.evaluation.report.conditions``: preset, budget,
+data, evaluation episodes, seeds, selection) None where it holds, else why not; ``missing``
+names the ones that do not hold and ``comparable`` is true only when none is missing. What the
+report checks of each agent's paper preset comes from the caller (``paper``, ``(agent,
+discrete) -> PaperPreset``: this package may not import the agents); without it no cell is
+comparable. The paper's numbers stay beside every cell, and the renderer heads them as a
+comparison only where the cells are comparable.
+
+Spreads are one kind everywhere: the sample standard deviation over seeds (ddof 1, ``std``),
+None for a cell of one seed (it has no spread, and is shown as one seed); intervals are named
+where they stand (bootstrapped percentile intervals, stratified bootstrap confidence intervals).
 
 Each split follows its own protocol (the paper's §2.2 and §4), never mixed:
 
-- ``online``: the online-selection tasks, task x agent, mean ± std over seeds of the final
-  evaluation score of the configuration chosen by online policy selection (best per task),
-  ``bold`` on the best mean of a row and on every mean ± std that overlaps it (the paper's
-  convention), and per row the paper's number of every agent it has one for, whether rlu has that
-  cell or not (``paper``; ``rlu/resources/paper_results.json``, a copy of the appendix tables of
-  Gulcehre et al. 2020);
+- ``online``: the online-selection tasks, task x agent, mean ± sample std over seeds of the
+  final evaluation score of the configuration chosen by online policy selection (best per
+  task), ``bold`` on the best mean of a row and on every mean ± std that overlaps it (the
+  paper's convention), and per row the paper's number of every agent it has one for, whether
+  rlu has that cell or not (``paper``; ``rlu/resources/paper_results.json``, a copy of the
+  appendix tables of Gulcehre et al. 2020);
 - ``offline_naive``: the offline-selection tasks under the paper's naive offline policy selection
   (per agent the configuration with the best mean, median for Atari, over the domain's online
   tasks, applied unchanged to the offline ones; an agent that ran one configuration needs no
@@ -41,7 +46,16 @@ Each split follows its own protocol (the paper's §2.2 and §4), never mixed:
   agent, the normalised score improvement over the best behaviour snapshot (normalised - 100);
 - ``iqn_tau`` and ``bcq_threshold`` (the paper's appendix ablations): per value of IQN's
   ``num_tau_samples`` and discrete BCQ's ``threshold``, the median normalised score over the
-  tuning games, each game's other hyper-parameters chosen online.
+  tuning games, each game's other hyper-parameters chosen online;
+- ``curves`` (``rlu.evaluation.report.curves``): per task and agent, evaluation return against
+  learner steps of the configuration the task's protocol chose, every seed's curve and their
+  mean ± sample std at the steps every seed evaluated (from each run's eval.jsonl, given as
+  each record's ``curve``);
+- ``profiles`` and ``improvement`` (``rlu.evaluation.report.profiles``: rliable's numbers,
+  computed vectorised): per split under its protocol, each agent's performance profile (the
+  fraction of its runs scoring above tau) and the probability of improvement of one agent over
+  another, both over the tasks every agent of the split has, with 95 % stratified bootstrap
+  confidence intervals over seeds.
 
 Beside the Atari panels stand the paper's per-game table normalised with the same reference
 scores (the paper prints those figures without numbers; its table is the nearest number).
@@ -58,6 +72,7 @@ registry is reported under the domain ``other`` as an online-selection task.
 
 from __future__ import annotations
 
+import itertools
 import json
 from collections import defaultdict
 from collections.abc import Callable, Mapping, Sequence
@@ -69,6 +84,8 @@ import numpy as np
 
 from rlu.evaluation.protocols import Selection, offline_selection_naive, online_selection
 from rlu.evaluation.reference import denominator_flags, random_spread
+from rlu.evaluation.report import conditions as cond
+from rlu.evaluation.report.conditions import PaperPreset
 from rlu.evaluation.scores import (
     domain_statistic,
     load_reference_scores,
@@ -115,6 +132,8 @@ def task_info(task_id: str) -> tuple[str, str, str]:
 
 
 def load_paper_results() -> dict[str, Any]:
+    """The paper's numbers shipped with rlu (``rlu/resources/paper_results.json``): per task and
+    agent the mean, std and whether the paper bolds it."""
     return json.loads(resources.files("rlu.resources").joinpath("paper_results.json").read_text())
 
 
@@ -169,8 +188,9 @@ DATA_SOURCES = ("release", "generated", "imported", "synthetic", "unknown")
 """A run record's ``data.source``: the release's own files, data ``rlu generate`` made, data
 imported from another format, synthetic test data, or a record from before runs recorded it."""
 
-PaperSteps = Callable[[str, bool], "int | None"]
-"""``(agent, discrete) -> learner steps of the agent's paper preset`` (None: unknown)."""
+PaperPresets = Callable[[str, bool], "PaperPreset | None"]
+"""``(agent, discrete) -> what the report checks of the agent's paper preset`` (None: unknown;
+``rlu.restore.paper_preset``)."""
 
 
 def run_provenance(record: Mapping[str, Any]) -> dict[str, Any]:
@@ -199,24 +219,10 @@ def run_provenance(record: Mapping[str, Any]) -> dict[str, Any]:
     }
 
 
-def not_comparable(provenance: Mapping[str, Any], budget: int | None) -> list[str]:
-    """Why a run of this provenance is not comparable with the paper's numbers (empty: it is):
-    the paper's numbers come from the paper's settings (rlu's ``paper`` preset), its full learner
-    budget (``budget``, the preset's ``num_steps``) and the release's data."""
-    why = []
-    if provenance["preset"] != "paper":
-        why.append(f"preset {provenance['preset'] or 'not recorded'}, not paper")
-    steps = provenance["steps"]
-    if budget is None:
-        why.append("the paper preset's learner budget was not given to the report")
-    elif steps is None:
-        why.append("learner steps not recorded")
-    elif steps < budget:
-        why.append(f"{steps:,} of the paper preset's {budget:,} learner steps")
-    source = provenance["data"]["source"]
-    if source != "release":
-        why.append(f"{source} data, not the release's")
-    return why
+def sample_std(scores: Sequence[float]) -> float | None:
+    """The sample standard deviation (ddof 1) of scores over seeds; None for one score (no
+    spread to show: a cell of one seed is shown as one seed)."""
+    return float(np.std(scores, ddof=1)) if len(scores) > 1 else None
 
 
 # --- the numbers ----------------------------------------------------------------------------
@@ -245,7 +251,8 @@ class DomainContext:
     offline_tasks: tuple[str, ...]
     normalised: bool
     paper: Mapping[str, Any]
-    datasets: Mapping[str, str]
+    datasets: Mapping[str, str | Sequence[str]]
+    """Per task, the dataset (or datasets) its runs trained on."""
     fqe: Mapping[str, Any] | None
     reps: int
     normalise: Normaliser | None = None
@@ -255,20 +262,87 @@ class DomainContext:
     """Every distinct ``run_provenance`` of the domain's runs."""
     run_provenance: Mapping[tuple[str, str, str, int], int] = field(default_factory=dict)
     """(task, agent, config, seed) -> index of the run's entry in ``provenance``."""
-    budgets: Mapping[str, int | None] = field(default_factory=dict)
-    """Per agent, the learner steps of its paper preset (None: unknown)."""
+    presets: Mapping[str, PaperPreset | None] = field(default_factory=dict)
+    """Per agent, what the report checks of its paper preset (None: unknown)."""
+    run_conditions: Mapping[tuple[str, str, str, int], Mapping[str, str | None]] = field(
+        default_factory=dict
+    )
+    """(task, agent, config, seed) -> the run conditions it meets (None) or misses (why)."""
 
     def sources(self, s: Selection) -> list[int]:
         """The ``provenance`` entries of a selection's runs."""
         return sorted({self.run_provenance[(s.task, s.agent, s.config, x)] for x in s.seeds})
 
-    def why_not(self, s: Selection) -> list[str]:
-        """Why a selection's number is not comparable with the paper's (empty: it is)."""
-        why: list[str] = []
-        for i in self.sources(s):
-            why += [w for w in not_comparable(self.provenance[i], self.budgets.get(s.agent))
-                    if w not in why]  # fmt: skip
-        return why
+    def conditions(self, s: Selection, protocol: str) -> dict[str, str | None]:
+        """Every condition of the paper's number for a cell (``conditions.CONDITIONS``), None
+        where it holds: its runs', its seeds and its selection's (``protocol``: ``online``,
+        ``naive``, or ``only`` for an agent that ran one configuration)."""
+        runs = [self.run_conditions[(s.task, s.agent, s.config, x)] for x in s.seeds]
+        out = cond.merge(runs)
+        out["seeds"] = cond.at_least(len(s.seeds), "seeds", self.domain)
+        out["selection"] = self.selection_condition(s, protocol)
+        return out
+
+    def selection_condition(self, s: Selection, protocol: str) -> str | None:
+        """Whether the protocol that chose a cell's configuration had comparable inputs (the
+        runs it chose among, besides the cell's own, which the run conditions judge): online
+        selection, comparable runs of every configuration of the paper's grid on the task;
+        naive offline selection, the same on every online-selection task of the domain; an
+        agent that ran one configuration, the paper's grid of one configuration."""
+        preset = self.presets.get(s.agent)
+        if protocol == "online":
+            tasks: Sequence[str] = (s.task,)
+        elif protocol == "naive":
+            tasks = self.online_tasks
+        else:
+            tasks = (s.task,)
+        recs = [r for r in self.records if r["agent"] == s.agent and r["task"] in tasks]
+        why = []
+        if protocol == "naive":
+            every = _registry(self.domain, "online") or list(self.online_tasks)
+            if len(self.online_tasks) < len(every):
+                why.append(
+                    f"chosen on {len(self.online_tasks)} of the domain's {len(every)} "
+                    "online-selection tasks"
+                )
+        # the cell's own runs are judged by the run conditions; the selection by the others
+        others = [r for r in recs if (r["task"], r["config"]) != (s.task, s.config)]
+        bad = _not_comparable_inputs(self, others)
+        if bad:
+            why.append(f"chosen among runs that are not comparable ({bad})")
+        grid = _grid_combinations(preset)
+        if len(grid) > 1:
+            for task in tasks:
+                ran = [dict(r.get("overrides") or {}) for r in recs if r["task"] == task]
+                seen = sum(any(o == g for o in ran) for g in grid)
+                if seen < len(grid):
+                    short = task.split("/", 1)[-1]
+                    why.append(f"{seen} of the paper grid's {len(grid)} configurations on {short}")
+        return "; ".join(why) or None
+
+
+def _not_comparable_inputs(ctx: DomainContext, recs: Sequence[Mapping[str, Any]]) -> str:
+    """The conditions the runs of a selection's inputs miss (their runs' and each
+    configuration's seeds), as names; empty when every input is comparable."""
+    names: list[str] = []
+    per_config: dict[tuple[str, str], int] = defaultdict(int)
+    for r in recs:
+        key = (r["task"], r["agent"], r["config"], int(r["seed"]))
+        names += [c for c in cond.RUN_CONDITIONS if ctx.run_conditions[key].get(c)]
+        per_config[(r["task"], r["config"])] += 1
+    if any(cond.at_least(n, "seeds", ctx.domain) for n in per_config.values()):
+        names.append("seeds")
+    return ", ".join(c for c in cond.CONDITIONS if c in names)
+
+
+def _grid_combinations(preset: PaperPreset | None) -> list[dict[str, Any]]:
+    """Every configuration of an agent's paper grid (one, the preset itself, without one)."""
+    if preset is None or not preset.grid:
+        return [{}]
+    keys = sorted(preset.grid)
+    return [
+        dict(zip(keys, v, strict=True)) for v in itertools.product(*(preset.grid[k] for k in keys))
+    ]
 
 
 def online_panel(ctx: DomainContext) -> dict[str, Any] | Absent:
@@ -277,7 +351,7 @@ def online_panel(ctx: DomainContext) -> dict[str, Any] | Absent:
             "the sweep has no online-selection task of this domain (its offline-selection tasks "
             "are under naive offline selection, never the per-task best configuration)"
         )
-    return _table(ctx, _online(ctx, ctx.records), ctx.online_tasks)
+    return _table(ctx, _online(ctx, ctx.records), ctx.online_tasks, _ONLINE)
 
 
 def offline_naive_panel(ctx: DomainContext) -> dict[str, Any] | Absent | None:
@@ -286,7 +360,7 @@ def offline_naive_panel(ctx: DomainContext) -> dict[str, Any] | Absent | None:
     naive = _naive(ctx, ctx.records)
     if not naive.chosen:
         return Absent("; ".join(naive.skipped.values()))
-    return {**naive.chosen_json(), **_table(ctx, naive.sel, ctx.offline_tasks)}
+    return {**naive.chosen_json(), **_table(ctx, naive.sel, ctx.offline_tasks, naive.protocol)}
 
 
 def aggregates_panel(ctx: DomainContext) -> dict[str, Any] | Absent:
@@ -296,12 +370,12 @@ def aggregates_panel(ctx: DomainContext) -> dict[str, Any] | Absent:
         return Absent(_NO_REFERENCE)  # Atari aggregates are over normalised scores only
     out: dict[str, Any] = {"statistic": domain_statistic(ctx.domain), "missing": {}}
     if ctx.online_tasks:
-        out["online"] = _aggregates(ctx, _online(ctx, ctx.scored), ctx.online_tasks)
+        out["online"] = _aggregates(ctx, _online(ctx, ctx.scored), ctx.online_tasks, _ONLINE)
     if ctx.offline_tasks:
         naive = _naive(ctx, ctx.scored)
         if naive.chosen:
             out["offline"] = {
-                **_aggregates(ctx, naive.sel, ctx.offline_tasks),
+                **_aggregates(ctx, naive.sel, ctx.offline_tasks, naive.protocol),
                 **naive.chosen_json(),
             }
         else:
@@ -318,18 +392,30 @@ def fqe_panel(ctx: DomainContext) -> list[dict[str, Any]] | None:
 
 
 def dataset_p90_panel(ctx: DomainContext) -> dict[str, float | None] | None:
+    """Each task's dataset 90th-percentile episode return; None for a task whose runs
+    trained on several datasets (``datasets`` in the domain says which: no one line is the
+    data's)."""
     if not ctx.datasets:
         return None
-    return {t: dataset_percentile(ctx.datasets[t]) for t in ctx.tasks if t in ctx.datasets}
+    out: dict[str, float | None] = {}
+    for t in ctx.tasks:
+        if t in ctx.datasets:
+            paths = _paths(ctx.datasets[t])
+            out[t] = dataset_percentile(paths[0]) if len(paths) == 1 else None
+    return out
+
+
+def _paths(value: str | Sequence[str]) -> list[str]:
+    return [value] if isinstance(value, str) else list(value)
 
 
 def task_bars_panel(ctx: DomainContext) -> dict[str, Any] | None:
     """The paper's control suite and locomotion figures: each task under its own protocol."""
     if ctx.domain == "atari":
         return None  # the paper draws Atari normalised: atari_median and atari_per_game
-    online = _table(ctx, _online(ctx, ctx.records), ctx.online_tasks)["rows"]
+    online = _table(ctx, _online(ctx, ctx.records), ctx.online_tasks, _ONLINE)["rows"]
     naive = _naive(ctx, ctx.records)
-    offline = _table(ctx, naive.sel, ctx.offline_tasks)["rows"]
+    offline = _table(ctx, naive.sel, ctx.offline_tasks, naive.protocol)["rows"]
     return {"online": online, "offline": offline if naive.chosen else [], **naive.chosen_json()}
 
 
@@ -348,13 +434,15 @@ def atari_median_panel(ctx: DomainContext) -> dict[str, Any] | Absent | None:
     all_offline = [t.id for t in list_tasks("atari", "offline")]
     if ctx.online_tasks:
         sel = online_selection(r for r in ctx.scored if r["task"] in ctx.online_tasks)
-        out["online"] = _median_half(ctx, sel, ctx.online_tasks, all_online, {})
+        out["online"] = _median_half(ctx, sel, ctx.online_tasks, all_online, {}, _ONLINE)
     else:
         out["missing"]["online"] = "the sweep has none of the 9 tuning games"
     if ctx.offline_tasks:
         naive = _naive(ctx, ctx.scored)
         if naive.chosen:
-            half = _median_half(ctx, naive.sel, ctx.offline_tasks, all_offline, naive.skipped)
+            half = _median_half(
+                ctx, naive.sel, ctx.offline_tasks, all_offline, naive.skipped, naive.protocol
+            )
             out["offline"] = {**half, **naive.chosen_json()}
         else:
             out["missing"]["offline"] = "; ".join(naive.skipped.values())
@@ -393,7 +481,7 @@ def atari_per_game_panel(ctx: DomainContext) -> dict[str, Any] | Absent | None:
                     "normalised": s.mean,
                     "improvement": s.mean - 100.0,
                     "paper_improvement": None if paper is None else paper - 100.0,
-                    **_sourced(ctx, s),
+                    **_sourced(ctx, s, _ONLINE if task in ctx.online_tasks else naive.protocol),
                 }
             )
         if bars:
@@ -401,6 +489,64 @@ def atari_per_game_panel(ctx: DomainContext) -> dict[str, Any] | Absent | None:
     if not agents:
         return Absent("; ".join(skipped.values()) or "no game has a result")
     return {"agents": agents, "skipped": skipped, "note": PAPER_FIGURE_ONLY}
+
+
+def curves_panel(ctx: DomainContext) -> dict[str, Any] | Absent:
+    """Learning curves of the configurations the tables show (``rlu.evaluation.report.curves``)."""
+    from rlu.evaluation.report.curves import curves
+
+    chosen = {k: (s.config, "online") for k, s in _online(ctx, ctx.records).items()}
+    naive = _naive(ctx, ctx.records)
+    chosen.update({k: (s.config, naive.protocol(k[1])) for k, s in naive.sel.items()})
+    return curves(ctx, chosen)
+
+
+def _split_selections(
+    ctx: DomainContext,
+) -> dict[str, tuple[dict[tuple[str, str], Selection], Protocol]]:
+    """Per split, its protocol's selections on the scores the aggregates use, and how each
+    agent's configuration was chosen."""
+    out = {}
+    if ctx.online_tasks:
+        out["online"] = (_online(ctx, ctx.scored), _ONLINE)
+    naive = _naive(ctx, ctx.scored)
+    if ctx.offline_tasks and naive.chosen:
+        out["offline"] = (naive.sel, naive.protocol)
+    return out
+
+
+def _rliable_panel(ctx: DomainContext, which: str) -> dict[str, Any] | Absent | None:
+    from rlu.evaluation.report import profiles
+
+    if ctx.domain == "atari" and not ctx.normalised:
+        return Absent(_NO_REFERENCE)
+    splits = _split_selections(ctx)
+    tasks = {"online": ctx.online_tasks, "offline": ctx.offline_tasks}
+    mats = profiles.matrices({k: sel for k, (sel, _) in splits.items()}, tasks, ctx.agents)
+    if which == "improvement":
+        out = profiles.improvement(mats, ctx.reps)
+        if not out:
+            return Absent(
+                "the probability of improvement compares two agents on the same "
+                "tasks, and no split has two"
+            )
+    else:
+        out = profiles.profiles(mats, ctx.reps)
+        if not out:
+            return Absent("no split has a task under its protocol")
+    for split, half in out.items():
+        sel, protocol = splits[split]
+        cells = [_sourced(ctx, s, protocol) for (t, _), s in sel.items() if t in half["tasks"]]
+        half.update(_merge_sourced(cells))
+    return {"splits": out, "normalised": ctx.normalised}
+
+
+def profiles_panel(ctx: DomainContext) -> dict[str, Any] | Absent | None:
+    return _rliable_panel(ctx, "profiles")
+
+
+def improvement_panel(ctx: DomainContext) -> dict[str, Any] | Absent | None:
+    return _rliable_panel(ctx, "improvement")
 
 
 def iqn_tau_panel(ctx: DomainContext) -> dict[str, Any] | Absent | None:
@@ -423,6 +569,9 @@ PANELS: dict[str, Panel] = {
     "atari_per_game": atari_per_game_panel,
     "iqn_tau": iqn_tau_panel,
     "bcq_threshold": bcq_threshold_panel,
+    "curves": curves_panel,
+    "profiles": profiles_panel,
+    "improvement": improvement_panel,
 }
 """Every panel of a domain, in report order (``rlu.evaluation.report.render`` renders them)."""
 
@@ -454,6 +603,11 @@ class _Naive:
     """Per agent it cannot choose for, why."""
     only: list[str]
     """The agents that ran one configuration: nothing to select."""
+
+    def protocol(self, agent: str) -> str:
+        """How the configuration of an agent's cells was chosen: ``naive`` selection, or
+        ``only`` (the agent ran one configuration: nothing to select)."""
+        return "only" if agent in self.only else "naive"
 
     def chosen_json(self) -> dict[str, Any]:
         return {"chosen": self.chosen, "skipped": self.skipped, "only_configuration": self.only}
@@ -508,21 +662,37 @@ def _naive_choices(ctx: DomainContext) -> tuple[dict[str, str], dict[str, str], 
     return chosen, skipped, only
 
 
-def _sourced(ctx: DomainContext, s: Selection) -> dict[str, Any]:
-    """A number's provenance entries and whether it is comparable with the paper's."""
-    why = ctx.why_not(s)
-    return {"provenance": ctx.sources(s), "comparable": not why, "not_comparable": why}
+Protocol = Callable[[str], str]
+"""agent -> how its cells' configuration was chosen: ``online``, ``naive`` or ``only``."""
+
+
+def _ONLINE(agent: str) -> str:
+    return "online"
+
+
+def _sourced(ctx: DomainContext, s: Selection, protocol: Protocol) -> dict[str, Any]:
+    """A number's provenance entries and every condition of the paper's number it meets."""
+    c = ctx.conditions(s, protocol(s.agent))
+    gone = cond.missing(c)
+    return {
+        "provenance": ctx.sources(s),
+        "conditions": c,
+        "missing": gone,
+        "comparable": not gone,
+        "not_comparable": [c[k] for k in gone],
+    }
 
 
 def _merge_sourced(parts: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     """The provenance of a number computed from several (an aggregate over cells)."""
-    why: list[str] = []
-    for p in parts:
-        why += [w for w in p["not_comparable"] if w not in why]
+    c = cond.merge([p["conditions"] for p in parts])
+    gone = cond.missing(c)
     return {
         "provenance": sorted({i for p in parts for i in p["provenance"]}),
-        "comparable": bool(parts) and all(p["comparable"] for p in parts),
-        "not_comparable": why,
+        "conditions": c,
+        "missing": gone,
+        "comparable": bool(parts) and not gone,
+        "not_comparable": [c[k] for k in gone],
     }
 
 
@@ -551,6 +721,7 @@ def _median_half(
     tasks: Sequence[str],
     all_tasks: Sequence[str],
     skipped: Mapping[str, str],
+    protocol: Protocol,
 ) -> dict[str, Any]:
     """One half of the Atari figure: per agent the median over its games with the interval,
     the paper's table over the same games and over all the split's games."""
@@ -569,8 +740,8 @@ def _median_half(
             "configs": {t: c.config for t, c in cells.items()},
             "paper_same_games": _paper_median(ctx, agent, list(cells)),
             "paper_all_games": _paper_median(ctx, agent, all_tasks),
-            "paper_budget": ctx.budgets.get(agent),
-            **_merge_sourced([_sourced(ctx, c) for c in cells.values()]),
+            "paper_budget": cond.budget_of(ctx.domain, ctx.presets.get(agent))[0],
+            **_merge_sourced([_sourced(ctx, c, protocol) for c in cells.values()]),
         }
     return {
         "games": list(tasks),
@@ -621,7 +792,7 @@ def _sensitivity(ctx: DomainContext, name: str) -> dict[str, Any] | Absent | Non
                 "interval_25_75": [lo, hi],
                 "games": len(cells),
                 "configs": {t: c.config for t, c in cells.items()},
-                **_merge_sourced([_sourced(ctx, c) for c in cells.values()]),
+                **_merge_sourced([_sourced(ctx, c, _ONLINE) for c in cells.values()]),
             }
         )
     return {
@@ -649,18 +820,19 @@ def _registry(domain: str, selection: str) -> list[str]:
 
 def build_report(
     records: Sequence[Mapping[str, Any]],
-    datasets: Mapping[str, str] | None = None,
+    datasets: Mapping[str, str | Sequence[str]] | None = None,
     random_scores: Mapping[str, float] | None = None,
     best_behaviour: Mapping[str, float] | None = None,
     reps: int = 2000,
     fqe: Mapping[str, Any] | None = None,
-    paper_steps: PaperSteps | None = None,
+    paper: PaperPresets | None = None,
 ) -> dict[str, Any]:
-    """Every number of the report (JSON-serialisable), from a sweep's result records (and, if
-    given, the FQE selections that ``rlu.train.fqe_selection`` wrote). ``paper_steps(agent,
-    discrete)`` is the learner budget of an agent's paper preset: a cell is comparable with the
-    paper's numbers only at that budget (None: no cell is)."""
-    paper = load_paper_results()
+    """Every number of the report (JSON-serialisable), from the runs' result records (a
+    sweep's results.jsonl records, or ``rlu.runs.run_record`` of run folders; a record's
+    ``curve`` is its evaluations, for the learning curves) and, if given, the FQE selections
+    that ``rlu.restore.fqe_selection`` wrote. ``paper(agent, discrete)`` is what the report
+    checks of an agent's paper preset (``PaperPreset``); without it no cell is comparable."""
+    table = load_paper_results()
     by_domain: dict[str, list[Mapping[str, Any]]] = defaultdict(list)
     for r in records:
         if r.get("score") is None:
@@ -687,7 +859,13 @@ def build_report(
                 key, len(sources)
             )
         discrete = domain == "atari"
-        budgets = {a: None if paper_steps is None else paper_steps(a, discrete) for a in agents}
+        presets = {a: None if paper is None else paper(a, discrete) for a in agents}
+        conditions = {
+            (r["task"], r["agent"], r["config"], int(r["seed"])): cond.run_conditions(
+                run_provenance(r), _overrides(r), r["task"], domain, presets[r["agent"]]
+            )
+            for r in recs
+        }
         ctx = DomainContext(
             domain=domain,
             records=tuple(recs),
@@ -697,18 +875,21 @@ def build_report(
             online_tasks=tuple(t for t in tasks if task_info(t)[1] == "online"),
             offline_tasks=tuple(t for t in tasks if task_info(t)[1] == "offline"),
             normalised=norm is not None,
-            paper=paper,
+            paper=table,
             datasets=dict(datasets or {}),
             fqe=fqe,
             reps=reps,
             normalise=norm,
             provenance=tuple(json.loads(k) for k in sources),
             run_provenance=run_source,
-            budgets=budgets,
+            presets=presets,
+            run_conditions=conditions,
         )
         dom: dict[str, Any] = {"agents": agents, "tasks": tasks, "normalised": norm is not None}
+        dom["datasets"] = {t: _paths(ctx.datasets[t]) for t in tasks if t in ctx.datasets}
         dom["provenance"] = _provenance_entries(ctx)
-        dom["paper_budgets"] = budgets
+        dom["paper_presets"] = {a: _preset_json(ctx, a) for a in agents}
+        dom["paper_states"] = _statements(ctx)
         if norm is not None:
             dom["reference_scores"] = refs
             dom["reference_flags"] = denominator_flags(refs, random_spread())
@@ -732,7 +913,7 @@ def _provenance_entries(ctx: DomainContext) -> list[dict[str, Any]]:
     for i, p in enumerate(ctx.provenance):
         keys = [k for k, j in ctx.run_provenance.items() if j == i]
         agents = sorted({k[1] for k in keys})
-        comparable = sum(not not_comparable(p, ctx.budgets.get(k[1])) for k in keys)
+        comparable = sum(not any(ctx.run_conditions[k].values()) for k in keys)
         tasks = sorted({k[0] for k in keys})
         out.append(
             {
@@ -743,6 +924,42 @@ def _provenance_entries(ctx: DomainContext) -> list[dict[str, Any]]:
                 "comparable_runs": comparable,
             }
         )
+    return out
+
+
+def _overrides(record: Mapping[str, Any]) -> Mapping[str, Any] | None:
+    """A record's overrides of its preset (None: not recorded; a ``default`` configuration
+    has none)."""
+    if record.get("overrides") is not None:
+        return record["overrides"]
+    return {} if record.get("config") == "default" else None
+
+
+def _preset_json(ctx: DomainContext, agent: str) -> dict[str, Any]:
+    """What the report knew of an agent's paper preset, and the budget its cells compare at
+    (``stated``: the paper's own number; else rlu's)."""
+    preset = ctx.presets.get(agent)
+    budget, stated = cond.budget_of(ctx.domain, preset)
+    return {
+        "known": preset is not None,
+        "steps": None if preset is None else preset.steps,
+        "grid": {} if preset is None else {k: list(v) for k, v in preset.grid.items()},
+        "budget": budget,
+        "budget_stated": stated,
+    }
+
+
+def _statements(ctx: DomainContext) -> dict[str, Any]:
+    """What the paper states of each condition for this domain, where, and rlu's stand-in."""
+    fam = cond.PAPER[cond.family(ctx.domain)]
+    out = {
+        k: {"paper": v.paper, "where": v.where, "rlu": v.rlu, "rlu_where": v.rlu_where}
+        for k, v in fam.items()
+    }
+    out["table"] = cond.PAPER_TABLES.get(ctx.domain)
+    steps = {a: p.steps for a, p in ctx.presets.items() if p is not None}
+    out["stand_ins"] = cond.stand_ins(ctx.domain, steps)
+    out["needs"] = cond.needs(ctx.domain, steps)
     return out
 
 
@@ -789,7 +1006,10 @@ def _atari_normaliser(tasks, random_scores, best_behaviour):
 
 
 def _table(
-    ctx: DomainContext, sel: Mapping[tuple[str, str], Selection], tasks: Sequence[str]
+    ctx: DomainContext,
+    sel: Mapping[tuple[str, str], Selection],
+    tasks: Sequence[str],
+    protocol: Protocol,
 ) -> dict[str, Any]:
     rows = []
     for task in tasks:
@@ -801,20 +1021,26 @@ def _table(
             cells[agent] = {
                 "config": s.config,
                 "mean": s.mean,
-                "std": s.std,
+                "std": sample_std(s.scores),
                 "seeds": list(s.seeds),
                 "scores": list(s.scores),
-                **_sourced(ctx, s),
+                **_sourced(ctx, s, protocol),
             }
         # the paper's bold: the best mean, and every cell whose mean ± std overlaps the best's
+        # (a cell of one seed has no spread: its mean alone)
         best = max(cells.values(), key=lambda c: c["mean"], default=None)
         for c in cells.values():
-            c["bold"] = c["mean"] + c["std"] >= best["mean"] - best["std"]
+            c["bold"] = c["mean"] + (c["std"] or 0.0) >= best["mean"] - (best["std"] or 0.0)
         # the paper's number of every agent it has one for, rlu's cell or not (a sweep still
         # running, or an agent not run on this task, leaves the paper's column filled)
         beside = {a: paper_entry(task, a, ctx.paper) for a in ctx.agents}
-        rows.append({"task": task, "cells": cells,
-                     "paper": {a: e for a, e in beside.items() if e is not None}})  # fmt: skip
+        rows.append(
+            {
+                "task": task,
+                "cells": cells,
+                "paper": {a: e for a, e in beside.items() if e is not None},
+            }
+        )
     return {"rows": rows, "paper_columns": _paper_columns(ctx, rows)}
 
 
@@ -829,12 +1055,16 @@ def _paper_columns(ctx: DomainContext, rows: Sequence[Mapping[str, Any]]) -> dic
             continue
         n = sum(c["comparable"] for c in pairs)
         status = "all" if pairs and n == len(pairs) else "some" if n else "none"
-        out[agent] = {"budget": ctx.budgets.get(agent), "comparable": status}
+        budget, stated = cond.budget_of(ctx.domain, ctx.presets.get(agent))
+        out[agent] = {"budget": budget, "budget_stated": stated, "comparable": status}
     return out
 
 
 def _aggregates(
-    ctx: DomainContext, sel: Mapping[tuple[str, str], Selection], tasks: Sequence[str]
+    ctx: DomainContext,
+    sel: Mapping[tuple[str, str], Selection],
+    tasks: Sequence[str],
+    protocol: Protocol,
 ) -> dict[str, Any]:
     """Per agent, the domain's statistic over ``tasks`` of the selected cells, its interval,
     and the IQM over the seeds every task has."""
@@ -857,6 +1087,6 @@ def _aggregates(
             # with one seed in common the bootstrap has nothing to resample, so no interval
             ci = [ilo, ihi] if len(common) > 1 else None
             entry.update({"iqm": iqm, "iqm_ci95": ci, "iqm_seeds": len(common)})
-        entry.update(_merge_sourced([_sourced(ctx, c) for c in cells]))
+        entry.update(_merge_sourced([_sourced(ctx, c, protocol) for c in cells]))
         agents[agent] = entry
     return {"tasks": list(tasks), "agents": agents}

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from rlu.files import write_atomic, write_json
+from rlu.files import atomic_path, write_atomic, write_json
 from rlu.system import install_hint
 
 MARKER = "results.json"
@@ -28,13 +28,19 @@ PAPER = {
 settings and networks, trained on the release's data; it states no continuous step budget)."""
 
 
+def _std(x: np.ndarray) -> float | None:
+    """The sample std (ddof 1), the report's one spread; None for one value."""
+    return float(x.std(ddof=1)) if x.size > 1 else None
+
+
 def policy_row(name: str, returns: Sequence[float], **made: Any) -> dict[str, Any]:
-    """One table row: the policy's returns and what produced them (``made``: preset, steps)."""
+    """One table row: the policy's returns and what produced them (``made``: preset, steps);
+    ``std`` the sample std (ddof 1) over its evaluation episodes."""
     r = np.asarray(returns, np.float64)
     return {
         "policy": name,
         "mean": float(r.mean()),
-        "std": float(r.std()),
+        "std": _std(r),
         "returns": r.tolist(),
         **made,
     }
@@ -73,7 +79,7 @@ def write_quickstart_report(
     the Markdown text."""
     out = Path(out)
     returns = np.asarray(dataset_returns, np.float64)
-    mean, std = float(returns.mean()), float(returns.std())
+    mean, std = float(returns.mean()), _std(returns)
     p90 = float(np.percentile(returns, 90))
     trained = [r for r in rows if r.get("steps") is not None]
     made = {(r.get("preset"), r.get("steps"), r.get("eval_episodes")) for r in trained}
@@ -90,18 +96,19 @@ def write_quickstart_report(
         )
     lines += [
         "",
-        "| policy | preset, steps | mean return | std | / dataset mean | beats the data |",
+        "| policy | preset, steps | mean return | sample std (ddof 1) | / dataset mean | "
+        "beats the data |",
         "|---|---|---:|---:|---:|---|",
     ]
     for r in rows:
         beats = "yes" if r["mean"] > mean else "no"
         how = f"{r['preset']}, {r['steps']:,}" if r.get("steps") is not None else "-"
         lines.append(
-            f"| {r['policy']} | {how} | {r['mean']:.1f} | {r['std']:.1f} | "
+            f"| {r['policy']} | {how} | {r['mean']:.1f} | {_num(r['std'])} | "
             f"{r['mean'] / mean:.2f} | {beats} |"
         )
     lines += [
-        f"| *dataset* (p90 {p90:.1f}) | | {mean:.1f} | {std:.1f} | 1.00 | |",
+        f"| *dataset* (p90 {p90:.1f}) | | {mean:.1f} | {_num(std)} | 1.00 | |",
         "",
         *_against_bc(rows, task_id),
         f"Dataset returns: mean {mean:.1f}, p90 {p90:.1f}, min {returns.min():.1f}, "
@@ -126,6 +133,10 @@ def write_quickstart_report(
     return text
 
 
+def _num(x: float | None) -> str:
+    return "-" if x is None else f"{x:.1f}"
+
+
 def _figure(
     rows: Sequence[Mapping[str, Any]], returns: np.ndarray, task_id: str, path: Path
 ) -> Path | None:
@@ -138,6 +149,9 @@ def _figure(
     plt = pyplot()
     title = f"rlu quickstart: {task_id}, policies beside the dataset's episode returns"
     fig = quickstart_figure(rows, returns, title, plt)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    try:
+        with atomic_path(path, suffix=True) as tmp:
+            fig.savefig(tmp, dpi=110)
+    finally:
+        plt.close(fig)
     return path

@@ -1,0 +1,322 @@
+"""When one of rlu's numbers compares with the paper's: every condition the paper's number had,
+each recorded by the runs and checked here.
+
+The paper (Gulcehre et al. 2020, arXiv:2006.13888) is credited only with what it states, its
+section or table cited (:data:`PAPER`). Where it states nothing (the continuous baselines'
+learner budget, the number of seeds, the evaluation episodes), rlu's own choice stands in,
+named as rlu's (``Statement.rlu``), and every heading that compares under it says "the paper
+states no ...". The conditions, in the order a cell's label names the ones it misses:
+
+- ``preset``: rlu's ``paper`` preset (the paper's appendix A settings; ``paper_recurrent`` on
+  the three sequence tasks the paper gives LSTMs), changed only along the paper's grid;
+- ``budget``: the learner steps, pre-training apart: the paper's 2M on Atari; elsewhere the
+  paper states none and rlu's paper preset's ``num_steps`` stands in;
+- ``data``: the release's own files: every shard of the task's dataset (continuous), or at least
+  the 2M steps of the paper's Atari replay memory (which 2M it does not say);
+- ``episodes``: evaluation episodes per run, at least rlu's 5 (the paper states none);
+- ``seeds``: seeds behind the cell, at least rlu's 3 (the paper's tables print mean ± std
+  without saying over how many runs);
+- ``selection``: the protocol's inputs were themselves comparable: online selection chose among
+  comparable runs of every configuration of the paper's grid; naive offline selection chose on
+  comparable runs of every online-selection task of the domain.
+
+Each check returns None (met) or the reason, in words, that the report prints.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+CONDITIONS = ("preset", "budget", "data", "episodes", "seeds", "selection")
+"""Every condition, in the order a label names the missing ones."""
+
+RUN_CONDITIONS = ("preset", "budget", "data", "episodes")
+"""The conditions one run meets or not (the others are a cell's: its seeds, its selection)."""
+
+
+@dataclass(frozen=True)
+class PaperPreset:
+    """What the report checks of an agent's ``paper`` preset (``rlu.restore.paper_preset``
+    reads it from the agent module; this package may not import the agents)."""
+
+    steps: int | None
+    """Learner steps of the preset (``num_steps``; Atari: ``atari.num_steps``)."""
+    grid: Mapping[str, tuple[Any, ...]] = field(default_factory=dict)
+    """The paper's grid (the agent module's ``GRID``): the only fields a comparable run
+    changes, every combination of which online selection must have seen."""
+    presets: tuple[str, ...] = ("paper",)
+    """The agent's paper presets (``paper_recurrent`` where it has one)."""
+
+
+@dataclass(frozen=True)
+class Statement:
+    """What the paper states of one condition (``paper`` None: nothing), where it says so, and
+    the stand-in rlu compares at where it says nothing (``rlu``, named as rlu's choice)."""
+
+    paper: Any
+    where: str
+    rlu: Any = None
+    rlu_where: str = ""
+
+
+_CONTINUOUS_TABLES = (
+    "appendix B, table 'DM Control suite results'; appendix C, table 'DM Locomotion results'"
+)
+_NO_RUNS = "the paper's results tables (appendices B-D) print mean ± std without the number of runs"
+
+PAPER: dict[str, dict[str, Statement]] = {
+    "continuous": {
+        "preset": Statement(
+            "the continuous baselines' settings",
+            "appendix A.1 and its table 'Continuous control experiments hyperparameters'",
+        ),
+        "budget": Statement(
+            None,
+            "appendix A.1 gives no learner steps for the continuous baselines",
+            rlu="the paper preset's num_steps",
+            rlu_where="docs/paper_settings.md: 'learner steps | not stated | rlu's choice'",
+        ),
+        "data": Statement(
+            "the task's dataset of the release",
+            "section 3 (tables 'DM Control Suite tasks', 'DM Locomotion tasks')",
+        ),
+        "episodes": Statement(
+            None,
+            "the paper states no number of evaluation episodes",
+            rlu=5,
+            rlu_where="rlu's default --eval-episodes",
+        ),
+        "seeds": Statement(None, _NO_RUNS, rlu=3, rlu_where="rlu's choice"),
+        "selection": Statement(
+            "online policy selection per task over the grid; naive offline selection: the "
+            "configuration best on average over the domain's online-selection tasks",
+            "section 2.2 and section 4 ('Naive approach for offline policy selection')",
+        ),
+    },
+    "atari": {
+        "preset": Statement(
+            "the Atari baselines' settings",
+            "appendix A.2 and its table 'Atari experiments hyperparameters'",
+        ),
+        "budget": Statement(
+            2_000_000,
+            "appendix A.2, table 'Atari experiments hyperparameters': 'Training Steps: 2M "
+            "learning steps'",
+        ),
+        "data": Statement(
+            2_000_000,
+            "appendix A.2, table 'Atari experiments hyperparameters': a fixed replay memory "
+            "of 2M steps (which 2M of the release's it does not say)",
+        ),
+        "episodes": Statement(
+            None,
+            "the paper states no number of evaluation episodes",
+            rlu=5,
+            rlu_where="rlu's default --eval-episodes",
+        ),
+        "seeds": Statement(None, _NO_RUNS, rlu=3, rlu_where="rlu's choice"),
+        "selection": Statement(
+            "online policy selection per game over the grid; naive offline selection: the "
+            "configuration with the best median over the tuning games",
+            "section 2.2 and section 4 ('Naive approach for offline policy selection')",
+        ),
+    },
+}
+"""Per family (``atari``; ``continuous``: every other domain), what the paper states of each
+condition."""
+
+PAPER_TABLES = {
+    "control_suite": "appendix B, table 'DM Control suite results'",
+    "locomotion": "appendix C, table 'DM Locomotion results'",
+    "atari": "appendix D, table 'Atari 2600 results'",
+}
+"""Where the paper's numbers beside each domain's cells come from."""
+
+RECURRENT_TASKS = (
+    "locomotion/rodent_two_touch",
+    "locomotion/rodent_bowl_escape",
+    "locomotion/rodent_mazes",
+)
+"""The paper's "tasks of the sequential nature (Rodent Two Tap, Rodent Escape and Rodent Mazes)",
+whose networks add two LSTMs (appendix A.1): rlu's ``paper_recurrent`` preset there."""
+
+
+def family(domain: str) -> str:
+    """``atari`` or ``continuous``: whose statements apply to a domain's numbers."""
+    return "atari" if domain == "atari" else "continuous"
+
+
+def budget_of(domain: str, preset: PaperPreset | None) -> tuple[int | None, bool]:
+    """(the learner steps a comparable run trains, whether the paper states them): the paper's
+    on Atari, else rlu's paper preset's (None: the report was not given it)."""
+    stated = PAPER[family(domain)]["budget"].paper
+    if stated is not None:
+        return int(stated), True
+    return (None if preset is None else preset.steps), False
+
+
+def _steps(n: int) -> str:
+    for size, unit in ((1_000_000, "M"), (1_000, "k")):
+        if n >= size:
+            return f"{n / size:.{0 if n % size == 0 else 1}f}{unit}"
+    return str(n)
+
+
+def run_conditions(
+    provenance: Mapping[str, Any],
+    overrides: Mapping[str, Any] | None,
+    task: str,
+    domain: str,
+    preset: PaperPreset | None,
+) -> dict[str, str | None]:
+    """The run conditions (:data:`RUN_CONDITIONS`) one run meets (None) or misses (why), from
+    what it recorded (``numbers.run_provenance`` and its overrides; None: not recorded)."""
+    return {
+        "preset": _preset(provenance.get("preset"), overrides, task, preset),
+        "budget": _budget(provenance.get("steps"), domain, preset),
+        "data": _data(provenance.get("data") or {}, domain),
+        "episodes": at_least(provenance.get("eval_episodes"), "episodes", domain),
+    }
+
+
+def _preset(
+    name: str | None,
+    overrides: Mapping[str, Any] | None,
+    task: str,
+    preset: PaperPreset | None,
+) -> str | None:
+    if preset is None:
+        return "the report knows no paper preset of this agent"
+    recurrent = task in RECURRENT_TASKS and "paper_recurrent" in preset.presets
+    want = "paper_recurrent" if recurrent else "paper"
+    if name != want:
+        return f"preset {name or 'not recorded'}, not {want}"
+    if overrides is None:
+        return "its overrides of the preset were not recorded"
+    off = [
+        f"{k}={v}"
+        for k, v in sorted(overrides.items())
+        if k not in preset.grid or v not in preset.grid[k]
+    ]
+    if off:
+        return f"the paper preset changed outside the paper's grid ({', '.join(off)})"
+    return None
+
+
+def _budget(steps: int | None, domain: str, preset: PaperPreset | None) -> str | None:
+    budget, stated = budget_of(domain, preset)
+    if budget is None:
+        return "the paper preset's learner budget was not given to the report"
+    if steps is None:
+        return "learner steps not recorded"
+    if steps != budget:
+        if stated:
+            return f"{steps:,} learner steps, not the paper's {_steps(budget)}"
+        return f"{steps:,} learner steps, not rlu's {_steps(budget)} (the paper states no budget)"
+    return None
+
+
+def _data(data: Mapping[str, Any], domain: str) -> str | None:
+    source = data.get("source", "unknown")
+    if source != "release":
+        return f"{source} data, not the release's"
+    if family(domain) == "atari":
+        need = int(PAPER["atari"]["data"].paper)
+        steps = data.get("steps")
+        if steps is None:
+            return "the dataset's steps not recorded"
+        if steps < need:
+            return f"{steps:,} steps of the release, under the paper's {_steps(need)}-step replay"
+        return None
+    shards = data.get("shards")
+    if not shards:
+        return "the release shards it holds not recorded"
+    if shards["of"] is None:
+        return f"{data.get('files', 0)} files, none named as a release shard of the task"
+    if shards["used"] < shards["of"]:
+        return f"{shards['used']} of the release's {shards['of']} shards of the task"
+    return None
+
+
+def at_least(n: int | None, what: str, domain: str) -> str | None:
+    """Seeds or evaluation episodes (``what``: ``seeds`` or ``episodes``) against the paper's
+    number, or rlu's where the paper states none."""
+    s = PAPER[family(domain)][what]
+    need = s.paper if s.paper is not None else s.rlu
+    noun = "seed" if what == "seeds" else "evaluation episode"
+    if n is None:
+        return f"{noun}s not recorded"
+    if n < need:
+        got = f"{n} {noun}{'s' * (n != 1)}"
+        if s.paper is not None:
+            return f"{got}, under the paper's {need}"
+        return f"{got}, under rlu's {need} (the paper states no number of {noun}s)"
+    return None
+
+
+def missing(conditions: Mapping[str, str | None]) -> list[str]:
+    """The names of the conditions a number misses, in :data:`CONDITIONS` order."""
+    return [c for c in CONDITIONS if conditions.get(c)]
+
+
+def merge(parts: Sequence[Mapping[str, str | None]]) -> dict[str, str | None]:
+    """The conditions of a number made of several: each the first reason any part gives."""
+    out: dict[str, str | None] = {}
+    for c in CONDITIONS:
+        reasons = list(dict.fromkeys(p[c] for p in parts if p.get(c)))
+        out[c] = "; ".join(reasons) if reasons else None
+    return out
+
+
+def stand_ins(domain: str, preset_steps: Mapping[str, int | None]) -> list[str]:
+    """What the paper states no number for in ``domain``, each with rlu's stand-in, in words
+    (the report's intro and the heading of every comparison made under them)."""
+    fam = PAPER[family(domain)]
+    out = []
+    if fam["budget"].paper is None:
+        steps = sorted({s for s in preset_steps.values() if s is not None})
+        at = (
+            f"rlu's {', '.join(_steps(s) for s in steps)} (its paper presets' learner steps)"
+            if steps
+            else "rlu's paper preset's learner steps (not given to the report)"
+        )
+        out.append(f"the paper states no learner budget: compared at {at}")
+    for what, noun in (("seeds", "seeds"), ("episodes", "evaluation episodes")):
+        if fam[what].paper is None:
+            out.append(
+                f"the paper states no number of {noun}: compared at rlu's {fam[what].rlu} or more"
+            )
+    return out
+
+
+def needs(domain: str, preset_steps: Mapping[str, int | None]) -> dict[str, str]:
+    """Per condition, what a comparable number of ``domain`` needs, in words: the paper's
+    statement where it makes one, rlu's stand-in (named as rlu's) where it does not."""
+    fam = PAPER[family(domain)]
+    if fam["budget"].paper is not None:
+        budget = f"{_steps(int(fam['budget'].paper))} learner steps (the paper's)"
+    else:
+        per = ", ".join(f"{a} {_steps(s)}" for a, s in sorted(preset_steps.items()) if s)
+        budget = (
+            f"rlu's paper preset's learner steps ({per or 'not given to the report'}): "
+            "rlu's choice, the paper states none"
+        )
+    if family(domain) == "atari":
+        data = "the release's files, at least the paper's 2M steps (which 2M is not stated)"
+    else:
+        data = "every release shard of the task's dataset (the fraction is shown otherwise)"
+    return {
+        "preset": "rlu's paper preset (paper_recurrent on the three sequence tasks the paper "
+        "gives LSTMs), changed only along the paper's grid",
+        "budget": budget,
+        "data": data,
+        "episodes": f"at least rlu's {fam['episodes'].rlu} per run ({fam['episodes'].rlu_where}; "
+        "the paper states none)",
+        "seeds": f"at least rlu's {fam['seeds'].rlu} ({fam['seeds'].rlu_where}; the paper states "
+        "none)",
+        "selection": "inputs themselves comparable: online selection over comparable runs of "
+        "every configuration of the paper's grid on the task; naive offline selection over "
+        "comparable runs of every online-selection task of the domain",
+    }
