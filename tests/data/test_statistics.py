@@ -55,7 +55,7 @@ def test_images_and_windows_are_refused_with_the_reason(tmp_path):
 
 
 def test_data_source_of_each_writer(cartpole):
-    assert data_source(cartpole.manifest) == {"source": "synthetic"}
+    assert data_source(cartpole.manifest) == {"source": "synthetic", "steps": cartpole.num_steps}
     assert data_source({"provenance": {"source": "rl_unplugged release", "family": "f",
                                        "files": [{}, {}], "run": 2}}) == {
         "source": "release", "family": "f", "files": 2, "run": 2}  # fmt: skip
