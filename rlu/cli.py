@@ -22,6 +22,7 @@ import re
 import sys
 from typing import Any
 
+from rlu.data.formats import extras_of_packages
 from rlu.types import RluError
 
 EXIT_CODES = {
@@ -130,8 +131,6 @@ EXTRA_OF = {
     "ale_py": "atari",
     "cv2": "atari",
     "ray": "distributed",
-    "h5py": "interop",
-    "minari": "interop",
     "google_crc32c": "release",
     "PIL": "release",
     "matplotlib": "report",
@@ -140,6 +139,7 @@ EXTRA_OF = {
     "imageio_ffmpeg": "video",
     "moviepy": "video",
 }
+EXTRA_OF.update(extras_of_packages())  # the foreign formats' own (rlu.data.formats)
 """The extra that installs each optional module rlu imports (pyproject.toml's extras)."""
 
 

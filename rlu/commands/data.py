@@ -16,47 +16,53 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-checksums", action="store_true", help="skip the sha256 of every file")
     p.set_defaults(func=_validate)
 
+    from rlu.data.formats import FORMATS
+
+    def targets(attr: str) -> str:
+        return "; ".join(
+            f"{f.name}: {getattr(f, attr)}" for f in FORMATS.values() if getattr(f, attr)
+        )
+
     p = sub.add_parser("export", help="export a stored dataset to another format")
     p.add_argument("path", help=_DATASET_HELP)
-    p.add_argument("--format", required=True, choices=["d4rl", "d3rlpy", "minari"])
-    p.add_argument(
-        "-o",
-        "--out",
-        help="d4rl: output file, X.hdf5 (D4RL's HDF5 layout) or X.npz (numpy); d3rlpy: X.h5, "
-        "the file d3rlpy's ReplayBuffer.dump writes (ReplayBuffer.load reads it)",
-    )
-    p.add_argument(
-        "--id",
-        help="Minari dataset id NAMESPACE/NAME-vN (minari; default for a dataset imported from "
-        "Minari: its own id)",
-    )
-    p.add_argument(
-        "--minari-dir",
-        help="Minari datasets directory (default: $MINARI_DATASETS_PATH or ~/.minari/datasets)",
-    )
+    p.add_argument("--format", required=True, choices=list(FORMATS))
+    p.add_argument("-o", "--out", help=f"output file ({targets('target')})")
     p.add_argument(
         "--overwrite",
         action="store_true",
         help="replace an existing -o file, if rlu wrote it (a file another tool wrote is never "
         "replaced)",
     )
+    _format_options(p, "export")
     p.set_defaults(func=_export)
 
     p = sub.add_parser("import", help="import a dataset of another format into the store")
-    p.add_argument(
-        "src",
-        help="d4rl: .npz or .hdf5 file; d3rlpy: the .h5 of MDPDataset.dump; minari: a dataset id "
-        "or directory",
-    )
-    p.add_argument("--format", required=True, choices=["d4rl", "d3rlpy", "minari"])
+    p.add_argument("src", help=targets("source"))
+    p.add_argument("--format", required=True, choices=list(FORMATS))
+    needs = ", ".join(f.name for f in FORMATS.values() if f.task_required)
     p.add_argument(
         "--task",
-        help="task id, e.g. control_suite/cartpole_swingup (d4rl and d3rlpy: required unless "
-        "the file is an export of rlu's; minari: default, the schema of the dataset's spaces)",
+        help=f"task id, e.g. control_suite/cartpole_swingup ({needs}: required unless the file "
+        "is an export of rlu's; others: default, the schema of the dataset's spaces)",
     )
     p.add_argument("--out", required=True, help="new dataset directory")
-    p.add_argument("--minari-dir", help="Minari datasets directory, for a dataset id (minari)")
+    _format_options(p, "import")
     p.set_defaults(func=_import)
+
+
+def _format_options(p: argparse.ArgumentParser, command: str) -> None:
+    """The options the registered formats add to ``command`` (one flag for formats sharing it)."""
+    from rlu.data.formats import FORMATS
+
+    seen: dict[str, list[str]] = {}
+    helps: dict[str, str] = {}
+    for f in FORMATS.values():
+        for o in f.options:
+            if command in o.commands:
+                seen.setdefault(o.flag, []).append(f.name)
+                helps[o.flag] = o.help
+    for flag, names in seen.items():
+        p.add_argument(flag, help=f"{', '.join(names)}: {helps[flag]}")
 
 
 def _validate(args: argparse.Namespace) -> int:
@@ -84,27 +90,11 @@ def _note(line: str) -> None:
 
 def _export(args: argparse.Namespace) -> int:
     from rlu.data import load_dataset
-    from rlu.types import RluError
+    from rlu.data.formats import export_dataset, options_of
 
+    options = options_of(args.format, "export", vars(args))
     ds = load_dataset(args.path)
-    if args.format == "d4rl":
-        if args.out is None:
-            raise RluError("--format d4rl needs -o/--out FILE.hdf5 (or FILE.npz)")
-        from rlu.data.d4rl import export_d4rl
-
-        out = export_d4rl(ds, args.out, overwrite=args.overwrite, note=_note)
-    elif args.format == "d3rlpy":
-        if args.out is None:
-            raise RluError("--format d3rlpy needs -o/--out FILE.h5")
-        from rlu.data.d3rlpy_io import export_d3rlpy
-
-        out = export_d3rlpy(ds, args.out, overwrite=args.overwrite, note=_note)
-    else:
-        if args.out is not None:
-            raise RluError("--format minari writes a Minari dataset: give --id (and --minari-dir)")
-        from rlu.data.minari import export_minari
-
-        out = export_minari(ds, args.id, root=args.minari_dir, note=_note)
+    out = export_dataset(args.format, ds, args.out, args.overwrite, _note, **options)
     print(f"wrote {out}")
     return 0
 
@@ -112,25 +102,15 @@ def _export(args: argparse.Namespace) -> int:
 def _import(args: argparse.Namespace) -> int:
     from pathlib import Path
 
+    from rlu.data.formats import import_dataset, options_of
     from rlu.data.store import open_dataset
     from rlu.files import check_output
 
+    options = options_of(args.format, "import", vars(args))
     inputs = [args.src] if Path(args.src).exists() else []
-    if args.format == "minari" and args.minari_dir:
-        inputs.append(args.minari_dir)
+    inputs += [v for v in options.values() if v is not None and Path(v).exists()]
     check_output(args.out, inputs, what="dataset folder")
-    if args.format == "d4rl":
-        from rlu.data.d4rl import import_d4rl
-
-        dest = import_d4rl(args.src, args.out, args.task)
-    elif args.format == "d3rlpy":
-        from rlu.data.d3rlpy_io import import_d3rlpy
-
-        dest = import_d3rlpy(args.src, args.out, args.task)
-    else:
-        from rlu.data.minari import import_minari
-
-        dest = import_minari(args.src, args.out, args.task, root=args.minari_dir)
+    dest = import_dataset(args.format, args.src, args.out, args.task, **options)
     ds = open_dataset(dest)
     print(f"wrote {dest}: {len(ds)} episodes, {ds.num_steps} steps")
     return 0

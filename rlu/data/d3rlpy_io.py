@@ -707,3 +707,16 @@ def _kept_columns(source: Any, layout: Any) -> dict[tuple[str, int], _KeptRows]:
             if part.get("kept"):
                 out[(kind, n)] = _KeptRows(source[1].column(part["kept"]))
     return out
+
+
+# --- the format registry's entry points (rlu.data.formats) ----------------------------------
+def export(
+    ds: Dataset, out: str | os.PathLike, *, overwrite: bool = False, note: Any = None
+) -> Path:
+    """``rlu export --format d3rlpy``: :func:`export_d3rlpy`."""
+    return export_d3rlpy(ds, out, overwrite=overwrite, note=note)
+
+
+def import_dataset(src: str | os.PathLike, dest: str | os.PathLike, task_id: str | None) -> Path:
+    """``rlu import --format d3rlpy``: :func:`import_d3rlpy`."""
+    return import_d3rlpy(src, dest, task_id)

@@ -1219,3 +1219,16 @@ def split_flat(obs: np.ndarray, spec: Mapping[str, Any], where: str) -> dict[str
         )
     parts = np.split(obs, np.cumsum(sizes)[:-1], axis=1)
     return {k: p.reshape(len(obs), *s.shape) for (k, s), p in zip(spec.items(), parts, strict=True)}
+
+
+# --- the format registry's entry points (rlu.data.formats) ----------------------------------
+def export(
+    ds: Dataset, out: str | os.PathLike, *, overwrite: bool = False, note: Any = None
+) -> Path:
+    """``rlu export --format d4rl``: :func:`export_d4rl`."""
+    return export_d4rl(ds, out, overwrite=overwrite, note=note)
+
+
+def import_dataset(src: str | os.PathLike, dest: str | os.PathLike, task_id: str | None) -> Path:
+    """``rlu import --format d4rl``: :func:`import_d4rl`."""
+    return import_d4rl(src, dest, task_id)

@@ -1185,3 +1185,33 @@ def _recorded_schema(mds: Any, from_spaces: Schema) -> Schema:
         if spaces_for(schema) == spaces:
             return schema
     return from_spaces
+
+
+# --- the format registry's entry points (rlu.data.formats) ----------------------------------
+def export(
+    ds: Dataset,
+    out: None,
+    *,
+    overwrite: bool = False,
+    note: Any = None,
+    id: str | None = None,  # noqa: A002 - the option is --id
+    minari_dir: str | os.PathLike | None = None,
+) -> Path:
+    """``rlu export --format minari``: :func:`export_minari` (a Minari dataset is never
+    replaced: ``overwrite`` is refused)."""
+    if overwrite:
+        raise RluError(
+            "--overwrite does not apply to Minari datasets: rlu never replaces one; give a new "
+            "--id or remove the old dataset with minari.delete_dataset"
+        )
+    return export_minari(ds, id, root=minari_dir, note=note)
+
+
+def import_dataset(
+    src: str | os.PathLike,
+    dest: str | os.PathLike,
+    task_id: str | None,
+    minari_dir: str | os.PathLike | None = None,
+) -> Path:
+    """``rlu import --format minari``: :func:`import_minari`."""
+    return import_minari(src, dest, task_id, root=minari_dir)
