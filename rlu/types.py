@@ -153,9 +153,14 @@ class Policy(Protocol):
     """What evaluation sees of an agent: a batch of observations in, a batch of actions out.
 
     ``is_first[i]`` is True where row i's episode starts at this observation, so a recurrent
-    policy restarts its state there; the batch always has the same rows (one per env)."""
+    policy restarts its state there; the batch always has the same rows (one per env).
+    ``reward[i]`` (float64) is the reward row i got for the action it took at the previous
+    call, 0 where ``is_first``: a return-conditioned policy (Decision Transformer) lowers its
+    return to go by it; every other policy accepts and ignores it."""
 
-    def __call__(self, observation: Observation, is_first: np.ndarray) -> np.ndarray: ...
+    def __call__(
+        self, observation: Observation, is_first: np.ndarray, reward: np.ndarray
+    ) -> np.ndarray: ...
 
 
 BATCH_KINDS = ("transition", "sequence")
@@ -261,7 +266,11 @@ class Agent(Protocol):
     takes numpy batches or tensors already on that device. ``batch_spec`` says what
     batches ``update`` takes; ``act`` maps a batched observation (leading batch axis) to a batch
     of actions, and ``is_first`` (bool, one per row) marks rows whose episode starts at this
-    observation, so recurrent agents restart their state there (others ignore it).
+    observation, so recurrent agents restart their state there (others ignore it); ``reward``
+    (one per row) is what each row got for the action it took at the previous call, 0 where
+    ``is_first`` (the rollout's ``Policy`` argument): a return-conditioned agent (Decision
+    Transformer) lowers its return to go by it and refuses to continue a row without it, every
+    other agent ignores it.
     ``num_steps`` is the learner steps of a full run of its config (what ``rlu train`` runs
     without --steps); ``pretrain_steps`` counts the updates of a pre-training phase (BRAC's
     behaviour model; 0 for most agents) that the loop runs before, and on top of, them.
@@ -284,7 +293,11 @@ class Agent(Protocol):
     def update(self, batch: Any) -> dict[str, float]: ...
 
     def act(
-        self, observation: Observation, greedy: bool = True, is_first: np.ndarray | None = None
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
     ) -> np.ndarray: ...
 
     def state_dict(self) -> dict[str, Any]: ...

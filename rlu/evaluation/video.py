@@ -8,8 +8,8 @@
     videos[0].path, videos[0].episode_return      # videos/episode_000.mp4, its return
 
 ``rlu evaluate RUN --video DIR`` does this for a trained run. The policy is a
-``rlu.types.Policy`` (batched observations and episode starts -> batched actions), called with a
-batch of one.
+``rlu.types.Policy`` (batched observations, episode starts and previous rewards -> batched
+actions), called with a batch of one.
 
 - Episode ``i`` is reset with the seed that episode ``i`` of
   ``rlu.evaluation.rollout.evaluate(..., seed=seed)`` gets, so a deterministic policy's video
@@ -124,11 +124,13 @@ def _film(policy, env, episode, seed, max_steps, path, open_writer, fps, caption
     try:
         writer(first)
         is_first = np.ones(1, bool)
+        reward = np.zeros(1, np.float64)
         done = False
         while not done:
-            action = np.asarray(policy(_stack([obs]), is_first.copy()))[0]
+            action = np.asarray(policy(_stack([obs]), is_first.copy(), reward.copy()))[0]
             is_first[:] = False
             obs, r, terminated, truncated, _ = env.step(action)
+            reward[0] = float(r)
             total += float(r)
             t += 1
             done = terminated or truncated or (max_steps is not None and t >= max_steps)
