@@ -147,6 +147,12 @@ class Sequence(NamedTuple):
     segment (a whole episode's remaining return; for window files, the window's), float32, 0
     where ``mask`` is False. Present when ``BatchSpec.return_to_go`` asks for it (the
     conditioning of return-conditioned agents: Decision Transformer), else None."""
+    timestep: np.ndarray | None = None
+    """``timestep[b, t]``: the step's index in its segment, int64, 0 where ``mask`` is False.
+    Where segments are whole episodes (generated data, the ``*_episodes`` and
+    ``atari_episodes_ordered`` families) it is the step's index in its episode; a window file's
+    segment starts mid-episode, so there it counts from the window's first step. Present when
+    ``BatchSpec.timestep`` asks for it (Decision Transformer's timestep embedding), else None."""
 
 
 class Policy(Protocol):
@@ -204,6 +210,8 @@ class BatchSpec:
 
     return_to_go: bool = False
     """Sequence batches only: also give each step's return to go (``Sequence.return_to_go``)."""
+    timestep: bool = False
+    """Sequence batches only: also give each step's index in its segment (``Sequence.timestep``)."""
 
     def __post_init__(self) -> None:
         if self.kind not in BATCH_KINDS:
@@ -222,10 +230,11 @@ class BatchSpec:
             raise SpecError(
                 f"BatchSpec.statistics names {unknown}; the data gives {', '.join(STATISTICS)}"
             )
-        if self.return_to_go and self.kind != "sequence":
-            raise SpecError(
-                "BatchSpec.return_to_go applies to sequence batches; set kind='sequence'"
-            )
+        for name in ("return_to_go", "timestep"):
+            if getattr(self, name) and self.kind != "sequence":
+                raise SpecError(
+                    f"BatchSpec.{name} applies to sequence batches; set kind='sequence'"
+                )
         if self.reward_clip is not None and not float(self.reward_clip) > 0.0:
             raise SpecError(
                 f"BatchSpec.reward_clip={self.reward_clip!r}; use a positive bound or None"
