@@ -201,6 +201,45 @@ def test_one_seed_gives_one_run_with_dropout_and_leaves_the_global_generators_al
     ] != runs[0]
 
 
+def test_seq40_window_files_train_with_positions_in_the_window(tmp_path):
+    """The locomotion sequence tasks' release files hold 40-step windows, not episodes: the
+    rule's best whole-episode return does not exist there (a clear error, with the fix), and
+    ``timesteps="context"`` embeds each step's position in its window."""
+    pytest.importorskip("google_crc32c", reason="the release extra is not installed")
+    pytest.importorskip("PIL", reason="the release extra is not installed")
+    from rlu.cli import main
+    from rlu.data import make_sampler, open_dataset
+    from rlu.data.release import families
+    from rlu.data.statistics import dataset_statistics
+    from rlu.tasks import get_task
+    from tests.release.test_convert import _windows
+
+    task = get_task("locomotion/rodent_two_touch")
+    family = task.release_dataset().family
+    shard = tmp_path / "shard" / "train-00000-of-00001"
+    shard.parent.mkdir()
+    families.write_shard(shard, family, _windows(task.id, n=3, t=40))
+    dest = tmp_path / "data"
+    assert (
+        main(["convert", "--family", family, "--task", task.id, "--out", str(dest), str(shard)])
+        == 0
+    )
+    ds = open_dataset(dest)
+    small = dict(TINY, batch_size=4, torso_hidden=8, timesteps="context")
+    agent = make_agent("dt", task.observation_spec, task.action_spec, "small", **small)
+    with pytest.raises(RluError, match="no whole episode .* or for dt a target_return"):
+        agent.set_statistics(dataset_statistics(ds, agent.batch_spec.statistics))
+    agent = make_agent("dt", task.observation_spec, task.action_spec, "small", target_return=50.0,
+                       **small)  # fmt: skip
+    agent.set_statistics(dataset_statistics(ds, agent.batch_spec.statistics))
+    sampler = make_sampler(ds, agent.batch_spec, seed=0)
+    batch = sampler.sample()
+    assert batch.timestep is None and batch.mask.shape == (4, 3)
+    assert all(np.isfinite(agent.update(sampler.sample())["actor/loss"]) for _ in range(2))
+    obs = {k: v[:2, 0] for k, v in batch.observation.items()}
+    assert agent.act(obs, is_first=np.ones(2, bool)).shape == (2, *task.action_spec.shape)
+
+
 # ----------------------------------------------------------------------------- from the CLI
 
 
