@@ -69,10 +69,12 @@ def agent_entries() -> list[dict[str, Any]]:
 
 
 def module_names(source: str) -> dict[str, Any]:
-    """What an agent file binds: the classes ``Config`` / ``Agent`` alias and the source text
-    of its ``PRESETS`` and ``GRID`` assignments."""
+    """What an agent file binds: the classes ``Config`` / ``Agent`` alias, the source text
+    of its ``PRESETS`` and ``GRID`` assignments, and under ``composed`` the settings classes of
+    its own that the config's fields are typed with (dt's ``AtariDT``)."""
     tree = ast.parse(source)
     found: dict[str, Any] = {}
+    classes = {node.name: node for node in tree.body if isinstance(node, ast.ClassDef)}
     for node in tree.body:
         if isinstance(node, ast.Assign) and len(node.targets) == 1:
             target, value = node.targets[0], node.value
@@ -87,6 +89,14 @@ def module_names(source: str) -> dict[str, Any]:
         elif target.id in ("PRESETS", "GRID"):
             text = ast.get_source_segment(source, node) or ""
             found[target.id] = re.sub(r"\s*# fmt: skip", "", text)
+    config = classes.get(found.get("Config", ""))
+    fields = config.body if config is not None else []
+    found["composed"] = [
+        f.annotation.id
+        for f in fields
+        if isinstance(f, ast.AnnAssign) and isinstance(f.annotation, ast.Name)
+        and f.annotation.id in classes
+    ]  # fmt: skip
     return found
 
 
@@ -219,6 +229,17 @@ def agent_page(entry: dict[str, Any], settings: str, agents_md: str) -> str:
         "      show_root_heading: true",
         "      heading_level: 3",
         "",
+        *(
+            line
+            for composed in names["composed"]
+            for line in (
+                f"::: {module}.{composed}",
+                "    options:",
+                "      show_root_heading: true",
+                "      heading_level: 3",
+                "",
+            )
+        ),
         "## Presets and grid",
         "",
         f"As written in `{entry['file'].relative_to(ROOT)}` (`GRID` is the paper's "

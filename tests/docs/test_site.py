@@ -76,6 +76,7 @@ def test_a_module_for_both_action_types_gets_one_page_with_its_own_rows():
     assert text.startswith("# `dt` (continuous and discrete actions)")
     assert "From [Decision Transformer" in text and "| context length K |" in text
     assert "AtariSettings" not in text  # its `atari` field is its own settings, not the table's
+    assert "::: rlu.agents.dt.AtariDT\n" in text  # and they are on the page
 
 
 @pytest.mark.parametrize("name, discrete", [("iql", False), ("crr", False), ("cql", True)])
