@@ -201,7 +201,9 @@ class D3rlpyFramePolicy:
     def __init__(self, algo):
         self.algo = algo
 
-    def act(self, observation: np.ndarray, greedy: bool = True, is_first=None) -> np.ndarray:
+    def act(
+        self, observation: np.ndarray, greedy: bool = True, is_first=None, reward=None
+    ) -> np.ndarray:
         return self.algo.predict(np.ascontiguousarray(observation.transpose(0, 3, 1, 2)))
 
 
@@ -224,10 +226,10 @@ def continuous_pair(name: str, ds, seed: int, preset: str):
 
 
 def d3rlpy_vector_policy(algo) -> Callable[..., np.ndarray]:
-    """A ``rlu.types.Policy`` (observations and ``is_first`` in, actions out) of d3rlpy's
-    greedy action."""
+    """A ``rlu.types.Policy`` (observations, ``is_first`` and rewards in, actions out) of
+    d3rlpy's greedy action."""
 
-    def policy(observation: dict, is_first=None) -> np.ndarray:
+    def policy(observation: dict, is_first=None, reward=None) -> np.ndarray:
         x = np.concatenate([observation[k] for k in sorted(observation)], -1)
         return algo.predict(x.astype(np.float32))
 

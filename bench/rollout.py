@@ -36,7 +36,7 @@ def make_policy(hidden: int):
         torch.nn.ReLU(), torch.nn.Linear(hidden, 1), torch.nn.Tanh(),
     )  # fmt: skip
 
-    def policy(obs, is_first=None):
+    def policy(obs, is_first=None, reward=None):
         x = np.concatenate([obs["orientation"], obs["velocity"]], axis=1)
         with torch.no_grad():
             return 2.0 * net(torch.from_numpy(x)).numpy()

@@ -447,10 +447,13 @@ def _sampler(config: TrainConfig, datasets: list[Any], spec: Any, runtime: Any) 
 
 
 def greedy_policy(agent: Any) -> Any:
-    """The evaluation policy of an agent (a ``rlu.types.Policy``): ``act(obs, greedy=True)``."""
+    """The evaluation policy of an agent (a ``rlu.types.Policy``): ``act(obs, greedy=True)``,
+    passing on the episode starts and the previous rewards."""
 
-    def policy(observation: Any, is_first: np.ndarray | None = None) -> np.ndarray:
-        return agent.act(observation, greedy=True, is_first=is_first)
+    def policy(
+        observation: Any, is_first: np.ndarray | None = None, reward: np.ndarray | None = None
+    ) -> np.ndarray:
+        return agent.act(observation, greedy=True, is_first=is_first, reward=reward)
 
     return policy
 

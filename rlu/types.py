@@ -183,15 +183,26 @@ class Sequence(NamedTuple):
     segment (a whole episode's remaining return; for window files, the window's), float32, 0
     where ``mask`` is False. Present when ``BatchSpec.return_to_go`` asks for it (the
     conditioning of return-conditioned agents: Decision Transformer), else None."""
+    timestep: np.ndarray | None = None
+    """``timestep[b, t]``: the step's index in its segment, int64, 0 where ``mask`` is False.
+    Where segments are whole episodes (generated data, the ``*_episodes`` and
+    ``atari_episodes_ordered`` families) it is the step's index in its episode; a window file's
+    segment starts mid-episode, so there it counts from the window's first step. Present when
+    ``BatchSpec.timestep`` asks for it (Decision Transformer's timestep embedding), else None."""
 
 
 class Policy(Protocol):
     """What evaluation sees of an agent: a batch of observations in, a batch of actions out.
 
     ``is_first[i]`` is True where row i's episode starts at this observation, so a recurrent
-    policy restarts its state there; the batch always has the same rows (one per env)."""
+    policy restarts its state there; the batch always has the same rows (one per env).
+    ``reward[i]`` (float64) is the reward row i got for the action it took at the previous
+    call, 0 where ``is_first``: a return-conditioned policy (Decision Transformer) lowers its
+    return to go by it; every other policy accepts and ignores it."""
 
-    def __call__(self, observation: Observation, is_first: np.ndarray) -> np.ndarray: ...
+    def __call__(
+        self, observation: Observation, is_first: np.ndarray, reward: np.ndarray
+    ) -> np.ndarray: ...
 
 
 BATCH_KINDS = ("transition", "sequence")
@@ -236,6 +247,8 @@ class BatchSpec:
 
     return_to_go: bool = False
     """Sequence batches only: also give each step's return to go (``Sequence.return_to_go``)."""
+    timestep: bool = False
+    """Sequence batches only: also give each step's index in its segment (``Sequence.timestep``)."""
 
     def __post_init__(self) -> None:
         if self.kind not in BATCH_KINDS:
@@ -254,10 +267,11 @@ class BatchSpec:
             raise SpecError(
                 f"BatchSpec.statistics names {unknown}; the data gives {', '.join(STATISTICS)}"
             )
-        if self.return_to_go and self.kind != "sequence":
-            raise SpecError(
-                "BatchSpec.return_to_go applies to sequence batches; set kind='sequence'"
-            )
+        for name in ("return_to_go", "timestep"):
+            if getattr(self, name) and self.kind != "sequence":
+                raise SpecError(
+                    f"BatchSpec.{name} applies to sequence batches; set kind='sequence'"
+                )
         if self.reward_clip is not None and not float(self.reward_clip) > 0.0:
             raise SpecError(
                 f"BatchSpec.reward_clip={self.reward_clip!r}; use a positive bound or None"
@@ -298,7 +312,11 @@ class Agent(Protocol):
     takes numpy batches or tensors already on that device. ``batch_spec`` says what
     batches ``update`` takes; ``act`` maps a batched observation (leading batch axis) to a batch
     of actions, and ``is_first`` (bool, one per row) marks rows whose episode starts at this
-    observation, so recurrent agents restart their state there (others ignore it).
+    observation, so recurrent agents restart their state there (others ignore it); ``reward``
+    (one per row) is what each row got for the action it took at the previous call, 0 where
+    ``is_first`` (the rollout's ``Policy`` argument): a return-conditioned agent (Decision
+    Transformer) lowers its return to go by it and refuses to continue a row without it, every
+    other agent ignores it.
     ``num_steps`` is the learner steps of a full run of its config (what ``rlu train`` runs
     without --steps); ``pretrain_steps`` counts the updates of a pre-training phase (BRAC's
     behaviour model; 0 for most agents) that the loop runs before, and on top of, them.
@@ -324,10 +342,15 @@ class Agent(Protocol):
         ...
 
     def act(
-        self, observation: Observation, greedy: bool = True, is_first: np.ndarray | None = None
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
     ) -> np.ndarray:
         """Actions for a batch of observations (leading batch axis): the greedy policy, or its
-        exploration with ``greedy=False``; ``is_first`` marks rows whose episode starts here."""
+        exploration with ``greedy=False``; ``is_first`` marks rows whose episode starts here and
+        ``reward`` is each row's reward for its previous action (0 where ``is_first``)."""
         ...
 
     def state_dict(self) -> dict[str, Any]:

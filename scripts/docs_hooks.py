@@ -2,7 +2,8 @@
 
 The site is built from what the code holds, so it cannot fall behind it:
 
-- one page per registered agent (``rlu.agents.AGENTS``), ``agents/<module>.md``: the module
+- one page per registered agent module (``rlu.agents.AGENTS``; a module registered for both
+  action types, ``dt``, gets one page), ``agents/<module>.md``: the module
   docstring, the rows of docs/paper_settings.md that name the agent, its ``Config`` (paper
   defaults, a docstring per field), ``PRESETS`` and ``GRID`` as written in the agent file, and
   its ``Agent`` class; the pages go into the nav under "Agents";
@@ -40,17 +41,24 @@ DISCRETE_SECTIONS = ("Atari baselines",)
 
 
 def agent_entries() -> list[dict[str, Any]]:
-    """Every registered agent: name, discrete, module, page path, nav title, in AGENTS order."""
+    """Every registered agent module: name, discrete (None for a module registered for both
+    action types, listed once at its discrete entry), module, page path, nav title, in AGENTS
+    order."""
     from rlu.agents import AGENTS
 
     out = []
     for (name, discrete), module in AGENTS.items():
+        both = AGENTS.get((name, not discrete)) == module
+        if both and not discrete:
+            continue  # listed once, at its discrete entry
         stem = module.rsplit(".", 1)[-1]
-        kind = "discrete, Atari" if discrete else "continuous"
+        kind = (
+            "continuous and discrete" if both else "discrete, Atari" if discrete else "continuous"
+        )
         out.append(
             {
                 "name": name,
-                "discrete": discrete,
+                "discrete": None if both else discrete,
                 "module": module,
                 "file": ROOT / Path(*module.split(".")).with_suffix(".py"),
                 "page": f"agents/{stem}.md",
@@ -61,10 +69,12 @@ def agent_entries() -> list[dict[str, Any]]:
 
 
 def module_names(source: str) -> dict[str, Any]:
-    """What an agent file binds: the classes ``Config`` / ``Agent`` alias and the source text
-    of its ``PRESETS`` and ``GRID`` assignments."""
+    """What an agent file binds: the classes ``Config`` / ``Agent`` alias, the source text
+    of its ``PRESETS`` and ``GRID`` assignments, and under ``composed`` the settings classes of
+    its own that the config's fields are typed with (dt's ``AtariDT``)."""
     tree = ast.parse(source)
     found: dict[str, Any] = {}
+    classes = {node.name: node for node in tree.body if isinstance(node, ast.ClassDef)}
     for node in tree.body:
         if isinstance(node, ast.Assign) and len(node.targets) == 1:
             target, value = node.targets[0], node.value
@@ -79,6 +89,14 @@ def module_names(source: str) -> dict[str, Any]:
         elif target.id in ("PRESETS", "GRID"):
             text = ast.get_source_segment(source, node) or ""
             found[target.id] = re.sub(r"\s*# fmt: skip", "", text)
+    config = classes.get(found.get("Config", ""))
+    fields = config.body if config is not None else []
+    found["composed"] = [
+        f.annotation.id
+        for f in fields
+        if isinstance(f, ast.AnnAssign) and isinstance(f.annotation, ast.Name)
+        and f.annotation.id in classes
+    ]  # fmt: skip
     return found
 
 
@@ -105,7 +123,13 @@ def paper_rows(text: str, name: str, discrete: bool) -> list[tuple[str, str, lis
     A row names the agent when one of its cells holds the agent's name in capitals as a word
     (``BC``, ``D4PG``: the page writes agents so), searched in the sections of the agent's kind;
     a section whose prose names the agent in backticks (``dopamine_dqn``) gives all its rows."""
-    wanted = DISCRETE_SECTIONS if discrete else CONTINUOUS_SECTIONS
+    wanted = (
+        (*CONTINUOUS_SECTIONS, *DISCRETE_SECTIONS)
+        if discrete is None
+        else DISCRETE_SECTIONS
+        if discrete
+        else CONTINUOUS_SECTIONS
+    )
     word = re.compile(rf"(?<![\w-]){re.escape(name.upper())}(?![\w-])")
     out = []
     for heading, body in markdown_sections(text):
@@ -146,12 +170,15 @@ def agent_page(entry: dict[str, Any], settings: str, agents_md: str) -> str:
             "Config, Agent, PRESETS and GRID (docs/agents.md)"
         )
     row = agents_table_row(agents_md, name, entry["file"].name)
+    kind = {None: "continuous and discrete actions", True: "discrete actions, Atari",
+            False: "continuous actions"}[discrete]  # fmt: skip
+    task = {None: "continuous- or discrete-action (Atari)", True: "discrete-action (Atari)",
+            False: "continuous-action"}[discrete]  # fmt: skip
     lines = [
-        f"# `{name}` ({'discrete actions, Atari' if discrete else 'continuous actions'})",
+        f"# `{name}` ({kind})",
         "",
         f"Module `{module}` (`{entry['file'].relative_to(ROOT)}`); "
-        f"`rlu train --agent {name}` on a "
-        f"{'discrete-action (Atari)' if discrete else 'continuous-action'} task picks it.",
+        f"`rlu train --agent {name}` on a {task} task picks it.",
     ]
     if row is not None:
         lines += ["", f"Source: {row['source']}."]
@@ -186,7 +213,7 @@ def agent_page(entry: dict[str, Any], settings: str, agents_md: str) -> str:
         "",
         f"`{names['Config']}`: the `paper` preset is `{names['Config']}()`. Override a field on "
         "the command line (`rlu train ... FIELD=VALUE`) or in Python "
-        f"(`rlu.agents.make_config({name!r}, {discrete}, 'small', FIELD=VALUE)`).",
+        f"(`rlu.agents.make_config({name!r}, {bool(discrete)}, 'small', FIELD=VALUE)`).",
         "",
         *(
             [
@@ -202,6 +229,17 @@ def agent_page(entry: dict[str, Any], settings: str, agents_md: str) -> str:
         "      show_root_heading: true",
         "      heading_level: 3",
         "",
+        *(
+            line
+            for composed in names["composed"]
+            for line in (
+                f"::: {module}.{composed}",
+                "    options:",
+                "      show_root_heading: true",
+                "      heading_level: 3",
+                "",
+            )
+        ),
         "## Presets and grid",
         "",
         f"As written in `{entry['file'].relative_to(ROOT)}` (`GRID` is the paper's "

@@ -71,14 +71,21 @@ def fake_sequence(
     mask[0, length - 2 :] = False  # one padded window
     is_last = np.zeros((batch, length), bool)
     is_last[0, length - 3] = True
+    observation = random_observation(obs_spec, batch, length, rng=rng)
+    action = random_action(action_spec, batch, length, rng=rng)
+    reward = rng.standard_normal((batch, length)).astype(np.float32) * mask
+    # each window its own segment: returns to go summed to its end, timesteps from its start
+    return_to_go = np.cumsum(reward[:, ::-1], axis=1)[:, ::-1].astype(np.float32) * mask
     return Sequence(
-        observation=random_observation(obs_spec, batch, length, rng=rng),
-        action=random_action(action_spec, batch, length, rng=rng),
-        reward=rng.standard_normal((batch, length)).astype(np.float32),
+        observation=observation,
+        action=action,
+        reward=reward,
         discount=np.ones((batch, length), np.float32),
         is_first=np.zeros((batch, length), bool),
         is_last=is_last,
         mask=mask,
+        return_to_go=np.ascontiguousarray(return_to_go),
+        timestep=np.where(mask, np.arange(length), 0),
     )
 
 

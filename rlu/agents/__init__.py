@@ -5,16 +5,17 @@ docstring per field), ``PRESETS = {"paper": ..., "small": ...}``, ``GRID`` (the 
 hyper-parameter grid as data, ``{field: [values]}``), pure loss functions returning
 ``(loss, metrics)`` and ``Agent(observation_spec, action_spec, config, seed=0, device="cpu")``
 meeting ``rlu.types.Agent``: ``batch_spec`` (what its batches are), ``update(batch) ->
-dict[str, float]``, ``act(obs, greedy=True, is_first=None)``, ``modules``, ``state_dict()`` /
-``load_state_dict()``; its modules, batches and draws live on ``device`` (the pattern:
-``rlu.agents.common`` and docs/devices.md). Adding an agent = one file + one line in
+dict[str, float]``, ``act(obs, greedy=True, is_first=None, reward=None)``, ``modules``,
+``state_dict()`` / ``load_state_dict()``; its modules, batches and draws live on ``device``
+(the pattern: ``rlu.agents.common`` and docs/devices.md). Adding an agent = one file + one line in
 ``AGENTS``; the contract test (tests/agents/test_contract.py) then runs it. See docs/agents.md.
 
 Config fields of a composed settings dataclass (the Atari agents' ``atari``) are overridden by
 dotted path: ``make_config("dqn", True, "small", **{"atari.batch_size": 64})``.
 
 ``make_agent`` chooses between the discrete and the continuous variant of ``bc`` / ``bcq`` from
-the action spec. Nothing here imports torch until an agent is built.
+the action spec (``dt``'s one module serves both, with its settings of either kind). Nothing
+here imports torch until an agent is built.
 """
 
 from __future__ import annotations
@@ -43,6 +44,8 @@ AGENTS: dict[tuple[str, bool], str] = {
     ("rebrac", False): "rlu.agents.rebrac",
     # continuous, online: distributional MPO, the RWRL data's behaviour agent (rlu generate)
     ("dmpo", False): "rlu.agents.dmpo",
+    # both action types, beyond the paper: Decision Transformer (one module, settings by action)
+    ("dt", False): "rlu.agents.dt",
     # discrete (Atari): paper appendix A.2
     ("bc", True): "rlu.agents.bc_discrete",
     ("dqn", True): "rlu.agents.dqn",
@@ -52,6 +55,8 @@ AGENTS: dict[tuple[str, bool], str] = {
     ("cql", True): "rlu.agents.cql_discrete",
     # discrete, online: Dopamine's DQN, the Atari data's behaviour agent (rlu generate)
     ("dopamine_dqn", True): "rlu.agents.dqn_online",
+    # discrete, beyond the paper: Decision Transformer (the module above, its `atari` settings)
+    ("dt", True): "rlu.agents.dt",
 }
 
 CONTINUOUS_AGENTS: tuple[str, ...] = tuple(n for n, d in AGENTS if not d)

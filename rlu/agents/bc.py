@@ -109,7 +109,7 @@ class BCAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
         """A sample of the mixture with every component's variance ``eval_variance`` (the
         paper's evaluation) with ``greedy=True``; the learnt mixture as is with ``greedy=False``."""
         obs = common.to_torch(observation, self.device)

@@ -78,7 +78,7 @@ class BCAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
         """The max action of the logits, epsilon-greedy with ``atari.eval_epsilon`` (greedy), or
         a sample of the softmax policy (``greedy=False``)."""
         logits = self.network(dc.frames(observation, device=self.device))

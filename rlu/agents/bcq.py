@@ -228,7 +228,7 @@ class BCQAgent:
         return torch.cat(values)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
         """Scores ``num_samples`` perturbed VAE actions with Q1 and returns the best (the
         original's ``select_action``); latents from a generator seeded with 0 when greedy."""
         n, reps = self.nets, self.config.num_samples

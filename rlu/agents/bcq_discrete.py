@@ -134,7 +134,7 @@ class BCQAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
         """argmax_a Q(s, a) over the actions the imitation head allows on the same observation,
         epsilon-greedy; the uniform draw ignores the mask, as in the authors' code."""
         q, logits = self.network(dc.frames(observation, device=self.device))

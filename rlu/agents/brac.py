@@ -184,7 +184,7 @@ class BRACAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
         """tanh(mean) of the tanh-Gaussian policy with ``greedy=True`` (the original's
         ``DeterministicSoftPolicy``); with ``greedy=False`` one of its samples."""
         obs = common.to_torch(observation, self.device)

@@ -257,7 +257,7 @@ class CQLAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
         """tanh(mean), the original's deterministic evaluation policy, with ``greedy=True``;
         with ``greedy=False`` a sample of the tanh-Gaussian from the agent's generator."""
         mean, std = self.policy(common.to_torch(observation, self.device))

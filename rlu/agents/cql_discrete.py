@@ -122,7 +122,7 @@ class DiscreteCQLAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
         """Epsilon-greedy on the conservative Q, as ``dqn`` acts: argmax_a Q(s, a), or a uniform
         action with probability ``atari.eval_epsilon`` (greedy) or ``atari.explore_epsilon``."""
         return dc.act(self.network, observation, self.config.atari, greedy, self.generators["act"])

@@ -236,7 +236,7 @@ class CRRAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
         """The mean of the mixture's most probable component with ``greedy=True``; with
         ``greedy=False`` a sample of the Gaussian mixture from the agent's generator."""
         logits, mean, std = self.policy(common.to_torch(observation, self.device))

@@ -186,7 +186,7 @@ class D4PGAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
         """pi(s), greedy or not: the policy is deterministic and, offline, acts without the
         online agent's exploration noise."""
         return self.scaler.from_unit(self.policy(common.to_torch(observation, self.device)))

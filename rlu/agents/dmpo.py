@@ -306,7 +306,7 @@ class DMPOAgent:
         return torch.cat([critic.logits(s, a) for a in sampled.split(per)])
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
         """The Gaussian's mean with ``greedy=True``; with ``greedy=False`` a sample (Acme's
         behaviour network), both clipped to the action bounds."""
         mean, std = self.policy(common.to_torch(observation, self.device))

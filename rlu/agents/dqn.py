@@ -77,7 +77,7 @@ class DQNAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
         """Epsilon-greedy on Q: argmax_a Q(s, a), replaced by a uniform action with probability
         ``atari.eval_epsilon`` (greedy) or ``atari.explore_epsilon`` (module docstring)."""
         return dc.act(self.network, observation, self.config.atari, greedy, self.generators["act"])

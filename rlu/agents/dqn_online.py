@@ -195,7 +195,7 @@ class DopamineDQNAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
         """Epsilon-greedy on Q: ``atari.eval_epsilon`` (Dopamine's 0.001) with ``greedy=True``,
         ``atari.explore_epsilon`` (its training epsilon, 0.01) with ``greedy=False``."""
         return dc.act(self.network, observation, self.config.atari, greedy, self.generators["act"])

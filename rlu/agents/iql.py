@@ -216,7 +216,7 @@ class IQLAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
         """The Gaussian's mean (the original evaluates at temperature 0) with ``greedy=True``;
         with ``greedy=False`` a sample of N(mean, exp(log_std)) from the agent's generator."""
         mean, std = self.policy(common.to_torch(observation, self.device))

@@ -163,7 +163,7 @@ class IQNAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
         """argmax_a of the mean of ``num_quantile_samples`` quantiles at fractions drawn from the
         acting generator, epsilon-greedy (``atari.eval_epsilon`` when greedy)."""
         frames, generator = dc.frames(observation, device=self.device), self.generators["act"]

@@ -274,7 +274,7 @@ class RABMAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
         """The Gaussian's mean plus noise of variance ``eval_variance`` (the paper's evaluation)
         with ``greedy=True``; with ``greedy=False`` a sample of the learnt Gaussian."""
         obs = common.to_torch(observation, self.device)

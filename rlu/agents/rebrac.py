@@ -247,7 +247,7 @@ class ReBRACAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
         """pi(s), greedy or not: the policy is deterministic and, offline, acts without TD3's
         exploration noise (observations normalised first with ``normalize_observations``)."""
         obs = self.normaliser(common.to_torch(observation, self.device))

@@ -125,7 +125,7 @@ class REMAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
         """argmax_a of the mean of the heads' Q (Agarwal et al.'s evaluation), replaced by a
         uniform action with probability ``atari.eval_epsilon`` (greedy) or ``explore_epsilon``."""
         q = self.network(dc.frames(observation, device=self.device)).mean(1)

@@ -180,7 +180,7 @@ class TD3BCAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
         """pi(s) of the normalised observation, greedy or not: the policy is deterministic and,
         offline, acts without TD3's exploration noise."""
         obs = self.normaliser(common.to_torch(observation, self.device))

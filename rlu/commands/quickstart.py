@@ -149,7 +149,7 @@ def _run(args: argparse.Namespace) -> int:
     action_shape = ds.schema.action.shape
     rng = np.random.default_rng(args.seed)
 
-    def random_policy(obs, is_first):
+    def random_policy(obs, is_first, reward):
         n = len(next(iter(obs.values()))) if isinstance(obs, dict) else len(obs)
         return rng.uniform(-1.0, 1.0, (n, *action_shape)).astype(np.float32)
 

@@ -69,8 +69,8 @@ def dataset_statistics(ds: Any, names: Sequence[str]) -> DataStatistics:
         if not returns.size:
             raise RluError(
                 f"{ds.path}: no whole episode (is_first to is_last), so no return range; this "
-                "agent's return scaling needs an episodes dataset (e.g. the release's episode "
-                "family, or rlu generate)"
+                "agent's return scaling (or dt's target rule) needs an episodes dataset (e.g. the "
+                "release's episode family, or rlu generate), or for dt a target_return"
             )
         out.update(return_min=float(returns.min()), return_max=float(returns.max()))
     return DataStatistics(**out)

@@ -237,8 +237,16 @@ class TransitionView(DatasetView):
 class SequenceView(DatasetView):
     """Fixed-length windows with a padding mask (recurrent agents, the seq-40 tasks)."""
 
-    def __init__(self, ds: Dataset, length: int, stride: int = 1, return_to_go: bool = False):
+    def __init__(
+        self,
+        ds: Dataset,
+        length: int,
+        stride: int = 1,
+        return_to_go: bool = False,
+        timestep: bool = False,
+    ):
         super().__init__(ds)
+        self.timestep = bool(timestep)
         if length < 1 or stride < 1:
             raise RluError(f"sequence length={length}, stride={stride}; both must be >= 1")
         self.seq_length, self.stride = int(length), int(stride)
@@ -272,6 +280,7 @@ class SequenceView(DatasetView):
         if self.rtg_cum is not None:  # sum of rewards t .. last of the segment
             rtg = self.rtg_cum[(self.last[seg] + 1)[:, None]] - self.rtg_cum[steps]
             rtg = np.where(mask, rtg, 0.0).astype(np.float32)
+        ts = np.where(mask, steps - self.start[seg][:, None], 0) if self.timestep else None
         return Sequence(
             observation=obs,
             action=padded(self.column("action", steps)),
@@ -281,6 +290,7 @@ class SequenceView(DatasetView):
             is_last=padded(self.column("is_last", steps)),
             mask=mask,
             return_to_go=rtg,
+            timestep=ts,
         )
 
 
@@ -370,7 +380,9 @@ def make_view(
                 "BatchSpec.reward_clip is applied by transition batches only; clip sequence "
                 "rewards in the agent"
             )
-        return SequenceView(ds, spec.sequence_length, return_to_go=spec.return_to_go)
+        return SequenceView(
+            ds, spec.sequence_length, return_to_go=spec.return_to_go, timestep=spec.timestep
+        )
     return TransitionView(ds, spec.n_step, spec.gamma, spec.reward_clip)
 
 

@@ -53,9 +53,10 @@ def _flat(obs: Any) -> np.ndarray:
     return obs.reshape(len(obs), -1).astype(np.float32)
 
 
-def _all_first(x: Any) -> np.ndarray:
-    first = next(iter(x.values())) if isinstance(x, Mapping) else x
-    return np.ones(len(first), bool)
+def _all_first(x: Any) -> tuple[np.ndarray, np.ndarray]:
+    """``is_first`` and ``reward`` of a policy call whose every row starts an episode."""
+    n = len(next(iter(x.values())) if isinstance(x, Mapping) else x)
+    return np.ones(n, bool), np.zeros(n, np.float64)
 
 
 def fqe_estimate(
@@ -86,9 +87,10 @@ def fqe_estimate(
     next_obs = torch.from_numpy(_flat(transitions.next_observation))
     init = torch.from_numpy(_flat(initial_observations))
     # the policy sees observations only, in the env's format
-    # every observation is valued on its own: a recurrent policy starts afresh on each row
-    next_act = np.asarray(policy(transitions.next_observation, _all_first(transitions.action)))
-    init_act = np.asarray(policy(initial_observations, _all_first(initial_observations)))
+    # every observation is valued on its own: a recurrent policy starts afresh on each row (a
+    # return-conditioned one from its target return, at timestep 0)
+    next_act = np.asarray(policy(transitions.next_observation, *_all_first(transitions.action)))
+    init_act = np.asarray(policy(initial_observations, *_all_first(initial_observations)))
     reward = torch.as_tensor(np.asarray(transitions.reward, np.float32))
     discount = torch.as_tensor(np.asarray(transitions.discount, np.float32))
     if discrete:

@@ -1,9 +1,10 @@
 """Vectorised evaluation rollouts: ``num_envs`` Gymnasium envs stepped in lockstep, one batched
-policy call per step. The policy sees observations and episode starts only (a
-``rlu.types.Policy`` callable, never the agent): every call has one row per env, in the same
-order (an env with no episode left keeps its last observation and its action is dropped), and
+policy call per step. The policy sees observations, episode starts and the previous rewards
+only (a ``rlu.types.Policy`` callable, never the agent): every call has one row per env, in the
+same order (an env with no episode left keeps its last observation and its action is dropped),
 ``is_first`` marks the rows whose episode starts there, so recurrent policies keep their state
-per row and restart it with each episode.
+per row and restart it with each episode, and ``reward`` holds what each row's previous action
+earned (0 where ``is_first``), which a return-conditioned policy subtracts from its return to go.
 
 Episode ``i`` is reset with seed ``episode_seed(seed, i)`` (stream ``i`` spawned from ``seed``
 by numpy's SeedSequence, not ``seed + i``, under which evaluation seed 4 replayed episodes 1.. of
@@ -135,8 +136,8 @@ def evaluate(
     max_steps: int | None = None,
     observer: EpisodeObserver | None = None,
 ) -> EvalResult:
-    """Run ``num_episodes`` episodes of ``policy`` (batched observations and episode starts ->
-    batched actions).
+    """Run ``num_episodes`` episodes of ``policy`` (batched observations, episode starts and the
+    rewards of the previous actions -> batched actions).
 
     ``max_steps`` caps an episode's length on top of the env's own time limit. ``observer``
     hears of every reset and step (:class:`EpisodeObserver`), before the env moves on.
@@ -150,6 +151,7 @@ def evaluate(
     episode = [-1] * num_envs  # episode index running on each env (-1: idle)
     obs: list[Any] = [None] * num_envs
     is_first = np.ones(num_envs, bool)
+    reward = np.zeros(num_envs, np.float64)  # what each row's previous action earned
     next_episode = 0
     try:
         with _inference_mode():  # the policy runs once per step; no autograd
@@ -163,12 +165,13 @@ def evaluate(
                 active = [i for i in range(num_envs) if episode[i] >= 0]
                 if not active:
                     break
-                actions = np.asarray(policy(_stack(obs), is_first.copy()))
+                actions = np.asarray(policy(_stack(obs), is_first.copy(), reward.copy()))
                 is_first[:] = False
                 for i in active:
                     o, r, terminated, truncated, _ = envs[i].step(actions[i])
                     e = episode[i]
                     returns[e] += float(r)
+                    reward[i] = float(r)
                     lengths[e] += 1
                     if max_steps is not None and lengths[e] >= max_steps:
                         truncated = True
@@ -181,6 +184,7 @@ def evaluate(
                             if observer is not None:
                                 observer.reset(next_episode, envs[i])
                             is_first[i] = True
+                            reward[i] = 0.0
                             next_episode += 1
                         else:
                             episode[i] = -1

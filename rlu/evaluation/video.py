@@ -11,8 +11,8 @@
 evaluation (``rlu.evaluation.rollout.evaluate(..., observer=recorder)``) and films the episodes
 it is given as they are played and scored, so each video's return is the one the evaluation
 lists for that episode, whatever the number of envs stepped in lockstep. ``record_video`` is the
-same with one env. The policy is a ``rlu.types.Policy`` (batched observations and episode starts
--> batched actions).
+same with one env. The policy is a ``rlu.types.Policy`` (batched observations, episode starts
+and previous rewards -> batched actions).
 
 - Episode ``i`` is episode ``i`` of the evaluation: reset with ``episode_seed(seed, i)``.
 - Frames: one at the reset and one after every step, from ``env.render()`` (the env must be made

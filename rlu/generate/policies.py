@@ -430,8 +430,9 @@ def load_behaviour_policy(
     device: Any = "cpu",
 ) -> Policy:
     """The behaviour policy of ``run`` at ``checkpoint`` that ``dataset`` (a path or an open
-    dataset) keeps, as an evaluation ``Policy``: ``(observation, is_first) -> action`` on
-    batched observations. ``exploration``: act with the behaviour noise (module docstring);
+    dataset) keeps, as an evaluation ``Policy``: ``(observation, is_first, reward) -> action``
+    on batched observations (the behaviour agents are memoryless: ``is_first`` and ``reward``
+    are ignored). ``exploration``: act with the behaviour noise (module docstring);
     ``seed`` seeds that noise and DQN's evaluation epsilon."""
     import torch
 
@@ -481,7 +482,9 @@ def load_behaviour_policy(
     if task.discrete:
         eps, n = float(noise.get("epsilon", 0.0)), task.action_dim
 
-        def discrete_policy(observation: Any, is_first: np.ndarray | None = None) -> np.ndarray:
+        def discrete_policy(
+            observation: Any, is_first: np.ndarray | None = None, reward: np.ndarray | None = None
+        ) -> np.ndarray:
             if not exploration:
                 return agent.act(observation, greedy=True)
             a = np.asarray(agent.act(observation, greedy=False))
@@ -494,7 +497,9 @@ def load_behaviour_policy(
     lo = np.asarray(task.action_spec.minimum, np.float32)  # type: ignore[union-attr]
     hi = np.asarray(task.action_spec.maximum, np.float32)  # type: ignore[union-attr]
 
-    def continuous_policy(observation: Any, is_first: np.ndarray | None = None) -> np.ndarray:
+    def continuous_policy(
+        observation: Any, is_first: np.ndarray | None = None, reward: np.ndarray | None = None
+    ) -> np.ndarray:
         if exploration and sample:
             return np.clip(np.asarray(agent.act(observation, greedy=False), np.float32), lo, hi)
         a = np.asarray(agent.act(observation), np.float32)

@@ -50,7 +50,13 @@ SHRINK = {
     # with the observation normalisation the original leaves off, so the contract covers it
     ("rebrac", False): dict(actor_layers=(32,), critic_layers=(32,), torso_hidden=16,
                             normalize_observations=True),
+    ("dt", False): dict(context_length=4, num_layers=1, hidden_size=16, num_heads=2,
+                        torso_hidden=16, warmup_steps=1),
+    ("dt", True): {"atari.context_length": 3, "atari.num_layers": 1, "atari.num_heads": 2,
+                   "atari.batch_size": 4, "atari.max_timestep": 50},
 }  # fmt: skip
+# Agents that learn from sequence windows whatever the observations (no `recurrent` switch).
+ALWAYS_SEQUENCE = {"dt"}
 UPDATES = 3
 
 
@@ -162,7 +168,8 @@ def test_update_gives_metrics_and_moves_every_trainable_parameter(name, discrete
     assert isinstance(agent.batch_spec, BatchSpec)
     assert isinstance(agent.pretrain_steps, int) and agent.pretrain_steps >= 0
     assert isinstance(agent.num_steps, int) and agent.num_steps >= 1
-    assert agent.batch_spec.kind == ("sequence" if kind == "sequence" else "transition")
+    sequence = kind == "sequence" or name in ALWAYS_SEQUENCE
+    assert agent.batch_spec.kind == ("sequence" if sequence else "transition")
     before = trainable(agent)
     assert before, f"{name}: agent.modules holds no trainable parameter"
     for batch in batches(agent, kind):
@@ -190,6 +197,23 @@ def test_actions_lie_inside_the_action_spec(name, discrete, kind):
         else:
             assert np.all(np.isfinite(a))
             assert np.all(a >= action_spec.minimum) and np.all(a <= action_spec.maximum)
+
+
+@pytest.mark.parametrize(("name", "discrete", "kind"), CASES, ids=IDS)
+def test_act_takes_the_reward_of_each_rows_previous_action(name, discrete, kind):
+    """Evaluation hands every policy what each row's previous action earned (``reward``, 0
+    where ``is_first``; ``rlu.types.Policy``): every agent takes it, and rows that go on act
+    with it (a return-conditioned agent lowers its return to go; the others ignore it)."""
+    agent = build(name, discrete, kind)
+    agent.update(batches(agent, kind, 1)[0])
+    _, action_spec = specs(kind)
+    obs = observation(kind, 4)
+    first = agent.act(obs, greedy=True, is_first=np.ones(4, bool), reward=np.zeros(4))
+    later = agent.act(
+        obs, greedy=True, is_first=np.array([0, 1, 0, 0], bool), reward=np.array([1, 0, -2, 0.5])
+    )
+    assert first.shape == later.shape == (4, *action_spec.shape)
+    assert later.dtype == np.dtype(action_spec.dtype)
 
 
 @pytest.mark.parametrize(("name", "discrete", "kind"), CASES, ids=IDS)
@@ -274,6 +298,14 @@ def test_same_seed_same_numbers_other_seed_other_numbers_global_rng_untouched(na
 def test_specs_of_the_other_action_type_are_refused(name, discrete):
     module = agent_module(name, discrete)
     config = module.PRESETS["small"]
+    if AGENTS.get((name, not discrete)) == AGENTS[(name, discrete)]:
+        # one module for both action types (dt): each kind of action refuses the other kind's
+        # observations instead
+        with pytest.raises(SpecError, match="uint8"):
+            module.Agent(ArraySpec((84, 84, 4), "float32"), ATARI_ACTION, config)
+        with pytest.raises(SpecError):
+            module.Agent(LOWDIM_OBS, ATARI_ACTION, config)
+        return
     if discrete:
         with pytest.raises(SpecError):
             module.Agent(ATARI_OBS, BOX, config)
@@ -291,6 +323,8 @@ def test_paper_presets_build_and_act(name, discrete):
     for preset in [p for p in module.PRESETS if p.startswith("paper")]:
         obs_spec, action_spec = specs(kind)
         agent = make_agent(name, obs_spec, action_spec, preset=preset)
+        if agent.batch_spec.statistics:  # what the loop does before the first update
+            agent.set_statistics(fake_statistics(obs_spec, 0))
         a = agent.act(observation(kind, 2), is_first=np.ones(2, bool))
         assert a.shape == (2, *action_spec.shape)
 

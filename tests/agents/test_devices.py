@@ -82,7 +82,7 @@ def test_an_agent_built_for_a_device_lives_and_learns_there(name, discrete, kind
     obs = observation(kind)
     for greedy, first in [(True, np.ones(5, bool)), (False, np.array([1, 0, 0, 1, 0], bool))]:
         with pytest.raises(NotImplementedError, match="Cannot copy out of meta tensor"):
-            agent.act(obs, greedy=greedy, is_first=first)
+            agent.act(obs, greedy=greedy, is_first=first, reward=np.ones(5))
 
 
 @pytest.mark.parametrize(("name", "discrete", "kind"), CASES, ids=IDS)

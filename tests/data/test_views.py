@@ -297,7 +297,7 @@ def test_frame_stack_at_episode_start_is_zero_padded(tmp_path):
 )
 def test_sequences_equal_reference(tmp_path, segs, length, stride):
     ds = write(tmp_path, segs, DICT_SCHEMA)
-    view = SequenceView(ds, length, stride, return_to_go=True)
+    view = SequenceView(ds, length, stride, return_to_go=True, timestep=True)
     ref = []
     for seg in segs:
         T = len(seg)
@@ -319,9 +319,10 @@ def test_sequences_equal_reference(tmp_path, segs, length, stride):
                 assert b.is_last[i, j] == seg.is_last[t + j]
                 rtg = np.float32(np.sum(seg.reward[t + j :], dtype=np.float64))
                 assert b.return_to_go[i, j] == pytest.approx(rtg, rel=1e-6, abs=1e-6)
+                assert b.timestep[i, j] == t + j
             else:
                 assert b.reward[i, j] == 0 and not b.observation["cam"][i, j].any()
-                assert b.return_to_go[i, j] == 0
+                assert b.return_to_go[i, j] == 0 and b.timestep[i, j] == 0
 
 
 @FAST

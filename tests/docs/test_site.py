@@ -31,8 +31,16 @@ def test_one_page_per_registered_agent():
     from rlu.agents import AGENTS
 
     entries = hooks.agent_entries()
-    assert [(e["name"], e["discrete"]) for e in entries] == list(AGENTS)
-    assert len({e["page"] for e in entries}) == len(AGENTS)
+    both = {n for n, d in AGENTS if AGENTS.get((n, not d)) == AGENTS[(n, d)]}  # dt
+    assert both == {"dt"}
+    one_each = [(n, d) for n, d in AGENTS if n not in both or d]
+    assert [(e["name"], e["discrete"] if e["name"] not in both else True) for e in entries] == (
+        one_each
+    )
+    assert {e["page"] for e in entries} == {
+        f"agents/{m.rsplit('.', 1)[-1]}.md" for m in AGENTS.values()
+    }
+    assert len({e["page"] for e in entries}) == len(entries) == len(set(AGENTS.values()))
     for e in entries:
         names = hooks.module_names(e["file"].read_text())
         assert {"Config", "Agent", "PRESETS", "GRID"} <= set(names), e["module"]
@@ -61,6 +69,14 @@ def test_rows_are_the_agents_own():
     dopamine = _page("dopamine_dqn", True)
     assert "| optimiser | `tf.train.RMSPropOptimizer" in dopamine
     assert "atari-data-generation-dopamines-online-dqn-rlu-generate-atari" in dopamine
+
+
+def test_a_module_for_both_action_types_gets_one_page_with_its_own_rows():
+    text = _page("dt", None)
+    assert text.startswith("# `dt` (continuous and discrete actions)")
+    assert "From [Decision Transformer" in text and "| context length K |" in text
+    assert "AtariSettings" not in text  # its `atari` field is its own settings, not the table's
+    assert "::: rlu.agents.dt.AtariDT\n" in text  # and they are on the page
 
 
 @pytest.mark.parametrize("name, discrete", [("iql", False), ("crr", False), ("cql", True)])

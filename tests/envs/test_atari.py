@@ -129,7 +129,7 @@ def test_evaluation_scores_the_raw_game_score_of_a_plain_ale_loop():
     n, cap, seed, episodes = rlu.get_task("atari/SpaceInvaders").action_dim, 400, 11, 3
     rng = np.random.default_rng(7)
 
-    def policy(obs, is_first):
+    def policy(obs, is_first, reward):
         return rng.integers(n, size=len(obs))
 
     factory = task_env_factory("atari/SpaceInvaders", max_episode_steps=cap)

@@ -28,7 +28,7 @@ def _data(discrete: bool):
                     nxt, action())  # fmt: skip
     spec = DiscreteSpec((), "int64", 3) if discrete else BoundedSpec((2,), "float32")
 
-    def policy(o, first):
+    def policy(o, first, reward):
         rows = len(o["a"])
         return np.ones(rows, np.int64) if discrete else np.zeros((rows, 2), np.float32)
 

@@ -106,7 +106,7 @@ def test_fqe_ranks_policies_by_true_value():
     ks = {"k=1": 1.0, "k=0.5": 0.5, "k=0": 0.0, "k=-0.5": -0.5}
     cfg = FQEConfig(gamma=1.0, steps=1000, hidden=(32, 32), target_period=50, learning_rate=3e-3)
     est = {
-        name: fqe_estimate(tr, init, lambda o, first, k=k: k * o["s"], spec, cfg)
+        name: fqe_estimate(tr, init, lambda o, first, reward, k=k: k * o["s"], spec, cfg)
         for name, k in ks.items()
     }
     true = {name: -3 * (k - 1) ** 2 / 3 for name, k in ks.items()}

@@ -18,7 +18,7 @@ from rlu.types import RluError  # noqa: E402
 CARTPOLE = "control_suite/cartpole_swingup"
 
 
-def _swing(obs, is_first):
+def _swing(obs, is_first, reward):
     """A deterministic policy that pushes the cart along its velocity (it swings the pole)."""
     v = np.asarray(obs["velocity"])[:, :1]
     return np.where(v >= 0, 1.0, -1.0).astype(np.float32)
@@ -71,7 +71,7 @@ def test_gif_keeps_real_time_at_50_frames_a_second(tmp_path):
 def test_atari_frames_are_enlarged_with_square_pixels(tmp_path):
     pytest.importorskip("ale_py")
     env_fn = task_env_factory("atari/Pong", render_mode="rgb_array")
-    (v,) = record_video(lambda o, f: np.zeros(len(f), np.int64), env_fn, tmp_path, max_steps=6)
+    (v,) = record_video(lambda o, f, r: np.zeros(len(f), np.int64), env_fn, tmp_path, max_steps=6)
     meta, frames = _frames(v.path)
     assert meta["fps"] == 15.0 and len(frames) == 7
     assert frames[0].shape == (2 * 210 + 24, 2 * 160, 3)
@@ -95,11 +95,11 @@ def test_a_failing_policy_leaves_no_half_written_video(tmp_path):
     pytest.importorskip("dm_control")
     calls = []
 
-    def breaks(obs, is_first):
+    def breaks(obs, is_first, reward):
         calls.append(1)
         if len(calls) > 5:
             raise RuntimeError("policy died")
-        return _swing(obs, is_first)
+        return _swing(obs, is_first, reward)
 
     env_fn = task_env_factory(CARTPOLE, render_mode="rgb_array")
     with pytest.raises(RuntimeError, match="policy died"):

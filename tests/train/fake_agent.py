@@ -96,7 +96,7 @@ class Agent:
         self.opt.step()
         return {"actor/bc_loss": float(loss.detach())}
 
-    def act(self, observation, greedy: bool = True, is_first=None) -> np.ndarray:
+    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
         with torch.no_grad():
             a = self._forward(_flat(observation, self.device)).cpu().numpy()
         return a.reshape(len(a), *self.spec.shape).astype(self.spec.dtype)
