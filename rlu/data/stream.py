@@ -335,6 +335,8 @@ class StreamSampler:
                 rows[name] = (col.shape, col.dtype)
         if self.spec.return_to_go:
             rows["return_to_go"] = ((), np.dtype(np.float32))
+        if self.spec.timestep:
+            rows["timestep"] = ((), np.dtype(np.int64))
         slots = {"row": "int64", "source": "int64", "index": "int64", "epoch": "int64"}
         if self.spec.kind == "transition":
             slots |= {"gap": "int32", "reward": "float32", "discount": "float32"}
@@ -512,6 +514,8 @@ class StreamSampler:
             cum = np.cumsum(np.concatenate([[c0], data["reward"].astype(np.float64)]))[:-1]
             end = src.cum_end[gseg]
             self._ring["return_to_go"][r0 + local] = (end - cum).astype(np.float32)
+        if self.spec.timestep:  # the step's index in its segment, as SequenceView gives it
+            self._ring["timestep"][r0 + local] = steps - src.start[gseg]
         sl = slice(inst.slot, inst.slot + inst.n)
         slot = self._slot
         last = src.last[seg]
@@ -639,6 +643,9 @@ class StreamSampler:
         rtg = None
         if self.spec.return_to_go:
             rtg = np.where(mask, np.take(ring["return_to_go"], steps), np.float32(0))
+        ts = None
+        if self.spec.timestep:
+            ts = np.where(mask, np.take(ring["timestep"], steps), 0)
         batch = SequenceBatch(
             observation=obs,
             action=padded(np.take(ring["action"], steps, axis=0)),
@@ -648,6 +655,7 @@ class StreamSampler:
             is_last=padded(np.take(ring["is_last"], steps)),
             mask=mask,
             return_to_go=rtg,
+            timestep=ts,
         )
         return batch, source
 
@@ -772,6 +780,7 @@ def stream_sampler(
     gamma: float = 1.0,
     reward_clip: float | None = None,
     return_to_go: bool = False,
+    timestep: bool = False,
     reuse: int = DEFAULT_REUSE,
     workers: int | None = None,
 ) -> StreamSampler:
@@ -781,5 +790,5 @@ def stream_sampler(
     if kind == "sequence" and length is None:
         raise RluError("kind='sequence' needs length (the window's steps)")
     spec = BatchSpec(batch_size, kind, n_step, gamma, length or 1, reward_clip,
-                     return_to_go=return_to_go)  # fmt: skip
+                     return_to_go=return_to_go, timestep=timestep)  # fmt: skip
     return StreamSampler(datasets, spec, seed, weights, memory, reuse, workers)

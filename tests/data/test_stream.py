@@ -88,7 +88,7 @@ def equal(a, b) -> bool:
 SPECS = [
     BatchSpec(16),
     BatchSpec(16, n_step=3, gamma=0.9, reward_clip=1.0),
-    BatchSpec(16, kind="sequence", sequence_length=5, return_to_go=True),
+    BatchSpec(16, kind="sequence", sequence_length=5, return_to_go=True, timestep=True),
     BatchSpec(16, kind="sequence", sequence_length=1),
 ]
 
@@ -97,7 +97,8 @@ SPECS = [
 @pytest.mark.parametrize("kind", ["frames", "dict"])
 def test_batches_are_the_views_values(data, spec, kind):
     ds = open_dataset(data[kind])
-    view = (SequenceView(ds, spec.sequence_length, return_to_go=spec.return_to_go)
+    view = (SequenceView(ds, spec.sequence_length, return_to_go=spec.return_to_go,
+                         timestep=spec.timestep)
             if spec.kind == "sequence" else
             TransitionView(ds, spec.n_step, spec.gamma, spec.reward_clip))  # fmt: skip
     with StreamSampler(data[kind], spec, seed=3, memory=60_000, reuse=2, chunk=7) as s:
