@@ -1,8 +1,8 @@
 """Bombs refused before they are read (issue 39 item 5): Minari datasets whose gzip arrays inflate
 to a GiB (one array, every array of an episode, an ``infos`` array), D4RL .hdf5 / .npz files and
 d3rlpy dumps of the same kind, and an export's sidecar whose segment table declares gigabytes.
-Each is ``rlu import`` in its own process; the process's peak resident memory (``ru_maxrss``,
-what ``/usr/bin/time -v`` reports) stays under the 512 MB bar, the command prints one line and
+Each is ``rlu import`` in its own process; the process's peak resident memory (``VmHWM`` in
+``/proc/self/status``, the peak of its own address space) stays under the 512 MB bar, the command prints one line and
 exits 2, and leaves no dataset behind. A large export stays under the bar too (it streams in
 blocks). bench/hostile_memory.py measures the same commands at 2.5 GiB."""
 
@@ -23,13 +23,18 @@ ROOT = Path(__file__).resolve().parents[2]
 BAR = 512 << 20
 GIB = 1 << 30
 
+# Not ``ru_maxrss``: Linux carries the high-water mark across exec, so a child started by a
+# pytest worker that once held 1.5 GB reports 1.5 GB before it has read a byte. ``VmHWM`` is
+# the peak of the address space exec made.
 _PEAK = """
-import resource, sys
+import sys
 from rlu.cli import main
 try:
     code = main(sys.argv[1:])
 finally:
-    print(f"PEAK {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss}", file=sys.stderr)
+    with open("/proc/self/status") as f:
+        kib = next(int(line.split()[1]) for line in f if line.startswith("VmHWM:"))
+    print(f"PEAK {kib}", file=sys.stderr)
 sys.exit(code)
 """
 

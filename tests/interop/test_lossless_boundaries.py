@@ -223,7 +223,7 @@ def test_cli_export_d3rlpy(tmp_path, capsys):
     assert main(["export", str(src), "--format", "d3rlpy", "-o", str(tmp_path / "c.h5")]) == 0
     assert "wrote" in capsys.readouterr().out and len(d3rlpy_load(tmp_path / "c.h5")) == 2
     assert main(["export", str(src), "--format", "d3rlpy"]) == 2
-    assert "-o/--out FILE.h5" in capsys.readouterr().err
+    assert "needs -o/--out: X.h5" in capsys.readouterr().err
     assert main(["export", str(src), "--format", "d3rlpy", "-o", str(tmp_path / "c.npz")]) == 2
     assert "X.h5" in capsys.readouterr().err
     assert not list(tmp_path.glob(".*partial*"))

@@ -79,7 +79,7 @@ def test_a_sweeps_runs_get_the_gpu_share_they_ask_for(one_gpu_ray, pendulum_data
 
     config = sweep_config(
         tasks=("test/pendulum",), agents=("tests.train.ray_probe_agent",),
-        datasets=pendulum_datasets, seeds=(0, 1), steps=4, eval_episodes=1, eval_envs=1,
+        datasets={"test/pendulum": pendulum_datasets["test/pendulum"]}, seeds=(0, 1), steps=4, eval_episodes=1, eval_envs=1,
         eval_max_steps=5, log_every=1, checkpoint_every=4, max_configs=1,
         env="tests.train.pendulum:make_env", runtime=Runtime(device="auto"),
     )  # fmt: skip

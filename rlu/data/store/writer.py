@@ -435,7 +435,7 @@ class DatasetWriter:
         parts = Path(rel).parts
         if not is_attachment(rel) or ".." in parts or Path(rel).is_absolute() or "\\" in rel:
             raise RluError(
-                f"attachment {rel!r}: name a file under {', '.join(ATTACHMENT_DIRS)}/ "
+                f"attachment {rel!r}: name a file under {' or '.join(d + '/' for d in ATTACHMENT_DIRS)} "
                 "(e.g. policies/run_000/checkpoint_00000.npz)"
             )
         dest = self.tmp / rel
