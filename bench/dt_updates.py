@@ -216,7 +216,7 @@ def atari(dropout: float, batch: int, check: bool = False):
     from rlu.data.store import Schema
     from rlu.data.synthetic import write_synthetic
     from rlu.tasks import get_task
-    from rlu.train import dataset_specs
+    from rlu.training.train import dataset_specs
 
     root = Path(os.environ.get("TMPDIR", "/tmp")) / "rlu_dt_bench_atari"
     if not (root / "manifest.json").exists():  # random frames: the arithmetic is the same

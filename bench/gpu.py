@@ -8,7 +8,7 @@
 For D4PG and BC (paper presets, on walker_walk-shaped synthetic data) and DQN and IQN (the
 Nature torso, batch 256, on synthetic Atari frames) it prints updates/s of:
 
-- rlu's full loop: ``rlu.train.train`` itself (sampling from the store, its data path, the
+- rlu's full loop: ``rlu.training.train.train`` itself (sampling from the store, its data path, the
   update, logging), timed as the difference of two runs of N and N + K steps so that setup,
   the dataset upload and the final checkpoint cancel out; once with host batches prefetched by
   the background thread (CUDA's default), once with the dataset held on the device;
@@ -57,9 +57,9 @@ from rlu.data import Schema, make_sampler, open_dataset  # noqa: E402
 from rlu.data.synthetic import write_synthetic  # noqa: E402
 from rlu.data.torch import DeviceSampler, Prefetcher, device_batch  # noqa: E402
 from rlu.devices import Runtime, compile_modules, numerics  # noqa: E402
-from rlu.settings import RunSettings  # noqa: E402
 from rlu.tasks import get_task  # noqa: E402
-from rlu.train import TrainConfig, dataset_specs, train  # noqa: E402
+from rlu.training.config import RunSettings  # noqa: E402
+from rlu.training.train import TrainConfig, dataset_specs, train  # noqa: E402
 
 TASKS = {"d4pg": "control_suite/walker_walk", "bc": "control_suite/walker_walk",
          "dqn": "atari/Pong", "iqn": "atari/Pong"}  # fmt: skip
@@ -330,7 +330,9 @@ def checks(device: torch.device, data: dict[str, str]) -> list[tuple[str, bool |
     buffer = io.BytesIO()
     torch.save(gpu_agent.state_dict(), buffer)
     buffer.seek(0)
-    state = torch.load(buffer, weights_only=True, map_location="cpu")  # as rlu.runs loads it
+    state = torch.load(
+        buffer, weights_only=True, map_location="cpu"
+    )  # as rlu.training.runs loads it
     cpu_agent = make_agent("dqn", obs, act, seed=9, device="cpu", **tiny)
     cpu_agent.load_state_dict(state)
     equal = all(torch.equal(v.cpu(), cpu_agent.network.state_dict()[k])

@@ -1,5 +1,5 @@
 """rliable's performance profiles and probability of improvement: rlu's vectorised computation
-(``rlu.evaluation.report.profiles``) against rliable's own on the same scores, in one process;
+(``rlu.report.profiles``) against rliable's own on the same scores, in one process;
 prints both timings, their ratio and whether every number agrees.
 
     .venv/bin/python bench/report_profiles.py                       # 5 agents, 9 tasks, 3 seeds
@@ -30,7 +30,7 @@ def main() -> None:
     from rliable import library as rly
     from rliable import metrics
 
-    from rlu.evaluation.report.profiles import performance_profile, probability_of_improvement
+    from rlu.report.profiles import performance_profile, probability_of_improvement
 
     rng = np.random.default_rng(0)
     scores = {f"agent{i}": rng.normal(400 + 50 * i, 150, (args.seeds, args.tasks))

@@ -1,7 +1,8 @@
-"""Evaluation of a trained D4PG policy: ``rlu evaluate``'s path (``rlu.restore.evaluate_run``:
-lockstep envs, one batched ``agent.act`` per step) vs a plain loop over a TorchScript copy of the
-same policy network, one env, one torch thread (the loop issue 19 timed: 30 episodes in 15 s
-where ``rlu evaluate`` ran 10 in 61 s on a loaded 2-core machine).
+"""Evaluation of a trained D4PG policy: ``rlu evaluate``'s path
+(``rlu.training.restore.evaluate_run``: lockstep envs, one batched ``agent.act`` per step) vs a
+plain loop over a TorchScript copy of the same policy network, one env, one torch thread (the loop
+issue 19 timed: 30 episodes in 15 s where ``rlu evaluate`` ran 10 in 61 s on a loaded 2-core
+machine).
 
     .venv/bin/python bench/rollout_agent.py [--episodes 8] [--threads 1] [--preset small]
 
@@ -28,9 +29,9 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import torch  # noqa: E402
 
 from rlu.evaluation.rollout import episode_seed  # noqa: E402
-from rlu.restore import evaluate_run, load_agent  # noqa: E402
-from rlu.settings import RunSettings  # noqa: E402
-from rlu.train import TrainConfig, train  # noqa: E402
+from rlu.training.config import RunSettings  # noqa: E402
+from rlu.training.restore import evaluate_run, load_agent  # noqa: E402
+from rlu.training.train import TrainConfig, train  # noqa: E402
 
 TASK = "control_suite/cartpole_swingup"
 

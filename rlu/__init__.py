@@ -22,7 +22,7 @@ _LAZY = {
     "make_env": "rlu.envs",
     "make_agent": "rlu.agents",
     "evaluate": "rlu.evaluation",
-    "report": "rlu.restore",
+    "report": "rlu.report",
 }
 
 __all__ = sorted(_LAZY) + ["__version__"]

@@ -67,7 +67,7 @@ waiting (a deeper queue only holds more pinned memory)."""
 
 @dataclass(frozen=True)
 class Runtime:
-    """Where and how a run computes (``rlu.settings.RunSettings.runtime``)."""
+    """Where and how a run computes (``rlu.training.config.RunSettings.runtime``)."""
 
     device: str = field(default="cpu", metadata={"cli_default": "auto", "metavar": "DEVICE"})
     """auto, cpu, cuda or cuda:N: where the agent's modules, batches and random draws live

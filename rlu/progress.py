@@ -346,8 +346,8 @@ class Relay:
     :class:`Tally` of the process that started it; it takes what a :class:`Progress` takes from
     the job (``update``, ``set_postfix``, ``note``, ``close``, a ``with`` block).
 
-    ``rlu.train.train(..., progress=Relay(key))`` is how a sweep's runs report: the counts of
-    this session's work (``start(total, initial)``: units done before it, a resumed run's, are
+    ``rlu.training.train.train(..., progress=Relay(key))`` is how a sweep's runs report: the counts
+    of this session's work (``start(total, initial)``: units done before it, a resumed run's, are
     left out) go out at most every ``interval`` seconds and at the end, as ``(RELAY_TAG, key,
     done, total)`` through ``rlu.workers.send`` (nothing when the parent listens to none).
     """

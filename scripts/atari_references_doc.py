@@ -23,7 +23,7 @@ sys.path.insert(0, str(ROOT))
 
 from rlu.envs import scores as random_scores  # noqa: E402
 from rlu.evaluation import reference  # noqa: E402
-from rlu.evaluation.report import load_paper_results  # noqa: E402
+from rlu.report import load_paper_results  # noqa: E402
 from rlu.tasks import ATARI_OFFLINE, ATARI_ONLINE  # noqa: E402
 
 AGENTS = ("BC", "DQN", "IQN", "BCQ", "REM")

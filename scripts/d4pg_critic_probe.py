@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from rlu.data import open_dataset
-from rlu.restore import load_agent, read_run
+from rlu.training.restore import load_agent, read_run
 from rlu.types import RluError, observation_spec_to_json
 
 

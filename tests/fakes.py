@@ -90,12 +90,12 @@ def fake_sequence(
 
 
 def train_config(**kw):
-    """An ``rlu.train.TrainConfig`` from flat keywords: the ``RunSettings`` fields (``steps``,
-    ``eval_every``, ``runtime``, ...) go into its ``run``, the rest stay its own."""
+    """An ``rlu.training.train.TrainConfig`` from flat keywords: the ``RunSettings`` fields
+    (``steps``, ``eval_every``, ``runtime``, ...) go into its ``run``, the rest stay its own."""
     import dataclasses
 
-    from rlu.settings import RunSettings
-    from rlu.train import TrainConfig
+    from rlu.training.config import RunSettings
+    from rlu.training.train import TrainConfig
 
     names = {f.name for f in dataclasses.fields(RunSettings)}
     run = RunSettings(**{k: kw.pop(k) for k in list(kw) if k in names})
@@ -103,11 +103,11 @@ def train_config(**kw):
 
 
 def sweep_config(**kw):
-    """An ``rlu.sweep.SweepConfig`` from flat keywords, as :func:`train_config`."""
+    """An ``rlu.training.sweep.SweepConfig`` from flat keywords, as :func:`train_config`."""
     import dataclasses
 
-    from rlu.settings import RunSettings
-    from rlu.sweep import SweepConfig
+    from rlu.training.config import RunSettings
+    from rlu.training.sweep import SweepConfig
 
     names = {f.name for f in dataclasses.fields(RunSettings)}
     run = RunSettings(**{k: kw.pop(k) for k in list(kw) if k in names})

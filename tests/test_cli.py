@@ -97,7 +97,7 @@ def test_info_json_lists_every_episode_return(capsys):
 def test_train_and_evaluate_defaults_are_quick():
     """A short train evaluates once, at the end; long ones at most 10 times; one torch thread."""
     from rlu.cli import build_parser
-    from rlu.settings import RunSettings, from_args
+    from rlu.training.config import RunSettings, from_args
 
     parser = build_parser()
     base = ["train", "--task", "t", "--agent", "bc", "--dataset", "d", "--out", "o"]
@@ -116,7 +116,7 @@ def test_train_and_evaluate_defaults_are_quick():
 def test_evaluate_sets_its_threads(tmp_path, capsys):
     torch = pytest.importorskip("torch")
     pytest.importorskip("gymnasium")
-    from rlu.train import train
+    from rlu.training.train import train
     from tests.fakes import train_config
     from tests.train.pendulum import write_dataset
 

@@ -76,7 +76,7 @@ def test_a_name_that_is_nothing_says_what_was_tried(tmp_path, capsys):
 def test_a_sweep_takes_bare_names_and_defaults_to_each_tasks_own_data(tmp_path):
     from rlu.commands.train import _datasets
     from rlu.generate.recipe import bundled_dataset
-    from rlu.sweep import SweepConfig, resolve_datasets
+    from rlu.training.sweep import SweepConfig, resolve_datasets
 
     assert _datasets([CARTPOLE]) == {CARTPOLE: CARTPOLE}
     assert _datasets([f"{CARTPOLE}={bundled_dataset()}"]) == {CARTPOLE: str(bundled_dataset())}
@@ -92,9 +92,9 @@ def test_a_sweep_takes_bare_names_and_defaults_to_each_tasks_own_data(tmp_path):
 
 def test_config_files_build_their_configs(tmp_path):
     pytest.importorskip("yaml")
-    from rlu.settings import RunSettings
-    from rlu.sweep import SweepConfig
-    from rlu.train import TrainConfig
+    from rlu.training.config import RunSettings
+    from rlu.training.sweep import SweepConfig
+    from rlu.training.train import TrainConfig
 
     path = tmp_path / "bc.yaml"
     path.write_text(

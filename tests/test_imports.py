@@ -10,27 +10,38 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 PKG = ROOT / "rlu"
 
-# package part -> parts of rlu it must not import
+# package part (a folder or a file under rlu/) -> parts of rlu it must not import. The layers,
+# lowest first: types, system, files, seeds, devices, tasks; data, envs; agents; evaluation;
+# training (the run lifecycle); report; generate; commands and the CLI.
+ABOVE_TRAINING = ("rlu.report", "rlu.generate", "rlu.commands", "rlu.cli")
+# the layers above the low modules (types, system, files, seeds, devices, tasks, workers)
+LOW = ("rlu.data", "rlu.envs", "rlu.agents", "rlu.evaluation", "rlu.training", *ABOVE_TRAINING)
 FORBIDDEN = {
-    "data": ("rlu.agents", "rlu.envs", "rlu.evaluation", "rlu.train", "rlu.generate"),
-    "envs": ("rlu.agents", "rlu.data", "rlu.evaluation", "rlu.train", "rlu.generate"),
-    "agents": ("rlu.data", "rlu.envs", "rlu.evaluation", "rlu.train", "rlu.generate", "rlu.tasks"),
-    "evaluation": ("rlu.agents", "rlu.train", "rlu.generate"),
+    "data": ("rlu.agents", "rlu.envs", "rlu.evaluation", "rlu.training", *ABOVE_TRAINING),
+    "envs": ("rlu.agents", "rlu.data", "rlu.evaluation", "rlu.training", *ABOVE_TRAINING),
+    "agents": ("rlu.data", "rlu.envs", "rlu.evaluation", "rlu.training", "rlu.tasks",
+               *ABOVE_TRAINING),
+    "evaluation": ("rlu.agents", "rlu.training", *ABOVE_TRAINING),
+    "training": ABOVE_TRAINING,
+    "report": ("rlu.generate", "rlu.commands", "rlu.cli"),
+    "generate": ("rlu.report", "rlu.commands", "rlu.cli"),
     "types.py": ("rlu.",),
     "system.py": ("rlu.",),
-    "seeds.py": ("rlu.data", "rlu.envs", "rlu.agents", "rlu.evaluation", "rlu.train"),
-    "devices.py": ("rlu.data", "rlu.envs", "rlu.agents", "rlu.evaluation", "rlu.train", "rlu.runs"),
-    "tasks.py": ("rlu.data", "rlu.envs", "rlu.agents", "rlu.evaluation"),
-    # the run and sweep folders' files sit below the loop; rebuilding a run sits above it
-    "runs.py": ("rlu.train", "rlu.sweep", "rlu.restore", "rlu.evaluation", "rlu.agents",
-                "rlu.generate", "rlu.data", "rlu.envs"),
-    "train.py": ("rlu.sweep", "rlu.restore", "rlu.generate", "rlu.commands"),
-    "sweep.py": ("rlu.restore", "rlu.evaluation", "rlu.generate", "rlu.commands"),
-    "restore.py": ("rlu.sweep", "rlu.generate", "rlu.commands"),
-    "files.py": ("rlu.data", "rlu.envs", "rlu.agents", "rlu.evaluation", "rlu.train",
-                 "rlu.generate", "rlu.runs", "rlu.sweep", "rlu.settings", "rlu.devices"),
-    "settings.py": ("rlu.data", "rlu.envs", "rlu.agents", "rlu.evaluation", "rlu.train",
-                    "rlu.generate", "rlu.runs", "rlu.sweep"),
+    "seeds.py": LOW,
+    "devices.py": LOW,
+    "tasks.py": LOW,
+    "files.py": (*LOW, "rlu.devices"),
+    "workers.py": LOW,
+    # inside training: the run and sweep folders' files sit below the loop, its settings below
+    # everything, rebuilding a finished run above the loop and beside the sweep
+    "training/runs.py": ("rlu.training.train", "rlu.training.sweep", "rlu.training.restore",
+                         "rlu.evaluation", "rlu.agents", "rlu.data", "rlu.envs"),
+    "training/config.py": ("rlu.data", "rlu.envs", "rlu.agents", "rlu.evaluation",
+                           "rlu.training.train", "rlu.training.runs", "rlu.training.sweep",
+                           "rlu.training.restore"),
+    "training/train.py": ("rlu.training.sweep", "rlu.training.restore"),
+    "training/sweep.py": ("rlu.training.restore", "rlu.evaluation"),
+    "training/restore.py": ("rlu.training.sweep",),
 }  # fmt: skip
 
 
@@ -96,7 +107,7 @@ def test_no_circle_between_the_parts_of_the_house():
 
 
 def _imported_names(path: Path) -> set[str]:
-    """``from rlu import runs`` names the module rlu.runs."""
+    """``from rlu.training import runs`` names the module rlu.training.runs."""
     names = set()
     for node in ast.walk(ast.parse(path.read_text())):
         if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:

@@ -9,8 +9,8 @@ field), ``discount`` the per-step continuation of a batch (``rlu.types.Transitio
 Checkpoint format (``agent_state``): ``{"modules": {name: state_dict}, "optimizers":
 {name: state_dict}, "generators": {name: uint8 tensor}, "generator_devices": {name: device
 type}, "step": int}`` -- plain tensors, dicts and numbers, so ``torch.load(...,
-weights_only=True)`` reads it. It loads on any device (``rlu.runs`` maps it to the CPU, then
-``load_state_dict`` copies into the agent's own device).
+weights_only=True)`` reads it. It loads on any device (``rlu.training.runs`` maps it to the CPU,
+then ``load_state_dict`` copies into the agent's own device).
 
 Devices (docs/devices.md): an agent takes ``device`` ("cpu", "cuda", "cuda:N", "auto" or a
 ``torch.device``) and resolves it once with :func:`device`; its parameters are initialised on

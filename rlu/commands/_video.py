@@ -69,9 +69,9 @@ def check_video_options(args: argparse.Namespace) -> None:
     (a dataset, a run, a sweep: any non-empty folder without videos.json)."""
     from pathlib import Path
 
-    from rlu import runs
     from rlu.evaluation.video import INDEX, check_format
     from rlu.files import check_output
+    from rlu.training import runs
     from rlu.types import RluError
 
     if args.video_episodes < 1:
@@ -97,7 +97,7 @@ def check_video_options(args: argparse.Namespace) -> None:
 
 def _recorded_dataset(run: Any) -> str | None:
     """The dataset folder a run's config.json names, if it reads as one."""
-    from rlu.restore import read_run
+    from rlu.training.restore import read_run
     from rlu.types import RluError
 
     try:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 import os
 
-from rlu.settings import checked
+from rlu.training.config import checked
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -9,7 +9,7 @@ import json
 import math
 
 from rlu.commands.train import add_device_option
-from rlu.settings import checked
+from rlu.training.config import checked
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -3,7 +3,7 @@
 On the bundled ``control_suite/cartpole_swingup`` dataset (40 episodes made by ``rlu generate``,
 shipped in the package): validate it, evaluate the uniform random policy, then a sweep of BC and
 two offline RL agents (D4PG run offline, the paper's; IQL, a newer one) with their ``small``
-presets, one process per core, and the quick-start report (``rlu.evaluation.report.quickstart``):
+presets, one process per core, and the quick-start report (``rlu.report.quickstart``):
 each greedy policy's return beside the dataset's, in ``OUT/report.md``, ``OUT/results.json`` and
 ``OUT/quickstart.png`` (with matplotlib, the ``report`` extra). The sweep folder is
 ``OUT/sweep``, one run folder per agent.
@@ -72,13 +72,13 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _count(text: str) -> int:
-    from rlu.settings import checked
+    from rlu.training.config import checked
 
     return checked(int, {"min": 1}, "this option")(text)
 
 
 def _seed(text: str) -> int:
-    from rlu.settings import checked
+    from rlu.training.config import checked
 
     return checked(int, {"min": 0}, "--seed")(text)
 
@@ -106,12 +106,12 @@ def _run(args: argparse.Namespace) -> int:
     from rlu.data import load_dataset, open_dataset
     from rlu.data.validate import validate
     from rlu.devices import Runtime
-    from rlu.evaluation.report.quickstart import MARKER, policy_row, write_quickstart_report
     from rlu.evaluation.rollout import evaluate, task_env_factory
     from rlu.files import check_output
     from rlu.generate.recipe import bundled_dataset
-    from rlu.settings import RunSettings
-    from rlu.sweep import SweepConfig, sweep
+    from rlu.report.quickstart import MARKER, policy_row, write_quickstart_report
+    from rlu.training.config import RunSettings
+    from rlu.training.sweep import SweepConfig, sweep
 
     t0 = time.perf_counter()
     ds = load_dataset(args.dataset) if args.dataset else open_dataset(bundled_dataset())
@@ -153,7 +153,8 @@ def _run(args: argparse.Namespace) -> int:
         n = len(next(iter(obs.values()))) if isinstance(obs, dict) else len(obs)
         return rng.uniform(-1.0, 1.0, (n, *action_shape)).astype(np.float32)
 
-    # the episodes each agent's final evaluation plays (rlu.train seeds it with stream `steps`)
+    # the episodes each agent's final evaluation plays (rlu.training.train seeds it with stream
+    # `steps`)
     eval_seed = derive_seed(args.seed, args.steps)
     random = evaluate(random_policy, env_fn, args.eval_episodes, eval_seed)
     rows = [policy_row("random", random.returns)]

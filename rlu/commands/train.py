@@ -1,12 +1,12 @@
 """``rlu train``, ``rlu evaluate``, ``rlu sweep`` and ``rlu report``.
 
 The run options (preset, budget, evaluation, checkpoints, threads, runtime) are the fields of
-``rlu.settings.RunSettings``, flags and help derived from them, so the library and the command
-line share every default. ``--preset small`` is the default: a first ``rlu train`` takes
+``rlu.training.config.RunSettings``, flags and help derived from them, so the library and the
+command line share every default. ``--preset small`` is the default: a first ``rlu train`` takes
 minutes on a laptop CPU; ``--preset paper`` runs rlu's paper presets (the paper's settings; the
 paper's budget where it states one, Atari's 2M, rlu's elsewhere), and ``rlu report`` checks
 every other condition of the paper's numbers before it calls a number comparable
-(``rlu.evaluation.report.conditions``). ``--device auto`` (the first CUDA
+(``rlu.report.conditions``). ``--device auto`` (the first CUDA
 GPU if PyTorch sees one, else the CPU) is the command line's device; the library's stays cpu.
 """
 
@@ -22,8 +22,8 @@ from rlu.commands._video import (
     evaluation_watch,
     report_videos,
 )
-from rlu.loggers import LOGGERS
-from rlu.settings import EVAL_EVERY_MIN, add_options, checked, from_args
+from rlu.training.config import EVAL_EVERY_MIN, add_options, checked, from_args
+from rlu.training.loggers import LOGGERS
 
 __all__ = ["EVAL_EVERY_MIN", "add_device_option", "add_backend_options", "register"]
 
@@ -73,9 +73,9 @@ def backend_from_args(args: argparse.Namespace, jobs: int | None = None) -> Any:
 
 def register(sub: argparse._SubParsersAction) -> None:
     from rlu.evaluation.fqe import FQEConfig
-    from rlu.settings import RunSettings
-    from rlu.sweep import SweepConfig
-    from rlu.train import TrainConfig
+    from rlu.training.config import RunSettings
+    from rlu.training.sweep import SweepConfig
+    from rlu.training.train import TrainConfig
 
     p = sub.add_parser(
         "train",
@@ -254,8 +254,8 @@ _seed = checked(int, {"min": 0}, "--seed")
 def _train(args: argparse.Namespace) -> int:
     import sys
 
-    from rlu.settings import RunSettings
-    from rlu.train import TrainConfig, parse_overrides, train
+    from rlu.training.config import RunSettings
+    from rlu.training.train import TrainConfig, parse_overrides, train
     from rlu.types import RluError
 
     overrides = parse_overrides(args.overrides)
@@ -315,8 +315,8 @@ def _from_config_file(args: argparse.Namespace) -> dict[str, Any]:
     """Fill the options the user did not type from ``--config``; returns its overrides. A module
     path the file names (agent, env factory) is refused unless typed too: names in files are
     never imported."""
-    from rlu.settings import RunSettings, flat_values, read_config_file, typed_dests
-    from rlu.train import TrainConfig
+    from rlu.training.config import RunSettings, flat_values, read_config_file, typed_dests
+    from rlu.training.train import TrainConfig
 
     data = read_config_file(args.config, TrainConfig)
     typed = typed_dests(args.parser, args.argv)
@@ -340,7 +340,7 @@ def _from_config_file(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _evaluate(args: argparse.Namespace) -> int:
-    from rlu.restore import evaluate_run
+    from rlu.training.restore import evaluate_run
 
     if args.agent is not None:
         from rlu.agents import trust_agent
@@ -421,9 +421,9 @@ def _datasets(items: list[str]) -> dict[str, str]:
 
 
 def _sweep(args: argparse.Namespace) -> int:
-    from rlu.settings import RunSettings
-    from rlu.sweep import SweepConfig, results_table, sweep
-    from rlu.train import parse_overrides
+    from rlu.training.config import RunSettings
+    from rlu.training.sweep import SweepConfig, results_table, sweep
+    from rlu.training.train import parse_overrides
     from rlu.types import RluError
 
     given = _sweep_config_file(args) if args.config is not None else {}
@@ -458,9 +458,9 @@ def _sweep_config_file(args: argparse.Namespace) -> dict[str, Any]:
     file's datasets, grid and task presets for the caller to merge with the typed ones. An
     agent module or env factory named in the file is refused unless typed too: names in files
     are never imported."""
-    from rlu.settings import RunSettings, flat_values, read_config_file, typed_dests
-    from rlu.sweep import SweepConfig
-    from rlu.train import TrainConfig
+    from rlu.training.config import RunSettings, flat_values, read_config_file, typed_dests
+    from rlu.training.sweep import SweepConfig
+    from rlu.training.train import TrainConfig
     from rlu.types import FormatError, RluError
 
     try:
@@ -501,7 +501,7 @@ def _sweep_config_file(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _report(args: argparse.Namespace) -> int:
-    from rlu.restore import report
+    from rlu.report import report
 
     paths = report(
         args.paths,

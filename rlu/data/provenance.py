@@ -12,7 +12,7 @@ it (``rlu convert``, ``rlu generate``, the imports, the synthetic writer), into:
      "steps": ...}                      # every source: the dataset's steps (its manifest)
 
 A report checks ``shards`` against the paper's condition "every release shard of the task"
-(``rlu.evaluation.report.conditions``): a shard counts when its file name is one of the
+(``rlu.report.conditions``): a shard counts when its file name is one of the
 registry's names for the task's dataset (``rlu.tasks.ReleaseDataset.shard_names``).
 """
 

@@ -61,7 +61,7 @@ _TRUSTED_ENVS: dict[str, Callable[..., Any]] = {}
 def trust_env_factory(spec: str) -> Callable[..., Any]:
     """``"package.module:function"`` -> the function (an env factory taking (task_id, seed)),
     imported. Only code and the command line call this: an env factory named in a file (a run's
-    config.json) is never imported (``rlu.restore``)."""
+    config.json) is never imported (``rlu.training.restore``)."""
     if spec in _TRUSTED_ENVS:
         return _TRUSTED_ENVS[spec]
     module, _, attr = spec.partition(":")

@@ -20,8 +20,8 @@ agent learns from the transitions an offline agent would sample from the recorde
 Determinism and resumption: every seed is a stream of ``rlu.seeds.seed_stream`` under the run
 (``rlu.generate.common``); every episode resets the env with its own, so the env carries no
 state across episodes; the agent, the replay and the actor's random generator are saved after
-every chunk of episodes (``state.pt``, through ``rlu.checkpoints``), so a run resumed from its
-last chunk produces the same bytes as an uninterrupted one, and a damaged state file is an error
+every chunk of episodes (``state.pt``, through ``rlu.training.checkpoints``), so a run resumed from
+its last chunk produces the same bytes as an uninterrupted one, and a damaged state file is an error
 naming it. Torch runs on one
 thread here: reductions then do not depend on the machine's core count. The agent may live on a
 GPU (``device``); its state is saved device-independently, so a run may resume on another
@@ -318,8 +318,8 @@ def run_online(
     ``hooks.write_chunk``, then the run's state is saved (see :class:`RunHooks`)."""
     import torch
 
-    from rlu.checkpoints import load_state, save_state
     from rlu.envs import make_env
+    from rlu.training.checkpoints import load_state, save_state
 
     task, seed, cfg = get_task(config.task), config.seed, online
     run_dir.mkdir(parents=True, exist_ok=True)

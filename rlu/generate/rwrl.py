@@ -15,8 +15,8 @@ Under the easy challenge the env adds ten ``dummy-i`` observation keys (as relea
 snapshot policy sees only the task's own keys. Episode counts: the paper's (TaskSpec.episodes,
 e.g. cartpole 100 / 200 / 500) times the scale's ``size_fraction``. Resumption: the training
 runs resume like ``rlu generate`` and play through the same runner (local processes or Ray); a
-finished dataset is skipped; snapshots are saved per run (``rlu.checkpoints``) and read back
-checked. The roll-outs draw from the ``ROLLOUT`` streams of ``--seed``: the env's resets are
+finished dataset is skipped; snapshots are saved per run (``rlu.training.checkpoints``) and read
+back checked. The roll-outs draw from the ``ROLLOUT`` streams of ``--seed``: the env's resets are
 shared by every dataset (episode e starts alike in each), the noise is each dataset's own.
 """
 
@@ -83,7 +83,7 @@ def _damaged(path: Path, what: str, run_dir: Path) -> FormatError:
 
 
 def _load_history(path: Path, run_dir: Path) -> dict[int, Any]:
-    from rlu.checkpoints import load_state
+    from rlu.training.checkpoints import load_state
 
     history = load_state(path, fix=f"remove {run_dir} to train this run again")
     for chunk, entry in history.items():
@@ -104,7 +104,7 @@ def _load_history(path: Path, run_dir: Path) -> dict[int, Any]:
 def train_snapshot(config: GenerateConfig, online: OnlineConfig, run: int, work: Path) -> None:
     """One run's job: train it (resuming), keeping each chunk's policy and mean return, then
     save its snapshot (``run_RRR/snapshot.pt``)."""
-    from rlu.checkpoints import save_state
+    from rlu.training.checkpoints import save_state
 
     run_dir = work / f"run_{run:03d}"
     if (run_dir / "snapshot.pt").exists():
@@ -133,7 +133,7 @@ def train_snapshot(config: GenerateConfig, online: OnlineConfig, run: int, work:
 
 
 def _load_snapshot(path: Path, agent: Any) -> dict[str, Any]:
-    from rlu.checkpoints import load_state
+    from rlu.training.checkpoints import load_state
 
     run_dir = path.parent
     snap = load_state(path, ("chunk", "return", "converged", "agent"), f"remove {run_dir}")

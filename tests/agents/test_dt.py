@@ -307,7 +307,7 @@ def test_both_evaluation_protocols_take_dt_runs(control_run):
     from rlu.evaluation.fqe import FQEConfig, fqe_estimate
     from rlu.evaluation.protocols import offline_selection_naive, online_selection
     from rlu.generate.recipe import bundled_dataset
-    from rlu.restore import load_policy
+    from rlu.training.restore import load_policy
 
     out, data = control_run, bundled_dataset(CONTROL)
     score = json.loads((out / "result.json").read_text())["score"]
@@ -331,7 +331,7 @@ LEARNING_UPDATES = 3000
 
 def _bundled_run(agent: str, folder) -> dict:
     from rlu.generate.recipe import bundled_dataset
-    from rlu.train import train
+    from rlu.training.train import train
     from tests.fakes import train_config
 
     cfg = train_config(task=CONTROL, agent=agent, dataset=str(bundled_dataset(CONTROL)),
@@ -358,9 +358,9 @@ def test_dt_conditioned_on_the_best_return_learns_the_bundled_cartpole(tmp_path)
     from rlu.data import open_dataset
     from rlu.evaluation.rollout import evaluate, task_env_factory
     from rlu.generate.recipe import bundled_dataset
-    from rlu.restore import load_agent
     from rlu.seeds import derive_seed
-    from rlu.train import greedy_policy
+    from rlu.training.restore import load_agent
+    from rlu.training.train import greedy_policy
 
     bc = _bundled_run("bc", tmp_path)["score"]
     best = _bundled_run("dt", tmp_path)["score"]

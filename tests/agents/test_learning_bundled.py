@@ -26,7 +26,7 @@ EPISODES = 10
 
 def small_preset_return(name: str, folder) -> float:
     from rlu.generate.recipe import bundled_dataset
-    from rlu.train import train
+    from rlu.training.train import train
     from tests.fakes import train_config
 
     cfg = train_config(

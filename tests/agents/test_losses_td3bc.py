@@ -203,9 +203,9 @@ def test_the_training_loop_hands_over_the_dataset_statistics_and_checkpoints_kee
     from rlu.data.statistics import dataset_statistics
     from rlu.data.store import Schema
     from rlu.data.synthetic import write_synthetic
-    from rlu.restore import load_agent
     from rlu.tasks import get_task
-    from rlu.train import train
+    from rlu.training.restore import load_agent
+    from rlu.training.train import train
     from tests.fakes import train_config
 
     task = "control_suite/cartpole_swingup"

@@ -58,7 +58,7 @@ def test_mixture_from_the_command_line(pendulums, tmp_path):
 def test_mixture_resumes_exactly(pendulums, tmp_path):
     """A run that stopped after its checkpoint at step 50 resumes there (the stream sampler's
     state restored) and ends as the uninterrupted run did."""
-    from rlu.train import train
+    from rlu.training.train import train
     from tests.fakes import train_config
 
     config = train_config(task="test/pendulum", agent=AGENT, dataset=tuple(pendulums), env=ENV,
@@ -76,7 +76,7 @@ def test_mixture_resumes_exactly(pendulums, tmp_path):
 
 
 def test_one_dataset_streamed_and_refusals(pendulums, tmp_path):
-    from rlu.train import train
+    from rlu.training.train import train
     from tests.fakes import train_config
 
     base = dict(task="test/pendulum", agent=AGENT, steps=5, eval_every=-1, env=ENV,

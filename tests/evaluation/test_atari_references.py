@@ -13,7 +13,7 @@ import pytest
 
 from rlu.envs import scores as random_scores
 from rlu.evaluation import reference
-from rlu.evaluation.report import build_report, load_paper_results
+from rlu.report import build_report, load_paper_results
 from rlu.tasks import ATARI_OFFLINE, ATARI_ONLINE, list_tasks
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "atari_references.md"
@@ -92,7 +92,7 @@ def test_shipped_references_flag_what_the_docs_say():
 
 
 def test_report_marks_flagged_games():
-    from rlu.evaluation.report import render
+    from rlu.report import render
 
     # random 0 for both games; the shipped random spreads (BeamRider's is over 100) make a
     # best of 100 small and a best of 1e6 not

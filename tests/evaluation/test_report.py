@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rlu.evaluation.report import build_report, write_report
+from rlu.report import build_report, write_report
 
 CONTROL = ["control_suite/cartpole_swingup", "control_suite/walker_walk", "control_suite/fish_swim"]
 
@@ -35,7 +35,7 @@ def write_sweep(path: Path, recs) -> Path:
 
 def test_markdown_and_html_hold_every_number_of_the_json(tmp_path):
     pytest.importorskip("jinja2")
-    from rlu.evaluation.report import render
+    from rlu.report import render
 
     recs = records(CONTROL, ["bc", "d4pg", "tests.train.fake|agent"])
     write_report(write_sweep(tmp_path / "s", recs), tmp_path / "r", figures=False)
@@ -125,7 +125,7 @@ def _layout_problems(fig):
 )  # fmt: skip
 def test_task_figures_keep_title_and_legend_inside_and_apart(tasks, agents):
     pytest.importorskip("matplotlib")
-    from rlu.evaluation.report.render import pyplot, tasks_figure
+    from rlu.report.render import pyplot, tasks_figure
 
     plt = pyplot()
     rep = build_report(records(tasks, agents), reps=50)
@@ -141,7 +141,7 @@ def test_task_figures_keep_title_and_legend_inside_and_apart(tasks, agents):
 
 def test_quickstart_figure_shows_policies_beside_the_data():
     pytest.importorskip("matplotlib")
-    from rlu.evaluation.report.render import pyplot, quickstart_figure
+    from rlu.report.render import pyplot, quickstart_figure
 
     plt = pyplot()
     pol = [{"policy": p, "mean": m, "std": 10.0, "returns": [m - 10, m + 10]}
@@ -224,7 +224,7 @@ def test_a_new_panel_is_one_function_and_one_renderer(tmp_path, monkeypatch):
     """What the paper's Atari/control panels will do: data in numbers.PANELS, blocks in
     render.RENDERERS; report.json, report.md and report.html pick it up."""
     pytest.importorskip("jinja2")
-    from rlu.evaluation.report import numbers, render
+    from rlu.report import numbers, render
 
     def best_agent(ctx):
         return {"tasks": len(ctx.tasks), "agents": list(ctx.agents)}
@@ -281,7 +281,7 @@ def test_cells_of_fewer_seeds_say_how_many(tmp_path):
 
 def _with_curves(recs, seed=0):
     """Records as runs read back: each with its evaluations (three of them, the last one its
-    score), as ``rlu.runs.learning_curve`` gives them."""
+    score), as ``rlu.training.runs.learning_curve`` gives them."""
     rng = np.random.default_rng(seed)
     out = []
     for r in recs:
@@ -297,7 +297,7 @@ def test_curves_profiles_and_improvement_figures_are_labelled_and_fit(agents):
     profiles and the probability of improvement: titles that name what is drawn and how the
     band or interval is made, axes labelled, legends inside the figure and apart."""
     pytest.importorskip("matplotlib")
-    from rlu.evaluation.report.render import (
+    from rlu.report.render import (
         curves_figure,
         improvement_figure,
         profiles_figure,
@@ -354,7 +354,7 @@ def test_profiles_and_probability_of_improvement_are_rliables_number_for_number(
     the same generator give the same numbers, intervals included."""
     rly = pytest.importorskip("rliable.library")
     metrics = pytest.importorskip("rliable.metrics")
-    from rlu.evaluation.report.profiles import performance_profile, probability_of_improvement
+    from rlu.report.profiles import performance_profile, probability_of_improvement
 
     rng = np.random.default_rng(3)
     scores = {"a": rng.integers(0, 6, (3, 4)).astype(float),  # ties, within and across agents

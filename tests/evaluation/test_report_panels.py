@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rlu.evaluation.report import build_report, load_paper_results, write_report
+from rlu.report import build_report, load_paper_results, write_report
 from rlu.types import RluError
 
 TUNING = ["atari/BeamRider", "atari/DemonAttack", "atari/Zaxxon"]
@@ -278,7 +278,7 @@ def _figure_report():
 
 def test_atari_figures_draw_the_panels_numbers():
     pytest.importorskip("matplotlib")
-    from rlu.evaluation.report.render import (
+    from rlu.report.render import (
         atari_median_figure,
         atari_per_game_figure,
         pyplot,
@@ -328,7 +328,7 @@ def test_atari_figures_draw_the_panels_numbers():
 
 def test_task_figure_shows_online_and_offline_groups():
     pytest.importorskip("matplotlib")
-    from rlu.evaluation.report.render import pyplot, tasks_figure
+    from rlu.report.render import pyplot, tasks_figure
     from tests.evaluation.test_report import CONTROL, _layout_problems, records
 
     plt = pyplot()

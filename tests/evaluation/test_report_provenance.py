@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from rlu.evaluation.report import build_report, run_provenance, write_report
+from rlu.report import build_report, run_provenance, write_report
 from rlu.types import RluError
 
 CARTPOLE, STAND = "control_suite/cartpole_swingup", "control_suite/walker_stand"  # online
@@ -29,7 +29,7 @@ def paper(agent: str, discrete: bool):
     """What ``rlu report`` passes to ``write_report`` (the report's package may not import the
     agents): the agent's paper preset, read from its module."""
     pytest.importorskip("torch")
-    from rlu.restore import paper_preset
+    from rlu.report.conditions import paper_preset
 
     return paper_preset(agent, discrete)
 
@@ -279,7 +279,7 @@ def test_no_budget_is_attributed_to_the_paper_that_it_does_not_state(tmp_path):
         "steps'",
     ]
     # the figure's legend of the paper's diamonds: the same source, no budget for the paper
-    from rlu.evaluation.report.render import pyplot, tasks_figure
+    from rlu.report.render import pyplot, tasks_figure
 
     plt = pyplot()
     dom = json.loads((tmp_path / "r" / "report.json").read_text())["domains"]["control_suite"]
@@ -399,7 +399,7 @@ def test_one_provenance_is_spelled_out_once_per_table(tmp_path):
 
 def test_figures_label_the_paper_markers_and_say_what_drew_each_bar():
     pytest.importorskip("matplotlib")
-    from rlu.evaluation.report.render import pyplot, tasks_figure
+    from rlu.report.render import pyplot, tasks_figure
     from tests.evaluation.test_report import _layout_problems
 
     plt = pyplot()

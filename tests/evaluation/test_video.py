@@ -112,8 +112,8 @@ def trained(tmp_path_factory):
     """A (very) short BC run on the shipped cartpole data."""
     pytest.importorskip("torch")
     pytest.importorskip("dm_control")
-    from rlu.settings import RunSettings
-    from rlu.train import TrainConfig, train
+    from rlu.training.config import RunSettings
+    from rlu.training.train import TrainConfig, train
 
     out = tmp_path_factory.mktemp("trained") / "run"
     run = RunSettings(steps=20, eval_every=-1, checkpoint_every=20)

@@ -107,7 +107,7 @@ class Planted:
 def run(tmp_path_factory):
     pytest.importorskip("torch")
     pytest.importorskip("gymnasium")
-    from rlu.train import train
+    from rlu.training.train import train
     from tests.fakes import train_config
     from tests.train.pendulum import write_dataset
 
@@ -157,8 +157,8 @@ HOW = ["python_object", "empty", "truncated", "junk", "a_tensor", "no_agent"]
 def test_damaged_checkpoint(run, tmp_path, how, capsys):
     import shutil
 
-    from rlu.checkpoints import load_state as load_checkpoint
-    from rlu.train import train
+    from rlu.training.checkpoints import load_state as load_checkpoint
+    from rlu.training.train import train
 
     path, cfg = run
     copy = tmp_path / "run"

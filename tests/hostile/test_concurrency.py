@@ -19,7 +19,7 @@ from rlu.data import open_dataset
 from rlu.data.release import families as Fm
 from rlu.data.validate import validate
 from rlu.locks import LockBusy, OutputLock, lock_path
-from rlu.runs import load_results
+from rlu.training.runs import load_results
 from tests.release.test_families import window_record
 
 ROOT = Path(__file__).resolve().parents[2]

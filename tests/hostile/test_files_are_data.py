@@ -41,7 +41,7 @@ def trained(tmp_path_factory):
     """A finished run of the fake agent in the test pendulum (the real loop)."""
     pytest.importorskip("torch")
     pytest.importorskip("gymnasium")
-    from rlu.train import train
+    from rlu.training.train import train
     from tests.fakes import train_config
     from tests.train.pendulum import write_dataset
 

@@ -2,9 +2,9 @@
 to a GiB (one array, every array of an episode, an ``infos`` array), D4RL .hdf5 / .npz files and
 d3rlpy dumps of the same kind, and an export's sidecar whose segment table declares gigabytes.
 Each is ``rlu import`` in its own process; the process's peak resident memory (``VmHWM`` in
-``/proc/self/status``, the peak of its own address space) stays under the 512 MB bar, the command prints one line and
-exits 2, and leaves no dataset behind. A large export stays under the bar too (it streams in
-blocks). bench/hostile_memory.py measures the same commands at 2.5 GiB."""
+``/proc/self/status``, the peak of its own address space) stays under the 512 MB bar, the command
+prints one line and exits 2, and leaves no dataset behind. A large export stays under the bar too
+(it streams in blocks). bench/hostile_memory.py measures the same commands at 2.5 GiB."""
 
 from __future__ import annotations
 

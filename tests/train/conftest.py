@@ -37,7 +37,7 @@ def sweep_config(datasets):
 
 @pytest.fixture(scope="session")
 def local_sweep(pendulum_datasets, tmp_path_factory):
-    from rlu.sweep import sweep
+    from rlu.training.sweep import sweep
 
     out = tmp_path_factory.mktemp("sweep_local")
     from rlu.workers import Backend

@@ -24,7 +24,7 @@ def probe(*args: str) -> subprocess.CompletedProcess:
 
 
 def short_run(tmp_path: Path, agent: str, data: Path) -> Path:
-    from rlu.train import train
+    from rlu.training.train import train
     from tests.fakes import train_config
 
     cfg = train_config(task="test/pendulum", agent=agent, dataset=str(data), steps=3,
@@ -54,7 +54,7 @@ def test_probe_reads_a_d4pg_run_and_refuses_other_runs_and_data(tmp_path):
     # A critic whose logits put all mass on atom 40 values every action at exactly that atom; over
     # all 4 episodes the discounted returns are those of every episode's steps 0, 10, 20, ...
     from rlu.data import open_dataset
-    from rlu.restore import load_agent
+    from rlu.training.restore import load_agent
 
     agent, _ = load_agent(run)
     head = agent.critic.head

@@ -17,7 +17,7 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from rlu.devices import Runtime  # noqa: E402
-from rlu.train import TrainConfig, train  # noqa: E402
+from rlu.training.train import TrainConfig, train  # noqa: E402
 from rlu.types import RluError  # noqa: E402
 from tests.fakes import train_config  # noqa: E402
 
@@ -163,8 +163,8 @@ def _as_if_written_on_a_gpu(src: Path, dst: Path) -> None:
 
 def test_a_gpu_checkpoint_is_evaluated_and_resumed_on_the_cpu(datasets, tmp_path, monkeypatch):
     import rlu.data.views as views
-    from rlu.checkpoints import load_state as load_checkpoint
-    from rlu.restore import evaluate_run, load_agent
+    from rlu.training.checkpoints import load_state as load_checkpoint
+    from rlu.training.restore import evaluate_run, load_agent
 
     if torch.cuda.is_available():
         pytest.skip("this machine has a GPU: the CPU side is what is checked here")

@@ -8,7 +8,7 @@ import json
 
 import pytest
 
-from rlu.train import train
+from rlu.training.train import train
 from rlu.types import RluError
 from tests.fakes import train_config
 
@@ -79,18 +79,18 @@ def test_wandb_offline_run_holds_the_last_metrics(pendulum_datasets, tmp_path, m
     """wandb's own run object (offline) receives every record: its summary, read just before
     the run finishes, holds the last metrics and evaluation; the run's log is on disk."""
     pytest.importorskip("wandb")
-    import rlu.loggers
+    import rlu.training.loggers
 
     monkeypatch.setenv("WANDB_MODE", "offline")
     monkeypatch.setenv("WANDB_SILENT", "true")
     seen = {}
-    flush = rlu.loggers.WandbLogger.flush
+    flush = rlu.training.loggers.WandbLogger.flush
 
     def flush_then_read(self):
         flush(self)
         seen.update({k: self.run.summary[k] for k in self.run.summary.keys()})
 
-    monkeypatch.setattr(rlu.loggers.WandbLogger, "flush", flush_then_read)
+    monkeypatch.setattr(rlu.training.loggers.WandbLogger, "flush", flush_then_read)
     run = tmp_path / "run"
     train(_config(pendulum_datasets["test/pendulum"]), run, loggers=("wandb",))
     last = _jsonl(run / "metrics.jsonl")[-1]

@@ -73,13 +73,14 @@ def test_requests_ray_cannot_serve_are_refused_first(one_gpu_ray):
 
 
 def test_a_sweeps_runs_get_the_gpu_share_they_ask_for(one_gpu_ray, pendulum_datasets, tmp_path):
-    from rlu.sweep import sweep
+    from rlu.training.sweep import sweep
     from rlu.workers import Backend
     from tests.fakes import sweep_config
 
     config = sweep_config(
         tasks=("test/pendulum",), agents=("tests.train.ray_probe_agent",),
-        datasets={"test/pendulum": pendulum_datasets["test/pendulum"]}, seeds=(0, 1), steps=4, eval_episodes=1, eval_envs=1,
+        datasets={"test/pendulum": pendulum_datasets["test/pendulum"]}, seeds=(0, 1), steps=4,
+        eval_episodes=1, eval_envs=1,
         eval_max_steps=5, log_every=1, checkpoint_every=4, max_configs=1,
         env="tests.train.pendulum:make_env", runtime=Runtime(device="auto"),
     )  # fmt: skip

@@ -47,8 +47,8 @@ def synthetic_datasets(tmp_path_factory):
 @pytest.mark.parametrize(("name", "discrete"), sorted(AGENTS), ids=lambda x: str(x))
 def test_loop_runs_and_resumes_exactly(name, discrete, synthetic_datasets, tmp_path, monkeypatch):
     import rlu.data.views as views
-    from rlu.restore import evaluate_run
-    from rlu.train import train
+    from rlu.training.restore import evaluate_run
+    from rlu.training.train import train
     from tests.fakes import train_config
 
     cfg = train_config(

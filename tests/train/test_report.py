@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rlu.evaluation.report import build_report, paper_entry, write_report
+from rlu.report import build_report, paper_entry, write_report
 
 
 def test_report_tables_match_the_run_files(local_sweep, tmp_path):
@@ -115,7 +115,7 @@ def test_paper_numbers_beside_ours():
 def test_paper_number_stays_where_rlu_has_no_cell():
     """A sweep still running, or an agent not run on every task: the paper's column keeps its
     number, and the figure its diamond."""
-    from rlu.evaluation.report import render
+    from rlu.report import render
 
     recs = [
         {"task": t, "agent": a, "config": "c", "seed": 0, "score": v}
@@ -138,7 +138,7 @@ def test_paper_number_stays_where_rlu_has_no_cell():
 def test_iqm_says_how_many_seeds_and_claims_no_interval_from_one():
     """A partial sweep: the IQM is over the seeds every task has; with one seed in common the
     bootstrap has nothing to resample, so no interval is printed (it would be [x, x])."""
-    from rlu.evaluation.report import render
+    from rlu.report import render
 
     cp, ws = "control_suite/cartpole_swingup", "control_suite/walker_stand"
     scores = {(cp, 0): 400.0, (cp, 1): 500.0, (ws, 0): 800.0}
@@ -209,7 +209,7 @@ def test_fqe_selection_over_a_sweep(local_sweep, tmp_path):
     import shutil
 
     from rlu.evaluation.fqe import FQEConfig
-    from rlu.restore import fqe_selection
+    from rlu.training.restore import fqe_selection
 
     sweep_dir = tmp_path / "sweep"
     shutil.copytree(local_sweep[0], sweep_dir)  # fqe.json must not leak into the shared sweep

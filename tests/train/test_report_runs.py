@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rlu.evaluation.report import read_inputs, write_report
+from rlu.report import read_inputs, write_report
 from rlu.types import RluError
 from tests.fakes import train_config
 from tests.train.conftest import AGENTS
@@ -28,7 +28,7 @@ def hand_runs(pendulum_datasets, tmp_path_factory):
     """Three ``rlu train`` runs on test/pendulum: the first agent with seeds 0 and 1, the second
     with seed 0; each evaluated at steps 10, 20 and 30 (its learning curve)."""
     pytest.importorskip("matplotlib")
-    from rlu.train import train
+    from rlu.training.train import train
 
     root = tmp_path_factory.mktemp("hand_runs")
     out = {}
@@ -133,11 +133,12 @@ def test_the_cli_reports_run_folders(hand_runs, tmp_path, capsys):
     assert f"wrote {tmp_path / 'r' / 'report.md'}" in capsys.readouterr().out
     assert main(["report", *runs]) == 2  # several folders: --out
     assert "pass --out" in capsys.readouterr().err
-    # the library's one call is the command's
+    # the library's one call is the command's: rlu.report(paths), also once the report's package
+    # (rlu/report/, which the import binds to the name rlu.report) is imported
     import rlu
-    from rlu.restore import report
+    from rlu.report import report
 
-    assert rlu.report is report
+    assert rlu.report.report is report and callable(rlu.report)
     written = rlu.report(runs, tmp_path / "r2", figures=False)
     assert sorted(p.name for p in written) == ["report.html", "report.json", "report.md"]
     # one run folder: its own report subfolder by default
@@ -229,7 +230,7 @@ def test_fqe_results_hold_null_and_the_report_reads_them_back(local_sweep, tmp_p
     before that, with NaN, is read as null instead of refused as not JSON."""
     pytest.importorskip("jinja2")
     from rlu.evaluation.fqe import FQEConfig
-    from rlu.restore import fqe_selection
+    from rlu.training.restore import fqe_selection
 
     src, _ = local_sweep
     sweep_dir = tmp_path / "sweep"
@@ -268,9 +269,9 @@ def test_report_of_train_runs_and_a_sweep_on_the_bundled_data_in_chromium(tmp_pa
     pytest.importorskip("matplotlib")
     pytest.importorskip("PIL")
     from rlu.data.bundled import bundled_dataset_path
-    from rlu.restore import report
-    from rlu.sweep import sweep
-    from rlu.train import train
+    from rlu.report import report
+    from rlu.training.sweep import sweep
+    from rlu.training.train import train
     from rlu.workers import Backend
     from tests.evaluation.test_report import screenshot
     from tests.fakes import sweep_config

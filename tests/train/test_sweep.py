@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from rlu.runs import load_results
-from rlu.sweep import SweepConfig, expand, results_table, sweep
+from rlu.training.runs import load_results
+from rlu.training.sweep import SweepConfig, expand, results_table, sweep
 from rlu.types import RluError
 from rlu.workers import Backend
 from tests.train.conftest import AGENTS
@@ -96,7 +96,7 @@ def test_an_interrupted_sweep_keeps_the_results_of_its_finished_runs(
 ):
     import shutil
 
-    import rlu.sweep as sweep_module
+    import rlu.training.sweep as sweep_module
 
     out, records = local_sweep
     shutil.copytree(out, tmp_path / "again")

@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rlu.restore import evaluate_run
 from rlu.seeds import derive_seed
-from rlu.train import TrainConfig, parse_overrides, train
+from rlu.training.restore import evaluate_run
+from rlu.training.train import TrainConfig, parse_overrides, train
 from rlu.types import RluError
 from tests.fakes import train_config
 
@@ -184,7 +184,7 @@ def test_eval_at_start_adds_step_0_and_changes_nothing_else(pendulum_datasets, t
     """The option added to prove the run-settings value: one field in RunSettings and its use in
     the loop; its flag and help come from the field."""
     from rlu.cli import build_parser
-    from rlu.settings import RunSettings, from_args
+    from rlu.training.config import RunSettings, from_args
 
     data = pendulum_datasets["test/pendulum"]
     train(_config(data), tmp_path / "plain")

@@ -434,8 +434,9 @@ class DatasetWriter:
             raise RluError(f"{self.dest}: the writer is closed; open a new DatasetWriter")
         parts = Path(rel).parts
         if not is_attachment(rel) or ".." in parts or Path(rel).is_absolute() or "\\" in rel:
+            under = " or ".join(d + "/" for d in ATTACHMENT_DIRS)
             raise RluError(
-                f"attachment {rel!r}: name a file under {' or '.join(d + '/' for d in ATTACHMENT_DIRS)} "
+                f"attachment {rel!r}: name a file under {under} "
                 "(e.g. policies/run_000/checkpoint_00000.npz)"
             )
         dest = self.tmp / rel

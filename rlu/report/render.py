@@ -1,4 +1,4 @@
-"""The rendering of ``rlu report``: the numbers' dict (``rlu.evaluation.report.numbers``) as
+"""The rendering of ``rlu report``: the numbers' dict (``rlu.report.numbers``) as
 Markdown and HTML through Jinja2 templates (``templates/``), and PNG figures through matplotlib.
 
 Each panel of the numbers has one renderer in ``RENDERERS``: ``renderer(dom, domain, figures)``
@@ -1325,7 +1325,7 @@ def render_atari_per_game(
 
 
 def task_selection(task: str) -> str:
-    from rlu.evaluation.report.numbers import task_info
+    from rlu.report.numbers import task_info
 
     return task_info(task)[1]
 
@@ -1613,7 +1613,7 @@ RENDERERS: dict[str, Renderer] = {
     "profiles": render_profiles,
     "improvement": render_improvement,
 }
-"""The renderer of each panel of ``rlu.evaluation.report.numbers.PANELS`` that has one."""
+"""The renderer of each panel of ``rlu.report.numbers.PANELS`` that has one."""
 
 TITLES = {
     "online": "Online policy selection",
@@ -1654,7 +1654,7 @@ def _environment() -> Any:
     except ImportError:
         raise RluError(f"rlu report needs Jinja2: {install_hint('report')}") from None
     env = jinja2.Environment(
-        loader=jinja2.PackageLoader("rlu.evaluation.report", "templates"),
+        loader=jinja2.PackageLoader("rlu.report", "templates"),
         autoescape=jinja2.select_autoescape(enabled_extensions=("html.j2",)),
         trim_blocks=True,
         lstrip_blocks=True,

@@ -1,10 +1,8 @@
 """A finished run, rebuilt from its folder: its agent, its greedy policy, its evaluation,
-offline selection by FQE over a sweep of such runs, and the report of any runs and sweeps
-(``report``: the report's package may not import the agents, so what it needs of their paper
-presets is read here).
+offline selection by FQE over a sweep of such runs.
 
-Everything here reads files (``rlu.runs``: each checked against its shape), so every name those
-files hold is looked up, never imported: the agent in the registry (``rlu.agents``; a module
+Everything here reads files (``rlu.training.runs``: each checked against its shape), so every name
+those files hold is looked up, never imported: the agent in the registry (``rlu.agents``; a module
 path must have been trusted by code or on the command line: ``rlu evaluate RUN --agent
 MODULE``), the task in ``rlu.tasks``. An env factory recorded in a run's config.json is not used
 unless the caller names it again (``--env``). A config that does not build its agent, or a
@@ -19,7 +17,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from rlu import runs
+from rlu.training import runs
 from rlu.types import (
     ArraySpec,
     DiscreteSpec,
@@ -34,7 +32,7 @@ _BUILD_ERRORS = (RuntimeError, ValueError, TypeError, KeyError, OverflowError, M
 def read_run(path: str | os.PathLike) -> tuple[dict[str, Any], Path, Path]:
     """(resolved config, run folder, checkpoint) of a run folder (its newest checkpoint) or of
     one checkpoint file in it, the config checked against its shape."""
-    from rlu.train import TrainConfig
+    from rlu.training.train import TrainConfig
 
     run, ckpt = runs.find_run(path)
     return runs.read_config(run, TrainConfig.shape()), run, ckpt
@@ -74,7 +72,7 @@ def build_agent(resolved: Mapping[str, Any], device: Any = "cpu", what: str = "c
 def load_agent(path: str | os.PathLike, device: Any = "cpu") -> tuple[Any, dict[str, Any]]:
     """(agent restored on ``device`` from a run's newest checkpoint or a given checkpoint,
     resolved config)."""
-    from rlu.checkpoints import load_state
+    from rlu.training.checkpoints import load_state
 
     resolved, run, ckpt = read_run(path)
     agent = build_agent(resolved, device, str(run / runs.CONFIG))
@@ -93,7 +91,7 @@ def load_agent(path: str | os.PathLike, device: Any = "cpu") -> tuple[Any, dict[
 def load_policy(path: str | os.PathLike, device: Any = "cpu") -> tuple[Any, dict[str, Any]]:
     """(greedy policy of a run's newest checkpoint or of a given checkpoint, acting on
     ``device``, resolved config)."""
-    from rlu.train import greedy_policy
+    from rlu.training.train import greedy_policy
 
     agent, resolved = load_agent(path, device)
     return greedy_policy(agent), resolved
@@ -165,45 +163,3 @@ def fqe_selection(
     out = runs.finite_or_none(out)
     runs.write_json(Path(sweep_dir) / runs.FQE, out)
     return out
-
-
-def paper_preset(agent: str, discrete: bool) -> Any:
-    """What the report checks of an agent's ``paper`` preset
-    (``rlu.evaluation.report.PaperPreset``): its learner steps and the paper's grid (None: no
-    such agent, no paper preset, or torch missing, so the agent module cannot be read)."""
-    from rlu.agents import agent_module
-    from rlu.evaluation.report import PaperPreset
-
-    try:
-        module = agent_module(agent, discrete)
-    except (RluError, ImportError):
-        return None
-    config = module.PRESETS.get("paper")
-    if config is None:
-        return None
-    steps = config.atari.num_steps if discrete else config.num_steps
-    return PaperPreset(steps=int(steps), grid={k: tuple(v) for k, v in module.GRID.items()})
-
-
-def report(
-    paths: Any,
-    out: str | os.PathLike | None = None,
-    fqe_steps: int | None = None,
-    device: Any = "cpu",
-    figures: bool = True,
-) -> list[Path]:
-    """Report run folders (``rlu train --out``) and sweep folders (``rlu sweep --out``), any
-    mix, together (``rlu.evaluation.report.write_report``); returns the files written.
-    ``fqe_steps``: first run offline selection by FQE over every sweep (``SWEEP/fqe.json``)
-    with that many FQE steps. ``rlu.report(paths)`` is this function."""
-    from rlu.evaluation.report import check_report_output, write_report
-
-    items = [paths] if isinstance(paths, str | os.PathLike) else list(paths)
-    check_report_output(items, out)  # before FQE: nothing is computed for a refused folder
-    if fqe_steps is not None:
-        from rlu.evaluation.fqe import FQEConfig
-
-        for item in items:
-            if runs.is_sweep(item):
-                fqe_selection(item, FQEConfig(steps=fqe_steps), device)
-    return write_report(items, out, figures=figures, paper=paper_preset)

@@ -1,6 +1,6 @@
 """The report's learning curves: evaluation return against learner steps, per task and agent.
 
-Each run's evaluations come from its eval.jsonl (``rlu.runs.learning_curve``, given to the
+Each run's evaluations come from its eval.jsonl (``rlu.training.runs.learning_curve``, given to the
 report as each record's ``curve``). Per task and agent the curves are those of the configuration
 the task's protocol chose (online policy selection on an online-selection task, naive offline
 selection on an offline-selection one: the configuration of the tables), one line per seed and
@@ -25,7 +25,7 @@ def curves(
     """The ``curves`` panel (``numbers.PANELS``) from the domain's context and, per (task,
     agent), the (configuration, protocol) its cells show; ``Absent`` when no run kept its
     evaluations."""
-    from rlu.evaluation.report.numbers import Absent
+    from rlu.report.numbers import Absent
 
     by_key = {(r["task"], r["agent"], r["config"], int(r["seed"])): r for r in ctx.records}
     tasks = []

@@ -1,13 +1,13 @@
 """The numbers of ``rlu report``: the runs' result records in, one JSON-serialisable dict out.
 
-Pure: no files written, nothing drawn (``rlu.evaluation.report.render`` turns this dict into
+Pure: no files written, nothing drawn (``rlu.report.render`` turns this dict into
 Markdown, HTML and PNG). Per domain, the report holds the domain's ``agents`` and ``tasks``, the
 ``provenance`` of its runs and one entry per *panel*.
 
 ``provenance`` lists every distinct (preset, learner steps, pre-training steps, evaluation
 episodes, data) of the domain's runs (``run_provenance``); every cell, aggregate and bar names
 the entries of the runs behind it (indices into that list) and carries ``conditions``: for
-each condition of the paper's numbers (``rlu.evaluation.report.conditions``: preset, budget,
+each condition of the paper's numbers (``rlu.report.conditions``: preset, budget,
 data, evaluation episodes, seeds, selection) None where it holds, else why not; ``missing``
 names the ones that do not hold and ``comparable`` is true only when none is missing. What the
 report checks of each agent's paper preset comes from the caller (``paper``, ``(agent,
@@ -47,11 +47,11 @@ Each split follows its own protocol (the paper's §2.2 and §4), never mixed:
 - ``iqn_tau`` and ``bcq_threshold`` (the paper's appendix ablations): per value of IQN's
   ``num_tau_samples`` and discrete BCQ's ``threshold``, the median normalised score over the
   tuning games, each game's other hyper-parameters chosen online;
-- ``curves`` (``rlu.evaluation.report.curves``): per task and agent, evaluation return against
+- ``curves`` (``rlu.report.curves``): per task and agent, evaluation return against
   learner steps of the configuration the task's protocol chose, every seed's curve and their
   mean ± sample std at the steps every seed evaluated (from each run's eval.jsonl, given as
   each record's ``curve``);
-- ``profiles`` and ``improvement`` (``rlu.evaluation.report.profiles``: rliable's numbers,
+- ``profiles`` and ``improvement`` (``rlu.report.profiles``: rliable's numbers,
   computed vectorised): per split under its protocol, each agent's performance profile (the
   fraction of its runs scoring above tau) and the probability of improvement of one agent over
   another, both over the tasks every agent of the split has, with 95 % stratified bootstrap
@@ -62,7 +62,7 @@ scores (the paper prints those figures without numbers; its table is the nearest
 
 Adding a panel is one function here, ``panel(ctx: DomainContext) -> dict | Absent | None``
 registered in ``PANELS``, plus one renderer registered under the same name in
-``rlu.evaluation.report.render.RENDERERS``. None: the panel does not apply to this domain;
+``rlu.report.render.RENDERERS``. None: the panel does not apply to this domain;
 ``Absent(reason)``: it applies but the sweep holds no data for it (the report says why in one
 line, ``dom["absent"]``).
 
@@ -84,8 +84,6 @@ import numpy as np
 
 from rlu.evaluation.protocols import Selection, offline_selection_naive, online_selection
 from rlu.evaluation.reference import denominator_flags, random_spread
-from rlu.evaluation.report import conditions as cond
-from rlu.evaluation.report.conditions import PaperPreset
 from rlu.evaluation.scores import (
     domain_statistic,
     load_reference_scores,
@@ -93,6 +91,8 @@ from rlu.evaluation.scores import (
     stratified_bootstrap_ci,
     task_bootstrap_interval,
 )
+from rlu.report import conditions as cond
+from rlu.report.conditions import PaperPreset
 from rlu.types import RluError
 
 # the paper's spelling of task names that differ from ours beyond case and spaces
@@ -190,7 +190,7 @@ imported from another format, synthetic test data, or a record from before runs 
 
 PaperPresets = Callable[[str, bool], "PaperPreset | None"]
 """``(agent, discrete) -> what the report checks of the agent's paper preset`` (None: unknown;
-``rlu.restore.paper_preset``)."""
+``rlu.report.conditions.paper_preset``)."""
 
 
 def run_provenance(record: Mapping[str, Any]) -> dict[str, Any]:
@@ -492,8 +492,8 @@ def atari_per_game_panel(ctx: DomainContext) -> dict[str, Any] | Absent | None:
 
 
 def curves_panel(ctx: DomainContext) -> dict[str, Any] | Absent:
-    """Learning curves of the configurations the tables show (``rlu.evaluation.report.curves``)."""
-    from rlu.evaluation.report.curves import curves
+    """Learning curves of the configurations the tables show (``rlu.report.curves``)."""
+    from rlu.report.curves import curves
 
     chosen = {k: (s.config, "online") for k, s in _online(ctx, ctx.records).items()}
     naive = _naive(ctx, ctx.records)
@@ -516,7 +516,7 @@ def _split_selections(
 
 
 def _rliable_panel(ctx: DomainContext, which: str) -> dict[str, Any] | Absent | None:
-    from rlu.evaluation.report import profiles
+    from rlu.report import profiles
 
     if ctx.domain == "atari" and not ctx.normalised:
         return Absent(_NO_REFERENCE)
@@ -573,7 +573,7 @@ PANELS: dict[str, Panel] = {
     "profiles": profiles_panel,
     "improvement": improvement_panel,
 }
-"""Every panel of a domain, in report order (``rlu.evaluation.report.render`` renders them)."""
+"""Every panel of a domain, in report order (``rlu.report.render`` renders them)."""
 
 _NO_REFERENCE = (
     "Atari scores are compared normalised, and a game of the sweep has no random or "
@@ -828,9 +828,9 @@ def build_report(
     paper: PaperPresets | None = None,
 ) -> dict[str, Any]:
     """Every number of the report (JSON-serialisable), from the runs' result records (a
-    sweep's results.jsonl records, or ``rlu.runs.run_record`` of run folders; a record's
+    sweep's results.jsonl records, or ``rlu.training.runs.run_record`` of run folders; a record's
     ``curve`` is its evaluations, for the learning curves) and, if given, the FQE selections
-    that ``rlu.restore.fqe_selection`` wrote. ``paper(agent, discrete)`` is what the report
+    that ``rlu.training.restore.fqe_selection`` wrote. ``paper(agent, discrete)`` is what the report
     checks of an agent's paper preset (``PaperPreset``); without it no cell is comparable."""
     table = load_paper_results()
     by_domain: dict[str, list[Mapping[str, Any]]] = defaultdict(list)

@@ -29,6 +29,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from rlu.types import RluError
+
 CONDITIONS = ("preset", "budget", "data", "episodes", "seeds", "selection")
 """Every condition, in the order a label names the missing ones."""
 
@@ -38,8 +40,8 @@ RUN_CONDITIONS = ("preset", "budget", "data", "episodes")
 
 @dataclass(frozen=True)
 class PaperPreset:
-    """What the report checks of an agent's ``paper`` preset (``rlu.restore.paper_preset``
-    reads it from the agent module; this package may not import the agents)."""
+    """What the report checks of an agent's ``paper`` preset (:func:`paper_preset` reads it
+    from the agent module)."""
 
     steps: int | None
     """Learner steps of the preset (``num_steps``; Atari: ``atari.num_steps``)."""
@@ -320,3 +322,20 @@ def needs(domain: str, preset_steps: Mapping[str, int | None]) -> dict[str, str]
         "every configuration of the paper's grid on the task; naive offline selection over "
         "comparable runs of every online-selection task of the domain",
     }
+
+
+def paper_preset(agent: str, discrete: bool) -> Any:
+    """What the report checks of an agent's ``paper`` preset
+    (``rlu.report.PaperPreset``): its learner steps and the paper's grid (None: no
+    such agent, no paper preset, or torch missing, so the agent module cannot be read)."""
+    from rlu.agents import agent_module
+
+    try:
+        module = agent_module(agent, discrete)
+    except (RluError, ImportError):
+        return None
+    config = module.PRESETS.get("paper")
+    if config is None:
+        return None
+    steps = config.atari.num_steps if discrete else config.num_steps
+    return PaperPreset(steps=int(steps), grid={k: tuple(v) for k, v in module.GRID.items()})

@@ -1,8 +1,9 @@
 """The one training loop: batch -> agent.update -> periodic evaluation in the env -> logs.
 
 The agent declares its batches (``agent.batch_spec``) and the loop samples exactly those
-(``rlu.data.make_sampler``); the run folder's layout and files belong to ``rlu.runs``; how a run
-is run (preset, budget, evaluation, checkpoints, runtime) is one ``rlu.settings.RunSettings``.
+(``rlu.data.make_sampler``); the run folder's layout and files belong to ``rlu.training.runs``; how
+a run is run (preset, budget, evaluation, checkpoints, runtime) is one
+``rlu.training.config.RunSettings``.
 
 Resume is exact on the CPU: a checkpoint holds the agent's state, the sampler's generator, the
 global torch and numpy generators and the step; on ``resume`` the logs are cut back to the
@@ -37,11 +38,11 @@ from typing import Any
 
 import numpy as np
 
-from rlu import runs
 from rlu.devices import compile_modules, numerics
 from rlu.files import bounds, check_output, shape_of
 from rlu.seeds import derive_seed
-from rlu.settings import RunSettings
+from rlu.training import runs
+from rlu.training.config import RunSettings
 from rlu.types import ArraySpec, DiscreteSpec, RluError, observation_spec_to_json
 
 
@@ -110,7 +111,7 @@ class TrainConfig:
         ``fields`` fill or replace top-level fields (``TrainConfig.from_file("bc.yaml",
         seed=1)``); a module path in the file (a dotted agent, ``run.env``) is refused unless
         ``fields`` names that field (names in files are never imported)."""
-        from rlu.settings import config_from_file
+        from rlu.training.config import config_from_file
 
         return config_from_file(cls, os.fspath(path), fields)
 
@@ -208,7 +209,7 @@ def train(
     loggers: Sequence[str] = (),
 ) -> dict[str, Any]:
     """Train ``config.agent`` on ``config.dataset``; returns the content of ``result.json``.
-    ``loggers``: where the metrics go besides the run's own logs (``rlu.loggers.LOGGERS``).
+    ``loggers``: where the metrics go besides the run's own logs (``rlu.training.loggers.LOGGERS``).
     ``progress``: True shows the steps on stderr (``rlu.progress.Progress``); a
     ``rlu.progress.Relay`` sends them to the process that started this one (a sweep's run).
 
@@ -232,12 +233,12 @@ def _train(
     import torch
 
     from rlu.agents import agent_module
-    from rlu.checkpoints import load_state
     from rlu.data import StreamSampler, load_dataset
     from rlu.data.provenance import data_source
     from rlu.data.torch import prefetched
     from rlu.evaluation.rollout import evaluate, task_env_factory
     from rlu.progress import Progress, Relay
+    from rlu.training.checkpoints import load_state
 
     run = Path(out)
     settings = config.run
@@ -320,7 +321,7 @@ def _train(
     eval_period = settings.eval_period(total)
     if eval_period:
         env_fn = task_env_factory(config.task, settings.env, **env_kwargs)
-    from rlu.loggers import LOGGERS
+    from rlu.training.loggers import LOGGERS
 
     unknown = [n for n in logger_names if n not in LOGGERS]
     if unknown:
@@ -334,7 +335,7 @@ def _train(
     metrics_path, eval_path = run / runs.METRICS, run / runs.EVAL
     for path in (metrics_path, eval_path):  # drop what was logged after the checkpoint
         runs.cut_log(path, start)
-    from rlu.loggers import make_loggers
+    from rlu.training.loggers import make_loggers
 
     loggers = make_loggers(logger_names, run, start, resolved)
 

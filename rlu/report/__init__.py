@@ -7,7 +7,7 @@ number (a pure function of the runs' records, one dict, written as report.json) 
 lays them out (Markdown and HTML through Jinja2 templates, PNG through matplotlib). A new panel
 is one function in ``numbers.PANELS`` and one renderer in ``render.RENDERERS``.
 
-Inputs. A run folder is read from what it recorded (``rlu.runs.run_record``: result.json,
+Inputs. A run folder is read from what it recorded (``rlu.training.runs.run_record``: result.json,
 config.json, eval.jsonl), a sweep from its results.jsonl (and each run's eval.jsonl for the
 curves). Runs are grouped by task, agent, configuration (the label of their overrides) and
 seed. Runs of the same label that differ in what produced them (preset, learner steps, data,
@@ -27,13 +27,15 @@ from __future__ import annotations
 
 import json
 import os
+import sys
+import types
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from rlu import files, runs
-from rlu.evaluation.report.conditions import CONDITIONS, PAPER, PaperPreset
-from rlu.evaluation.report.numbers import (
+from rlu import files
+from rlu.report.conditions import CONDITIONS, PAPER, PaperPreset
+from rlu.report.numbers import (
     DATA_SOURCES,
     PANELS,
     Absent,
@@ -48,6 +50,7 @@ from rlu.evaluation.report.numbers import (
     sample_std,
     task_info,
 )
+from rlu.training import runs
 from rlu.types import RluError
 
 __all__ = [
@@ -246,9 +249,9 @@ def write_report(
     (any mix, reported together); return their paths. ``out`` is the report folder (default
     FOLDER/report for one folder; required with several), checked before anything is read
     further (:func:`check_report_output`). ``paper(agent, discrete)`` is what the report checks
-    of an agent's paper preset (``rlu.restore.paper_preset``: the caller's, since this package
-    does not import the agents); without it no cell is comparable with the paper's numbers."""
-    from rlu.evaluation.report import render
+    of an agent's paper preset (:func:`report` passes ``rlu.report.conditions.paper_preset``,
+    which reads the agent modules); without it no cell is comparable with the paper's numbers."""
+    from rlu.report import render
 
     out = check_report_output(paths, out)
     records, datasets, fqe = read_inputs(paths)
@@ -290,3 +293,39 @@ def _previous_figures(out: Path) -> set[str]:
         and f.count("/") == 1
         and f.endswith(".png")
     }
+
+
+def report(
+    paths: Any,
+    out: str | os.PathLike | None = None,
+    fqe_steps: int | None = None,
+    device: Any = "cpu",
+    figures: bool = True,
+) -> list[Path]:
+    """Report run folders (``rlu train --out``) and sweep folders (``rlu sweep --out``), any
+    mix, together (``rlu.report.write_report``); returns the files written.
+    ``fqe_steps``: first run offline selection by FQE over every sweep (``SWEEP/fqe.json``)
+    with that many FQE steps. ``rlu.report(paths)`` is this function."""
+    from rlu.report.conditions import paper_preset
+    from rlu.training.restore import fqe_selection
+
+    items = [paths] if isinstance(paths, str | os.PathLike) else list(paths)
+    check_report_output(items, out)  # before FQE: nothing is computed for a refused folder
+    if fqe_steps is not None:
+        from rlu.evaluation.fqe import FQEConfig
+
+        for item in items:
+            if runs.is_sweep(item):
+                fqe_selection(item, FQEConfig(steps=fqe_steps), device)
+    return write_report(items, out, figures=figures, paper=paper_preset)
+
+
+class _CallableModule(types.ModuleType):
+    """``rlu.report(paths)`` calls :func:`report` also once this package is imported (the
+    import binds the name ``rlu.report`` to the package)."""
+
+    def __call__(self, *args: Any, **kwargs: Any) -> list[Path]:
+        return report(*args, **kwargs)
+
+
+sys.modules[__name__].__class__ = _CallableModule

@@ -23,7 +23,7 @@ file or the new one; the ``.jsonl`` logs are appended line by line and cut back 
 checkpoint on resume (a torn last line is dropped). Every file is read through ``rlu.files``
 against the shape below: a file of the wrong shape is one FormatError naming it, the field and
 the fix, before any of its values is used. Rebuilding a finished run as an agent, a policy or
-an evaluation is ``rlu.restore``'s.
+an evaluation is ``rlu.training.restore``'s.
 """
 
 from __future__ import annotations
@@ -35,8 +35,8 @@ from pathlib import Path
 from typing import Any
 
 from rlu import files
-from rlu.checkpoints import save_state
 from rlu.files import AnyJSON, Float, Int, ListOf, MapOf, Optional, Record, Shape, Str
+from rlu.training.checkpoints import save_state
 from rlu.types import FormatError, RluError
 
 CONFIG = "config.json"
@@ -82,7 +82,7 @@ class _Spec(Shape):
 
 def run_config_shape(train_shape: Shape) -> Record:
     """The shape of a run's config.json; ``train_shape`` is ``rlu.files.shape_of(TrainConfig)``
-    (given by rlu.train, which owns that config)."""
+    (given by rlu.training.train, which owns that config)."""
     return Record(
         {
             "train": train_shape,
@@ -154,7 +154,7 @@ RUN_FACTS = Record(
         "dataset": Record({"path": Str(), "num_steps": Int(min=0)}),
     }
 )
-"""What a report reads of a run's config.json (the rest is ``rlu.train``'s to check)."""
+"""What a report reads of a run's config.json (the rest is ``rlu.training.train``'s to check)."""
 
 
 # --- run folders ----------------------------------------------------------------------------

@@ -1,4 +1,5 @@
-"""Sweeps: tasks x agents x the paper's hyper-parameter grids x seeds, one ``rlu.train`` run each.
+"""Sweeps: tasks x agents x the paper's hyper-parameter grids x seeds, one ``rlu.training.train``
+run each.
 
 Runs go to ``OUT/<task>/<agent>/<config>/seed_<s>``; a run whose ``result.json`` exists is
 skipped, so running a sweep again finishes only what is missing (an interrupted run resumes from
@@ -8,7 +9,7 @@ seeds and torch thread count, so both backends give the same numbers. ``OUT/resu
 holds one record per finished run (task, agent, config, overrides, seed, score, run folder),
 sorted, rewritten as each run finishes: ``rlu report`` reads a sweep in progress or interrupted.
 
-Every run is run by ``SweepConfig.run`` (an ``rlu.settings.RunSettings``: preset, budget,
+Every run is run by ``SweepConfig.run`` (an ``rlu.training.config.RunSettings``: preset, budget,
 evaluation, checkpoints; its runtime: device, precision, data path); each run's record in
 results.jsonl says what produced its score (preset, steps, data source, evaluation episodes).
 Runs are spread by the one runner (``rlu.workers.run_jobs``). On Ray a run asks for one CPU and
@@ -28,11 +29,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from rlu import runs
 from rlu.devices import check_ray_gpus
 from rlu.files import bounds, check_output, make_folder, shape_of
-from rlu.loggers import LOGGERS
-from rlu.settings import RunSettings
+from rlu.training import runs
+from rlu.training.config import RunSettings
+from rlu.training.loggers import LOGGERS
 from rlu.types import DiscreteSpec, RluError
 from rlu.workers import Backend, run_jobs
 
@@ -73,7 +74,7 @@ class SweepConfig:
         RunSettings'), or a sweep folder's sweep.json; ``fields`` fill or replace top-level
         fields. A module path in the file (a dotted agent, ``run.env``) is refused unless
         ``fields`` names that field (names in files are never imported)."""
-        from rlu.settings import config_from_file
+        from rlu.training.config import config_from_file
 
         return config_from_file(cls, os.fspath(path), fields)
 
@@ -122,7 +123,7 @@ def expand(config: SweepConfig, out: str | os.PathLike) -> list[RunSpec]:
     agents (or the env factory) is imported here: the config came from code or the command
     line, never from a file."""
     from rlu.data import open_dataset
-    from rlu.train import trust
+    from rlu.training.train import trust
 
     for agent in config.agents:
         trust(agent, config.run.env)
@@ -156,7 +157,7 @@ def run_one(spec: RunSpec, config: SweepConfig) -> dict[str, Any]:
     """Train one run (resuming or skipping it if it exists) and return its result record; its
     steps go to the sweep's display as they are done (``rlu.progress.Relay``)."""
     from rlu.progress import Relay
-    from rlu.train import TrainConfig, train
+    from rlu.training.train import TrainConfig, train
 
     run = Path(spec.run_dir)
     if (run / runs.RESULT).exists():

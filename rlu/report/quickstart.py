@@ -144,7 +144,7 @@ def _figure(
     if importlib.util.find_spec("matplotlib") is None:
         print(f"  (no figure: it needs matplotlib, {install_hint('report')})")
         return None
-    from rlu.evaluation.report.render import pyplot, quickstart_figure
+    from rlu.report.render import pyplot, quickstart_figure
 
     plt = pyplot()
     title = f"rlu quickstart: {task_id}, policies beside the dataset's episode returns"

@@ -2,10 +2,10 @@
 
 :class:`RunSettings` holds everything about a run that is not *what* it trains (task, agent,
 dataset, seed, agent overrides): preset, budget, evaluation, logging, checkpoints, the env
-factory, threads and the runtime (``rlu.devices.Runtime``). ``rlu.train.TrainConfig`` composes
-it; ``rlu.sweep.SweepConfig`` holds one as the template of every run; the quick start builds
-one. A new training option is one field here: its flag, type check, range check and help text
-come from the field (:func:`add_options`, :func:`from_args`), its JSON check in a run's
+factory, threads and the runtime (``rlu.devices.Runtime``). ``rlu.training.train.TrainConfig``
+composes it; ``rlu.training.sweep.SweepConfig`` holds one as the template of every run; the quick
+start builds one. A new training option is one field here: its flag, type check, range check and
+help text come from the field (:func:`add_options`, :func:`from_args`), its JSON check in a run's
 config.json from the same field (``rlu.files.shape_of``).
 
 A field's metadata may hold ``min`` / ``max`` / ``choices`` (checked by the parser and in files),
