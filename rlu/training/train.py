@@ -1,4 +1,7 @@
 """The one training loop: batch -> agent.update -> periodic evaluation in the env -> logs.
+Three steps: ``rlu.training.prepare`` checks and resolves a ``TrainConfig`` (nothing written),
+``rlu.training.loop`` builds the agent and runs the loop; this module holds the config and the
+entry point, ``train``.
 
 The agent declares its batches (``agent.batch_spec``) and the loop samples exactly those
 (``rlu.data.make_sampler``); the run folder's layout and files belong to ``rlu.training.runs``; how
@@ -26,24 +29,19 @@ Agents are built by name through ``rlu.agents``; a dotted module path in a ``Tra
 from __future__ import annotations
 
 import ast
-import contextlib
 import dataclasses
 import json
 import os
 from collections.abc import Mapping, Sequence
-from contextlib import nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from rlu.devices import compile_modules, numerics
-from rlu.files import bounds, check_output, shape_of
-from rlu.seeds import derive_seed
-from rlu.training import runs
+from rlu.files import bounds, shape_of
 from rlu.training.config import RunSettings
-from rlu.types import ArraySpec, DiscreteSpec, RluError, observation_spec_to_json
+from rlu.types import ArraySpec, RluError
 
 
 @dataclass(frozen=True)
@@ -230,221 +228,17 @@ def _train(
     progress: bool | Any,
     logger_names: tuple[str, ...],
 ) -> dict[str, Any]:
-    import torch
+    from rlu.training.loop import build, result_of, run_loop, start_folder
+    from rlu.training.prepare import prepare
 
-    from rlu.agents import agent_module
-    from rlu.data import StreamSampler, load_dataset
-    from rlu.data.provenance import data_source
-    from rlu.data.torch import prefetched
-    from rlu.evaluation.rollout import evaluate, task_env_factory
-    from rlu.progress import Progress, Relay
-    from rlu.training.checkpoints import load_state
-
-    run = Path(out)
-    settings = config.run
-    runtime = settings.runtime.resolve()
-    # a task id, a TFDS name or a folder: the one resolver, once per dataset
-    opened = [load_dataset(name) for name in config.datasets()]
-    ds = opened[0]  # the evaluation task's; a mixture's others share its schema
-    check_output(run, [d.path for d in opened], runs.CONFIG, "run folder")
-    obs_spec, action_spec = dataset_specs(ds)
-    discrete = isinstance(action_spec, DiscreteSpec)
-    agent_cfg = agent_config(config.agent, discrete, settings.preset, config.overrides)
-    env_kwargs = env_settings(config.task, ds, settings.challenge)
-    if settings.env is None:
-        from rlu.tasks import check_data_matches
-
-        # an unknown task, or data of another task, fails here: before the run folder is touched
-        check_data_matches(
-            config.task,
-            obs_spec,
-            action_spec,
-            f"dataset {ds.path}",
-            ds.schema.task_id,
-            env_kwargs.get("challenge", "none"),
-        )
-    resolved = {
-        "train": dataclasses.replace(
-            config, run=dataclasses.replace(settings, runtime=runtime)
-        ).to_json(),
-        "env_settings": env_kwargs,
-        "agent_config": _jsonable(agent_cfg),
-        "observation_spec": observation_spec_to_json(obs_spec),
-        "action_spec": action_spec.to_json(),
-        "dataset": {"path": str(Path(ds.path).resolve()), "num_steps": int(ds.num_steps)},
-    }
-    if len(opened) > 1:  # the first one's path and steps above, every one's here
-        resolved["dataset"]["mixture"] = {
-            "paths": [str(Path(d.path).resolve()) for d in opened],
-            "num_steps": [int(d.num_steps) for d in opened],
-        }
-    ckpts = runs.checkpoints(run)
-    if run.exists() and (run / runs.CONFIG).exists():
-        if not resume:
-            raise RluError(
-                f"{run} already holds a run; pass --resume to continue it or choose a new --out"
-            )
-        old = runs.read_config(run, TrainConfig.shape())
-        if comparable(old) != comparable(resolved):
-            raise RluError(
-                f"{run}/{runs.CONFIG} was written by a different configuration; resume with the "
-                "same arguments or choose a new --out"
-            )
-        if (run / runs.RESULT).exists():  # finished: nothing left to do
-            return runs.read_result(run)
-
-    torch.set_num_threads(settings.torch_threads)
-    torch.manual_seed(config.seed)
-    np.random.seed(config.seed % 2**32)
-    module = agent_module(config.agent, discrete)
-    agent = module.Agent(obs_spec, action_spec, agent_cfg, seed=config.seed, device=runtime.device)
-    sampler = _sampler(config, opened, agent.batch_spec, runtime)
-    steps = agent.num_steps if settings.steps is None else int(settings.steps)
-    total = agent.pretrain_steps + steps  # a pre-training phase comes on top of the budget
-
-    if agent.batch_spec.statistics and len(opened) > 1:
-        raise RluError(
-            f"agent {config.agent} normalises by statistics of its dataset "
-            f"({', '.join(agent.batch_spec.statistics)}); train it on one dataset"
-        )
-    if agent.batch_spec.statistics:  # computed from the whole dataset, once, before any update
-        from rlu.data.statistics import dataset_statistics
-
-        agent.set_statistics(dataset_statistics(ds, agent.batch_spec.statistics))
-    start = 0
-    if resume and ckpts:
-        state = load_state(ckpts[-1], ("agent", "sampler", "torch_rng", "numpy_rng", "step"))
-        start = _restore(ckpts[-1], state, agent, sampler, total)
-    # resolved before the first step (a missing rlu.envs fails fast); a run that never evaluates
-    # needs no env
-    env_fn = None
-    eval_period = settings.eval_period(total)
-    if eval_period:
-        env_fn = task_env_factory(config.task, settings.env, **env_kwargs)
-    from rlu.training.loggers import LOGGERS
-
-    unknown = [n for n in logger_names if n not in LOGGERS]
-    if unknown:
-        raise RluError(f"logger {unknown[0]!r}; loggers are {', '.join(LOGGERS)}")
-
+    prepared = prepare(config, Path(out), resume)
+    if prepared.finished is not None:  # a finished run resumed: nothing left to do
+        return prepared.finished
+    built = build(prepared, logger_names)
     # everything that can fail before the first step has run: only now is the run folder written
-    run.mkdir(parents=True, exist_ok=True)
-    runs.clear_temporary(run)
-    runs.write_json(run / runs.CONFIG, resolved)  # first: a folder with files has its config
-    (run / runs.CHECKPOINTS).mkdir(exist_ok=True)
-    metrics_path, eval_path = run / runs.METRICS, run / runs.EVAL
-    for path in (metrics_path, eval_path):  # drop what was logged after the checkpoint
-        runs.cut_log(path, start)
-    from rlu.training.loggers import make_loggers
-
-    loggers = make_loggers(logger_names, run, start, resolved)
-
-    if runtime.compile:
-        compile_modules(agent.modules)
-    policy = greedy_policy(agent)
-
-    def evaluate_at(step: int) -> dict[str, Any]:
-        result = evaluate(
-            policy,
-            env_fn,
-            settings.eval_episodes,
-            seed=derive_seed(config.seed, step),  # stream `step` of the run seed
-            num_envs=settings.eval_envs,
-            max_steps=settings.eval_max_steps,
-        )
-        record = {"step": step, **result.to_json()}
-        elog.write(json.dumps(record) + "\n")
-        elog.flush()
-        for logger in loggers:
-            logger.log("eval", record)
-        bar.set_postfix(eval=f"{result.mean:.1f}")
-        return record
-
-    if isinstance(progress, Relay):
-        display: Any = progress.start(total, initial=start)
-    else:
-        desc = f"train {config.agent}"
-        display = Progress(total, desc, "steps", quiet=not progress, initial=start)
-    with (
-        display as bar,
-        runs.append_log(metrics_path) as mlog,
-        runs.append_log(eval_path) as elog,
-        numerics(runtime) as update_context,
-        contextlib.closing(sampler) if isinstance(sampler, StreamSampler) else nullcontext(),
-        prefetched(sampler, runtime.device, runtime.prefetch) as batches,
-    ):
-        if eval_period and settings.eval_at_start and start == 0:
-            evaluate_at(0)
-        for step in range(start + 1, total + 1):
-            with update_context():
-                metrics = agent.update(batches.sample())
-            if step % settings.log_every == 0 or step == total:
-                rec = {"step": step, **{k: float(v) for k, v in metrics.items()}}
-                mlog.write(json.dumps(rec) + "\n")
-                mlog.flush()
-                for logger in loggers:
-                    logger.log("metrics", rec)
-            if eval_period and (step % eval_period == 0 or step == total):
-                evaluate_at(step)
-            if step % settings.checkpoint_every == 0 or step == total:
-                alg, keys, pos, has_gauss, cached = np.random.get_state()
-                state = {
-                    "step": step,
-                    "agent": agent.state_dict(),
-                    "sampler": batches.get_state(),
-                    "torch_rng": torch.get_rng_state(),
-                    "numpy_rng": [alg, keys.tolist(), int(pos), int(has_gauss), float(cached)],
-                }
-                runs.save_checkpoint(run, step, state, settings.keep_checkpoints)
-            bar.update(1)
-    for logger in loggers:
-        logger.close()
-    evals = runs.read_log(eval_path, total)
-    result = {
-        "task": config.task,
-        "agent": config.agent,
-        "seed": config.seed,
-        "preset": settings.preset,
-        "steps": steps,
-        "pretrain_steps": total - steps,
-        "eval_episodes": settings.eval_episodes,
-        "data": data_source(ds.manifest),
-        "env_settings": env_kwargs,
-        "final_eval": evals[-1] if evals else None,
-        "score": evals[-1]["mean"] if evals else None,
-    }
-    runs.write_json(run / runs.RESULT, result)
-    return result
-
-
-def _sampler(config: TrainConfig, datasets: list[Any], spec: Any, runtime: Any) -> Any:
-    """The run's batch source (``RunSettings.sampler``): uniform from the one dataset (on the
-    device with ``--data-on-device``), or streamed from one or several."""
-    from rlu.data import StreamSampler, make_sampler
-    from rlu.data.torch import DeviceSampler
-
-    settings = config.run
-    kind = settings.sampler
-    if kind == "auto":
-        kind = "stream" if len(datasets) > 1 else "uniform"
-    if kind == "uniform" and len(datasets) > 1:
-        raise RluError(
-            f"{len(datasets)} datasets: a mixture is streamed; use --sampler stream (or auto)"
-        )
-    if kind == "stream":
-        if runtime.data_on_device:
-            raise RluError(
-                "--data-on-device holds one dataset on the device for uniform batches; drop it "
-                "to stream (--sampler stream: its batches are prefetched)"
-            )
-        return StreamSampler(datasets, spec, config.seed, config.weights,
-                             memory=settings.stream_memory << 20,
-                             reuse=settings.stream_reuse)  # fmt: skip
-    if config.weights is not None:
-        raise RluError("--weights weigh the datasets of a mixture; one dataset needs none")
-    if runtime.data_on_device:  # a dataset that does not fit fails here, before any writing
-        return DeviceSampler(datasets[0], spec, config.seed, runtime.device)
-    return make_sampler(datasets[0], spec, seed=config.seed)
+    loggers = start_folder(prepared, built, logger_names)
+    run_loop(prepared, built, loggers, progress)
+    return result_of(prepared, built)
 
 
 def greedy_policy(agent: Any) -> Any:
@@ -457,36 +251,3 @@ def greedy_policy(agent: Any) -> Any:
         return agent.act(observation, greedy=True, is_first=is_first, reward=reward)
 
     return policy
-
-
-def _restore(path: Path, state: Mapping[str, Any], agent: Any, sampler: Any, total: int) -> int:
-    """Load a checkpoint's state into the agent, the sampler and the global generators; returns
-    its step. A checkpoint of another agent, of other shapes or with garbage generator states is
-    a FormatError naming the file."""
-    import torch
-
-    from rlu.types import FormatError
-
-    fix = "resume from a checkpoint this run wrote, or train into a new --out"
-    step = state["step"]
-    if isinstance(step, bool) or not isinstance(step, int) or not 0 <= step <= total:
-        raise FormatError(f"{path}: entry 'step' is {step!r}, not a step of this run; {fix}")
-    try:
-        agent.load_state_dict(state["agent"])
-    except (RuntimeError, KeyError, ValueError, TypeError, AttributeError) as e:
-        why = str(e).splitlines()[0][:200] if str(e) else type(e).__name__
-        raise FormatError(
-            f"{path}: its agent state does not fit this agent ({why}); {fix}"
-        ) from None  # noqa: E501
-    try:
-        sampler.set_state(state["sampler"])
-        torch.set_rng_state(state["torch_rng"])
-        alg, keys, pos, has_gauss, cached = state["numpy_rng"]
-        keys = np.asarray(keys, np.uint32)
-        np.random.set_state((alg, keys, int(pos), int(has_gauss), float(cached)))
-    except (RuntimeError, KeyError, ValueError, TypeError, AttributeError, OverflowError) as e:
-        why = str(e).splitlines()[0][:200] if str(e) else type(e).__name__
-        raise FormatError(
-            f"{path}: its sampler or generator state is damaged ({why}); {fix}"
-        ) from None  # noqa: E501
-    return step
