@@ -130,8 +130,9 @@ def _gzip_chunks(f: BinaryIO, path: str) -> Iterator[bytes | bytearray]:
     """
     from rlu.data.inflate import WHOLE_GZIP_MAX, gunzip_whole, gzip_decompressobj, gzip_errors
 
-    if 0 < os.fstat(f.fileno()).st_size <= WHOLE_GZIP_MAX:  # one call of the fastest inflater
-        whole = gunzip_whole(f.read(WHOLE_GZIP_MAX + 1))
+    size = os.fstat(f.fileno()).st_size
+    if 0 < size <= WHOLE_GZIP_MAX:  # one call of the fastest inflater
+        whole = gunzip_whole(f.read(size + 1))  # the file's size: no 64 MiB buffer to shrink
         if whole is not None:
             yield whole  # framed in place, in batches of about CHUNK bytes
             return
@@ -475,8 +476,10 @@ class RecordReader:
                     eq = (block == last).all(1)
                 run = len(eq) if eq.all() else int(np.argmin(eq))
                 if run:
-                    starts.extend(range(pos, pos + run * stride, stride))
-                    lengths.extend([length] * run)
+                    if starts:  # the records before the block, in order
+                        self._payloads(buf, u, starts, lengths, base, out, offsets)
+                        starts, lengths = [], []
+                    self._block(u, pos, run, length, base, out, offsets)
                     pos += run * stride
                     if pos >= end:
                         more = True
@@ -512,6 +515,51 @@ class RecordReader:
             self.stats.skipped -= 1  # no record was lost, only the stream's end
         return out, offsets, pos, skipping, need, False
 
+    def _block(
+        self,
+        u: np.ndarray,
+        pos: int,
+        run: int,
+        length: int,
+        base: int,
+        out: list[bytes],
+        offsets: list[int],
+    ) -> None:
+        """Append the ``run`` records of ``length`` bytes at ``u[pos:]`` (their headers checked)
+        to ``out``: their payloads copied out as one block, then sliced from it as bytes."""
+        stride = length + 16
+        rows = u[pos : pos + run * stride].reshape(run, stride)
+        if length:
+            joined = rows[:, 12 : 12 + length].tobytes()
+            payloads = [joined[i : i + length] for i in range(0, run * length, length)]
+        else:
+            payloads = [b""] * run
+        where = list(range(base + pos, base + pos + run * stride, stride))
+        if self.verify:
+            got = np.fromiter(map(_crc32c_fn(), payloads), np.uint32, run)
+            got = ((got >> np.uint32(15)) | (got << np.uint32(17))) + np.uint32(_MASK_DELTA)
+            want = rows[:, 12 + length :].copy().view("<u4")[:, 0]
+            bad = np.flatnonzero(got != want)
+            if bad.size:
+                payloads, where = self._drop(payloads, where, bad)
+        out.extend(payloads)
+        offsets.extend(where)
+
+    def _drop(
+        self, payloads: list[bytes], where: list[int], bad: np.ndarray
+    ) -> tuple[list[bytes], list[int]]:
+        """``payloads`` and ``where`` without the records at ``bad`` (payload CRC mismatches),
+        each reported: the first raises in the default mode."""
+        for i in bad.tolist():
+            self._bad(where[i], "payload CRC mismatch")
+        keep = np.ones(len(payloads), bool)
+        keep[bad] = False
+        k = keep.tolist()
+        return (
+            [q for q, ok in zip(payloads, k, strict=True) if ok],
+            [o for o, ok in zip(where, k, strict=True) if ok],
+        )
+
     def _payloads(
         self,
         buf: bytes | bytearray,
@@ -540,13 +588,7 @@ class RecordReader:
             want = u[tail[:, None] + np.arange(4)].view("<u4")[:, 0]
             bad = np.flatnonzero(got != want)
             if bad.size:
-                for i in bad.tolist():  # raises on the first in the default mode
-                    self._bad(where[i], "payload CRC mismatch")
-                keep = np.ones(len(payloads), bool)
-                keep[bad] = False
-                k = keep.tolist()
-                payloads = [q for q, ok in zip(payloads, k, strict=True) if ok]
-                where = [o for o, ok in zip(where, k, strict=True) if ok]
+                payloads, where = self._drop(payloads, where, bad)
         out.extend(payloads)
         offsets.extend(where)
 
