@@ -217,3 +217,94 @@ def test_crc_mismatch_inside_a_run_of_equal_lengths(tmp_path):
         list(F.read_records(path))
     r = F.RecordReader(path, on_error="skip")
     assert list(r) == payloads[:33] + payloads[34:] and r.stats.skipped == 1
+
+
+def _reference(stream: bytes, plain: bool) -> tuple[list[bytes], list[int], list[int]]:
+    """Record by record, the framing rules written plainly: (payloads, their offsets, the offsets
+    of the damage skipped). A bad header resynchronises on the next offset holding a length
+    within the limit, a non-zero CRC and that CRC; a record past the end of a plain file is a bad
+    header; at the end of a gzip stream it is a truncated record, and reading stops."""
+    out, at, bad = [], [], []
+    pos, n = 0, len(stream)
+
+    def header_ok(o: int) -> bool:
+        (length,) = struct.unpack_from("<Q", stream, o)
+        crc = stream[o + 8 : o + 12]
+        return (
+            length <= F.MAX_RECORD_BYTES
+            and crc != b"\0\0\0\0"
+            and crc == struct.pack("<I", F.masked_crc32c(stream[o : o + 8]))
+        )
+
+    skipping = False
+    while pos < n:
+        if skipping:
+            while pos <= n - 12 and not header_ok(pos):
+                pos += 1
+            if pos > n - 12:
+                return out, at, bad
+            skipping = False
+        if n - pos < 12:
+            bad.append(pos)
+            return out, at, bad
+        (length,) = struct.unpack_from("<Q", stream, pos)
+        crc = stream[pos + 8 : pos + 12]
+        if crc != struct.pack("<I", F.masked_crc32c(stream[pos : pos + 8])) or (
+            length > F.MAX_RECORD_BYTES or (plain and pos + length + 16 > n)
+        ):
+            bad.append(pos)
+            skipping, pos = True, pos + 1
+            continue
+        if pos + length + 16 > n:
+            bad.append(pos)
+            return out, at, bad
+        payload = stream[pos + 12 : pos + 12 + length]
+        if stream[pos + 12 + length : pos + 16 + length] == struct.pack(
+            "<I", F.masked_crc32c(payload)
+        ):
+            out.append(payload)
+            at.append(pos)
+        else:
+            bad.append(pos)
+        pos += length + 16
+    return out, at, bad
+
+
+@pytest.mark.parametrize("chunk", [7, 61, 500, 1 << 22])
+def test_damage_read_as_the_plain_rules_read_it(tmp_path, monkeypatch, chunk):
+    """The framer (chunks framed in place, a straddling record joined with the next chunk's
+    start, runs of equal headers taken as blocks) against the rules written record by record:
+    the same payloads, offsets and skipped damage in every chunking, and in the default mode
+    the error at the first damage."""
+    import random
+
+    monkeypatch.setattr(F, "CHUNK", chunk)
+    r = random.Random(chunk)
+    payloads = [bytes([i % 256]) * (40 if i % 50 < 35 else r.randrange(300)) for i in range(150)]
+    clean = b"".join(F.frame(p) for p in payloads)
+    for trial in range(12):
+        data = bytearray(clean)
+        for _ in range(1 + trial % 3):
+            data[r.randrange(len(data))] ^= 1 << r.randrange(8)
+        if trial % 4 == 3:
+            del data[r.randrange(len(data) // 2, len(data)) :]
+        stream = bytes(data)
+        for gz in (False, True):
+            path = tmp_path / f"d{trial}{gz}"
+            path.write_bytes(gzip.compress(stream) if gz else stream)
+            want, want_at, want_bad = _reference(stream, plain=not gz)
+            rd = F.RecordReader(path, on_error="skip")
+            got, got_at = [], []
+            for batch, offsets in rd.batches_with_offsets():
+                got.extend(batch)
+                got_at.extend(offsets)
+                assert all(type(p) is bytes for p in batch)
+            assert got == want and got_at == want_at, (trial, gz)
+            assert rd.stats.skipped == len(want_bad), (trial, gz, rd.stats.errors)
+            assert rd.stats.records == len(want)
+            if want_bad:
+                with pytest.raises(F.RecordError) as e:
+                    list(F.RecordReader(path))
+                assert e.value.offset == want_bad[0] and e.value.path == str(path)
+            else:
+                assert list(F.RecordReader(path)) == want

@@ -5,16 +5,20 @@ A TFRecord file is a concatenation of records, each ``uint64 length (LE)``,
 masked_crc32c(payload)`` (docs/release_format.md §1.1). The release gzips whole files (every family
 but RWRL); the reader sniffs the gzip magic ``1F 8B`` rather than trusting a file name.
 
-Reading streams in constant memory: the file is inflated in chunks of ``CHUNK`` bytes and records
-are cut from a rolling buffer. Both CRCs are verified by default. Any damage (CRC mismatch,
-truncated record, cut or corrupt gzip stream) raises one :class:`RecordError` naming the file and
-the byte offset of the record in the (decompressed) record stream; ``on_error="skip"`` instead
-drops bad records, resynchronises on the next valid header and counts what it skipped in
-:class:`ReadStats`.
+Reading streams in constant memory: the file is inflated in chunks of ``CHUNK`` bytes (or, for
+one gzip member of at most ``rlu.data.inflate.WHOLE_GZIP_MAX`` inflated bytes, in one call of
+libdeflate) and records are cut from each chunk in place, in batches of about ``CHUNK`` bytes;
+only a record that straddles two chunks is copied to be joined. Both CRCs are verified by
+default. Any damage (CRC mismatch, truncated record, cut or corrupt gzip stream) raises one
+:class:`RecordError` naming the file and the byte offset of the record in the (decompressed)
+record stream; ``on_error="skip"`` instead drops bad records, resynchronises on the next valid
+header and counts what it skipped in :class:`ReadStats`.
 
-Runs of records of equal length (control-suite and locomotion windows) are framed with numpy: the
-length and its CRC are compared as columns of a strided view, so the per-record Python work is one
-C call for the payload CRC.
+The per-record Python work is small: one ``struct.unpack_from`` of the header and a dict lookup
+of its length's CRC, one slice for the payload; the payload CRCs of a batch are one ``map`` of the
+C-backed CRC-32C, masked and compared as an array. Runs of records of equal length
+(control-suite and locomotion windows) are found as blocks: their headers compared as rows of a
+strided view.
 """
 
 from __future__ import annotations
@@ -112,7 +116,7 @@ def is_gzip(path: str | os.PathLike) -> bool:
         return f.read(2) == GZIP_MAGIC
 
 
-def _gzip_chunks(f: BinaryIO, path: str) -> Iterator[bytes]:
+def _gzip_chunks(f: BinaryIO, path: str) -> Iterator[bytes | bytearray]:
     """Inflate a gzip file (one or more members) chunk by chunk; cut or corrupt streams raise.
 
     Every call to inflate is capped at ``CHUNK`` bytes of output (input it cannot take yet waits in
@@ -126,12 +130,11 @@ def _gzip_chunks(f: BinaryIO, path: str) -> Iterator[bytes]:
     """
     from rlu.data.inflate import WHOLE_GZIP_MAX, gunzip_whole, gzip_decompressobj, gzip_errors
 
-    if 0 < os.fstat(f.fileno()).st_size <= WHOLE_GZIP_MAX:  # one call of the fastest inflater
-        whole = gunzip_whole(f.read(WHOLE_GZIP_MAX + 1))
+    size = os.fstat(f.fileno()).st_size
+    if 0 < size <= WHOLE_GZIP_MAX:  # one call of the fastest inflater
+        whole = gunzip_whole(f.read(size + 1))  # the file's size: no 64 MiB buffer to shrink
         if whole is not None:
-            view = memoryview(whole)
-            for i in range(0, len(whole), CHUNK):
-                yield view[i : i + CHUNK].tobytes()
+            yield whole  # framed in place, in batches of about CHUNK bytes
             return
         f.seek(0)  # several members, damage, or no libdeflate: the streaming path decides
     errors = gzip_errors()
@@ -262,18 +265,17 @@ class RecordReader:
         self.compression = compression
         self.prefetch = prefetch
         self.stats = ReadStats()
-        self._len_crc: dict[int, bytes] = {}
+        self._len_crc: dict[int, int] = {}
 
     def __iter__(self) -> Iterator[bytes]:
         for batch in self.batches():
             yield from batch
 
-    def _header_crc(self, header: bytes) -> bytes:
-        got = self._len_crc.get(header)  # type: ignore[call-overload]
-        if got is None:
-            got = _U32.pack(masked_crc32c(header))
-            if len(self._len_crc) < 4096:
-                self._len_crc[header] = got  # type: ignore[index]
+    def _header_crc(self, length: int) -> int:
+        """The masked CRC-32C of the header of a ``length``-byte record (kept for 4096 lengths)."""
+        got = mask(crc32c(struct.pack("<Q", length)))
+        if len(self._len_crc) < 4096:
+            self._len_crc[length] = got
         return got
 
     def _bad(self, offset: int, what: str) -> None:
@@ -281,10 +283,6 @@ class RecordReader:
             raise RecordError(self.path, offset, what)
         self.stats.skipped += 1
         self.stats.errors.append(f"{what} at byte offset {offset}")
-
-    def _resync(self, buf: bytes, start: int) -> int:
-        """First offset >= start where a plausible header with a valid length CRC begins."""
-        return _find_header(buf, start, len(buf) - 12, self.max_record_bytes)
 
     def batches(self) -> Iterator[list[bytes]]:
         for payloads, _ in self.batches_with_offsets():
@@ -305,16 +303,23 @@ class RecordReader:
             yield from self._frame(chunks, total)
 
     def _frame(
-        self, chunks: Iterable[bytes], total: int | None
+        self, chunks: Iterable[bytes | bytearray], total: int | None
     ) -> Iterator[tuple[list[bytes], list[int]]]:
-        buf = b""
+        """Cut records from the inflated chunks without re-copying them.
+
+        ``buf[pos:]`` is what is not consumed yet. A chunk is framed in place; the only bytes
+        copied are a record that straddles two chunks (joined with the start of the next, or,
+        for a record longer than a chunk, with all the chunks it spans, once, when it is whole).
+        """
+        buf: bytes | bytearray = b""
+        pos = 0  # first byte of buf not consumed
         base = 0  # stream offset of buf[0]
         skipping = False  # resynchronising after a bad header
         cut: RecordError | None = None
         it = iter(chunks)
         final = False
-        need = 0  # bytes buf must hold before a record can be cut from it
-        parts: list[bytes] = []  # chunks held back until a long record is complete
+        need = 0  # bytes buf[pos:] must hold before a record can be cut from it
+        parts: list[bytes | bytearray] = []  # chunks held back until a long record is complete
         held = 0
         while not final:
             try:
@@ -323,122 +328,178 @@ class RecordReader:
                 new, final = b"", True
             except RecordError as e:  # a cut or corrupt gzip stream: frame what was inflated
                 new, final, cut = b"", True, e
-            if not final and len(buf) + held + len(new) < need:
+            rest = len(buf) - pos
+            if not final and rest + held + len(new) < need:
                 parts.append(new)  # joined once when the record is whole: no quadratic copies
                 held += len(new)
                 continue
-            if parts:
-                buf = b"".join([buf, *parts, new])
-                parts, held = [], 0
+            if not rest and not parts:
+                base += len(buf)
+                buf, pos = new, 0
             else:
-                buf = buf + new if buf else new
-            out, offsets, pos, skipping, need = self._cut(buf, base, skipping, final, cut, total)
-            base += pos
-            buf = buf[pos:]
-            self.stats.bytes_read = base
-            if out:
-                self.stats.records += len(out)
-                yield out, offsets
+                k = 0 if parts or skipping or final else self._straddle(buf, pos, new)
+                if k:  # the leftover and new[:k] are exactly one record: frame it alone
+                    head = b"".join([memoryview(buf)[pos:], memoryview(new)[:k]])
+                    base += pos
+                    got = self._cut(head, 0, base, False, False, None, total)
+                    out, offsets, hpos, skipping, need, _ = got
+                    if out:
+                        self.stats.records += len(out)
+                        self.stats.bytes_read = base + hpos
+                        yield out, offsets
+                    if hpos == len(head) and not skipping:
+                        base += len(head) - k
+                        buf, pos = new, k
+                    else:  # damage in skip mode: frame the rest of head with new
+                        buf, pos = b"".join([memoryview(head)[hpos:], memoryview(new)[k:]]), 0
+                        base += hpos
+                else:
+                    base += pos
+                    buf = b"".join([memoryview(buf)[pos:], *parts, new])
+                    pos = 0
+                    parts, held = [], 0
+            more = True
+            while more:
+                out, offsets, pos, skipping, need, more = self._cut(
+                    buf, pos, base, skipping, final, cut, total
+                )
+                self.stats.bytes_read = base + pos
+                if out:
+                    self.stats.records += len(out)
+                    yield out, offsets
+
+    def _straddle(self, buf: bytes | bytearray, pos: int, new: bytes | bytearray) -> int:
+        """How many bytes of ``new`` complete the record begun at ``buf[pos:]``; 0 when that is
+        not plain (the header is not in buf and new together, or is implausible, or the record
+        goes on past new): the caller then joins the two and lets :meth:`_cut` decide."""
+        rest = len(buf) - pos
+        header = bytes(buf[pos : pos + 12])
+        if rest < 12:
+            header += bytes(new[: 12 - rest])
+            if len(header) < 12:
+                return 0
+        (length,) = struct.unpack_from("<Q", header)
+        if length > self.max_record_bytes:
+            return 0
+        k = length + 16 - rest
+        return k if 0 < k <= len(new) else 0
 
     def _cut(
         self,
-        buf: bytes,
+        buf: bytes | bytearray,
+        pos: int,
         base: int,
         skipping: bool,
         final: bool,
         cut: RecordError | None,
         total: int | None,
-    ) -> tuple[list[bytes], list[int], int, bool, int]:
-        """Cut complete records from ``buf``: (payloads, their offsets, bytes consumed, skipping,
-        bytes the rest of ``buf`` needs before the next record is whole)."""
+    ) -> tuple[list[bytes], list[int], int, bool, int, bool]:
+        """Cut complete records from ``buf[pos:]``, about ``CHUNK`` bytes of them: (payloads,
+        their offsets, the new pos, skipping, bytes ``buf[pos:]`` needs before the next record is
+        whole, whether it stopped at the batch's size with more records to cut).
+
+        The headers are walked with one ``unpack_from`` a record (a run of equal headers is
+        taken as a block: the headers compared as rows of a strided view); the payload CRCs are
+        computed in one ``map`` and compared, masked, as an array.
+        """
         out: list[bytes] = []
         offsets: list[int] = []
-        pos = 0
-        need = 0
         n = len(buf)
-        crc = _crc32c_fn() if self.verify else None
-        header_crc = self._header_crc
+        end = pos + CHUNK  # this batch's size
+        verify = self.verify
+        limit = self.max_record_bytes
+        unpack = _HEADER.unpack_from
+        known = self._len_crc
+        u: np.ndarray | None = None  # buf as uint8, made when first needed
+        need = 0
+        more = False
         while True:
             if skipping:
-                o = self._resync(buf, pos)
+                o = _find_header(buf, pos, n - 12, limit)
                 if o < 0:
                     # keep the last 11 bytes: a header may straddle the chunk boundary
                     pos = n if final else max(pos, n - 11)
                     break
                 pos = o
                 skipping = False
-            if n - pos < 12:
-                need = 12
-                break
-            header = buf[pos : pos + 8]
-            if crc is not None and buf[pos + 8 : pos + 12] != header_crc(header):
-                self._bad(base + pos, "length CRC mismatch (corrupt record header)")
-                skipping = True
-                pos += 1
-                continue
-            (length,) = struct.unpack("<Q", header)
-            if length > self.max_record_bytes:
-                self._bad(
-                    base + pos,
-                    f"record length {length:,} bytes is over the limit of "
-                    f"{self.max_record_bytes:,} ({self.limit_note})",
-                )
-                skipping = True
-                pos += 1
-                continue
-            stride = length + 16
-            if total is not None and base + pos + stride > total:
-                self._bad(
-                    base + pos,
-                    f"truncated record (its header says {length} payload bytes; "
-                    f"{total - base - pos - 12} bytes of payload and CRC remain)",
-                )
-                skipping = True
-                pos += 1
-                continue
-            if pos + stride > n:
-                need = stride
-                break
-            # Fast path: a run of records of this same length, framed as columns of a 2D view:
-            # the headers are compared as a block, the payload CRCs masked and compared in numpy.
-            m = (n - pos) // stride
-            if m >= 8:
-                rows = np.frombuffer(buf, np.uint8, count=m * stride, offset=pos).reshape(m, stride)
-                same = (rows[:, :12] == rows[0, :12]).all(axis=1)
-                run = m if same.all() else int(np.argmin(same))
-                if run >= 8:
-                    p0 = pos + 12
-                    payloads = [buf[o : o + length] for o in range(p0, p0 + run * stride, stride)]
-                    starts = list(range(base + pos, base + pos + run * stride, stride))
-                    if crc is not None:
-                        got = np.fromiter(map(crc, payloads), np.uint32, run)
-                        got = ((got >> 15) | (got << 17)) + np.uint32(_MASK_DELTA)
-                        want = np.ascontiguousarray(rows[:run, 12 + length :]).view("<u4")[:, 0]
-                        bad = np.flatnonzero(got != want)
-                        for i in bad:  # raises on the first in the default mode
-                            self._bad(base + pos + int(i) * stride, "payload CRC mismatch")
-                        if bad.size:
-                            keep = np.ones(run, bool)
-                            keep[bad] = False
-                            k = keep.tolist()
-                            payloads = [q for q, ok in zip(payloads, k, strict=True) if ok]
-                            starts = [o for o, ok in zip(starts, k, strict=True) if ok]
-                    out.extend(payloads)
-                    offsets.extend(starts)
-                    pos += run * stride
+            starts: list[int] = []  # records found, their start in buf
+            lengths: list[int] = []
+            stop = ""  # why the walk stopped at pos, when it is damage
+            prev, same = -1, 0  # the last length, how many records in a row had it
+            while True:
+                if n - pos < 12:
+                    need = 12
+                    break
+                length, hcrc = unpack(buf, pos)
+                if verify and hcrc != (known.get(length) or self._header_crc(length)):
+                    stop = "length CRC mismatch (corrupt record header)"
+                    break
+                if length > limit:
+                    stop = (
+                        f"record length {length:,} bytes is over the limit of "
+                        f"{limit:,} ({self.limit_note})"
+                    )
+                    break
+                stride = length + 16
+                if pos + stride > n:
+                    if total is not None and base + pos + stride > total:
+                        stop = (
+                            f"truncated record (its header says {length} payload bytes; "
+                            f"{total - base - pos - 12} bytes of payload and CRC remain)"
+                        )
+                    else:
+                        need = stride
+                    break
+                starts.append(pos)
+                lengths.append(length)
+                pos += stride
+                if pos >= end:
+                    more = True
+                    break
+                if length != prev:
+                    prev, same = length, 0
                     continue
-            p = pos + 12
-            payload = buf[p : p + length]
-            if crc is not None and buf[p + length : pos + stride] != _U32.pack(mask(crc(payload))):
-                self._bad(base + pos, "payload CRC mismatch")
-            else:
-                out.append(payload)
-                offsets.append(base + pos)
-            pos += stride
+                same += 1
+                rows = min((n - pos) // stride, (end - pos) // stride + 1)
+                if same < 8 or rows < 16:
+                    continue
+                # a run of equal lengths (control-suite windows): the next headers equal to the
+                # last one (already checked) are records too, found as a block
+                same = 0
+                if u is None:
+                    u = np.frombuffer(buf, np.uint8)
+                last = u[pos - stride : pos - stride + 12]
+                probe = min(rows, 64)  # a short run costs 64 rows, not the whole buffer
+                eq = (u[pos : pos + probe * stride].reshape(probe, stride)[:, :12] == last).all(1)
+                if eq.all() and rows > probe:
+                    block = u[pos : pos + rows * stride].reshape(rows, stride)[:, :12]
+                    eq = (block == last).all(1)
+                run = len(eq) if eq.all() else int(np.argmin(eq))
+                if run:
+                    if starts:  # the records before the block, in order
+                        self._payloads(buf, u, starts, lengths, base, out, offsets)
+                        starts, lengths = [], []
+                    self._block(u, pos, run, length, base, out, offsets)
+                    pos += run * stride
+                    if pos >= end:
+                        more = True
+                        break
+            if starts:
+                if u is None:
+                    u = np.frombuffer(buf, np.uint8)
+                self._payloads(buf, u, starts, lengths, base, out, offsets)
+            if not stop:
+                break
+            self._bad(base + pos, stop)  # raises in the default mode
+            skipping = True
+            pos += 1
+            more = False
+        if more:
+            return out, offsets, pos, skipping, 0, True
         if final and pos < n and not skipping:
             rest = buf[pos:]
             if len(rest) >= 12:
-                (length,) = struct.unpack("<Q", rest[:8])
+                (length,) = struct.unpack_from("<Q", rest)
                 what = (
                     f"truncated record (its header says {length} payload bytes; "
                     f"{len(rest) - 12} bytes of payload and CRC remain)"
@@ -452,7 +513,84 @@ class RecordReader:
         elif final and cut is not None:
             self._bad(base + pos, cut.what)
             self.stats.skipped -= 1  # no record was lost, only the stream's end
-        return out, offsets, pos, skipping, need
+        return out, offsets, pos, skipping, need, False
+
+    def _block(
+        self,
+        u: np.ndarray,
+        pos: int,
+        run: int,
+        length: int,
+        base: int,
+        out: list[bytes],
+        offsets: list[int],
+    ) -> None:
+        """Append the ``run`` records of ``length`` bytes at ``u[pos:]`` (their headers checked)
+        to ``out``: their payloads copied out as one block, then sliced from it as bytes."""
+        stride = length + 16
+        rows = u[pos : pos + run * stride].reshape(run, stride)
+        if length:
+            joined = rows[:, 12 : 12 + length].tobytes()
+            payloads = [joined[i : i + length] for i in range(0, run * length, length)]
+        else:
+            payloads = [b""] * run
+        where = list(range(base + pos, base + pos + run * stride, stride))
+        if self.verify:
+            got = np.fromiter(map(_crc32c_fn(), payloads), np.uint32, run)
+            got = ((got >> np.uint32(15)) | (got << np.uint32(17))) + np.uint32(_MASK_DELTA)
+            want = rows[:, 12 + length :].copy().view("<u4")[:, 0]
+            bad = np.flatnonzero(got != want)
+            if bad.size:
+                payloads, where = self._drop(payloads, where, bad)
+        out.extend(payloads)
+        offsets.extend(where)
+
+    def _drop(
+        self, payloads: list[bytes], where: list[int], bad: np.ndarray
+    ) -> tuple[list[bytes], list[int]]:
+        """``payloads`` and ``where`` without the records at ``bad`` (payload CRC mismatches),
+        each reported: the first raises in the default mode."""
+        for i in bad.tolist():
+            self._bad(where[i], "payload CRC mismatch")
+        keep = np.ones(len(payloads), bool)
+        keep[bad] = False
+        k = keep.tolist()
+        return (
+            [q for q, ok in zip(payloads, k, strict=True) if ok],
+            [o for o, ok in zip(where, k, strict=True) if ok],
+        )
+
+    def _payloads(
+        self,
+        buf: bytes | bytearray,
+        u: np.ndarray,
+        starts: list[int],
+        lengths: list[int],
+        base: int,
+        out: list[bytes],
+        offsets: list[int],
+    ) -> None:
+        """Append the payloads of the records at ``starts`` (and their stream offsets) to
+        ``out`` (and ``offsets``), each payload CRC checked when verifying."""
+        if isinstance(buf, bytes):
+            payloads = [buf[s + 12 : s + 12 + n] for s, n in zip(starts, lengths, strict=True)]
+        else:
+            view = memoryview(buf)
+            payloads = [
+                view[s + 12 : s + 12 + n].tobytes() for s, n in zip(starts, lengths, strict=True)
+            ]
+        at = np.array(starts, np.int64)
+        where = (at + base).tolist()
+        if self.verify:
+            got = np.fromiter(map(_crc32c_fn(), payloads), np.uint32, len(payloads))
+            got = ((got >> np.uint32(15)) | (got << np.uint32(17))) + np.uint32(_MASK_DELTA)
+            tail = at + 12 + np.array(lengths, np.int64)
+            want = u[tail[:, None] + np.arange(4)].view("<u4")[:, 0]
+            bad = np.flatnonzero(got != want)
+            if bad.size:
+                payloads, where = self._drop(payloads, where, bad)
+        out.extend(payloads)
+        offsets.extend(where)
 
 
 _CRC_TABLE: np.ndarray | None = None
