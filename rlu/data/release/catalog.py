@@ -13,6 +13,7 @@ import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from rlu.domains import DOMAINS
 from rlu.tasks import (
     BASE_URL,
     RWRL_DATASETS,
@@ -71,13 +72,14 @@ def dataset_binding(
     size: str | None = None,
 ) -> str:
     """The key of ``ReleaseDataset.shards`` for a task's dataset (``run_1``, ``none/large``, '')."""
-    if task.domain == "atari":
+    kind = DOMAINS[task.domain].datasets
+    if kind == "runs":
         r = run if run is not None else 1
         r = f"run_{r}" if not str(r).startswith("run_") else str(r)
         if r not in task.datasets:
             raise RluError(f"{task.id}: unknown run {run!r}; use one of {', '.join(task.datasets)}")
         return r
-    if task.domain == "rwrl":
+    if kind == "challenge_size":
         b = f"{challenge or 'none'}/{size or 'large'}"
         if b not in RWRL_DATASETS:
             raise RluError(
