@@ -203,4 +203,9 @@ DOMAIN = Domain(
     ),
     tfds_ref=tfds_ref,
     paper_table="appendix D, table 'Atari 2600 results'",
+    statistic="median",
+    stacked_frames=True,
+    generation="runs",
+    success="none",
+    sim_packages=("ale-py",),
 )

@@ -112,4 +112,6 @@ DOMAIN = Domain(
     tfds_examples=MappingProxyType({"rlu_control_suite": "rlu_control_suite/cartpole_swingup"}),
     tfds_ref=tfds_ref,
     paper_table="appendix B, table 'DM Control suite results'",
+    generation="runs",
+    sim_packages=("dm-control", "mujoco"),
 )

@@ -113,4 +113,8 @@ DOMAIN = Domain(
     tfds_examples=MappingProxyType({"rlu_locomotion": "rlu_locomotion/rodent_gaps"}),
     tfds_ref=tfds_ref,
     paper_table="appendix C, table 'DM Locomotion results'",
+    camera_setting="camera",
+    generation="policy",
+    success="time_limit",
+    sim_packages=("dm-control", "mujoco"),
 )

@@ -123,4 +123,6 @@ DOMAIN = Domain(
         {"rlu_rwrl": "rlu_rwrl/walker_walk_combined_challenge_none_100_percent"}
     ),
     tfds_ref=tfds_ref,
+    generation="rwrl",
+    sim_packages=("dm-control", "mujoco"),
 )

@@ -216,4 +216,6 @@ def task_bootstrap_interval(
 
 def domain_statistic(domain: str) -> str:
     """The paper's aggregate over a domain's tasks: median for Atari, mean elsewhere."""
-    return "median" if domain == "atari" else "mean"
+    from rlu.domains import DOMAINS
+
+    return DOMAINS[domain].statistic
