@@ -218,4 +218,5 @@ def domain_statistic(domain: str) -> str:
     """The paper's aggregate over a domain's tasks: median for Atari, mean elsewhere."""
     from rlu.domains import DOMAINS
 
-    return DOMAINS[domain].statistic
+    known = DOMAINS.get(domain)  # a report may name a domain of its own: the mean
+    return known.statistic if known is not None else "mean"

@@ -1024,7 +1024,7 @@ def render_offline_naive(
     dom: Mapping[str, Any], domain: str, figures: Figures | None
 ) -> list[Block]:
     panel = dom["offline_naive"]
-    stat = DOMAINS[domain].statistic
+    stat = DOMAINS[domain].statistic if domain in DOMAINS else "mean"
     return [
         Text(
             "Offline policy selection (the paper's naive selection), over the offline-selection "
