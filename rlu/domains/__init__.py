@@ -48,9 +48,9 @@ class Domain:
     """Top-level modules its envs import: the command line names ``extra`` when one is missing."""
     mujoco: bool = False
     """Whether its envs are MuJoCo's (they need a GL backend to render)."""
-    datasets: Literal["one", "runs", "challenge_size"] = "one"
+    datasets: Literal["one", "runs", "challenge_size", "noise_run"] = "one"
     """How a task's release datasets are told apart: one per task, Atari's ``run_N``, RWRL's
-    ``challenge/size``."""
+    ``challenge/size``, bsuite's ``noise/run`` (``--run 0.1/3``)."""
     challenges: tuple[str, ...] = ()
     """Env challenges (``make_env(..., challenge=)``), the first the default; () takes none."""
     step_limit_setting: str | None = None
@@ -89,7 +89,7 @@ class Domain:
 
 
 # One line per domain: the module rlu/domains/<name>.py, whose DOMAIN is the entry.
-_MODULES = ("control_suite", "locomotion", "atari", "rwrl")
+_MODULES = ("control_suite", "locomotion", "atari", "rwrl", "bsuite")
 
 
 def _load() -> Mapping[str, Domain]:

@@ -51,9 +51,14 @@ class ReleaseDataset:
     seq_length: int | None = None
     """Steps per record for window files (2 or 40); None for whole-episode files."""
 
+    def prefix(self, binding: str = "") -> str:
+        """``path`` with the dataset's placeholders filled: named ones (``{run}``, ...) and
+        positional ones, the binding's ``/``-separated parts (bsuite's ``{0}`` and ``{1}``)."""
+        return self.path.format(*binding.split("/"), **_binding_fields(binding))
+
     def shard_names(self, binding: str = "") -> list[str]:
         n = self.shards[binding]
-        prefix = self.path.format(**_binding_fields(binding))
+        prefix = self.prefix(binding)
         return [f"{prefix}-{i:05d}-of-{n:05d}" for i in range(n)]
 
 

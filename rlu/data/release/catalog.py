@@ -19,7 +19,6 @@ from rlu.tasks import (
     RWRL_DATASETS,
     ReleaseDataset,
     TaskSpec,
-    _binding_fields,
     resolve_task,
 )
 from rlu.types import RluError
@@ -85,6 +84,14 @@ def dataset_binding(
             raise RluError(
                 f"{task.id}: no released dataset for challenge={challenge!r} size={size!r}; "
                 f"released: {', '.join(RWRL_DATASETS)} (challenge/size)"
+            )
+        return b
+    if kind == "noise_run":
+        b = str(run) if run is not None else task.datasets[0]
+        if b not in task.datasets or challenge is not None or size is not None:
+            raise RluError(
+                f"{task.id}: no released dataset run={run!r}; give --run NOISE/RUN, one of "
+                f"{', '.join(task.datasets[:3])}, ... {task.datasets[-1]}"
             )
         return b
     if run is not None or challenge is not None or size is not None:
@@ -194,7 +201,7 @@ def find_shards(
     (``...-00000-of-00001``) is found too; all N shards of the count in the names must be there.
     """
     root = os.fspath(root)
-    prefix = selection.release.path.format(**_binding_fields(selection.binding))
+    prefix = selection.release.prefix(selection.binding)
     folder = os.path.join(root, *prefix.split("/")[:-1])
     base = prefix.split("/")[-1]
     pat = re.compile(re.escape(base) + r"-(\d{5})-of-(\d{5})$")

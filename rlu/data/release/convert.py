@@ -264,7 +264,7 @@ def plan_conversion(
     provenance."""
     get_family(family)
     task = get_task(task_id)
-    if family in ("bsuite", "dmlab"):
+    if family == "dmlab":
         raise RluError(
             f"{family} files decode with rlu.data.release.families, but {family} has no task in "
             "the registry to convert into; read them with families.iter_segments"
