@@ -115,17 +115,11 @@ def _fixture_shards() -> list[tuple[str, str, str]]:
     for t in TASKS.values():
         for rel in t.release:
             for binding in rel.shards:
-                prefix = rel.path.format(**_fields(binding))
+                prefix = rel.prefix(binding)
                 for root in FIXTURE_ROOTS:
                     hits = sorted(root.glob(prefix + "-*-of-*"))
                     found += [(str(h), rel.family, t.id) for h in hits[:1]]
     return found
-
-
-def _fields(binding):
-    from rlu.tasks import _binding_fields
-
-    return _binding_fields(binding)
 
 
 SHARDS = _fixture_shards()
