@@ -23,6 +23,7 @@ import sys
 from typing import Any
 
 from rlu.data.formats import extras_of_packages
+from rlu.domains import DOMAINS
 from rlu.types import RluError
 
 EXIT_CODES = {
@@ -125,11 +126,6 @@ def main(argv: list[str] | None = None) -> int:
 
 EXTRA_OF = {
     "torch": "agents",
-    "dm_control": "control",
-    "mujoco": "control",
-    "gymnasium": "control",
-    "ale_py": "atari",
-    "cv2": "atari",
     "ray": "distributed",
     "google_crc32c": "release",
     "PIL": "release",
@@ -139,6 +135,9 @@ EXTRA_OF = {
     "imageio_ffmpeg": "video",
     "moviepy": "video",
 }
+for _domain in DOMAINS.values():  # each domain's env packages (rlu.domains), first one wins
+    for _package in _domain.packages:
+        EXTRA_OF.setdefault(_package, _domain.extra)
 EXTRA_OF.update(extras_of_packages())  # the foreign formats' own (rlu.data.formats)
 """The extra that installs each optional module rlu imports (pyproject.toml's extras)."""
 

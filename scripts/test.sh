@@ -7,7 +7,7 @@
 # Extra arguments go to pytest.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-bash scripts/install.sh control locomotion atari agents jax distributed report video dev tensorboard wandb docs
+bash scripts/install.sh control locomotion atari bsuite agents jax distributed report video dev tensorboard wandb docs
 # MuJoCo renders offscreen through Mesa's EGL (in the base image); without MUJOCO_GL set,
 # rendering fails looking for an X display.
 export MUJOCO_GL=${MUJOCO_GL:-egl}

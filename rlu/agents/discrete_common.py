@@ -104,10 +104,17 @@ def check_specs(name: str, observation_spec: Any, action_spec: Any) -> tuple[tup
             f"{name}: action_spec is {action_spec!r}; the discrete agents need a DiscreteSpec "
             "(use the continuous agent of the same name for BoundedSpec actions)"
         )
+    if (
+        isinstance(observation_spec, ArraySpec)
+        and len(observation_spec.shape) == 1
+        and np.dtype(observation_spec.dtype) == np.float32
+    ):  # a float feature vector (bsuite): an MLP torso instead of the CNN
+        return tuple(observation_spec.shape), int(action_spec.num_values)
     if not isinstance(observation_spec, ArraySpec) or len(observation_spec.shape) != 3:
         raise SpecError(
             f"{name}: observation_spec is {observation_spec!r}; the discrete agents take one "
-            "uint8 frame stack ArraySpec((H, W, frames), 'uint8'), e.g. (84, 84, 4)"
+            "uint8 frame stack ArraySpec((H, W, frames), 'uint8'), e.g. (84, 84, 4), or one "
+            "float32 feature vector ArraySpec((D,), 'float32')"
         )
     if np.dtype(observation_spec.dtype) != np.uint8:
         raise SpecError(
@@ -141,6 +148,8 @@ def frames(
     ``channels_last`` lays the result out channels-last (for a pass that runs backward too);
     otherwise it keeps the input's memory order (NCHW for the views' frame-major stacks)."""
     array = x if isinstance(x, torch.Tensor) else np.asarray(x)
+    if array.dtype in (np.float32, torch.float32) and array.ndim == 2:  # (B, D) features
+        return common.to_torch(array, device, "float32")
     if array.dtype not in (np.uint8, torch.uint8):
         raise SpecError(
             f"batch.{field} has dtype {array.dtype}; the discrete agents take uint8 frame stacks "
@@ -184,6 +193,12 @@ class NatureTorso(nn.Module):
 
     def __init__(self, observation_shape: tuple[int, ...], settings: AtariSettings) -> None:
         super().__init__()
+        if len(observation_shape) == 1:  # float features: one hidden layer instead of the convs
+            self.convs = nn.Sequential(
+                nn.Linear(observation_shape[0], settings.hidden_size), nn.ReLU()
+            )
+            self.output_size = settings.hidden_size
+            return
         channels, kernels, strides = settings.channels, settings.kernel_sizes, settings.strides
         if not len(channels) == len(kernels) == len(strides):
             raise SpecError(

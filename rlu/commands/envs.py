@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import os
 
+from rlu.domains import DOMAINS
 from rlu.training.config import checked
 
 
@@ -91,11 +92,12 @@ def _random_scores(args: argparse.Namespace) -> int:
     jobs = []
     for t in chosen:
         settings: dict = {}
-        if t.domain == "atari" and args.atari_max_steps:
-            settings["max_episode_steps"] = args.atari_max_steps
-        if t.domain == "locomotion":
-            settings["camera"] = bool(args.camera)
-        for challenge in ("none", "easy") if t.domain == "rwrl" else ("none",):
+        dom = DOMAINS[t.domain]
+        if dom.step_limit_setting and args.atari_max_steps:
+            settings[dom.step_limit_setting] = args.atari_max_steps
+        if dom.camera_setting:
+            settings[dom.camera_setting] = bool(args.camera)
+        for challenge in dom.challenges or ("none",):
             jobs.append((t.id, challenge, settings))
     existing = scores.load(args.out) if args.resume and os.path.exists(args.out) else None
     kept = []

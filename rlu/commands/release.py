@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from rlu.domains import DOMAINS
+
 
 def _dataset_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--run", help="Atari run: 1..5 or run_1..run_5 (default 1)")
@@ -281,7 +283,7 @@ def _rwrl_challenge(ref: Any, args: argparse.Namespace, files: list[str]) -> str
     """The RWRL challenge as the local conversion takes it: the flag (or the TFDS name), else
     the files' path."""
     _, _, challenge, _ = ref.dataset_settings(args.family, args.run, args.challenge, args.size)
-    if challenge is None and ref.task.domain == "rwrl":
+    if challenge is None and DOMAINS[ref.task.domain].challenges:
         challenge = _challenge_from_path(files)
     return challenge
 
@@ -304,9 +306,9 @@ def _convert_job(args: argparse.Namespace, tasks: list[str], backend: Any) -> in
         ref, sel, run = _selection(args, task)
         if fetch is not None:
             shards = list(sel.objects)
-            rwrl = ref.task.domain == "rwrl"
-            challenge = sel.binding.split("/")[0] if rwrl else None
-            run = sel.binding if ref.task.domain == "atari" else None  # as load_dataset does
+            kind = DOMAINS[ref.task.domain].datasets
+            challenge = sel.binding.split("/")[0] if kind == "challenge_size" else None
+            run = sel.binding if kind == "runs" else None  # as load_dataset does
         else:
             shards = catalog.find_shards(args.src, sel, args.shards) if args.src else args.files
             challenge = _rwrl_challenge(ref, args, shards)

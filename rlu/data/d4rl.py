@@ -78,6 +78,7 @@ from rlu.data.foreign import (
 from rlu.data.store import Dataset, DatasetWriter, Schema
 from rlu.data.store.schema import action_problem
 from rlu.data.views import DatasetView, TransitionView
+from rlu.domains import DOMAINS
 from rlu.system import install_hint
 from rlu.types import ArraySpec, FormatError, RluError, SpecError
 
@@ -1117,7 +1118,7 @@ def import_d4rl(
             raise RluError(f"{where}: say which task the file holds: --task TASK")
         task = get_task(task_id)
         schema = Schema.for_task(task)
-        if task.domain == "rwrl" and "observations/dummy-0" in f.cols:
+        if DOMAINS[task.domain].challenges and "observations/dummy-0" in f.cols:
             from rlu.tasks import rwrl_observation_spec
 
             schema = Schema.for_task(task, observation=rwrl_observation_spec(task, "easy"))

@@ -75,6 +75,7 @@ from rlu.data.foreign import (
     with_final_step,
 )
 from rlu.data.store import Dataset, DatasetWriter, Schema
+from rlu.domains import DOMAINS
 from rlu.system import install_hint
 from rlu.types import (
     ArraySpec,
@@ -1178,7 +1179,7 @@ def _recorded_schema(mds: Any, from_spaces: Schema) -> Schema:
         return from_spaces
     task = TASKS[task_id]
     candidates = [Schema.for_task(task)]
-    if task.domain == "rwrl":
+    if DOMAINS[task.domain].challenges:
         candidates.append(Schema.for_task(task, observation=rwrl_observation_spec(task, "easy")))
     spaces = (mds.observation_space, mds.action_space)
     for schema in candidates:

@@ -27,6 +27,7 @@ from rlu.data.store import (
     verify_checksums,
 )
 from rlu.data.store.schema import action_problem
+from rlu.domains import DOMAINS
 from rlu.files import Int, ListOf, MapOf, Record, Str, read_json
 from rlu.types import BoundedSpec, FormatError, RluError, observation_spec_to_json
 
@@ -152,11 +153,11 @@ def _check_task(ds: Dataset, report: Report) -> None:
         report.add(f"{ds.path / 'manifest.json'}: schema.task_id {task_id!r} is not a known task")
         return
     allowed = [Schema.for_task(task).to_json()]
-    if task.domain == "rwrl":
+    if DOMAINS[task.domain].challenges:
         allowed.append(
             Schema.for_task(task, observation=rwrl_observation_spec(task, "easy")).to_json()
         )
-    if task.domain == "atari":  # the release's transition files store whole stacks
+    if DOMAINS[task.domain].stacked_frames:  # the release's transition files store whole stacks
         allowed.append(Schema(task.observation_spec, task.action_spec, 1, "raw", task.id).to_json())
     mine = ds.schema.to_json()
     keys = ("observation", "action")

@@ -38,22 +38,14 @@ import importlib
 import os
 from typing import Any
 
+from rlu.domains import DOMAINS
 from rlu.system import install_hint
 from rlu.tasks import resolve_task
 from rlu.types import RluError
 
-_FACTORIES = {
-    "control_suite": "rlu.envs.control",
-    "locomotion": "rlu.envs.locomotion",
-    "atari": "rlu.envs.atari",
-    "rwrl": "rlu.envs.rwrl",
-}
-_EXTRAS = {
-    "control_suite": "control",
-    "locomotion": "locomotion",
-    "atari": "atari",
-    "rwrl": "control",
-}
+# Each domain's env module and extra (rlu.domains), as they were named here.
+_FACTORIES = {name: d.env_module for name, d in DOMAINS.items()}
+_EXTRAS = {name: d.extra for name, d in DOMAINS.items()}
 
 __all__ = ["make_env", "make_vector_env", "gym_id", "ATARI_ORIGINAL_EVAL_STEPS"]
 
@@ -66,7 +58,7 @@ reproduces it (rlu's default is the paper's 27,000)."""
 
 
 def _factory(domain: str):
-    if domain in ("control_suite", "locomotion", "rwrl"):
+    if DOMAINS[domain].mujoco:
         # MuJoCo needs a GL backend for any rendering; EGL works headless on CPU (Mesa).
         os.environ.setdefault("MUJOCO_GL", "egl")
     try:
@@ -103,10 +95,11 @@ def make_env(
         challenge = ref.challenge or "none"
     render = render_settings(task.id, render_mode, render_size, render_camera)
     module = _factory(task.domain)
-    if task.domain == "rwrl":
+    if DOMAINS[task.domain].challenges:
         env = module.make(task, seed=seed, challenge=challenge, render=render, **settings)
     elif challenge != "none":
-        raise RluError(f"{task.id}: `challenge` applies to rwrl tasks only; drop it")
+        takes = [d for d, dom in DOMAINS.items() if dom.challenges]
+        raise RluError(f"{task.id}: `challenge` applies to {'/'.join(takes)} tasks only; drop it")
     else:
         env = module.make(task, seed=seed, render=render, **settings)
 

@@ -34,18 +34,18 @@ from typing import Any
 
 import numpy as np
 
+from rlu.domains import DOMAINS
 from rlu.envs.core import gym, spaces
-
-# Chosen by measurement (bench/envs.py; the figures and their machine: bench/README.md, "Design
 from rlu.system import available_cores
 from rlu.tasks import ATARI_MAX_AGENT_STEPS, get_task
 from rlu.types import RluError
 
+# Chosen by measurement (bench/envs.py; the figures and their machine: bench/README.md, "Design
 # choices"): ALE's C++ threads beat processes for Atari; worker processes pay off for the slow
 # camera envs of locomotion; control-suite and RWRL steps are cheaper than a message round trip
 # to a worker, so their N envs step in this process, where the batched policy forward (PyTorch's
 # intra-op threads) is what uses the second core.
-_AUTO = {"atari": "ale", "locomotion": "process", "control_suite": "sync", "rwrl": "sync"}
+_AUTO = {name: d.vector_backend for name, d in DOMAINS.items()}
 
 
 def _make_one(task_id: str, seed: int | None, challenge: str | None, settings: dict[str, Any]):
@@ -71,7 +71,7 @@ def make_vector_env(
     if backend == "auto":
         backend = _AUTO[task.domain]
     if backend == "ale":
-        if task.domain != "atari":
+        if _AUTO[task.domain] != "ale":
             raise RluError(f"{task.id}: backend 'ale' is for Atari tasks; use 'async'")
         return AleVectorEnv(task.env["game"], n, seed, **settings)
     fns = [
@@ -82,7 +82,7 @@ def make_vector_env(
     ]
     if backend == "sync":
         return gym.vector.SyncVectorEnv(fns)
-    context = "forkserver" if task.domain != "atari" else None
+    context = "forkserver" if _AUTO[task.domain] != "ale" else None
     if backend == "process":
         return ProcessVectorEnv(fns, num_workers=num_workers, context=context)
     if backend == "async":

@@ -87,9 +87,12 @@ def task_env_factory(
         try:
             mod = importlib.import_module("rlu.envs")
         except ImportError as e:
+            from rlu.domains import DOMAINS
+
+            extras = dict.fromkeys(d.extra for d in DOMAINS.values())  # each once, in order
             raise RluError(
                 f"rlu.envs cannot be imported ({e}); install the env extras "
-                f"({install_hint('control', 'locomotion', 'atari')}) or pass an env factory"
+                f"({install_hint(*extras)}) or pass an env factory"
             ) from None
         fn = mod.make_env
     elif isinstance(make_env, str):

@@ -216,4 +216,7 @@ def task_bootstrap_interval(
 
 def domain_statistic(domain: str) -> str:
     """The paper's aggregate over a domain's tasks: median for Atari, mean elsewhere."""
-    return "median" if domain == "atari" else "mean"
+    from rlu.domains import DOMAINS
+
+    known = DOMAINS.get(domain)  # a report may name a domain of its own: the mean
+    return known.statistic if known is not None else "mean"

@@ -18,6 +18,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
+from rlu.domains import DOMAINS
 from rlu.generate.common import claim_work, select_episodes, success_rule, work_folder
 from rlu.generate.config import SCALES, GenerateConfig
 from rlu.tasks import TaskSpec, get_task
@@ -25,14 +26,17 @@ from rlu.types import RluError
 
 
 def _recipe(config: GenerateConfig, task: TaskSpec) -> str:
-    if config.policy is not None or task.domain == "locomotion":
+    recipe = DOMAINS[task.domain].generation
+    if recipe is None:
+        raise RluError(f"{task.id}: rlu generate makes no data for domain {task.domain!r}")
+    if config.policy is not None or recipe == "policy":
         if config.policy is None:
             raise RluError(
-                f"{task.id}: locomotion data comes from a policy you supply: pass --policy "
+                f"{task.id}: {task.domain} data comes from a policy you supply: pass --policy "
                 "package.module:factory, factory(task_id, seed) -> policy(observation) -> action"
             )
         return "policy"
-    return "rwrl" if task.domain == "rwrl" else "runs"
+    return recipe
 
 
 def run_count(config: GenerateConfig) -> int:

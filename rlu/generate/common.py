@@ -35,6 +35,7 @@ import numpy as np
 
 from rlu.data import DatasetWriter, open_dataset
 from rlu.data.episode import Segment
+from rlu.domains import DOMAINS
 from rlu.files import AnyJSON, MapOf, read_json, write_json
 from rlu.generate.config import GenerateConfig
 from rlu.generate.recorder import schema_for
@@ -68,18 +69,20 @@ def stream_rng(seed: int, *key: int) -> np.random.Generator:
 def success_rule(task: TaskSpec) -> str:
     """What counts as a successful episode of ``task`` when generation keeps successes, in words
     (the control suite: a return of at least 80% of 1000)."""
-    if task.domain == "atari":
+    success = DOMAINS[task.domain].success
+    if success == "none":
         return "none: Atari keeps every recorded episode (the paper keeps DQN's replay)"
-    if task.domain == "locomotion":
+    if success == "time_limit":
         return "the episode reached its time limit (the walker did not fall or fail: not terminal)"
     return f"episode_return >= {CONTROL_SUCCESS_RETURN:g} (80% of the maximum 1000)"
 
 
 def is_success(task: TaskSpec, returns: np.ndarray, terminal: np.ndarray) -> np.ndarray:
     """``terminal``: whether each episode ended in a terminal state (not a time limit)."""
-    if task.domain == "atari":
+    success = DOMAINS[task.domain].success
+    if success == "none":
         return np.zeros(returns.shape, bool)
-    if task.domain == "locomotion":
+    if success == "time_limit":
         return ~terminal
     return returns >= CONTROL_SUCCESS_RETURN
 
@@ -108,7 +111,7 @@ def select_episodes(
 
 def paper_count(task: TaskSpec) -> int | None:
     """The paper's episode count for the task (None: keep everything, as Atari's replay)."""
-    if task.domain == "atari":
+    if DOMAINS[task.domain].success == "none":
         return None
     return int(task.episodes[""]) if "" in task.episodes else None
 
@@ -117,7 +120,7 @@ def versions(task: TaskSpec) -> dict[str, str]:
     """Versions of the packages the bytes depend on (recorded in the provenance)."""
     from importlib import metadata
 
-    sim = ["ale-py"] if task.domain == "atari" else ["dm-control", "mujoco"]
+    sim = list(DOMAINS[task.domain].sim_packages)
     out = {}
     for n in ["numpy", "torch", *sim]:
         try:

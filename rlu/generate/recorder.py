@@ -25,6 +25,7 @@ import numpy as np
 
 from rlu.data import Schema
 from rlu.data.episode import Segment, make_episode
+from rlu.domains import DOMAINS
 from rlu.tasks import TaskSpec
 from rlu.types import ArraySpec, RluError
 
@@ -44,7 +45,7 @@ class EpisodeRecorder:
         """``observation_spec``: what the env returns when it differs from the TaskSpec (RWRL's
         easy challenge adds dummy keys)."""
         self.task = task
-        self.atari = task.domain == "atari"
+        self.atari = DOMAINS[task.domain].stacked_frames
         self.capacity = int(max_steps or task.episode_length)
         spec = observation_spec if observation_spec is not None else schema_for(task).observation
         n = self.capacity + 1

@@ -29,6 +29,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from rlu.domains import DOMAINS
 from rlu.types import RluError
 
 CONDITIONS = ("preset", "budget", "data", "episodes", "seeds", "selection")
@@ -129,11 +130,7 @@ PAPER: dict[str, dict[str, Statement]] = {
 """Per family (``atari``; ``continuous``: every other domain), what the paper states of each
 condition."""
 
-PAPER_TABLES = {
-    "control_suite": "appendix B, table 'DM Control suite results'",
-    "locomotion": "appendix C, table 'DM Locomotion results'",
-    "atari": "appendix D, table 'Atari 2600 results'",
-}
+PAPER_TABLES = {name: d.paper_table for name, d in DOMAINS.items() if d.paper_table}
 """Where the paper's numbers beside each domain's cells come from."""
 
 RECURRENT_TASKS = (

@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 # --- blocks ---------------------------------------------------------------------------------
+from rlu.domains import DOMAINS
 from rlu.system import install_hint
 from rlu.types import RluError
 
@@ -1023,7 +1024,7 @@ def render_offline_naive(
     dom: Mapping[str, Any], domain: str, figures: Figures | None
 ) -> list[Block]:
     panel = dom["offline_naive"]
-    stat = "median" if domain == "atari" else "mean"
+    stat = DOMAINS[domain].statistic if domain in DOMAINS else "mean"
     return [
         Text(
             "Offline policy selection (the paper's naive selection), over the offline-selection "

@@ -147,9 +147,11 @@ def dataset_specs(ds: Any) -> tuple[Any, Any]:
 
 def env_settings(task: str, ds: Any, challenge: str | None = None) -> dict[str, Any]:
     """Keyword settings of the evaluation env: the data's RWRL challenge (or ``challenge``)."""
-    from rlu.tasks import check_challenge
+    from rlu.domains import DOMAINS
+    from rlu.tasks import TASKS, check_challenge
 
-    if not task.startswith("rwrl/"):
+    spec = TASKS.get(task)
+    if spec is None or not DOMAINS[spec.domain].challenges:
         if challenge not in (None, "none"):
             raise RluError(f"--challenge applies to rwrl tasks only; {task} has none")
         return {}

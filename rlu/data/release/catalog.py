@@ -13,12 +13,12 @@ import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from rlu.domains import DOMAINS
 from rlu.tasks import (
     BASE_URL,
     RWRL_DATASETS,
     ReleaseDataset,
     TaskSpec,
-    _binding_fields,
     resolve_task,
 )
 from rlu.types import RluError
@@ -71,18 +71,27 @@ def dataset_binding(
     size: str | None = None,
 ) -> str:
     """The key of ``ReleaseDataset.shards`` for a task's dataset (``run_1``, ``none/large``, '')."""
-    if task.domain == "atari":
+    kind = DOMAINS[task.domain].datasets
+    if kind == "runs":
         r = run if run is not None else 1
         r = f"run_{r}" if not str(r).startswith("run_") else str(r)
         if r not in task.datasets:
             raise RluError(f"{task.id}: unknown run {run!r}; use one of {', '.join(task.datasets)}")
         return r
-    if task.domain == "rwrl":
+    if kind == "challenge_size":
         b = f"{challenge or 'none'}/{size or 'large'}"
         if b not in RWRL_DATASETS:
             raise RluError(
                 f"{task.id}: no released dataset for challenge={challenge!r} size={size!r}; "
                 f"released: {', '.join(RWRL_DATASETS)} (challenge/size)"
+            )
+        return b
+    if kind == "noise_run":
+        b = str(run) if run is not None else task.datasets[0]
+        if b not in task.datasets or challenge is not None or size is not None:
+            raise RluError(
+                f"{task.id}: no released dataset run={run!r}; give --run NOISE/RUN, one of "
+                f"{', '.join(task.datasets[:3])}, ... {task.datasets[-1]}"
             )
         return b
     if run is not None or challenge is not None or size is not None:
@@ -192,7 +201,7 @@ def find_shards(
     (``...-00000-of-00001``) is found too; all N shards of the count in the names must be there.
     """
     root = os.fspath(root)
-    prefix = selection.release.path.format(**_binding_fields(selection.binding))
+    prefix = selection.release.prefix(selection.binding)
     folder = os.path.join(root, *prefix.split("/")[:-1])
     base = prefix.split("/")[-1]
     pat = re.compile(re.escape(base) + r"-(\d{5})-of-(\d{5})$")

@@ -27,6 +27,7 @@ import numpy as np
 from rlu.data.episode import METADATA_FIELDS
 from rlu.data.release.families import SegmentBatch, get_family, iter_segments, reader_for
 from rlu.data.store import DatasetWriter, Deflated, Schema, SegmentColumns, segment_columns
+from rlu.domains import DOMAINS
 from rlu.progress import Progress
 from rlu.system import available_cores
 from rlu.tasks import TaskSpec, get_task, rwrl_observation_spec
@@ -70,7 +71,7 @@ def schema_for(
         image_encoding = "zlib" if family.startswith("atari") else "raw"
     if family == "atari":
         return Schema.for_task(task, image_encoding, observation=task.observation_spec)
-    if task.domain == "rwrl":
+    if DOMAINS[task.domain].challenges:
         return Schema.for_task(
             task, image_encoding, observation=rwrl_observation_spec(task, challenge or "none")
         )
@@ -263,13 +264,13 @@ def plan_conversion(
     provenance."""
     get_family(family)
     task = get_task(task_id)
-    if family in ("bsuite", "dmlab"):
+    if family == "dmlab":
         raise RluError(
             f"{family} files decode with rlu.data.release.families, but {family} has no task in "
             "the registry to convert into; read them with families.iter_segments"
         )
     task.release_dataset(family)  # the family must belong to the task
-    if task.domain == "rwrl" and challenge is None:
+    if DOMAINS[task.domain].challenges and challenge is None:
         raise RluError(f"{task.id}: say which challenge the files are from: --challenge none|easy")
     if not paths:
         raise RluError("no shard files to convert; give FILE... or --src ROOT")
@@ -278,7 +279,7 @@ def plan_conversion(
             raise RluError(f"{p}: no such shard file")
     schema = schema_for(task, family, challenge, image_encoding)
     meta: dict[str, Any] = {}
-    if task.domain == "atari":
+    if DOMAINS[task.domain].datasets == "runs":
         r = run if run is not None else _run_from_names(paths)
         if r is not None:
             meta["run"] = int(str(r).removeprefix("run_"))

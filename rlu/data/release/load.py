@@ -28,6 +28,7 @@ from rlu.data.release import catalog
 from rlu.data.release.convert import convert
 from rlu.data.release.download import cache_root, download, read_manifest, release_dir
 from rlu.data.store import Dataset, open_dataset
+from rlu.domains import DOMAINS
 from rlu.files import open_private
 from rlu.types import RluError
 
@@ -143,13 +144,14 @@ def open_cached(dest: str, task_id: str, cache_dir: str | os.PathLike | None, **
 
 def _fetch_and_convert(sel, dest, cache_dir, base_url, workers, progress) -> None:
     fetched = download(sel.objects, cache_dir=cache_dir, base_url=base_url, progress=progress)
+    kind = DOMAINS[sel.task.domain].datasets
     convert(
         [f.path for f in fetched],
         sel.family,
         sel.task.id,
         dest,
-        challenge=sel.binding.split("/")[0] if sel.task.domain == "rwrl" else None,
-        run=sel.binding if sel.task.domain == "atari" else None,
+        challenge=sel.binding.split("/")[0] if kind == "challenge_size" else None,
+        run=sel.binding if kind == "runs" else None,
         workers=workers,
         progress=progress is not False,
         provenance={
@@ -217,9 +219,10 @@ def download_command(
     parts = ["rlu download", sel.task.id]
     if sel.family != sel.task.release[0].family:
         parts += ["--family", sel.family]
-    if sel.task.domain == "atari":
+    kind = DOMAINS[sel.task.domain].datasets
+    if kind == "runs":
         parts += ["--run", sel.binding.removeprefix("run_")]
-    elif sel.task.domain == "rwrl":
+    elif kind == "challenge_size":
         challenge, size = sel.binding.split("/")
         parts += ["--challenge", challenge, "--size", size]
     if shards is not None:

@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from rlu.data.episode import METADATA_FIELDS, Segment
+from rlu.domains import DOMAINS
 from rlu.types import (
     ActionSpec,
     ArraySpec,
@@ -137,7 +138,7 @@ class Schema:
         """The schema of ``task``'s datasets: Atari stores single frames stacked at sample time."""
         obs = observation if observation is not None else task.observation_spec
         frame_stack = 1
-        if task.domain == "atari" and observation is None:
+        if DOMAINS[task.domain].stacked_frames and observation is None:
             frame_stack = obs.shape[-1]
             obs = ArraySpec(obs.shape[:-1], obs.dtype)
         return Schema(obs, task.action_spec, frame_stack, image_encoding, task.id)

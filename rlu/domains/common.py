@@ -1,0 +1,26 @@
+"""Spec helpers the domain modules share (no domain's own data)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from types import MappingProxyType
+
+from rlu.types import ArraySpec, BoundedSpec
+
+
+def f32(*shape: int) -> ArraySpec:
+    """A float32 array spec of ``shape``."""
+    return ArraySpec(tuple(shape), "float32")
+
+
+def obs(**dims: int) -> Mapping[str, ArraySpec]:
+    """A dict observation spec of float32 vectors, keys in the order given."""
+    return MappingProxyType({k: f32(d) for k, d in dims.items()})
+
+
+def act(n: int) -> BoundedSpec:
+    """A continuous action in [-1, 1]^n."""
+    return BoundedSpec((n,), "float32", -1.0, 1.0)
+
+
+CAMERA = ArraySpec((64, 64, 3), "uint8")

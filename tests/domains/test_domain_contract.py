@@ -1,0 +1,159 @@
+"""The contract every registered domain meets, run over ``rlu.domains.DOMAINS``: a new domain is
+tested by being registered (as the agents' contract test does for agents).
+
+Every domain's tasks resolve by id, by their Gymnasium id's parts and by each TFDS builder's
+example name; every release family its tasks name is a family the reader decodes, and each
+dataset's object names build; its env is made and stepped where its extra is installed (else the
+test skips naming the extra); where a release shard of the domain is among the fixtures (files
+TensorFlow wrote), it converts from the command line, an agent trains on it for a few steps and
+is evaluated in the env, and ``rlu report`` reads the run.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rlu.domains import DOMAINS, Domain, get_domain
+from rlu.tasks import TASKS, list_tasks, resolve_task
+from rlu.types import DiscreteSpec, RluError
+
+ROOT = Path(__file__).resolve().parents[2]
+SHARED = Path(os.environ.get("RLU_SHARED", ROOT.parent / "shared"))
+# Release shards TensorFlow wrote: the shared fixtures and the repo's own (tests/fixtures).
+FIXTURE_ROOTS = (
+    SHARED / "fixtures" / "rlu_release" / "data",
+    ROOT / "tests" / "fixtures" / "release",
+)
+NAMES = list(DOMAINS)
+
+
+def test_the_registry_is_the_task_registrys_domains():
+    from rlu import tasks
+
+    assert tasks.DOMAINS == tuple(DOMAINS)
+    assert {t.domain for t in TASKS.values()} == set(DOMAINS)
+    for name, domain in DOMAINS.items():
+        assert isinstance(domain, Domain) and domain.name == name
+        assert (ROOT / "rlu" / "domains" / f"{name}.py").is_file()
+    with pytest.raises(RluError, match="unknown domain 'nope'; use one of"):
+        get_domain("nope")
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_tasks_resolve(name):
+    domain = DOMAINS[name]
+    tasks = list_tasks(name)
+    assert tasks, f"domain {name} has no tasks"
+    for t in tasks:
+        assert t.id == f"{name}/{t.name}" and t.domain == name
+        assert resolve_task(t.id).task is t
+        assert t.gym_id == f"rlu/{name}-{t.name}-v0"
+        assert t.selection in ("online", "offline") and t.episode_length > 0
+    for builder, example in domain.tfds_examples.items():
+        assert builder in domain.tfds_builders
+        ref = resolve_task(example)
+        assert ref.task.domain == name and ref.family == domain.tfds_builders[builder]
+    assert set(domain.tfds_examples) == set(domain.tfds_builders)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_release_families_decode_and_name_their_objects(name):
+    from rlu.data.release import catalog
+    from rlu.data.release.families import FAMILIES
+
+    for t in list_tasks(name):
+        assert t.release, f"{t.id} names no release files"
+        for rel in t.release:
+            assert rel.family in FAMILIES, f"{t.id}: family {rel.family!r} has no reader"
+            assert set(rel.shards) == set(t.datasets) or set(rel.shards) == {""}
+            for binding, n in rel.shards.items():
+                names = rel.shard_names(binding)
+                assert len(names) == n and names[0].startswith(rel.family + "/")
+        sel = catalog.select(t.id)
+        assert sel.objects and sel.release is t.release[0]
+
+
+def _installed(domain: Domain) -> str | None:
+    missing = [p for p in domain.packages if importlib.util.find_spec(p) is None]
+    return (
+        f"the {domain.extra!r} extra is not installed ({', '.join(missing)})" if missing else None
+    )
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_env_matches_the_task(name):
+    domain = DOMAINS[name]
+    why = _installed(domain)
+    if why:
+        pytest.skip(why)
+    from rlu.envs import make_env
+
+    task = list_tasks(name)[0]
+    settings = {domain.camera_setting: False} if domain.camera_setting else {}
+    env = make_env(task.id, seed=0, **settings)
+    try:
+        obs, _ = env.reset(seed=0)
+        action = env.action_space.sample()
+        obs2, reward, terminated, truncated, _ = env.step(action)
+        assert np.isfinite(reward) and isinstance(terminated, bool)
+        if isinstance(task.action_spec, DiscreteSpec):
+            assert env.action_space.n == task.action_spec.num_values
+        assert env.spec.id == task.gym_id
+    finally:
+        env.close()
+
+
+def _fixture_shards() -> list[tuple[str, str, str]]:
+    """(shard path, family, task id) for every fixture shard of a registered task's files."""
+    found = []
+    for t in TASKS.values():
+        for rel in t.release:
+            for binding in rel.shards:
+                prefix = rel.prefix(binding)
+                for root in FIXTURE_ROOTS:
+                    hits = sorted(root.glob(prefix + "-*-of-*"))
+                    found += [(str(h), rel.family, t.id) for h in hits[:1]]
+    return found
+
+
+SHARDS = _fixture_shards()
+
+
+def test_every_fixture_shard_belongs_to_a_domain():
+    # the fixtures hold control-suite windows and Atari transitions at least
+    assert {TASKS[t].domain for _, _, t in SHARDS} >= {"control_suite", "atari"}  # rlu-domains: ok
+
+
+# slow: 3-9 s a case on a 2-core machine (torch's import, a report)
+@pytest.mark.slow
+@pytest.mark.parametrize("shard,family,task", SHARDS, ids=[s[2] for s in SHARDS])
+def test_a_fixture_shard_converts_trains_evaluates_and_reports(tmp_path, shard, family, task):
+    pytest.importorskip("torch")
+    pytest.importorskip("google_crc32c")
+    domain = DOMAINS[TASKS[task].domain]
+    why = _installed(domain)
+    if why:
+        pytest.skip(why)
+    from rlu.cli import main
+
+    data, run = tmp_path / "data", tmp_path / "run"
+    args = ["convert", shard, "--family", family, "--task", task, "--out", str(data)]
+    if domain.challenges:
+        args += ["--challenge", domain.challenges[0]]
+    assert main(args) == 0
+    agent, batch = ("dqn", "atari.batch_size=4") if TASKS[task].discrete else ("bc", "batch_size=4")
+    argv = ["train", "--task", task, "--agent", agent, "--dataset", str(data), "--out", str(run),
+            "--steps", "3", "--eval-every", "0", "--eval-episodes", "1", "--eval-envs", "1",
+            "--eval-max-steps", "5", "--device", "cpu", "--quiet", batch]  # fmt: skip
+    assert main(argv) == 0
+    result = json.loads((run / "result.json").read_text())
+    assert result["steps"] == 3 and np.isfinite(result["final_eval"]["mean"])
+    assert 1 <= result["final_eval"]["lengths"][0] <= 5
+    assert main(["report", str(run), "--out", str(tmp_path / "report")]) == 0
+    assert any((tmp_path / "report").iterdir())
