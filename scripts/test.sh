@@ -39,7 +39,7 @@ workers=${RLU_TEST_WORKERS:-auto}
 parallel=()
 [ "$workers" != "1" ] && parallel=(-n "$workers" --dist worksteal)
 set +e
-.venv/bin/python -m pytest -q "${parallel[@]}" "${marker[@]}" "$@"
+.venv/bin/python -m pytest -q --durations=15 "${parallel[@]}" "${marker[@]}" "$@"
 rc=$?
 set -e
 # pytest exits 5 when it collected no test; that is not a failure of the code under test.
