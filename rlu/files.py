@@ -148,6 +148,22 @@ def check_target(path: str | os.PathLike, root: str | os.PathLike | None = None)
     return path
 
 
+def check_targets(folder: str | os.PathLike, patterns: Sequence[str]) -> None:
+    """:func:`check_target` (root ``folder``) of every entry of ``folder`` a command is about to
+    replace (``patterns``: names or globs relative to it, ``"figures/*.png"``), before the first
+    one is written, so a link planted at the last of them does not leave the others replaced."""
+    folder = Path(folder)
+    if not folder.is_dir() or folder.is_symlink():
+        return  # check_output / make_folder say what is wrong with the folder itself
+    for pattern in patterns:
+        head = pattern.rpartition("/")[0]
+        if head:
+            check_target(folder / head / ".probe", folder)  # a linked subfolder
+        matches = folder.glob(pattern) if any(c in pattern for c in "*?[") else [folder / pattern]
+        for path in matches:
+            check_target(path, folder)
+
+
 def make_folder(path: str | os.PathLike, root: str | os.PathLike | None = None) -> Path:
     """Create folder ``path`` (and its parents) for rlu's output, or accept it if it is already a
     real folder; a symbolic link there, or between ``root`` and ``path``, is refused (an

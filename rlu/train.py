@@ -320,11 +320,9 @@ def _train(
     eval_period = settings.eval_period(total)
     if eval_period:
         env_fn = task_env_factory(config.task, settings.env, **env_kwargs)
-    from rlu.loggers import LOGGERS
+    from rlu.loggers import check_loggers
 
-    unknown = [n for n in logger_names if n not in LOGGERS]
-    if unknown:
-        raise RluError(f"logger {unknown[0]!r}; loggers are {', '.join(LOGGERS)}")
+    check_loggers(logger_names, run, start)  # an unknown one, a bad CSV, a linked folder
 
     # everything that can fail before the first step has run: only now is the run folder written
     run.mkdir(parents=True, exist_ok=True)
