@@ -53,6 +53,9 @@ MAX_ITEMS = 1_000_000
 """Most items in one JSON list or object rlu reads."""
 MAX_STR = 1 << 20
 """Longest string in a JSON file rlu reads."""
+MAX_STEPS = 10**9
+"""Most learner steps a run may be given (the paper's longest budget is 2M; 1e9 is weeks on a
+GPU): a larger number is a mistake, not a budget."""
 
 
 # --- writing --------------------------------------------------------------------------------
