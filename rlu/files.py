@@ -53,6 +53,9 @@ MAX_ITEMS = 1_000_000
 """Most items in one JSON list or object rlu reads."""
 MAX_STR = 1 << 20
 """Longest string in a JSON file rlu reads."""
+MAX_STEPS = 10**9
+"""Most learner steps a run may be given (the paper's longest budget is 2M; 1e9 is weeks on a
+GPU): a larger number is a mistake, not a budget."""
 
 
 # --- writing --------------------------------------------------------------------------------
@@ -146,6 +149,22 @@ def check_target(path: str | os.PathLike, root: str | os.PathLike | None = None)
             break
         folder = folder.parent
     return path
+
+
+def check_targets(folder: str | os.PathLike, patterns: Sequence[str]) -> None:
+    """:func:`check_target` (root ``folder``) of every entry of ``folder`` a command is about to
+    replace (``patterns``: names or globs relative to it, ``"figures/*.png"``), before the first
+    one is written, so a link planted at the last of them does not leave the others replaced."""
+    folder = Path(folder)
+    if not folder.is_dir() or folder.is_symlink():
+        return  # check_output / make_folder say what is wrong with the folder itself
+    for pattern in patterns:
+        head = pattern.rpartition("/")[0]
+        if head:
+            check_target(folder / head / ".probe", folder)  # a linked subfolder
+        matches = folder.glob(pattern) if any(c in pattern for c in "*?[") else [folder / pattern]
+        for path in matches:
+            check_target(path, folder)
 
 
 def make_folder(path: str | os.PathLike, root: str | os.PathLike | None = None) -> Path:

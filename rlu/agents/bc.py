@@ -16,7 +16,7 @@ Deviations and choices:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -25,33 +25,34 @@ from torch import nn
 from rlu.agents import common
 from rlu.agents import networks as nets
 from rlu.agents.losses import mixture_log_prob
+from rlu.files import MAX_STEPS, bounds
 from rlu.types import BatchSpec, Sequence, Transition
 
 
 @dataclass(frozen=True)
 class BCConfig:
-    hidden_size: int = 1024
+    hidden_size: int = field(default=1024, metadata=bounds(min=1, max=16384))
     """Width of the residual MLP."""
-    num_layers: int = 8
+    num_layers: int = field(default=8, metadata=bounds(min=1, max=64))
     """Layers of the residual MLP (normalised every two)."""
-    torso_hidden: int = 64
+    torso_hidden: int = field(default=64, metadata=bounds(min=1, max=16384))
     """Embedding size of the ResNet camera torso (table 5, ABM & BC column)."""
-    mixture_components: int = 5
+    mixture_components: int = field(default=5, metadata=bounds(min=1, max=1024))
     """Gaussian components of the policy head."""
-    eval_variance: float = 1e-4
+    eval_variance: float = field(default=1e-4, metadata=bounds(min=1e-12, max=1e6))
     """Variance of every component when acting greedily (the paper's evaluation, 1e-4)."""
-    learning_rate: float = 1e-4
+    learning_rate: float = field(default=1e-4, metadata=bounds(min=0.0, max=10.0))
     """Adam learning rate."""
-    batch_size: int = 1024
+    batch_size: int = field(default=1024, metadata=bounds(min=1, max=1 << 20))
     """Transitions per update; windows per update when recurrent (the paper: 1024 and 128)."""
-    num_steps: int = 1_000_000
+    num_steps: int = field(default=1_000_000, metadata=bounds(min=1, max=MAX_STEPS))
     """Learner steps of a full run: what ``rlu train`` runs when no --steps is given. The paper
     states no budget for the continuous baselines; 1M is rlu's choice."""
     recurrent: bool = False
     """Two LSTM layers after the MLP; trains on sequence windows."""
-    lstm_hidden: int = 1024
+    lstm_hidden: int = field(default=1024, metadata=bounds(min=1, max=16384))
     """Hidden size of each LSTM layer."""
-    sequence_length: int = 40
+    sequence_length: int = field(default=40, metadata=bounds(min=1, max=100_000))
     """Window length of recurrent batches."""
 
 

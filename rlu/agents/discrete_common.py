@@ -21,7 +21,7 @@ of 0.6 ms at batch 32), and are converted once for both of their passes.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -29,6 +29,7 @@ import torch
 from torch import nn
 
 from rlu.agents import common
+from rlu.files import MAX_STEPS, bounds
 from rlu.types import ArraySpec, BatchSpec, DiscreteSpec, SpecError, Transition
 
 EVAL_EPSILON = 0.4**8
@@ -44,34 +45,34 @@ class AtariSettings:
     """The settings every discrete baseline shares (paper appendix A.2), composed into each
     agent's config as its ``atari`` field (override as ``atari.batch_size=32``)."""
 
-    batch_size: int = 256
+    batch_size: int = field(default=256, metadata=bounds(min=1, max=1 << 20))
     """Transitions per update."""
-    gamma: float = 0.99
+    gamma: float = field(default=0.99, metadata=bounds(min=0.0, max=1.0))
     """Discount factor of the TD target."""
-    n_step: int = 1
+    n_step: int = field(default=1, metadata=bounds(min=1, max=1000))
     """Steps summed into each transition's reward (the paper: 1-step targets)."""
-    reward_clip: float = 1.0
+    reward_clip: float = field(default=1.0, metadata=bounds(min=0.0, max=1e9))
     """Learning sees per-step rewards clipped to [-reward_clip, reward_clip] (the data keeps raw
     game scores; evaluation reports them)."""
-    adam_eps: float = 1e-7
+    adam_eps: float = field(default=1e-7, metadata=bounds(min=0.0, max=1.0))
     """Adam epsilon: TF2's default, as the paper states."""
-    eval_epsilon: float = EVAL_EPSILON
+    eval_epsilon: float = field(default=EVAL_EPSILON, metadata=bounds(min=0.0, max=1.0))
     """Probability of a uniform action when acting greedily (the paper's evaluation epsilon)."""
-    explore_epsilon: float = 0.01
+    explore_epsilon: float = field(default=0.01, metadata=bounds(min=0.0, max=1.0))
     """Probability of a uniform action when acting with greedy=False (the online agent's)."""
-    target_update_period: int = 2500
+    target_update_period: int = field(default=2500, metadata=bounds(min=1, max=MAX_STEPS))
     """Updates between hard copies of the online network into the target network."""
-    huber_delta: float = 1.0
+    huber_delta: float = field(default=1.0, metadata=bounds(min=1e-12, max=1e9))
     """Where the Huber loss of the TD error turns linear."""
-    num_steps: int = 2_000_000
+    num_steps: int = field(default=2_000_000, metadata=bounds(min=1, max=MAX_STEPS))
     """Learner steps of a full run (the table's 2M): what ``rlu train`` runs without --steps."""
-    channels: tuple[int, ...] = (32, 64, 64)
+    channels: tuple[int, ...] = field(default=(32, 64, 64), metadata=bounds(min=1, max=4096))
     """Nature CNN output channels per convolution."""
-    kernel_sizes: tuple[int, ...] = (8, 4, 3)
+    kernel_sizes: tuple[int, ...] = field(default=(8, 4, 3), metadata=bounds(min=1, max=84))
     """Nature CNN square filter sizes."""
-    strides: tuple[int, ...] = (4, 2, 1)
+    strides: tuple[int, ...] = field(default=(4, 2, 1), metadata=bounds(min=1, max=84))
     """Nature CNN strides."""
-    hidden_size: int = 512
+    hidden_size: int = field(default=512, metadata=bounds(min=1, max=16384))
     """Units of the fully connected layer after the convolutions."""
 
     def batch_spec(self) -> BatchSpec:

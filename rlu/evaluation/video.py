@@ -52,7 +52,7 @@ from typing import Any
 import numpy as np
 
 from rlu.evaluation.rollout import EnvFactory, episode_seed, evaluate
-from rlu.files import atomic_path, make_folder, write_json
+from rlu.files import atomic_path, check_targets, make_folder, write_json
 from rlu.system import install_hint
 from rlu.types import Policy, RluError
 
@@ -136,6 +136,10 @@ class Recorder:
         self.caption = caption
         self.name = name
         self.open_writer = check_format(fmt)
+        # every file to be replaced, before the first is: a link planted at a later episode's
+        # video must not leave the earlier ones replaced
+        names = [f"{name}_{e:03d}.{fmt}" for e in sorted(self.episodes)]
+        check_targets(self.out, [*names, INDEX])
         self.videos: list[Video] = []
         self._open: dict[int, _Filming] = {}
         self._closed = False

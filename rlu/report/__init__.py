@@ -256,6 +256,7 @@ def write_report(
     out = check_report_output(paths, out)
     records, datasets, fqe = read_inputs(paths)
     rep = build_report(records, datasets, random_scores, best_behaviour, fqe=fqe, paper=paper)
+    files.check_targets(out, REPORT_FILES)  # every file to replace, before the first is
     files.make_folder(out)
     old = _previous_figures(out)
     parts = render.sections(rep, render.Figures(out) if figures else None)
@@ -274,6 +275,10 @@ def write_report(
         if stale.is_file() and not stale.is_symlink():
             stale.unlink()
     return paths_out + [out / p for p in images]
+
+
+REPORT_FILES = ("report.md", "report.html", runs.REPORT, "figures/*.png")
+"""What a report folder holds (and a new report replaces)."""
 
 
 def _previous_figures(out: Path) -> set[str]:

@@ -9,21 +9,26 @@ CSV files are cut back to the checkpoint's step, as its JSON-lines logs are.
 
 - ``csv``: RUN/metrics.csv and RUN/eval.csv (mean return, episodes), standard library only;
 - ``tensorboard``: RUN/tensorboard (``torch.utils.tensorboard``; the ``tensorboard`` extra);
-- ``wandb``: a Weights & Biases run named after the run folder, its config the run's
-  config.json (the ``wandb`` extra; ``WANDB_MODE=offline`` writes it under RUN/wandb without a
-  network, to sync later with ``wandb sync``).
+- ``wandb``: a Weights & Biases run named after the run folder, its id kept in
+  RUN/wandb_id.txt, its config the run's config.json (the ``wandb`` extra;
+  ``WANDB_MODE=offline`` writes it under RUN/wandb without a network, to sync later with
+  ``wandb sync``).
 """
 
 from __future__ import annotations
 
 import csv
+import math
 import os
-from collections.abc import Mapping, Sequence
+import re
+import secrets
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
+from rlu import files
 from rlu.system import install_hint
-from rlu.types import RluError
+from rlu.types import FormatError, RluError
 
 LOGGERS = ("csv", "tensorboard", "wandb")
 
@@ -36,28 +41,130 @@ class Logger(Protocol):
     def close(self) -> None: ...
 
 
+MAX_CSV_LINE = 1 << 20
+"""Longest line of a metrics.csv / eval.csv rlu reads back on resume (its own lines are short)."""
+FIX_CSV = "remove it to start the CSV afresh, or restore the file rlu wrote"
+
+
+def _csv_rows(path: Path, start: int) -> Iterator[list[str]]:
+    """The header, then every row logged at or before step ``start``, of a CSV log rlu wrote,
+    streamed and checked: opened without following a link (a symbolic or hard link, a FIFO or
+    a device is refused before any read), UTF-8 text, lines of at most ``MAX_CSV_LINE``, a
+    ``step`` column of finite whole numbers >= 0, rows as wide as the header. A torn last line
+    (a kill mid-row: no newline) is dropped."""
+    try:
+        fd = files.open_private(path, os.O_RDONLY | os.O_NONBLOCK, "CSV log")
+    except OSError as e:
+        raise RluError(f"{path}: cannot be read ({e.strerror}); {FIX_CSV}") from None
+    with os.fdopen(fd, "r", encoding="utf-8", newline="") as fh:
+
+        def lines() -> Iterator[str]:
+            number = 0
+            while True:
+                try:
+                    line = fh.readline(MAX_CSV_LINE + 1)
+                except UnicodeDecodeError:
+                    raise FormatError(
+                        f"{path}: line {number + 1} is not UTF-8 text (a binary file?); {FIX_CSV}"
+                    ) from None
+                if not line:
+                    return
+                number += 1
+                if len(line) > MAX_CSV_LINE:
+                    raise FormatError(
+                        f"{path}: line {number} is longer than {MAX_CSV_LINE:,} characters; "
+                        f"{FIX_CSV}"
+                    )
+                if "\x00" in line:
+                    raise FormatError(f"{path}: line {number} holds a NUL byte; {FIX_CSV}")
+                if not line.endswith("\n"):
+                    return  # torn by a kill mid-row
+                yield line
+
+        reader = csv.reader(lines())
+        try:
+            header = next(reader, None)
+            if header is None:
+                return
+            if "step" not in header:
+                raise FormatError(f"{path}: the header has no 'step' column; {FIX_CSV}")
+            column = header.index("step")
+            yield header
+            for row in reader:
+                where = f"{path}: line {reader.line_num}"
+                try:
+                    step = float(row[column]) if column < len(row) else math.nan
+                except ValueError:
+                    step = math.nan
+                if not (math.isfinite(step) and step.is_integer() and step >= 0):
+                    text = row[column] if column < len(row) else ""
+                    raise FormatError(
+                        f"{where}: field 'step' is {text[:40]!r}; expected a whole number >= 0; "
+                        f"{FIX_CSV}"
+                    )
+                if step > start:
+                    continue  # logged after the checkpoint: dropped, whatever its width
+                if len(row) != len(header):
+                    raise FormatError(
+                        f"{where} has {len(row)} fields, the header {len(header)}; {FIX_CSV}"
+                    )
+                yield row
+        except csv.Error as e:
+            raise FormatError(
+                f"{path}: line {reader.line_num} is not CSV ({e}); {FIX_CSV}"
+            ) from None
+
+
+def _check_folder(path: Path) -> None:
+    """A logger's folder may be missing or a real folder, never a link out of the run."""
+    if path.is_symlink() or (path.exists() and not path.is_dir()):
+        raise RluError(
+            f"{path}: is a symbolic link or not a folder; rlu does not log through it: remove "
+            "it and run again"
+        )
+
+
 class CsvLogger:
     """RUN/metrics.csv (every metric of every logged step) and RUN/eval.csv (step, mean
     return, episodes); the columns are the first record's keys (an agent logs the same keys
-    at every step)."""
+    at every step). Its files are opened only through :func:`rlu.files.open_private` and, on
+    resume, read back streamed and checked (:func:`_csv_rows`) and cut through a temporary."""
+
+    KINDS = ("metrics", "eval")
+
+    @staticmethod
+    def check(run: Path, start: int) -> None:
+        """Refuse, before the run folder is written, a CSV log that resuming would fail on."""
+        for kind in CsvLogger.KINDS:
+            path = run / f"{kind}.csv"
+            if os.path.lexists(path):
+                for _ in _csv_rows(path, start):
+                    pass
 
     def __init__(self, run: Path, start: int):
         self.run = run
         self.files: dict[str, tuple[Any, Any]] = {}
-        for kind in ("metrics", "eval"):
+        for kind in self.KINDS:
             path = run / f"{kind}.csv"
-            if path.exists():  # resume: keep the rows logged up to the checkpoint
-                with open(path, newline="") as fh:
-                    rows = list(csv.DictReader(fh))
-                kept = [r for r in rows if int(float(r["step"])) <= start]
-                fields = list(rows[0]) if rows else None
-                if fields:
-                    with open(path, "w", newline="") as fh:
-                        w = csv.DictWriter(fh, fields)
-                        w.writeheader()
-                        w.writerows(kept)
-                    fh = open(path, "a", newline="")  # noqa: SIM115 (closed by close())
-                    self.files[kind] = (fh, csv.DictWriter(fh, fields, extrasaction="ignore"))
+            if not os.path.lexists(path):
+                continue
+            rows = _csv_rows(path, start)  # resume: keep the rows logged up to the checkpoint
+            fields = next(rows, None)
+            with files.atomic_path(path, root=run) as tmp:
+                fd = os.open(tmp, os.O_WRONLY | os.O_TRUNC | os.O_NOFOLLOW | os.O_CLOEXEC)
+                with os.fdopen(fd, "w", newline="") as out:
+                    w = csv.writer(out)
+                    if fields:
+                        w.writerow(fields)
+                        w.writerows(rows)
+            if fields:
+                fh = self._open(path, os.O_APPEND)
+                self.files[kind] = (fh, csv.DictWriter(fh, fields, extrasaction="ignore"))
+
+    @staticmethod
+    def _open(path: Path, flag: int) -> Any:
+        fd = files.open_private(path, os.O_WRONLY | os.O_CREAT | flag, "CSV log")
+        return os.fdopen(fd, "a" if flag == os.O_APPEND else "w", newline="")
 
     def log(self, kind: str, record: Mapping[str, Any]) -> None:
         row = dict(record)
@@ -65,7 +172,7 @@ class CsvLogger:
             row = {"step": record["step"], "mean": record["mean"],
                    "episodes": len(record["returns"])}  # fmt: skip
         if kind not in self.files:
-            fh = open(self.run / f"{kind}.csv", "w", newline="")  # noqa: SIM115
+            fh = self._open(self.run / f"{kind}.csv", os.O_TRUNC)
             writer = csv.DictWriter(fh, list(row), extrasaction="ignore")
             writer.writeheader()
             self.files[kind] = (fh, writer)
@@ -82,14 +189,19 @@ class CsvLogger:
 class TensorBoardLogger:
     """Scalars under RUN/tensorboard: each metric by its key, evaluations as ``eval/return``."""
 
+    @staticmethod
+    def check(run: Path, start: int) -> None:
+        _check_folder(run / "tensorboard")
+
     def __init__(self, run: Path, start: int):
         try:
             from torch.utils.tensorboard import SummaryWriter
         except ImportError:
             hint = install_hint("tensorboard")
             raise RluError(f"--log-to tensorboard needs tensorboard: {hint}") from None
+        folder = files.make_folder(run / "tensorboard", root=run)
         purge = start + 1 if start else None  # a resumed run drops what followed its checkpoint
-        self.writer = SummaryWriter(str(run / "tensorboard"), purge_step=purge)
+        self.writer = SummaryWriter(str(folder), purge_step=purge)
 
     def log(self, kind: str, record: Mapping[str, Any]) -> None:
         step = int(record["step"])
@@ -104,24 +216,80 @@ class TensorBoardLogger:
         self.writer.close()
 
 
+WANDB_ID = "wandb_id.txt"
+"""The file of a run folder holding its W&B run id (drawn at random when the run first logs to
+W&B; a resumed run, wherever its folder now lies, continues that W&B run)."""
+_WANDB_ID = re.compile(r"rlu-[0-9a-f]{16}")
+WANDB_LOGIN = (
+    "run `wandb login`, set WANDB_API_KEY, or set WANDB_MODE=offline to log under RUN/wandb "
+    "and sync later"
+)
+
+
+def _wandb_logged_in() -> bool:
+    """Whether wandb would find a key (or needs none): WANDB_API_KEY, an offline or disabled
+    WANDB_MODE, or the login ``wandb login`` keeps in ~/.netrc (or $NETRC)."""
+    import netrc
+    from urllib.parse import urlparse
+
+    if os.environ.get("WANDB_API_KEY"):
+        return True
+    if os.environ.get("WANDB_MODE", "").lower() in ("offline", "disabled", "dryrun"):
+        return True
+    host = urlparse(os.environ.get("WANDB_BASE_URL", "https://api.wandb.ai")).hostname
+    path = os.environ.get("NETRC") or os.path.join(os.path.expanduser("~"), ".netrc")
+    try:
+        return netrc.netrc(path).authenticators(host or "api.wandb.ai") is not None
+    except (OSError, netrc.NetrcParseError):
+        return False
+
+
+def _wandb_id(run: Path, create: bool) -> str | None:
+    path = run / WANDB_ID
+    fix = f"remove {WANDB_ID} (the run then logs to a new W&B run)"
+    if not os.path.lexists(path):
+        if not create:
+            return None
+        run_id = "rlu-" + secrets.token_hex(8)
+        files.write_atomic(path, run_id + "\n", root=run)
+        return run_id
+    files.check_target(path, run)
+    text = files.read_bytes(path, 256, fix).decode("ascii", "replace").strip()
+    if not _WANDB_ID.fullmatch(text):
+        raise FormatError(f"{path}: {text[:40]!r} is not a W&B run id rlu wrote; {fix}")
+    return text
+
+
 class WandbLogger:
-    """A Weights & Biases run (id and name from the run folder, so a resumed run continues it)."""
+    """A Weights & Biases run; its id is drawn once and kept in RUN/wandb_id.txt, so a resumed
+    run continues it (and only it: the id does not depend on where the folder lies)."""
+
+    @staticmethod
+    def check(run: Path, start: int) -> None:
+        _check_folder(run / "wandb")
+        _wandb_id(run, create=False)
+        if not _wandb_logged_in():
+            raise RluError(f"--log-to wandb: no W&B API key is configured; {WANDB_LOGIN}")
 
     def __init__(self, run: Path, start: int, config: Mapping[str, Any]):
         try:
             import wandb
         except ImportError:
             raise RluError(f"--log-to wandb needs wandb: {install_hint('wandb')}") from None
-        run_id = "rlu-" + "".join(c if c.isalnum() else "-" for c in str(run.resolve()))[-100:]
+        files.make_folder(run / "wandb", root=run)
+        run_id = _wandb_id(run, create=True)
         self.wandb = wandb
-        self.run = wandb.init(
-            project=os.environ.get("WANDB_PROJECT", "rlu"),
-            name=run.name,
-            id=run_id[-64:],
-            dir=str(run),
-            config=dict(config),
-            resume="allow",
-        )
+        try:
+            self.run = wandb.init(
+                project=os.environ.get("WANDB_PROJECT", "rlu"),
+                name=run.name,
+                id=run_id,
+                dir=str(run),
+                config=dict(config),
+                resume="allow",
+            )
+        except wandb.errors.Error as e:
+            raise RluError(f"--log-to wandb: wandb refused to start ({e}); {WANDB_LOGIN}") from None
 
     def log(self, kind: str, record: Mapping[str, Any]) -> None:
         step = int(record["step"])
@@ -137,6 +305,19 @@ class WandbLogger:
     def close(self) -> None:
         self.flush()
         self.run.finish()
+
+
+_CLASSES = {"csv": CsvLogger, "tensorboard": TensorBoardLogger, "wandb": WandbLogger}
+
+
+def check_loggers(names: Sequence[str], run: Path, start: int) -> None:
+    """Refuse, before a run folder is written, what its loggers ``names`` would fail on: an
+    unknown name, a CSV log that does not read back, a logger folder that is a link, W&B
+    without a key."""
+    for name in names:
+        if name not in _CLASSES:
+            raise RluError(f"--log-to {name!r}; loggers are {', '.join(LOGGERS)}")
+        _CLASSES[name].check(run, start)
 
 
 def make_loggers(

@@ -54,7 +54,7 @@ def build(p: Prepared, logger_names: Sequence[str]) -> Built:
     from rlu.agents import agent_module
     from rlu.evaluation.rollout import task_env_factory
     from rlu.training.checkpoints import load_state
-    from rlu.training.loggers import LOGGERS
+    from rlu.training.loggers import check_loggers
 
     config, settings = p.config, p.settings
     torch.set_num_threads(settings.torch_threads)
@@ -85,9 +85,7 @@ def build(p: Prepared, logger_names: Sequence[str]) -> Built:
     # evaluates needs no env
     eval_period = settings.eval_period(total)
     env_fn = task_env_factory(config.task, settings.env, **p.env_kwargs) if eval_period else None
-    unknown = [n for n in logger_names if n not in LOGGERS]
-    if unknown:
-        raise RluError(f"logger {unknown[0]!r}; loggers are {', '.join(LOGGERS)}")
+    check_loggers(tuple(logger_names), p.run, start)  # an unknown one, a bad CSV, a linked folder
     return Built(agent, sampler, steps, total, start, env_fn, eval_period)
 
 
