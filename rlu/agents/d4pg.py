@@ -23,12 +23,24 @@ the ``*_episodes`` families): ``reward`` is the gamma-discounted n-step sum (``g
 the gamma it must use), ``discount`` the product of per-step discounts; the agent bootstraps
 with gamma^n * discount.
 
-Deviations: offline, so no exploration noise. The ``small`` preset keeps clipping off.
+Initialisation (``init="acme"``, the default): Acme's. ``acme/tf/networks/continuous.py``:
+every linear layer of ``LayerNormMLP`` is ``VarianceScaling(0.333, fan_out, uniform)``
+(U(+-sqrt(0.999 / fan_out)), std sqrt(0.333 / fan_out)), the policy's last layer is
+``NearZeroInitializedLinear``: ``VarianceScaling(1e-4)`` (truncated normal, fan_in: std
+sqrt(1e-4 / fan_in), about 0.01 / sqrt(fan_in)); ``distributional.py``: the critic's
+``DiscreteValuedHead`` is a plain ``snt.Linear`` (Sonnet's default: truncated normal of std
+1 / sqrt(fan_in) before truncation); Sonnet's biases start at 0 and its LayerNorm at scale 1,
+offset 0. ``init="torch"`` is rlu's earlier initialisation, kept because the bundled dataset's
+behaviour agents were built with it (the ``laptop`` generation scale sets it; rlu.generate.scales).
+
+Deviations: offline, so no exploration noise. The ``small`` preset keeps clipping off. The camera
+ResNet torso keeps torch's default initialisation under either ``init``.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import torch
@@ -37,7 +49,7 @@ from torch import nn
 from rlu.agents import common
 from rlu.agents import networks as nets
 from rlu.agents.losses import bootstrap_values, categorical_cross_entropy, categorical_projection
-from rlu.types import BatchSpec, Transition
+from rlu.types import BatchSpec, RluError, Transition
 
 
 @dataclass(frozen=True)
@@ -76,6 +88,14 @@ class D4PGConfig:
     num_steps: int = 1_000_000
     """Learner steps of a full run: what ``rlu train`` runs when no --steps is given. The paper
     states no budget for the continuous baselines; 1M is rlu's choice."""
+    init: Literal["acme", "torch"] = "acme"
+    """How the weights start. 'acme': Acme's (the module's docstring): the LayerNormMLPs'
+    layers U(+-sqrt(0.999 / fan_out)), the policy's last layer truncated normal of std
+    sqrt(1e-4 / fan_in), the critic head's truncated normal of std 1 / sqrt(fan_in) before
+    truncation, biases 0. 'torch': rlu's earlier init, which the bundled dataset's behaviour
+    agents used: torch's default ``nn.Linear`` (weights and biases U(+-1 / sqrt(fan_in))) with
+    the policy's last weight times 1e-4 (std 5.8e-5 / sqrt(fan_in), 170x below Acme's) and its
+    bias 0."""
 
 
 Config = D4PGConfig
@@ -89,14 +109,28 @@ PRESETS = {
 GRID: dict[str, list] = {}  # the paper reports no sweep for D4PG
 
 
+def acme_layer_norm_mlp_init_(mlp: nn.Sequential) -> None:
+    """Acme's ``LayerNormMLP`` initialisation, in place: every linear layer
+    ``VarianceScaling(0.333, fan_out, uniform)`` with zero biases; LayerNorm scale 1, offset 0
+    (torch's default, as Sonnet's)."""
+    for layer in mlp:
+        if isinstance(layer, nn.Linear):
+            nets.variance_scaling_(layer.weight, 0.333, "fan_out", "uniform")
+            layer.bias.zero_()
+
+
 class Policy(nn.Module):
     def __init__(self, observation_spec, action_dim: int, config: D4PGConfig):
         super().__init__()
         self.encoder = nets.Encoder(observation_spec, config.torso_hidden, torso_norm_elu=False)
         self.mlp = nets.layer_norm_mlp(self.encoder.output_dim, config.policy_layers)
         self.out = nn.Linear(config.policy_layers[-1], action_dim)
-        with torch.no_grad():  # Acme's NearZeroInitializedLinear
-            self.out.weight.mul_(1e-4)
+        with torch.no_grad():
+            if config.init == "acme":  # LayerNormMLP, then NearZeroInitializedLinear
+                acme_layer_norm_mlp_init_(self.mlp)
+                nets.variance_scaling_(self.out.weight, 1e-4, "fan_in", "truncated_normal")
+            else:  # rlu's earlier init (the bundled data's behaviour agents)
+                self.out.weight.mul_(1e-4)
             self.out.bias.zero_()
 
     def forward(self, obs) -> torch.Tensor:
@@ -111,6 +145,12 @@ class Critic(nn.Module):
         self.head = nets.CategoricalHead(
             config.critic_layers[-1], config.num_atoms, config.vmin, config.vmax
         )
+        if config.init == "acme":  # LayerNormMLP, then DiscreteValuedHead's snt.Linear
+            with torch.no_grad():
+                acme_layer_norm_mlp_init_(self.mlp)
+                linear = self.head.linear
+                nets.truncated_normal_(linear.weight, linear.in_features**-0.5)
+                linear.bias.zero_()
 
     def forward(self, obs, action: torch.Tensor) -> torch.Tensor:
         return self.head(self.mlp(torch.cat([self.encoder(obs), action], -1)))
@@ -146,6 +186,8 @@ class D4PGAgent:
     def __init__(
         self, observation_spec, action_spec, config: D4PGConfig, seed: int = 0, device="cpu"
     ):
+        if config.init not in ("acme", "torch"):
+            raise RluError(f"D4PGConfig.init={config.init!r}; choose 'acme' or 'torch'")
         self.config, self.device, self.step = config, common.device(device), 0
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, n_step=config.n_step, gamma=config.gamma)

@@ -20,6 +20,8 @@
   ``DeterministicPolicy``: TD3's tanh actor (TD3+BC, ReBRAC).
 - ``ObservationNormaliser``: a dataset's observation mean and std (``rlu.types.DataStatistics``)
   as buffers, applied per entry (TD3+BC's state normalisation).
+- ``variance_scaling_``: TF/Keras' ``VarianceScaling`` initializer (what Acme's networks name),
+  ``truncated_normal_``: TF's ``truncated_normal`` (Sonnet's default ``snt.Linear`` weights).
 
 Network pieces only: seeding, tensors, optimisers and the checkpoint format are in
 ``rlu.agents.common``, shared with the discrete agents.
@@ -178,6 +180,36 @@ class ResidualMLP(nn.Module):
         for block, norm in zip(self.blocks, self.norms, strict=True):
             h = norm(h + block(h))
         return F.elu(h)
+
+
+_TRUNCATED_STD = 0.87962566103423978
+"""Std of a unit normal truncated to [-2, 2]: Keras' ``VarianceScaling`` divides by it so its
+truncated draws have the std ``sqrt(scale / fan)``."""
+
+
+def truncated_normal_(weight: torch.Tensor, std: float) -> torch.Tensor:
+    """TF's ``truncated_normal(shape, 0, std)`` in place: N(0, std^2) redrawn outside +-2 std
+    (so the draws' std is 0.8796 std)."""
+    return nn.init.trunc_normal_(weight, 0.0, std, -2.0 * std, 2.0 * std)
+
+
+def variance_scaling_(
+    weight: torch.Tensor, scale: float = 1.0, mode: str = "fan_in",
+    distribution: str = "truncated_normal",
+) -> torch.Tensor:  # fmt: skip
+    """Keras' ``VarianceScaling(scale, mode, distribution)`` (``tf.initializers`` in TF2, what
+    Acme's TF networks pass to Sonnet) on a torch ``(out, in)`` weight, in place. ``n`` is the
+    fan of ``mode`` (fan_in = in, fan_out = out, fan_avg their mean); 'truncated_normal' draws
+    ``truncated_normal_(sqrt(scale / n) / .8796)`` (std ``sqrt(scale / n)``), 'uniform'
+    U(+-sqrt(3 scale / n)) (std ``sqrt(scale / n)``)."""
+    fan_out, fan_in = weight.shape[0], weight[0].numel()
+    n = {"fan_in": fan_in, "fan_out": fan_out, "fan_avg": (fan_in + fan_out) / 2}[mode]
+    if distribution == "truncated_normal":
+        return truncated_normal_(weight, (scale / n) ** 0.5 / _TRUNCATED_STD)
+    if distribution == "uniform":
+        limit = (3.0 * scale / n) ** 0.5
+        return nn.init.uniform_(weight, -limit, limit)
+    raise ValueError(f"variance_scaling_: unknown distribution {distribution!r}")
 
 
 def layer_norm_mlp(input_dim: int, sizes: tuple[int, ...], activate_final: bool = True):
