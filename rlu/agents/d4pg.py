@@ -33,7 +33,8 @@ sqrt(1e-4 / fan_in), about 0.01 / sqrt(fan_in)); ``distributional.py``: the crit
 offset 0. ``init="torch"`` is rlu's earlier initialisation, kept because the bundled dataset's
 behaviour agents were built with it (the ``laptop`` generation scale sets it; rlu.generate.scales).
 
-Deviations: offline, so no exploration noise. The ``small`` preset keeps clipping off. The camera
+Deviations: offline, so no exploration noise. The ``small`` preset keeps clipping off and
+``init="torch"`` (rlu's choices: its learning rates were chosen with both). The camera
 ResNet torso keeps torch's default initialisation under either ``init``.
 """
 
@@ -101,10 +102,12 @@ class D4PGConfig:
 Config = D4PGConfig
 PRESETS = {
     "paper": D4PGConfig(),
-    # Clipping off: the small preset's learning rates were chosen without it.
+    # Clipping off and rlu's earlier init: the small preset's learning rates were chosen with
+    # both (with init="acme" its 2,000-update learning check on the bundled cartpole swingup gave
+    # 75.9 against a bar of 129.7, seed 0, measured 2026-12-03).
     "small": D4PGConfig(policy_layers=(256, 256), critic_layers=(256, 256), torso_hidden=64,
                         vmin=-100.0, vmax=100.0, policy_lr=3e-4, critic_lr=3e-4,
-                        max_grad_norm=0.0, dqda_clip_norm=0.0, num_steps=20_000),
+                        max_grad_norm=0.0, dqda_clip_norm=0.0, num_steps=20_000, init="torch"),
 }  # fmt: skip
 GRID: dict[str, list] = {}  # the paper reports no sweep for D4PG
 
