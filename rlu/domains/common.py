@@ -24,3 +24,17 @@ def act(n: int) -> BoundedSpec:
 
 
 CAMERA = ArraySpec((64, 64, 3), "uint8")
+
+
+def config_task_ref(
+    domain: str, tasks: Mapping, name: str, builder: str, config: str, family: str, fix: str
+):
+    """A TFDS name whose config is a task's name (``rlu_control_suite/cartpole_swingup``): that
+    task of ``domain``; a domain's ``tfds_ref`` is ``functools.partial(config_task_ref, NAME)``."""
+    from rlu.domains.spec import TaskRef
+    from rlu.types import RluError
+
+    task = tasks.get(f"{domain}/{config}")
+    if task is None:
+        raise RluError(f"{name!r}: {builder} has no config {config!r}; {fix}")
+    return TaskRef(task, name, family=family)

@@ -7,10 +7,11 @@ episode counts: the paper's table 1 (Gulcehre et al. 2020, arXiv:2006.13888).
 
 from __future__ import annotations
 
+import functools
 from types import MappingProxyType
 
 from rlu.domains import Domain
-from rlu.domains.common import act, obs
+from rlu.domains.common import act, config_task_ref, obs
 
 NAME = "control_suite"
 
@@ -88,17 +89,6 @@ def build_tasks():
     return tasks
 
 
-def tfds_ref(tasks, name: str, builder: str, config: str, family: str, fix: str):
-    """``rlu_control_suite/<task>``: the task of that name."""
-    from rlu.domains.spec import TaskRef
-    from rlu.types import RluError
-
-    task = tasks.get(f"{NAME}/{config}")
-    if task is None:
-        raise RluError(f"{name!r}: {builder} has no config {config!r}; {fix}")
-    return TaskRef(task, name, family=family)
-
-
 DOMAIN = Domain(
     name=NAME,
     title="DM Control Suite",
@@ -110,7 +100,7 @@ DOMAIN = Domain(
     vector_backend="sync",
     tfds_builders=MappingProxyType({"rlu_control_suite": "dm_control_suite_episodes"}),
     tfds_examples=MappingProxyType({"rlu_control_suite": "rlu_control_suite/cartpole_swingup"}),
-    tfds_ref=tfds_ref,
+    tfds_ref=functools.partial(config_task_ref, NAME),
     paper_table="appendix B, table 'DM Control suite results'",
     generation="runs",
     sim_packages=("dm-control", "mujoco"),

@@ -6,10 +6,11 @@ dm_control_suite.py``; episode counts, sequence lengths and selection split: the
 
 from __future__ import annotations
 
+import functools
 from types import MappingProxyType
 
 from rlu.domains import Domain
-from rlu.domains.common import CAMERA, act, f32
+from rlu.domains.common import CAMERA, act, config_task_ref, f32
 
 NAME = "locomotion"
 
@@ -89,17 +90,6 @@ def build_tasks():
     return tasks
 
 
-def tfds_ref(tasks, name: str, builder: str, config: str, family: str, fix: str):
-    """``rlu_locomotion/<task>``: the task of that name."""
-    from rlu.domains.spec import TaskRef
-    from rlu.types import RluError
-
-    task = tasks.get(f"{NAME}/{config}")
-    if task is None:
-        raise RluError(f"{name!r}: {builder} has no config {config!r}; {fix}")
-    return TaskRef(task, name, family=family)
-
-
 DOMAIN = Domain(
     name=NAME,
     title="DM Locomotion",
@@ -111,7 +101,7 @@ DOMAIN = Domain(
     vector_backend="process",
     tfds_builders=MappingProxyType({"rlu_locomotion": "dm_locomotion_episodes"}),
     tfds_examples=MappingProxyType({"rlu_locomotion": "rlu_locomotion/rodent_gaps"}),
-    tfds_ref=tfds_ref,
+    tfds_ref=functools.partial(config_task_ref, NAME),
     paper_table="appendix C, table 'DM Locomotion results'",
     camera_setting="camera",
     generation="policy",
