@@ -46,3 +46,50 @@ def loopback_cluster(cpus: Sequence[int] = (1, 1)) -> Iterator[tuple[Any, list[A
             os.environ.pop("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", None)
         else:
             os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = env
+
+
+def remove_node_now(cluster: Any, node: Any, timeout: float = 60.0) -> None:
+    """Remove ``node`` as a machine going away would: its raylet and every process under it (the
+    task workers among them) killed, and only then return. ``Cluster.remove_node`` kills the
+    raylet and leaves its workers to notice on their own, so a worker in the middle of a task can
+    still finish it and send its result for a while after the node is gone."""
+    import select
+    import signal
+
+    from ray._private import ray_constants
+
+    raylets = node.all_processes.get(ray_constants.PROCESS_TYPE_RAYLET, [])
+    under = _descendants({info.process.pid for info in raylets})
+    cluster.remove_node(node, allow_graceful=False)
+    for pid in sorted(under):
+        try:
+            fd = os.pidfd_open(pid)
+        except ProcessLookupError:
+            continue
+        try:
+            signal.pidfd_send_signal(fd, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        ready, _, _ = select.select([fd], [], [], timeout)  # readable once the process ended
+        os.close(fd)
+        if not ready:
+            raise RuntimeError(f"process {pid} of the removed node still runs after {timeout} s")
+
+
+def _descendants(roots: set[int]) -> set[int]:
+    """Every live process below ``roots`` (from /proc's parent ids)."""
+    parent: dict[int, int] = {}
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as fh:
+                stat = fh.read()
+        except OSError:
+            continue
+        parent[int(entry)] = int(stat.rsplit(")", 1)[1].split()[1])
+    found, frontier = set(), set(roots)
+    while frontier:
+        frontier = {p for p, pp in parent.items() if pp in frontier} - found
+        found |= frontier
+    return found

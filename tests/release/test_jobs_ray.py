@@ -18,7 +18,7 @@ from rlu.data.release import families as Fm
 from rlu.data.release.jobs import DatasetJob, Fetch, convert_release
 from rlu.data.release.load import load_release_dataset, release_dataset_path
 from rlu.workers import Backend, run_jobs, send
-from tests.release.ray_cluster import loopback_cluster
+from tests.release.ray_cluster import loopback_cluster, remove_node_now
 from tests.release.test_convert import _windows
 from tests.release.test_jobs import same_bytes
 from tests.servers import direct, serve
@@ -133,7 +133,7 @@ def test_a_node_removed_mid_job_changes_nothing(tmp_path, bucket):
         driver = ray.get_runtime_context().get_node_id()
         victim = next(n for n in nodes if n.node_id != driver)
         # both nodes hold a shard's download: remove one of them, then let the downloads go on
-        bucket.on_pair = lambda: cluster.remove_node(victim, allow_graceful=False)
+        bucket.on_pair = lambda: remove_node_now(cluster, victim)
         report = convert_release(
             jobs, Backend("ray", address=cluster.address), fetch=Fetch(str(cache), bucket.url)
         )
