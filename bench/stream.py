@@ -73,7 +73,16 @@ def warm(paths: list[Path]) -> None:
 
 
 def peak_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    """This process's peak RSS plus its frame-inflating helpers' (``rlu.data.store.decoders``)."""
+    from rlu.data.store import decoders
+
+    total = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    held = decoders._DECODERS
+    for proc, _, _ in held[1].helpers if held is not None and held[1] is not None else ():
+        with open(f"/proc/{proc.pid}/status") as fh:
+            kb = next(line for line in fh if line.startswith("VmHWM:")).split()[1]
+        total += int(kb) / 1024
+    return total
 
 
 def timed(sample, seconds: float, batches: int | None = None) -> tuple[float, int]:

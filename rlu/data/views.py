@@ -3,7 +3,8 @@
 Every view turns an array of indices into a named batch with numpy fancy indexing, with no
 per-step Python; the one Python loop is the store's, for zlib-compressed image columns, which
 inflate each distinct frame of a batch once, reading each run of adjacent frames (a stacked
-transition's) in one read, on one thread per core. Indices are *eligible start steps*, numbered
+transition's) in one read, split between the calling thread and one helper process per other
+core (``rlu.data.store.decoders``). Indices are *eligible start steps*, numbered
 per view:
 
 - transitions: every step that is not the last step of its segment (a segment of T steps holds

@@ -27,14 +27,15 @@ import math
 import mmap
 import os
 import stat
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path, PurePosixPath
 from typing import Any
 
 import numpy as np
 
 from rlu.data.episode import METADATA_FIELDS, METADATA_MISSING, Segment
-from rlu.data.inflate import inflate_frames
+from rlu.data.inflate import current, inflate_frames
+from rlu.data.store.decoders import MEMORY, Decoders, decoders
 from rlu.data.store.schema import (
     FORMAT,
     FORMAT_VERSION,
@@ -421,24 +422,9 @@ def _compress_bound(n: int) -> int:
     return n + (n >> 12) + (n >> 14) + (n >> 25) + 13
 
 
-_POOL: tuple[int, Any, int] | None = None  # (pid, executor, threads): not reused after a fork
-_THREADED_FRAMES = 64  # fewer frames than this are inflated in the calling thread
-_RUN_FRAMES = 256  # the most frames one task inflates (a long run is split across threads)
+_SHARED_FRAMES = 256  # fewer frames than this are inflated in the calling thread alone
+_RUN_FRAMES = 64  # the most frames one read inflates (a long run is split between processes)
 _MERGE_GAP = 16 << 10  # runs of rows whose streams lie closer than this are read at once
-
-
-def _pool() -> tuple[Any, int]:
-    """The process's inflating threads, one per core, and their number (made on first use,
-    anew after a fork)."""
-    global _POOL
-    if _POOL is None or _POOL[0] != os.getpid():
-        from concurrent.futures import ThreadPoolExecutor
-
-        from rlu.system import available_cores
-
-        n = available_cores()
-        _POOL = (os.getpid(), ThreadPoolExecutor(n, thread_name_prefix="rlu-inflate"), n)
-    return _POOL[1], _POOL[2]
 
 
 class ZlibColumn:
@@ -450,8 +436,9 @@ class ZlibColumn:
 
     :meth:`take` reads the rows asked for in file order, one ``pread`` per run of adjacent rows
     (a stacked transition's frames are adjacent: one read), each row inflated once however often
-    it is asked for, by the fastest installed inflater (``rlu.data.inflate``) on one thread per
-    core (the inflaters release the GIL).
+    it is asked for, by the fastest installed inflater (``rlu.data.inflate``), a batch's reads
+    split between the calling thread and one helper process per other core
+    (``rlu.data.store.decoders``).
     """
 
     def __init__(self, path: Path, offsets: np.ndarray, spec: ArraySpec):
@@ -518,7 +505,7 @@ class ZlibColumn:
     ) -> None:
         """Inflate ``rows`` (ascending, no repeats) into rows ``places`` of ``out`` (C-contiguous,
         one frame a row; default: rows 0, 1, ...), one read per run of nearby rows, the runs
-        spread over the inflating threads."""
+        split between this thread and the frame-inflating processes (``decoders``)."""
         starts, ends = self.offsets[rows], self.offsets[rows + 1]
         # a read: rows [a, b) from the file in one piece (nearby rows merged), at most
         # _RUN_FRAMES of them; a task: consecutive reads, about as many frames in each
@@ -534,10 +521,7 @@ class ZlibColumn:
                 lo, hi = int(starts[a]), int(ends[b - 1])
                 data = os.pread(fd, hi - lo, lo)
                 if len(data) != hi - lo:
-                    raise FormatError(
-                        f"{self.path}: {hi - lo} bytes at offset {lo} hold {len(data)} (the file "
-                        f"was cut since it was opened); {_RECREATE}"
-                    )
+                    raise self._cut(lo, hi, len(data))
                 if places is None:
                     bad = inflate_frames(data, starts[a:b] - lo, ends[a:b] - lo, out[a:b],
                                          self.frame_bytes)  # fmt: skip
@@ -545,21 +529,92 @@ class ZlibColumn:
                     bad = inflate_frames(data, starts[a:b] - lo, ends[a:b] - lo, out,
                                          self.frame_bytes, places[a:b])  # fmt: skip
                 if bad is not None:
-                    j, why = bad
-                    raise FormatError(
-                        f"{self.path}: frame {int(rows[a + j])} is not a zlib stream of one "
-                        f"{self.frame_bytes}-byte frame ({why}); {_RECREATE}"
-                    )
+                    raise self._bad(int(rows[a + bad[0]]), bad[1])
 
-        if len(rows) < _THREADED_FRAMES or len(reads) == 1:
-            run(reads)
+        helpers = decoders() if len(rows) >= _SHARED_FRAMES and len(reads) > 1 else None
+        if helpers is None or not helpers.lock.acquire(blocking=False):
+            run(reads)  # one core, a small batch, or another thread's batch in the helpers
             return
-        pool, threads = _pool()
-        ntasks = min(len(reads), 2 * threads)
-        edges = np.searchsorted([b for _, b in reads], np.linspace(0, len(rows), ntasks + 1)[1:-1])
-        tasks = np.split(np.arange(len(reads)), np.unique(edges))
-        for _ in pool.map(run, [[reads[i] for i in t] for t in tasks if len(t)]):
-            pass  # the first error (in row order) is raised
+        try:
+            self._run_shared(helpers, rows, reads, out, places, run)
+        finally:
+            helpers.lock.release()
+
+    def _run_shared(
+        self,
+        helpers: Decoders,
+        rows: np.ndarray,
+        reads: list[tuple[int, int]],
+        out: np.ndarray,
+        places: np.ndarray | None,
+        run: Callable[[list[tuple[int, int]]], None],
+    ) -> None:
+        """``reads`` split by frames into a part for this thread (the first) and one per helper
+        process; the first error in row order raised once every helper has answered."""
+        starts, ends = self.offsets[rows], self.offsets[rows + 1]
+        n = len(rows)
+        parts = len(helpers.helpers) + 1
+        edges = np.searchsorted([b for _, b in reads], np.linspace(0, n, parts + 1)[1:-1])
+        groups = [g for g in np.split(np.arange(len(reads)), edges) if len(g)]
+        mine, theirs = [reads[i] for i in groups[0]], [[reads[i] for i in g] for g in groups[1:]]
+        tasks, spans = [], []
+        st = os.fstat(self._fileno())
+        for task in theirs:
+            fa, fb = task[0][0], task[-1][1]
+            if (fb - fa) * self.frame_bytes > MEMORY:  # a task too large for the shared memory
+                mine.extend(task)
+                continue
+            local = np.asarray(task, np.int64) - fa
+            file = (current(), str(self.path), st.st_dev, st.st_ino)
+            tasks.append((*file, local, starts[fa:fb], ends[fa:fb], self.frame_bytes))
+            spans.append((fa, fb, task))
+        helpers.send(tasks)
+        error: tuple[int, Exception] | None = None
+        try:
+            run(mine)
+        except FormatError as e:
+            error = (mine[0][0], e)
+        for (fa, fb, task), (shared, reply) in zip(spans, helpers.collect(len(tasks)), strict=True):
+            if reply is None:
+                shared = shared[: (fb - fa) * self.frame_bytes].reshape(fb - fa, -1)
+                dest = out.reshape(-1, self.frame_bytes)
+                if places is None:
+                    dest[fa:fb] = shared
+                else:
+                    dest[places[fa:fb]] = shared
+                helpers.frames += fb - fa
+                continue
+            if reply[0] == "changed":  # the path holds another file now: read ours here
+                try:
+                    run(task)
+                except FormatError as e:
+                    reply = ("error", e)
+                else:
+                    continue
+            if reply[0] == "cut":
+                e = self._cut(*reply[1:])
+            elif reply[0] == "bad":
+                e = self._bad(int(rows[fa + reply[1]]), reply[2])
+            elif reply[0] == "fail":
+                e = FormatError(f"{self.path}: a frame-inflating process failed: {reply[1]}")
+            else:
+                e = reply[1]
+            if error is None or fa < error[0]:
+                error = (fa, e)
+        if error is not None:
+            raise error[1]
+
+    def _cut(self, lo: int, hi: int, got: int) -> FormatError:
+        return FormatError(
+            f"{self.path}: {hi - lo} bytes at offset {lo} hold {got} (the file was cut since it "
+            f"was opened); {_RECREATE}"
+        )
+
+    def _bad(self, row: int, why: str) -> FormatError:
+        return FormatError(
+            f"{self.path}: frame {row} is not a zlib stream of one {self.frame_bytes}-byte frame "
+            f"({why}); {_RECREATE}"
+        )
 
     def __getitem__(self, rows: Any) -> np.ndarray:
         if isinstance(rows, slice):
