@@ -206,8 +206,10 @@ def test_header_helpers():
     assert n == 5 and struct.unpack("<I", rec[8:12])[0] == F.masked_crc32c(rec[:8])
 
 
-def test_crc_mismatch_inside_a_run_of_equal_lengths(tmp_path):
-    payloads = [bytes([i]) * 40 for i in range(60)]  # the vectorised path frames these
+@pytest.mark.parametrize("n", [60, 100])  # 100: one CRC call over the block first
+def test_crc_mismatch_inside_a_run_of_equal_lengths(tmp_path, n):
+    assert 60 < F._BLOCK_CRC_RUN <= 100
+    payloads = [bytes([i]) * 40 for i in range(n)]  # the vectorised path frames these
     data = bytearray(b"".join(F.frame(p) for p in payloads))
     off = 33 * (40 + 16)
     data[off + 12 + 5] ^= 0x10
@@ -280,7 +282,8 @@ def test_damage_read_as_the_plain_rules_read_it(tmp_path, monkeypatch, chunk):
 
     monkeypatch.setattr(F, "CHUNK", chunk)
     r = random.Random(chunk)
-    payloads = [bytes([i % 256]) * (40 if i % 50 < 35 else r.randrange(300)) for i in range(150)]
+    # runs of 70 equal lengths: a block CRC over 64 or more of them, as well as shorter runs
+    payloads = [bytes([i % 256]) * (40 if i % 100 < 70 else r.randrange(300)) for i in range(250)]
     clean = b"".join(F.frame(p) for p in payloads)
     for trial in range(12):
         data = bytearray(clean)
