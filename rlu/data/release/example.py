@@ -175,7 +175,7 @@ def _parse_feature(buf: bytes, pos: int, end: int) -> Feature:
             a, pos = _len_delim(buf, pos, end)
             v = _parse_list(buf, a, pos, field)
             if field == kind:  # a repeated sub-message merges (lists concatenate)
-                v = value + v if field == BYTES else np.concatenate([value, v])  # type: ignore
+                v = value + v if field == BYTES else np.concatenate([value, v])
             value, kind = v, field
         else:
             pos = _skip(buf, pos, end, wire)
@@ -461,7 +461,7 @@ def stack_examples(records: Sequence[Mapping[str, Feature]]) -> dict[str, Column
     cols: dict[str, Column] = {}
     for k, kind in keys.items():
         if kind == BYTES:
-            cols[k] = BytesColumn(values=[list(r.get(k, [])) for r in records])  # type: ignore[arg-type]
+            cols[k] = BytesColumn(values=[list(r.get(k, [])) for r in records])
             continue
         got = [r.get(k, _EMPTY_F32) for r in records]
         vals = [v if isinstance(v, np.ndarray) else np.zeros(0, np.float32) for v in got]
