@@ -515,7 +515,7 @@ def _shape_of_hint(hint: Any, meta: Mapping[str, Any]) -> Shape:
         rest = [a for a in args if a is not type(None)]
         inner = _shape_of_hint(rest[0], meta) if len(rest) == 1 else AnyJSON()
         return Optional(inner) if type(None) in args else inner
-    if dataclasses.is_dataclass(hint):
+    if isinstance(hint, type) and dataclasses.is_dataclass(hint):  # a hint is a class
         return shape_of(hint)
     if hint is bool:
         return Bool()

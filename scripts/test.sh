@@ -26,6 +26,10 @@ fi
 echo "scripts/test.sh: ruff check and ruff format --check"
 .venv/bin/ruff check .
 .venv/bin/ruff format --check rlu tests bench scripts
+# mypy over the modules pyproject.toml's [tool.mypy] `files` lists (not yet the whole package:
+# docs/getting_started.md says which parts are left out)
+echo "scripts/test.sh: mypy"
+.venv/bin/mypy
 # The documentation site (mkdocs.yml), warnings as errors: a broken link or anchor, a page left
 # out of the nav, a docstring mkdocstrings cannot read. Into build/site (git-ignored). Not
 # --quiet: with it, mkdocs 1.6 counts no warning and --strict passes whatever the site holds.

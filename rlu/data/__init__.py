@@ -92,7 +92,7 @@ def load_dataset(
         from rlu.types import RluError
 
         raise RluError(f"unknown dataset source {source!r}; use 'auto', 'local' or 'release'")
-    release = {
+    release: dict[str, Any] = {  # keyword arguments of the loaders, each typed there
         "family": family,
         "run": run,
         "challenge": challenge,

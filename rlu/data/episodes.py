@@ -161,6 +161,9 @@ class EpisodeSubset(Dataset):
     :class:`~rlu.data.store.Dataset` to every sampler, view and adapter. ``indices`` are the
     episodes' positions in the original dataset (``parent``)."""
 
+    parent: Dataset
+    indices: np.ndarray
+
     def __init__(self, parent: Dataset, indices: Any):
         root = parent.parent if isinstance(parent, EpisodeSubset) else parent
         idx = np.asarray(indices, np.int64).reshape(-1)

@@ -43,11 +43,11 @@ WHOLE_GZIP_MAX = 64 << 20
 try:  # the inflate extra
     import deflate as _libdeflate
 except ImportError:  # pragma: no cover - exercised where the extra is absent
-    _libdeflate = None
+    _libdeflate = None  # type: ignore[assignment]  # None: the extra is absent
 try:
     from zlib_ng import zlib_ng as _zlib_ng
 except ImportError:  # pragma: no cover - exercised where the extra is absent
-    _zlib_ng = None
+    _zlib_ng = None  # type: ignore[assignment]  # None: the extra is absent
 
 
 def installed() -> tuple[str, ...]:
@@ -109,7 +109,7 @@ def inflate_frames(
     ``nbytes``-byte frame (the streams before j are written). The inflater releases the GIL on
     every frame, so threads decode in parallel."""
     view = memoryview(data)
-    dest = memoryview(out).cast("B")
+    dest = out.data.cast("B")  # ndarray.data: the array's buffer, a memoryview
     s, e = starts.tolist(), ends.tolist()
     at = range(len(s)) if rows is None else rows.tolist()
     if _current == "libdeflate":
@@ -118,7 +118,7 @@ def inflate_frames(
         for j in range(len(s)):
             blob = view[s[j] : e[j]]
             try:
-                raw = inflate(blob, nbytes)
+                raw: bytes | bytearray = inflate(blob, nbytes)
             except error:
                 return j, "not a zlib stream, or one that inflates past the frame's size"
             if len(raw) != nbytes:
@@ -160,7 +160,10 @@ def gzip_decompressobj() -> Any:
 
 def gzip_errors() -> tuple[type[BaseException], ...]:
     """The exceptions a corrupt stream raises from :func:`gzip_decompressobj`'s inflater."""
-    return (zlib.error,) if _zlib_ng is None else (zlib.error, _zlib_ng.error)
+    if _zlib_ng is None:
+        return (zlib.error,)
+    # zlib_ng's stub declares `error: Exception`; at run time it is the exception class
+    return (zlib.error, _zlib_ng.error)  # type: ignore[return-value]
 
 
 def gunzip_whole(data: bytes, limit: int = WHOLE_GZIP_MAX) -> bytearray | None:

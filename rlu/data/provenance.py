@@ -49,7 +49,7 @@ def release_shards(provenance: Mapping[str, Any]) -> dict[str, Any] | None:
         )
     except RluError:
         return None
-    best = None
+    best: dict[str, Any] | None = None
     for binding, n in release.shards.items():
         used = len(names & {s.rsplit("/", 1)[-1] for s in release.shard_names(binding)})
         if used and (best is None or used > best["used"]):
@@ -73,7 +73,9 @@ def _source(prov: Any) -> dict[str, Any]:
                 out[key] = prov[key]
         return out
     if prov.get("generator") == "rlu generate":
-        settings = prov.get("settings") if isinstance(prov.get("settings"), Mapping) else {}
+        settings: Mapping[str, Any] = (
+            prov["settings"] if isinstance(prov.get("settings"), Mapping) else {}
+        )
         out = {"source": "generated", "command": str(prov.get("command", ""))}
         if settings.get("scale") is not None:
             out["scale"] = str(settings["scale"])

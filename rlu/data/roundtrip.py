@@ -50,7 +50,7 @@ import tempfile
 import zipfile
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -281,7 +281,7 @@ def write_sidecar(
             rows = frame_start[held_rows] + (k - 1) + length[held_rows] - 1
             _rows_member(w, "segments/final_observation", ds.column("observation"), rows)
             pre = (frame_start[held_rows][:, None] + np.arange(k - 1)[None]).reshape(-1)
-            spec = schema.observation
+            spec = cast(ArraySpec, schema.observation)  # Schema: frame_stack > 1 is one array
             with w.member(
                 "segments/frame_prefix", (len(held_rows), k - 1, *spec.shape), spec.dtype
             ) as write:
@@ -471,7 +471,7 @@ def _table(z: NpzFile, schema: Schema, path: Path, fix: str) -> dict[str, np.nda
 def _final_obs_specs(schema: Schema) -> dict[str, ArraySpec]:
     k = schema.frame_stack
     if k > 1:
-        spec = schema.observation
+        spec = cast(ArraySpec, schema.observation)  # Schema: frame_stack > 1 is one array
         return {
             "final_observation": spec,
             "frame_prefix": ArraySpec((k - 1, *spec.shape), spec.dtype),

@@ -16,7 +16,9 @@ CHUNK_ROWS = 1 << 16
 def _mean_std(column: Any, n: int) -> tuple[np.ndarray, np.ndarray]:
     """Per-feature mean and (population) standard deviation of ``column[:n]``, in float64 over
     chunks of rows (Chan et al.'s pairwise update, so a chunked pass equals one pass)."""
-    count, mean, m2 = 0, None, None
+    count: int = 0
+    mean: Any = None
+    m2: Any = None
     for start in range(0, n, CHUNK_ROWS):
         x = np.asarray(column[start : min(n, start + CHUNK_ROWS)], np.float64)
         c = len(x)

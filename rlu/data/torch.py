@@ -299,10 +299,10 @@ class DeviceSampler:
 
     def _gather(self, rows: Any) -> Any:
         def take(key: str, index: np.ndarray) -> torch.Tensor:
-            index = torch.from_numpy(index)
+            at = torch.from_numpy(index)
             if self.device.type == "cuda":
-                index = index.pin_memory().to(self.device, non_blocking=True)
-            return self.columns[key][index]
+                at = at.pin_memory().to(self.device, non_blocking=True)
+            return self.columns[key][at]
 
         if isinstance(rows, Mapping):
             return {k: take(k, r) for k, r in rows.items()}
@@ -314,9 +314,9 @@ class DeviceSampler:
     def sample(self) -> Transition:
         ids = self.rng.integers(0, len(self.view), size=self.batch_size)  # Sampler's draws
         b = self.view.batch(ids)
-        rest = device_batch(
-            Transition(None, b.action, b.reward, b.discount, None, b.next_action), self.device
-        )
+        # the observations are gathered on the device below; None holds their places here
+        batch = Transition(None, b.action, b.reward, b.discount, None, b.next_action)  # type: ignore[arg-type]
+        rest = device_batch(batch, self.device)
         return rest._replace(
             observation=self._gather(b.observation),
             next_observation=self._gather(b.next_observation),

@@ -43,13 +43,16 @@ def _take(col, rows: np.ndarray) -> np.ndarray:
 
 
 # --- the maths every transition source shares (the online replay of rlu.generate too) -------
-def n_step_counts(length: np.ndarray, terminal_end: np.ndarray, n: int) -> np.ndarray:
+def n_step_counts(length: np.ndarray, terminal_end: np.ndarray | None, n: int) -> np.ndarray:
     """How many n-step transitions start in each segment of ``length`` steps: every step but the
-    last when the segment ends in a terminal state (``terminal_end``), else only the steps whose
-    window of ``n`` transitions fits before its end (a window never crosses a truncation)."""
+    last when the segment ends in a terminal state (``terminal_end``; None only when ``n`` is 1),
+    else only the steps whose window of ``n`` transitions fits before its end (a window never
+    crosses a truncation)."""
     length = np.asarray(length, np.int64)
     if n == 1:
         return np.maximum(length - 1, 0)
+    if terminal_end is None:
+        raise RluError(f"n-step counts for n={n} need the segments' terminal_end")
     return np.maximum(np.where(terminal_end, length - 1, length - n), 0)
 
 
@@ -149,11 +152,11 @@ class DatasetView:
             self.ds.release_pages("observation")
             return out
         if not isinstance(self.schema.observation, ArraySpec):
-            out = {}
+            parts: dict[str, np.ndarray] = {}
             for key in self.schema.observation:
-                out[key] = _take(self.ds.column(f"observation/{key}"), steps)
+                parts[key] = _take(self.ds.column(f"observation/{key}"), steps)
                 self.ds.release_pages(f"observation/{key}")
-            return out
+            return parts
         out = _take(self.ds.column("observation"), steps)
         self.ds.release_pages("observation")
         return out

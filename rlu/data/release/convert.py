@@ -350,7 +350,8 @@ class _Pool:
     """Up to ``workers`` shard readers running ahead of the parent, each with its own queue."""
 
     def __init__(self, files: Sequence[str], job: ShardJob, workers: int):
-        self.ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
+        fork = "fork" in mp.get_all_start_methods()
+        self.ctx = mp.get_context("fork") if fork else mp.get_context("spawn")
         self.files, self.job, self.workers = files, job, workers
         self.procs: dict[int, Any] = {}
         self.queues: dict[int, Any] = {}

@@ -48,6 +48,7 @@ from __future__ import annotations
 import base64
 import errno
 import fcntl
+import functools
 import hashlib
 import http.client
 import json
@@ -347,7 +348,7 @@ class _Tally:
         self.bar.set_total(known + max(0, waiting) * mean or None)
 
     def _show(self) -> None:
-        fields = {"files": f"{self.done}/{self.files}"}
+        fields: dict[str, object] = {"files": f"{self.done}/{self.files}"}
         if self.failed:
             fields["failed"] = self.failed
         if self.reused:
@@ -428,7 +429,7 @@ class Downloader:
                 obj = objects[i]
                 try:
                     results[i] = got = self.fetch_one(
-                        obj, tally.add, lambda n, o=obj: tally.announce(o, n), stop
+                        obj, tally.add, functools.partial(tally.announce, obj), stop
                     )
                     tally.finished(got)
                 except _Stopped:

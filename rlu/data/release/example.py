@@ -175,7 +175,7 @@ def _parse_feature(buf: bytes, pos: int, end: int) -> Feature:
             a, pos = _len_delim(buf, pos, end)
             v = _parse_list(buf, a, pos, field)
             if field == kind:  # a repeated sub-message merges (lists concatenate)
-                v = value + v if field == BYTES else np.concatenate([value, v])  # type: ignore
+                v = value + v if field == BYTES else np.concatenate([value, v])
             value, kind = v, field
         else:
             pos = _skip(buf, pos, end, wire)
@@ -354,7 +354,7 @@ Column = np.ndarray | BytesColumn
 
 
 def _template_decode(
-    payloads: list[bytes], layout: dict[str, list[_Span]]
+    payloads: Sequence[bytes], layout: dict[str, list[_Span]]
 ) -> tuple[dict[str, Column], np.ndarray]:
     """Decode records that share ``layout``'s structure; returns (columns, ok mask)."""
     n, length = len(payloads), len(payloads[0])
@@ -423,7 +423,7 @@ def decode_batch(payloads: Sequence[bytes], template_min: int = 8) -> dict[str, 
             if ok.all():
                 return cols
             # Rare: some records differ in structure. Decode those one by one and merge.
-            rest = [decode_example(payloads[i]) for i in np.flatnonzero(~ok)]
+            rest = [decode_example(payloads[i]) for i in np.flatnonzero(~ok).tolist()]
             return _merge(cols, ok, rest)
     return stack_examples([decode_example(p) for p in payloads])
 
@@ -461,10 +461,10 @@ def stack_examples(records: Sequence[Mapping[str, Feature]]) -> dict[str, Column
     cols: dict[str, Column] = {}
     for k, kind in keys.items():
         if kind == BYTES:
-            cols[k] = BytesColumn(values=[list(r.get(k, [])) for r in records])  # type: ignore[arg-type]
+            cols[k] = BytesColumn(values=[list(r.get(k, [])) for r in records])
             continue
-        vals = [r.get(k, _EMPTY_F32) for r in records]
-        vals = [v if isinstance(v, np.ndarray) else np.zeros(0, np.float32) for v in vals]
+        got = [r.get(k, _EMPTY_F32) for r in records]
+        vals = [v if isinstance(v, np.ndarray) else np.zeros(0, np.float32) for v in got]
         dtypes = {v.dtype for v in vals if v.size}
         dtype = dtypes.pop() if len(dtypes) == 1 else (np.float32 if not dtypes else None)
         if dtype is None:

@@ -24,6 +24,7 @@ strided view.
 from __future__ import annotations
 
 import gzip
+import io
 import os
 import queue
 import struct
@@ -193,7 +194,7 @@ def _plain_chunks(f: BinaryIO) -> Iterator[bytes]:
         yield raw
 
 
-def _prefetch(chunks: Iterator[bytes], depth: int = 2) -> Iterator[bytes]:
+def _prefetch(chunks: Iterator[bytes | bytearray], depth: int = 2) -> Iterator[bytes | bytearray]:
     """Run a chunk iterator in a thread, ``depth`` chunks ahead.
 
     zlib releases the GIL while it inflates, so the next chunk is inflated while this thread
@@ -679,7 +680,9 @@ def _crc_table() -> np.ndarray:
     return _CRC_TABLE
 
 
-def _find_header(buf: bytes, start: int, last: int, limit: int = MAX_RECORD_BYTES) -> int:
+def _find_header(
+    buf: bytes | bytearray, start: int, last: int, limit: int = MAX_RECORD_BYTES
+) -> int:
     """First offset o in [start, last] where ``buf[o:o+8]`` is a length <= ``limit`` and
     ``buf[o+8:o+12]`` its masked CRC-32C; -1 if none.
 
@@ -755,7 +758,9 @@ class RecordWriter:
         self._raw = raw
         if compression == "gzip":
             # mtime=0 keeps the bytes reproducible; one member, as TF writes it.
-            self._f: BinaryIO = gzip.GzipFile(fileobj=raw, mode="wb", compresslevel=level, mtime=0)
+            self._f: io.BufferedIOBase = gzip.GzipFile(
+                fileobj=raw, mode="wb", compresslevel=level, mtime=0
+            )
         elif compression in (None, "", "none"):
             self._f = raw
         else:

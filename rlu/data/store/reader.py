@@ -29,7 +29,7 @@ import os
 import stat
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path, PurePosixPath
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -47,6 +47,9 @@ from rlu.data.store.schema import (
     whole_number,
 )
 from rlu.types import ArraySpec, FormatError, RluError
+
+if TYPE_CHECKING:
+    from rlu.data.episodes import EpisodeSubset
 
 MAX_MANIFEST_BYTES = 64 << 20
 _RECREATE = "re-create the dataset (re-run the command that wrote it)"
@@ -268,7 +271,8 @@ class Dataset:
         for rel in (f"steps/{name}.bin", f"steps/{name}.offsets.bin"):
             mm = self._mmaps.get(rel)
             if mm is not None and mm.nbytes >= min_bytes:
-                mm._mmap.madvise(mmap.MADV_DONTNEED)
+                # numpy keeps a memmap's mmap.mmap in _mmap; its stubs do not declare it
+                mm._mmap.madvise(mmap.MADV_DONTNEED)  # type: ignore[attr-defined]
 
     def column(self, name: str) -> Any:
         """A step (or frame) column: a read-only memmap, or a ``ZlibColumn`` (compressed images)."""
@@ -318,6 +322,7 @@ class Dataset:
             return np.array(col[rows])
 
         prefix = None
+        obs: np.ndarray | dict[str, np.ndarray]
         if self.schema.frame_stack > 1:
             f0, k = int(self.frame_start[i]), self.schema.frame_stack - 1
             frames = get("observation", slice(f0, f0 + k + n))
@@ -326,12 +331,12 @@ class Dataset:
             obs = get("observation", sl)
         else:
             obs = {k: get(f"observation/{k}", sl) for k in self.schema.observation}
-        meta = {}
-        for k, dtype in METADATA_FIELDS.items():
-            v = self.metadata(k)[i]
+        meta: dict[str, Any] = {}
+        for key, dtype in METADATA_FIELDS.items():
+            v = self.metadata(key)[i]
             missing = METADATA_MISSING[dtype]
             if not (v == missing or (isinstance(missing, float) and np.isnan(v))):
-                meta[k] = v.item()
+                meta[key] = v.item()
         return Segment(
             observation=obs,
             action=np.array(self.column("action")[sl]),
@@ -398,13 +403,13 @@ class Dataset:
 
         return iterate_episodes(self, episode_indices)
 
-    def filter_episodes(self, condition: Any) -> Dataset:
+    def filter_episodes(self, condition: Any) -> EpisodeSubset:
         """The dataset of the episodes for which ``condition(episode)`` holds (Minari's)."""
         from rlu.data.episodes import filter_episodes
 
         return filter_episodes(self, condition)
 
-    def split(self, sizes: Any, seed: int | None = None) -> list[Dataset]:
+    def split(self, sizes: Any, seed: int | None = None) -> list[EpisodeSubset]:
         """Disjoint random parts: episode counts or fractions (``minari.split_dataset``)."""
         from rlu.data.episodes import split
 
@@ -511,7 +516,7 @@ class ZlibColumn:
         # _RUN_FRAMES of them; a task: consecutive reads, about as many frames in each
         cut = np.flatnonzero(starts[1:] - ends[:-1] > _MERGE_GAP) + 1
         bounds = np.concatenate([[0], cut, [len(rows)]])
-        reads = []
+        reads: list[tuple[int, int]] = []
         for a, b in zip(bounds[:-1].tolist(), bounds[1:].tolist(), strict=True):
             reads.extend((i, min(i + _RUN_FRAMES, b)) for i in range(a, b, _RUN_FRAMES))
         fd = self._fileno()
@@ -592,15 +597,15 @@ class ZlibColumn:
                 else:
                     continue
             if reply[0] == "cut":
-                e = self._cut(*reply[1:])
+                err = self._cut(*reply[1:])
             elif reply[0] == "bad":
-                e = self._bad(int(rows[fa + reply[1]]), reply[2])
+                err = self._bad(int(rows[fa + reply[1]]), reply[2])
             elif reply[0] == "fail":
-                e = FormatError(f"{self.path}: a frame-inflating process failed: {reply[1]}")
+                err = FormatError(f"{self.path}: a frame-inflating process failed: {reply[1]}")
             else:
-                e = reply[1]
+                err = reply[1]
             if error is None or fa < error[0]:
-                error = (fa, e)
+                error = (fa, err)
         if error is not None:
             raise error[1]
 

@@ -18,7 +18,7 @@ import zlib
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -204,8 +204,8 @@ class _ColumnFile:
             ends = self.end + np.cumsum(values.lengths, dtype=np.int64)
             self.offsets.write_array(ends, "int64")
             self.end += len(values.data)
-        else:
-            self.file.write_array(values, self.spec.dtype)
+        else:  # check() refused a Deflated for a raw column
+            self.file.write_array(cast(np.ndarray, values), self.spec.dtype)
         self.count += len(values)
 
     def close(self) -> dict[Path, dict[str, Any]]:
@@ -465,7 +465,8 @@ class DatasetWriter:
 
     def _finalise(self) -> Path:
         files: dict[Path, dict[str, Any]] = {}
-        for f in (*self._cols.values(), *self._index.values()):
+        closing: list[_ColumnFile | _RawFile] = [*self._cols.values(), *self._index.values()]
+        for f in closing:
             files.update(f.close())
         files.update(self._attached)
         manifest = {
