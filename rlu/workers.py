@@ -184,24 +184,22 @@ def run_jobs(
 
 def _run_pool(fn, jobs, workers, on_result, on_error, on_message) -> None:
     import multiprocessing as mp
-    import queue as queue_lib
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
     # spawn: a fresh interpreter per worker (torch and fork do not mix: a fork of a process
     # whose OpenMP pool has run can hang)
     ctx = mp.get_context("spawn")
-    channel = ctx.Queue() if on_message is not None else None
+    # a SimpleQueue's put writes to the pipe before it returns (a Queue's feeder thread may still
+    # hold a job's last messages when its result arrives: they were lost, a flaky tally)
+    channel = ctx.SimpleQueue() if on_message is not None else None
     paths = tuple(p for p in sys.path if p and os.path.isdir(p))
     pool = ProcessPoolExecutor(
         min(workers, len(jobs)), ctx, _init_worker, (os.getpid(), channel, paths)
     )
 
     def drain() -> None:
-        while channel is not None:
-            try:
-                on_message(channel.get_nowait())
-            except queue_lib.Empty:
-                return
+        while channel is not None and not channel.empty():
+            on_message(channel.get())
 
     try:
         futures = {pool.submit(fn, *job): i for i, job in enumerate(jobs)}
@@ -216,6 +214,7 @@ def _run_pool(fn, jobs, workers, on_result, on_error, on_message) -> None:
         pool.shutdown(wait=False, cancel_futures=True)
         raise
     pool.shutdown(wait=True)
+    drain()
 
 
 def _run_ray(
