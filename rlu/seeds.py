@@ -26,3 +26,25 @@ def derive_seed(seed: int, *key: int) -> int:
     """A 31-bit int seed for stream ``key`` of ``seed`` (see ``seed_stream``), for APIs that take
     an int (``env.reset(seed=...)``, dm_control's ``random``, ALE's signed 32-bit seed)."""
     return int(seed_stream(seed, *key).generate_state(1, np.uint32)[0] >> 1)
+
+
+RUN_STREAMS = 1 << 40
+"""The first key of a training run's own streams (``stream_seed``). Evaluation at step ``k``
+uses the key ``(k,)`` and steps stay far below ``2**40``, so the two never meet."""
+
+STREAMS = ("learner", "act", "dropout", "sampler")
+"""A training run's random streams besides initialisation: the learner's noise (target
+smoothing, sampled actions in losses), acting, dropout, the batch sampler."""
+
+
+def stream_seed(seed: int, name: str) -> int:
+    """The int seed of stream ``name`` (one of ``STREAMS``) of run ``seed``: the key
+    ``(RUN_STREAMS, index)`` of ``seed_stream``, so no stream is a transform of another.
+
+    Initialisation is not among them: agents build their networks under torch's generator
+    seeded with the run's seed itself (``torch.manual_seed(seed)``, a Mersenne Twister, not a
+    ``SeedSequence`` child), which keeps the weights every earlier run and the bundled dataset's
+    behaviour agent started from."""
+    if name not in STREAMS:
+        raise RluError(f"no random stream {name!r}: the streams are {', '.join(STREAMS)}")
+    return derive_seed(seed, RUN_STREAMS, STREAMS.index(name))

@@ -26,6 +26,7 @@ from rlu.agents import common
 from rlu.agents import networks as nets
 from rlu.agents.losses import mixture_log_prob
 from rlu.files import MAX_STEPS, bounds
+from rlu.seeds import stream_seed
 from rlu.types import BatchSpec, Sequence, Transition
 
 
@@ -85,7 +86,7 @@ class BCAgent:
         kind = "sequence" if config.recurrent else "transition"
         self.batch_spec = BatchSpec(config.batch_size, kind, sequence_length=config.sequence_length)
         self.num_steps, self.pretrain_steps = config.num_steps, 0
-        act_seed = common.split_seed(seed, 1)[0]
+        act_seed = stream_seed(seed, "act")
         with common.seeded(seed):
             torso = nets.Torso(
                 observation_spec, config.hidden_size, config.num_layers,

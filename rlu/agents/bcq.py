@@ -29,6 +29,7 @@ from torch import nn
 from rlu.agents import common
 from rlu.agents import networks as nets
 from rlu.agents.losses import vae_loss
+from rlu.seeds import stream_seed
 from rlu.types import BatchSpec, Transition
 
 
@@ -161,7 +162,7 @@ class BCQAgent:
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, gamma=config.gamma)
         self.num_steps, self.pretrain_steps = config.num_steps, 0
-        self.generator = common.generator(seed, self.device)
+        self.generator = common.generator(stream_seed(seed, "learner"), self.device)
         with common.seeded(seed):
             self.nets = BCQNets(observation_spec, self.scaler.dim, config).to(self.device)
         self.target = common.frozen_copy(self.nets)

@@ -40,6 +40,7 @@ import torch
 from rlu.agents import common
 from rlu.agents import networks as nets
 from rlu.agents.losses import sample_kl
+from rlu.seeds import stream_seed
 from rlu.types import BatchSpec, Transition
 
 
@@ -123,7 +124,7 @@ class BRACAgent:
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, gamma=config.gamma)
         self.num_steps, self.pretrain_steps = config.num_steps, config.behaviour_steps
-        self.generator = common.generator(seed, self.device)
+        self.generator = common.generator(stream_seed(seed, "learner"), self.device)
         a, th, d = self.scaler.dim, config.torso_hidden, self.device
         with common.seeded(seed):
             self.policy = nets.TanhGaussianPolicy(

@@ -43,11 +43,6 @@ from rlu.types import RluError
 Metrics = dict[str, torch.Tensor]
 
 
-def split_seed(seed: int, count: int) -> tuple[int, ...]:
-    """``count`` independent 32-bit seeds from one (numpy's SeedSequence hashing)."""
-    return tuple(int(s) for s in np.random.SeedSequence(int(seed)).generate_state(count))
-
-
 @contextlib.contextmanager
 def seeded(seed: int) -> Iterator[None]:
     """Build modules under a private copy of torch's global RNG seeded with ``seed``; the

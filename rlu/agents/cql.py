@@ -52,6 +52,7 @@ from torch import nn
 from rlu.agents import common
 from rlu.agents import networks as nets
 from rlu.agents.losses import tanh_gaussian_log_prob
+from rlu.seeds import stream_seed
 from rlu.types import BatchSpec, Transition
 
 LOG_STD_RANGE = (-20.0, 2.0)  # rlkit's TanhGaussianPolicy
@@ -176,7 +177,7 @@ class CQLAgent:
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, gamma=config.gamma)
         self.num_steps, self.pretrain_steps = config.num_steps, 0
-        self.generator = common.generator(seed, self.device)
+        self.generator = common.generator(stream_seed(seed, "learner"), self.device)
         a, d, th = self.scaler.dim, self.device, config.torso_hidden
         self.target_entropy = -float(a) if config.target_entropy is None else config.target_entropy
         with common.seeded(seed):

@@ -51,6 +51,7 @@ from rlu.agents.losses import (
     categorical_projection,
     mixture_log_prob,
 )
+from rlu.seeds import stream_seed
 from rlu.types import BatchSpec, RluError, Transition
 
 WEIGHTS = ("exp", "binary")
@@ -194,7 +195,7 @@ class CRRAgent:
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, gamma=config.gamma)
         self.num_steps, self.pretrain_steps = config.num_steps, 0
-        self.generator = common.generator(seed, self.device)
+        self.generator = common.generator(stream_seed(seed, "learner"), self.device)
         a, d = self.scaler.dim, self.device
         with common.seeded(seed):
             self.policy = Policy(observation_spec, a, config).to(d)

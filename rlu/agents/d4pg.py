@@ -50,6 +50,7 @@ from torch import nn
 from rlu.agents import common
 from rlu.agents import networks as nets
 from rlu.agents.losses import bootstrap_values, categorical_cross_entropy, categorical_projection
+from rlu.seeds import stream_seed
 from rlu.types import BatchSpec, RluError, Transition
 
 
@@ -195,7 +196,7 @@ class D4PGAgent:
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, n_step=config.n_step, gamma=config.gamma)
         self.num_steps, self.pretrain_steps = config.num_steps, 0
-        self.generator = common.generator(seed, self.device)
+        self.generator = common.generator(stream_seed(seed, "learner"), self.device)
         a, d = self.scaler.dim, self.device
         with common.seeded(seed):
             self.policy = Policy(observation_spec, a, config).to(d)

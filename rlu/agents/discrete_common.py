@@ -30,6 +30,7 @@ from torch import nn
 
 from rlu.agents import common
 from rlu.files import MAX_STEPS, bounds
+from rlu.seeds import stream_seed
 from rlu.types import ArraySpec, BatchSpec, DiscreteSpec, SpecError, Transition
 
 EVAL_EPSILON = 0.4**8
@@ -276,11 +277,12 @@ def build(
     agent's initialisation seed and moved to ``device``; its frozen target copy (None with
     ``target=False``); ``{"network": optimizer(parameters)}``, by default Adam with TF2's
     epsilon at ``config.learning_rate``;
-    ``{"learner": ..., "act": ...}`` generators on ``device`` (the loss's draws, acting). Seeds
-    are split from ``seed`` as (init, learner, act)."""
+    ``{"learner": ..., "act": ...}`` generators on ``device`` (the loss's draws, acting). The
+    network is built under ``seed`` itself, the generators' seeds are ``rlu.seeds.stream_seed``
+    streams of it."""
     shape, num_actions = check_specs(name, observation_spec, action_spec)
-    init_seed, learner_seed, act_seed = common.split_seed(seed, 3)
-    with common.seeded(init_seed):
+    learner_seed, act_seed = stream_seed(seed, "learner"), stream_seed(seed, "act")
+    with common.seeded(seed):
         network = make(shape, num_actions, config.atari).to(device)
     target_network = common.frozen_copy(network) if target else None
     params = list(network.parameters())

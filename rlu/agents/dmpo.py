@@ -54,6 +54,7 @@ from rlu.agents.losses import (
     gaussian_log_prob,
     mpo_e_step,
 )
+from rlu.seeds import stream_seed
 from rlu.types import BatchSpec, Transition
 
 MIN_LOG_DUAL = -18.0  # Acme's projection of every log dual
@@ -241,7 +242,7 @@ class DMPOAgent:
         self.batch_spec = BatchSpec(config.batch_size, n_step=config.n_step, gamma=config.gamma)
         self.num_steps, self.pretrain_steps = config.num_steps, 0
         a, d = self.scaler.dim, self.device
-        self.generator = common.generator(seed, d)
+        self.generator = common.generator(stream_seed(seed, "learner"), d)
         with common.seeded(seed):
             self.policy = GaussianPolicy(observation_spec, a, config).to(d)
             self.critic = Critic(observation_spec, a, config).to(d)
@@ -259,7 +260,7 @@ class DMPOAgent:
             "critic": common.adam(self.critic.parameters(), c.critic_lr),
             "dual": common.adam(self.duals.parameters(), c.dual_lr),
         }
-        act_seed = common.split_seed(seed, 1)[0]
+        act_seed = stream_seed(seed, "act")
         self.generators = {"sample": self.generator, "act": common.generator(act_seed, d)}
         self.modules = {
             "policy": self.policy, "critic": self.critic, "duals": self.duals,

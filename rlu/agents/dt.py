@@ -76,6 +76,7 @@ from torch.nn import functional as F
 from rlu.agents import common
 from rlu.agents import discrete_common as dc
 from rlu.agents import networks as nets
+from rlu.seeds import stream_seed
 from rlu.types import BatchSpec, DiscreteSpec, RluError, Sequence
 
 TIMESTEPS = ("episode", "context")
@@ -470,7 +471,7 @@ class DTAgent:
                                     return_to_go=True, timestep=self.episode_timesteps,
                                     statistics=wants)  # fmt: skip
         self.num_steps, self.pretrain_steps = s.num_steps, 0
-        act_seed, dropout_seed = common.split_seed(seed, 2)
+        act_seed, dropout_seed = stream_seed(seed, "act"), stream_seed(seed, "dropout")
         with common.seeded(seed):
             if self.discrete:
                 model: nn.Module = AtariDTModel(frame_shape, self.num_actions, config.atari)

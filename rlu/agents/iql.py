@@ -45,6 +45,7 @@ from torch import nn
 from rlu.agents import common
 from rlu.agents import networks as nets
 from rlu.agents.losses import gaussian_log_prob
+from rlu.seeds import stream_seed
 from rlu.types import BatchSpec, Transition
 
 
@@ -164,7 +165,7 @@ class IQLAgent:
         self.batch_spec = BatchSpec(config.batch_size, gamma=config.gamma)
         self.num_steps, self.pretrain_steps = config.num_steps, 0
         a, d, layers, th = self.scaler.dim, self.device, config.hidden_layers, config.torso_hidden
-        self.generator = common.generator(seed, d)
+        self.generator = common.generator(stream_seed(seed, "learner"), d)
         with common.seeded(seed):
             self.value = ValueNet(observation_spec, config).to(d)
             self.critics = nets.TwinCritic(observation_spec, a, layers, th).to(d)

@@ -39,6 +39,7 @@ from torch.nn import functional as F
 
 from rlu.agents import common, losses
 from rlu.agents import networks as nets
+from rlu.seeds import stream_seed
 from rlu.types import BatchSpec, Sequence, Transition
 
 
@@ -177,7 +178,7 @@ class RABMAgent:
             )  # fmt: skip
         else:
             self.batch_spec = BatchSpec(config.batch_size, n_step=config.n_step, gamma=config.gamma)
-        self.generator = common.generator(seed, self.device)
+        self.generator = common.generator(stream_seed(seed, "learner"), self.device)
         a, d = self.scaler.dim, self.device
         with common.seeded(seed):
             self.prior = GaussianPolicy(observation_spec, a, config).to(d)
@@ -196,7 +197,7 @@ class RABMAgent:
             "critic": common.adam(self.critic.parameters(), config.critic_lr),
             "dual": common.adam(self.duals.parameters(), config.dual_lr),
         }
-        act_seed = common.split_seed(seed, 1)[0]
+        act_seed = stream_seed(seed, "act")
         self.generators = {"sample": self.generator, "act": common.generator(act_seed, d)}
         self.modules = {
             "prior": self.prior, "policy": self.policy, "critic": self.critic, "duals": self.duals,

@@ -68,6 +68,7 @@ from torch import nn
 from rlu.agents import common
 from rlu.agents import networks as nets
 from rlu.agents.losses import smoothed_target_action
+from rlu.seeds import stream_seed
 from rlu.types import BatchSpec, DataStatistics, Transition
 
 
@@ -194,7 +195,7 @@ class ReBRACAgent:
             config.batch_size, gamma=config.gamma, statistics=self.normaliser.statistics
         )
         self.num_steps, self.pretrain_steps = config.num_steps, 0
-        self.generator = common.generator(seed, self.device)
+        self.generator = common.generator(stream_seed(seed, "learner"), self.device)
         with common.seeded(seed):
             actor, critics = build_networks(observation_spec, self.scaler.dim, config)
         self.actor, self.critics = actor.to(self.device), critics.to(self.device)

@@ -55,6 +55,7 @@ from torch.nn import functional as F
 from rlu.agents import common
 from rlu.agents import networks as nets
 from rlu.agents.losses import smoothed_target_action
+from rlu.seeds import stream_seed
 from rlu.types import BatchSpec, DataStatistics, Transition
 
 
@@ -133,7 +134,7 @@ class TD3BCAgent:
         )
         self.num_steps, self.pretrain_steps = config.num_steps, 0
         a, d, layers, th = self.scaler.dim, self.device, config.hidden_layers, config.torso_hidden
-        self.generator = common.generator(seed, d)
+        self.generator = common.generator(stream_seed(seed, "learner"), d)
         with common.seeded(seed):
             self.actor = nets.DeterministicPolicy(observation_spec, a, layers, th).to(d)
             self.critics = nets.TwinCritic(observation_spec, a, layers, th).to(d)

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from rlu.devices import compile_modules, numerics
-from rlu.seeds import derive_seed
+from rlu.seeds import derive_seed, stream_seed
 from rlu.training import runs
 from rlu.training.prepare import Prepared
 from rlu.training.train import TrainConfig, greedy_policy
@@ -209,11 +209,12 @@ def result_of(p: Prepared, b: Built) -> dict[str, Any]:
 
 def _sampler(config: TrainConfig, datasets: Sequence[Any], spec: Any, runtime: Any) -> Any:
     """The run's batch source (``RunSettings.sampler``): uniform from the one dataset (on the
-    device with ``--data-on-device``), or streamed from one or several."""
+    device with ``--data-on-device``), or streamed from one or several; its seed is the run's
+    ``sampler`` stream (``rlu.seeds.stream_seed``)."""
     from rlu.data import StreamSampler, make_sampler
     from rlu.data.torch import DeviceSampler
 
-    settings = config.run
+    settings, seed = config.run, stream_seed(config.seed, "sampler")
     kind = settings.sampler
     if kind == "auto":
         kind = "stream" if len(datasets) > 1 else "uniform"
@@ -227,14 +228,14 @@ def _sampler(config: TrainConfig, datasets: Sequence[Any], spec: Any, runtime: A
                 "--data-on-device holds one dataset on the device for uniform batches; drop it "
                 "to stream (--sampler stream: its batches are prefetched)"
             )
-        return StreamSampler(datasets, spec, config.seed, config.weights,
+        return StreamSampler(datasets, spec, seed, config.weights,
                              memory=settings.stream_memory << 20,
                              reuse=settings.stream_reuse)  # fmt: skip
     if config.weights is not None:
         raise RluError("--weights weigh the datasets of a mixture; one dataset needs none")
     if runtime.data_on_device:  # a dataset that does not fit fails here, before any writing
-        return DeviceSampler(datasets[0], spec, config.seed, runtime.device)
-    return make_sampler(datasets[0], spec, seed=config.seed)
+        return DeviceSampler(datasets[0], spec, seed, runtime.device)
+    return make_sampler(datasets[0], spec, seed=seed)
 
 
 def _restore(path: Path, state: Mapping[str, Any], agent: Any, sampler: Any, total: int) -> int:

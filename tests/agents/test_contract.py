@@ -295,6 +295,20 @@ def test_same_seed_same_numbers_other_seed_other_numbers_global_rng_untouched(na
 
 
 @pytest.mark.parametrize(("name", "discrete"), sorted(AGENTS), ids=lambda x: str(x))
+def test_each_generator_is_its_own_stream_of_the_seed(name, discrete):
+    """Learner noise, acting and dropout draw from ``rlu.seeds.stream_seed`` streams of the
+    seed, one per generator; none is seeded with the seed that built the weights."""
+    from rlu.seeds import STREAMS, stream_seed
+
+    seed = 5
+    agent = build(name, discrete, "atari" if discrete else "lowdim", seed=seed)
+    streams = {stream_seed(seed, s) for s in STREAMS}
+    seeds = {key: g.initial_seed() for key, g in agent.generators.items()}
+    assert set(seeds.values()) <= streams, seeds
+    assert len({id(g) for g in agent.generators.values()}) == len(set(seeds.values())), seeds
+
+
+@pytest.mark.parametrize(("name", "discrete"), sorted(AGENTS), ids=lambda x: str(x))
 def test_specs_of_the_other_action_type_are_refused(name, discrete):
     module = agent_module(name, discrete)
     config = module.PRESETS["small"]
