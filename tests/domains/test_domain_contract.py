@@ -122,7 +122,12 @@ def _fixture_shards() -> list[tuple[str, str, str]]:
     return found
 
 
-SHARDS = _fixture_shards()
+SHARDS = [
+    # the shared Pong shard's actions are random in [0, 18) (its README: random contents), which
+    # Pong's 6 actions refuse at conversion: it is converted and played as a game of 18 actions
+    (shard, family, "atari/Zaxxon" if task == "atari/Pong" else task)
+    for shard, family, task in _fixture_shards()
+]
 
 
 def test_every_fixture_shard_belongs_to_a_domain():

@@ -31,7 +31,7 @@ from rlu.domains import DOMAINS
 from rlu.progress import Progress
 from rlu.system import available_cores
 from rlu.tasks import TaskSpec, get_task, rwrl_observation_spec
-from rlu.types import ArraySpec, FormatError, RluError, SpecError
+from rlu.types import ArraySpec, DiscreteSpec, FormatError, RluError, SpecError
 from rlu.workers import die_with_parent
 
 _RUN_RE = re.compile(r"run_(\d+)")
@@ -97,6 +97,8 @@ def _fit(batch: SegmentBatch, schema: Schema, where: str) -> SegmentBatch:
             raise SpecError(f"{where}: the file holds a dict observation, the task one array")
         obs = _cast(obs, spec, f"{where}: observation")
     action = _cast(batch.action, schema.action, f"{where}: action")
+    if isinstance(schema.action, DiscreteSpec) and action.size:
+        _check_action_ids(action, batch.action, schema.action.num_values, where)
     return SegmentBatch(
         obs,
         action,
@@ -108,6 +110,20 @@ def _fit(batch: SegmentBatch, schema: Schema, where: str) -> SegmentBatch:
         batch.metadata,
         batch.lengths,
     )
+
+
+def _check_action_ids(action: np.ndarray, stored: np.ndarray, n: int, where: str) -> None:
+    """Discrete actions are ids 0..n-1 of the task's action set; one outside it would index
+    past an agent's Q-values, so the file is refused here, not at the first batch holding it."""
+    lo, hi = int(action.min()), int(action.max())
+    if lo < 0 or hi >= n:
+        bad = int(np.flatnonzero((action < 0) | (action >= n))[0])
+        seg, step = np.unravel_index(bad, action.shape[:2]) if action.ndim >= 2 else (bad, 0)
+        raise SpecError(
+            f"{where}: action {int(stored.reshape(-1)[bad])} (segment {int(seg)}, step "
+            f"{int(step)}) is outside the task's {n} actions (0 to {n - 1}); is --task right "
+            "for these files?"
+        )
 
 
 def _cast(v: np.ndarray, spec: ArraySpec, what: str) -> np.ndarray:
