@@ -81,6 +81,8 @@ def test_release_families_decode_and_name_their_objects(name):
 
 def _installed(domain: Domain) -> str | None:
     missing = [p for p in domain.packages if importlib.util.find_spec(p) is None]
+    if missing and domain.env_install:  # no extra installs it (DeepMind Lab)
+        return f"{', '.join(missing)} is not installed: {domain.env_install}"
     return (
         f"the {domain.extra!r} extra is not installed ({', '.join(missing)})" if missing else None
     )
