@@ -51,6 +51,9 @@ class Domain:
     env_install: str | None = None
     """How its env's packages are installed where no pip extra can (DeepMind Lab is built from
     source); None: ``extra`` installs them."""
+    data_only: str | None = None
+    """Why rlu makes no env of the domain, whose tasks are then data only (download, convert,
+    train offline; ``rlu list`` and ``make_env`` say so); None: it has envs."""
     datasets: Literal["one", "runs", "challenge_size", "noise_run", "run_names"] = "one"
     """How a task's release datasets are told apart: one per task, Atari's ``run_N``, RWRL's
     ``challenge/size``, bsuite's ``noise/run`` (``--run 0.1/3``), DMLab's run folders by name

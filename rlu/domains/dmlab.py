@@ -65,6 +65,12 @@ ENV_INSTALL = (
     "so that `import deepmind_lab` works"
 )
 """How the env's ``deepmind_lab`` module is installed (no pip extra can)."""
+DATA_ONLY = (
+    "DeepMind Lab is data only here: deepmind_lab is not on PyPI, and the release documents "
+    "neither the recording R2D2 agent's 15 actions (the DeepMind Lab action vector of each "
+    "index) nor its action repeat"
+)
+"""Why rlu makes no DeepMind Lab env (``rlu list`` prints it; ``rlu.envs.dmlab`` refuses)."""
 
 
 def observation_spec():
@@ -136,6 +142,7 @@ DOMAIN = Domain(
     extra="dmlab",
     packages=("deepmind_lab", "gymnasium"),
     env_install=ENV_INSTALL,
+    data_only=DATA_ONLY,
     datasets="run_names",
     vector_backend="sync",
     tfds_builders=MappingProxyType({b: "dmlab" for b in _BUILDERS}),

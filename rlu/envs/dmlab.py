@@ -26,16 +26,18 @@ def make(task: TaskSpec, seed: int | None = None, render: Render | None = None, 
     """Refuses with what is missing (see the module docstring): ``deepmind_lab`` and how to
     build it, or, with it installed, the recording agent's action set."""
     domain = DOMAINS[task.domain]
+    offline = (
+        f"The {task.id} datasets need no env: `rlu download {task.id} --run "
+        f"{task.datasets[0]}`, `rlu convert FILE --family dmlab --task {task.id} --out DATA`, "
+        f"`rlu train --task {task.id} --dataset DATA --eval-every -1 ...`"
+    )
     if importlib.util.find_spec("deepmind_lab") is None:
         raise RluError(
-            f"{task.id}: the DeepMind Lab env needs the deepmind_lab module, which is not "
-            f"installed. {domain.env_install}. The {task.id} datasets need no env: `rlu download "
-            f"{task.id} --run {task.datasets[0]}`, `rlu convert FILE --family dmlab --task "
-            f"{task.id} --out DATA`"
+            f"{task.id}: {domain.data_only}. Its env would need the deepmind_lab module, which is "
+            f"not installed: {domain.env_install}. {offline}"
         )
     raise RluError(
-        f"{task.id}: rlu makes no DeepMind Lab env: the release does not document the recording "
-        f"R2D2 agent's {task.action_dim} actions (the DeepMind Lab action vector of each index) "
-        "or its action repeat, so evaluation in deepmind_lab would not be the task the data were "
-        "recorded on; train offline on the converted datasets and evaluate elsewhere"
+        f"{task.id}: rlu makes no DeepMind Lab env even with deepmind_lab installed: "
+        f"{domain.data_only}, so evaluation in deepmind_lab would not be the task the data were "
+        f"recorded on. {offline}"
     )

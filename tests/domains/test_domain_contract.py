@@ -14,6 +14,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -91,6 +92,13 @@ def _installed(domain: Domain) -> str | None:
 @pytest.mark.parametrize("name", NAMES)
 def test_env_matches_the_task(name):
     domain = DOMAINS[name]
+    if domain.data_only:  # no env: making one says so, with or without its packages
+        from rlu.envs import make_env
+
+        task = list_tasks(name)[0]
+        with pytest.raises(RluError, match="^" + re.escape(f"{task.id}: {domain.data_only}")):
+            make_env(task.id, seed=0)
+        return
     why = _installed(domain)
     if why:
         pytest.skip(why)
