@@ -6,6 +6,7 @@ env refused with what is missing (no traceback)."""
 from __future__ import annotations
 
 import gzip
+import json
 import shutil
 from pathlib import Path
 
@@ -96,6 +97,54 @@ def test_the_release_reader_returns_the_stored_arrays():
     assert len(segments) == 3
     for s, rgb in zip(segments, exp["rgb"], strict=True):
         assert np.array_equal(s.observation["pixels"], rgb)
+
+
+def test_the_env_refusal_is_one_line_from_the_command_line(tmp_path, capsys):
+    # a run that evaluates needs the env: the refusal comes before anything is written
+    data = _convert(tmp_path)
+    argv = ["train", "--task", TASK, "--agent", "bc", "--dataset", str(data), "--out",
+            str(tmp_path / "run"), "--steps", "1", "--device", "cpu", "--quiet"]  # fmt: skip
+    pytest.importorskip("torch")
+    assert main(argv) != 0
+    err = capsys.readouterr().err
+    assert "DeepMind Lab is data only here" in err and "Traceback" not in err
+
+
+def test_bc_trains_5_steps_on_the_converted_shard(tmp_path):
+    pytest.importorskip("torch")
+    run = tmp_path / "run"
+    argv = ["train", "--task", TASK, "--agent", "bc", "--dataset", str(_convert(tmp_path)),
+            "--out", str(run), "--steps", "5", "--eval-every", "-1", "--device", "cpu",
+            "--quiet", "atari.batch_size=4"]  # fmt: skip
+    assert main(argv) == 0
+    result = json.loads((run / "result.json").read_text())
+    assert result["steps"] == 5 and result["score"] is None  # never evaluated: no env
+    metrics = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert metrics[-1]["step"] == 5 and np.isfinite(metrics[-1]["actor/bc_loss"])
+
+
+def test_the_discrete_networks_read_the_last_action_and_reward(tmp_path):
+    torch = pytest.importorskip("torch")
+    from rlu.agents import discrete_common as dc
+    from rlu.data import make_sampler
+    from rlu.tasks import get_task
+    from rlu.types import BatchSpec
+
+    task = get_task(TASK)
+    batch = make_sampler(_convert(tmp_path), BatchSpec(4), seed=0).sample()
+    shapes, actions = dc.check_specs("bc", task.observation_spec, task.action_spec)
+    assert dict(shapes) == {"pixels": (72, 96, 3), "last_action": (15,), "last_reward": ()}
+    torch.manual_seed(0)
+    net = dc.QNetwork(shapes, actions, dc.SMALL)
+    assert net.torso.output_size == 32 * 5 * 8 + 15 + 1  # 72x96 -> 5x8 after the convolutions
+    obs = dc.frames(batch.observation)
+    q = net(obs)
+    assert q.shape == (4, 15) and torch.isfinite(q).all()
+    for key in ("last_action", "last_reward"):  # each vector changes the output
+        changed = {**obs, key: obs[key] + 1.0}
+        assert not torch.allclose(net(changed), q), key
+    with pytest.raises(Exception, match="needs 'pixels'"):
+        dc.check_specs("bc", {"rgb": task.observation_spec["pixels"]}, task.action_spec)
 
 
 def _damaged(tmp_path: Path, how: str) -> Path:
