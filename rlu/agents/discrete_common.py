@@ -12,8 +12,9 @@ evaluation scores the raw game score.
 Observations are uint8 (B, H, W, C) frame stacks, newest frame last, or float (B, D) features
 (bsuite), or a dict of one uint8 ``pixels`` frame and float vectors (DeepMind Lab's ``pixels``,
 ``last_action``, ``last_reward``): the vectors are concatenated, in key order, to the
-convolutions' flat output before the hidden layer (as Acme's R2D2 DMLab network feeds the last
-action and reward in beside the torso). :func:`frames` turns them
+convolutions' flat output before the hidden layer, as Acme's ``OAREmbedding`` (its R2D2
+networks' input: torso features, the one-hot last action, tanh of the last reward) does; the
+reward goes in as stored, not squashed. :func:`frames` turns them
 into the networks' input once per batch: float (B, C, H, W) scaled by 1/255. The observations of
 a learning step, whose convolutions run forward and backward, are laid out channels-last (oneDNN's
 CPU forward + backward runs 12% faster on it at batch 32, 28% at batch 256, one thread); the next
