@@ -54,9 +54,11 @@ SHRINK = {
                         torso_hidden=16, warmup_steps=1),
     ("dt", True): {"atari.context_length": 3, "atari.num_layers": 1, "atari.num_heads": 2,
                    "atari.batch_size": 4, "atari.max_timestep": 50},
+    ("r2d2", True): {"atari.batch_size": 4, "atari.n_step": 2, "lstm_size": 8,
+                     "sequence_length": 3, "burn_in": 2},
 }  # fmt: skip
 # Agents that learn from sequence windows whatever the observations (no `recurrent` switch).
-ALWAYS_SEQUENCE = {"dt"}
+ALWAYS_SEQUENCE = {"dt", "r2d2"}
 UPDATES = 3
 
 
