@@ -284,6 +284,36 @@ class NatureTorso(nn.Module):
         return self.convs(x).flatten(1)
 
 
+class RecurrentCore(nn.Module):
+    """The recurrent discrete agents' body (R2D2's, Kapturowski et al. 2019): the Nature torso
+    -> ReLU(Linear ``hidden_size``) -> an LSTM of ``lstm_size``. ``forward(frames, batch,
+    steps, state)`` takes :func:`frames` of (B*T, ...) observations (:func:`time_steps` flattens
+    a window's) and the LSTM state ((1, B, H), (1, B, H)) or None (zeros); it returns the
+    features (B, T, H) and the state after the last step."""
+
+    def __init__(self, shape: Shape, settings: AtariSettings, lstm_size: int) -> None:
+        super().__init__()
+        self.torso = NatureTorso(shape, settings)
+        self.embed = nn.Sequential(
+            nn.Linear(self.torso.output_size, settings.hidden_size), nn.ReLU()
+        )
+        self.lstm = nn.LSTM(settings.hidden_size, lstm_size, batch_first=True)
+        self.output_size = lstm_size
+
+    def forward(self, frames: Any, batch: int, steps: int, state: Any = None):
+        x = self.embed(self.torso(frames)).reshape(batch, steps, -1)
+        return self.lstm(x, state)
+
+
+def time_steps(x: Any, start: int, stop: int) -> Any:
+    """Steps [start, stop) of a window's (B, T, ...) arrays (a dict's each), flattened to
+    (B * (stop - start), ...): what :func:`frames` and :class:`RecurrentCore` take."""
+    if isinstance(x, Mapping):
+        return {k: time_steps(v, start, stop) for k, v in x.items()}
+    part = x[:, start:stop]
+    return part.reshape(part.shape[0] * part.shape[1], *part.shape[2:])
+
+
 def mlp_head(in_size: int, hidden_size: int, out_size: int) -> nn.Sequential:
     return nn.Sequential(
         nn.Linear(in_size, hidden_size), nn.ReLU(), nn.Linear(hidden_size, out_size)

@@ -34,7 +34,6 @@ rows when the batch size changes); greedy is epsilon-greedy with ``atari.eval_ep
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -44,6 +43,7 @@ from torch import nn
 
 from rlu.agents import common
 from rlu.agents import discrete_common as dc
+from rlu.agents import networks as nets
 from rlu.files import bounds
 from rlu.types import BatchSpec, RluError, Sequence
 
@@ -116,35 +116,21 @@ def unrescale(x: torch.Tensor, eps: float) -> torch.Tensor:
 
 
 class R2D2Network(nn.Module):
-    """Torso -> ReLU(Linear hidden_size) -> LSTM -> duelling Q. ``forward(obs, state)`` takes
-    observations (B, T, ...) as :func:`discrete_common.frames` gives them once flattened to
-    (B*T, ...), and the LSTM state ((1, B, H), (1, B, H)) or None (zeros)."""
+    """``discrete_common.RecurrentCore`` (torso -> hidden layer -> LSTM) -> duelling Q.
+    ``forward(frames, batch, steps, state)``: Q (B, T, A) and the LSTM state after the last
+    step."""
 
     def __init__(self, shape: dc.Shape, num_actions: int, settings: dc.AtariSettings,
                  lstm_size: int) -> None:  # fmt: skip
         super().__init__()
-        self.torso = dc.NatureTorso(shape, settings)
-        self.embed = nn.Sequential(nn.Linear(self.torso.output_size, settings.hidden_size),
-                                   nn.ReLU())  # fmt: skip
-        self.lstm = nn.LSTM(settings.hidden_size, lstm_size, batch_first=True)
+        self.core = dc.RecurrentCore(shape, settings, lstm_size)
         self.value = nn.Linear(lstm_size, 1)
         self.advantage = nn.Linear(lstm_size, num_actions)
 
     def forward(self, frames: Any, batch: int, steps: int, state=None):
-        """Q (B, T, A) and the LSTM state after the last step."""
-        x = self.embed(self.torso(frames)).reshape(batch, steps, -1)
-        out, state = self.lstm(x, state)
+        out, state = self.core(frames, batch, steps, state)
         adv = self.advantage(out)
         return self.value(out) + adv - adv.mean(-1, keepdim=True), state
-
-
-def _steps(x: Any, start: int, stop: int) -> Any:
-    """Steps [start, stop) of (B, T, ...) arrays (a dict's each), flattened to (B*(stop-start),
-    ...)."""
-    if isinstance(x, Mapping):
-        return {k: _steps(v, start, stop) for k, v in x.items()}
-    part = x[:, start:stop]
-    return part.reshape(part.shape[0] * part.shape[1], *part.shape[2:])
 
 
 # ----------------------------------------------------------------------------- the loss
@@ -193,12 +179,12 @@ def r2d2_loss(network: R2D2Network, target_network: R2D2Network, batch: Sequence
     with torch.no_grad():
         state = target_state = None
         if burn:
-            warm = dc.frames(_steps(obs, 0, burn), device=device)
+            warm = dc.frames(dc.time_steps(obs, 0, burn), device=device)
             _, state = network(warm, b, burn, None)
             _, target_state = target_network(warm, b, burn, None)
-        later = dc.frames(_steps(obs, burn, length), device=device)
+        later = dc.frames(dc.time_steps(obs, burn, length), device=device)
         q_target, _ = target_network(later, b, learn, target_state)
-    q, _ = network(dc.frames(_steps(obs, burn, length), channels_last=True, device=device),
+    q, _ = network(dc.frames(dc.time_steps(obs, burn, length), channels_last=True, device=device),
                    b, learn, state)  # fmt: skip
     with torch.no_grad():
         best = q.argmax(-1, keepdim=True)  # double Q: the online network picks
@@ -254,13 +240,7 @@ class R2D2Agent:
         """One step of every row's LSTM (reset where ``is_first``), epsilon-greedy on its Q."""
         x = dc.frames(observation, device=self.device)
         n = (x["pixels"] if isinstance(x, dict) else x).shape[0]
-        state = self._state
-        if state is None or state[0].shape[1] != n:
-            state = None
-        elif is_first is not None:
-            keep = torch.from_numpy(~np.asarray(is_first, bool).reshape(-1)).to(self.device)
-            keep = keep.float()[None, :, None]
-            state = (state[0] * keep, state[1] * keep)
+        state = nets.carried_state(self._state, is_first, x)
         q, self._state = self.network(x, n, 1, state)
         eps = dc.epsilon(self.config.atari, greedy)
         return dc.epsilon_greedy(q[:, 0], eps, self.generators["act"])

@@ -123,6 +123,40 @@ def test_bc_trains_5_steps_on_the_converted_shard(tmp_path):
     assert metrics[-1]["step"] == 5 and np.isfinite(metrics[-1]["actor/bc_loss"])
 
 
+def test_recurrent_bc_trains_5_steps_on_the_converted_windows(tmp_path):
+    torch = pytest.importorskip("torch")
+    from rlu.agents import discrete_common as dc
+    from rlu.agents import make_agent
+    from rlu.agents.bc_discrete import bc_loss
+    from rlu.data import make_sampler
+    from rlu.tasks import get_task
+
+    run = tmp_path / "run"
+    argv = ["train", "--task", TASK, "--agent", "bc", "--dataset", str(_convert(tmp_path)),
+            "--out", str(run), "--steps", "5", "--eval-every", "-1", "--device", "cpu",
+            "--quiet", "atari.batch_size=4", "recurrent=True", "sequence_length=6",
+            "lstm_size=16"]  # fmt: skip
+    assert main(argv) == 0
+    metrics = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert metrics[-1]["step"] == 5 and np.isfinite(metrics[-1]["actor/bc_loss"])
+    # the loss is the cross-entropy over the real steps that are not an episode's last
+    task = get_task(TASK)
+    agent = make_agent("bc", task.observation_spec, task.action_spec, "small", recurrent=True,
+                       sequence_length=6, lstm_size=16, **{"atari.batch_size": 4})  # fmt: skip
+    assert agent.batch_spec.kind == "sequence" and agent.batch_spec.sequence_length == 6
+    batch = make_sampler(tmp_path / "data", agent.batch_spec, seed=3).sample()
+    with torch.no_grad():
+        frames = dc.frames(dc.time_steps(batch.observation, 0, 6))
+        logits, _ = agent.network(frames, 4, 6)
+    keep = (batch.mask & ~batch.is_last).reshape(-1)
+    assert 0 < keep.sum() < keep.size
+    action = torch.as_tensor(batch.action.reshape(-1))
+    expected = torch.nn.functional.cross_entropy(logits.reshape(24, -1)[keep], action[keep])
+    got, _ = bc_loss(logits.reshape(24, -1), action, torch.as_tensor(keep).float())
+    torch.testing.assert_close(got, expected)
+    assert agent.update(batch)["actor/bc_loss"] == pytest.approx(expected.item(), rel=1e-5)
+
+
 def test_the_discrete_networks_read_the_last_action_and_reward(tmp_path):
     torch = pytest.importorskip("torch")
     from rlu.agents import discrete_common as dc
