@@ -23,9 +23,11 @@ Deviations (offline, and what the data hold): windows are sampled uniformly (no 
 replay; R2D2's priorities need the actors); the state at a window's start is zero, not a stored
 recurrent state (the release stores none; R2D2's "zero start state" with burn-in); windows
 start anywhere in an episode and are padded past its end (``Sequence.mask``), not overlapping
-fixed chunks; the Atari frame stacks carry no last action and reward (DeepMind Lab's
-observations do); rewards are not clipped (the rescaling bounds the targets, as in R2D2);
-``atari.reward_clip`` and ``atari.huber_delta`` are unused.
+fixed chunks, so a window that starts within ``burn_in`` steps of its episode's end teaches
+nothing (``critic/transitions`` counts the transitions each update learnt from; it is 0 when
+every episode is shorter than the burn-in); the Atari frame stacks carry no last action and
+reward (DeepMind Lab's observations do); rewards are not clipped (the rescaling bounds the
+targets, as in R2D2); ``atari.reward_clip`` and ``atari.huber_delta`` are unused.
 
 Acting: the LSTM state of every row is kept between calls and reset where ``is_first`` (all
 rows when the batch size changes); greedy is epsilon-greedy with ``atari.eval_epsilon``,
