@@ -136,8 +136,6 @@ def _resolve_tfds(name: str) -> TaskRef:
                 "files of rlu_atari and rlu_atari_checkpoints_ordered (atari_episodes_ordered), "
                 "e.g. rlu_atari/Pong_run_1"
             )
-        elif builder.startswith("rlu_dmlab"):
-            why = "DMLab is not a registered task; rlu convert --family dmlab reads its files"
         else:
             why = f"rlu knows the TFDS builders {', '.join(TFDS_BUILDERS)}"
         raise RluError(f"{name!r}: TFDS builder {builder!r} has no rlu task: {why}")

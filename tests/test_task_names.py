@@ -75,13 +75,25 @@ def test_tfds_names_take_a_version_and_bad_ones_say_the_form():
         "rlu_control_suite": "names no config",
         "rlu_locomotion/rodent_run": "no config 'rodent_run'",
         "rlu_atari_checkpoints/Pong_run_1": "atari_episodes_v2 files, which rlu does not read",
-        "rlu_dmlab_rooms_watermaze/training_0": "DMLab is not a registered task",
+        "rlu_dmlab_rooms_watermaze/snapshot_0_eps_0.0": "no config 'snapshot_0_eps_0.0'",
+        "rlu_dmlab_seekavoid_arena_01/training_0": "rlu knows the TFDS builders",  # 'arena01'
         "rlu_nope/x": "rlu knows the TFDS builders rlu_control_suite",
     }
     for name, why in cases.items():
         with pytest.raises(RluError, match=why):
             get_task(name)
     assert set(TFDS_BUILDERS) >= {"rlu_control_suite", "rlu_locomotion", "rlu_atari", "rlu_rwrl"}
+
+
+def test_dmlab_tfds_names_pick_the_level_and_run():
+    ref = resolve_task("rlu_dmlab_seekavoid_arena01/training_2:1.1.0")
+    assert (ref.task.id, ref.family, ref.run) == ("dmlab/seekavoid_arena_01", "dmlab", "training_2")
+    sel = catalog.select("rlu_dmlab_rooms_watermaze/training_1")
+    assert sel.binding == "training_1" and len(sel.objects) == 500
+    assert sel.objects[-1] == "dmlab/rooms_watermaze/training_1/tfrecord-00499-of-00500"
+    assert catalog.select("rlu_dmlab_rooms_watermaze/training_1", run="training_1").objects
+    with pytest.raises(RluError, match="names run 'training_1', which contradicts run='train"):
+        catalog.select("rlu_dmlab_rooms_watermaze/training_1", run="training_0")
 
 
 def test_ids_and_bare_names_still_resolve_without_dataset_settings():

@@ -108,7 +108,7 @@ def test_unknown_id_lists_closest():
 def test_cli_list_json_and_info(capsys):
     assert main(["list", "--json"]) == 0
     rows = json.loads(capsys.readouterr().out)
-    assert len(rows) == len(TASKS) == 69  # the paper's 66 and bsuite's 3
+    assert len(rows) == len(TASKS) == 74  # the paper's 66, bsuite's 3 and DMLab's 5
     assert {"id", "domain", "selection", "action_dim", "discrete"} <= set(rows[0])
     pong = next(r for r in rows if r["id"] == "atari/Pong")
     assert pong["discrete"] and pong["action_dim"] == 6 and pong["selection"] == "offline"

@@ -57,6 +57,8 @@ AGENTS: dict[tuple[str, bool], str] = {
     ("dopamine_dqn", True): "rlu.agents.dqn_online",
     # discrete, beyond the paper: Decision Transformer (the module above, its `atari` settings)
     ("dt", True): "rlu.agents.dt",
+    # discrete, beyond the paper: recurrent Q-learning on sequences (R2D2, DMLab's recorder)
+    ("r2d2", True): "rlu.agents.r2d2",
 }
 
 CONTINUOUS_AGENTS: tuple[str, ...] = tuple(n for n, d in AGENTS if not d)

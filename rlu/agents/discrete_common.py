@@ -9,7 +9,12 @@ target update every 2500 updates, evaluation epsilon 0.4^8 and 2M learner steps.
 clipped to [-1, 1] for learning (Mnih et al. 2015; Dopamine's DQN, which generated the data);
 evaluation scores the raw game score.
 
-Observations are uint8 (B, H, W, C) frame stacks, newest frame last. :func:`frames` turns them
+Observations are uint8 (B, H, W, C) frame stacks, newest frame last, or float (B, D) features
+(bsuite), or a dict of one uint8 ``pixels`` frame and float vectors (DeepMind Lab's ``pixels``,
+``last_action``, ``last_reward``): the vectors are concatenated, in key order, to the
+convolutions' flat output before the hidden layer, as Acme's ``OAREmbedding`` (its R2D2
+networks' input: torso features, the one-hot last action, tanh of the last reward) does; the
+reward goes in as stored, not squashed. :func:`frames` turns them
 into the networks' input once per batch: float (B, C, H, W) scaled by 1/255. The observations of
 a learning step, whose convolutions run forward and backward, are laid out channels-last (oneDNN's
 CPU forward + backward runs 12% faster on it at batch 32, 28% at batch 256, one thread); the next
@@ -20,8 +25,9 @@ of 0.6 ms at batch 32), and are converted once for both of their passes.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -99,13 +105,21 @@ SMALL_FIELDS: dict[str, Any] = {"atari": SMALL, "learning_rate": 1e-4}
 # ----------------------------------------------------------------------------- specs and batches
 
 
-def check_specs(name: str, observation_spec: Any, action_spec: Any) -> tuple[tuple[int, ...], int]:
-    """(observation shape HWC, number of actions) or a SpecError naming the field and the fix."""
+Shape = tuple[int, ...] | Mapping[str, tuple[int, ...]]
+"""An observation's shape as the networks take it: HWC frames, (D,) features, or a dict's
+(``pixels`` HWC and the vectors' shapes)."""
+
+
+def check_specs(name: str, observation_spec: Any, action_spec: Any) -> tuple[Shape, int]:
+    """(observation shape HWC, (D,) or a dict's shapes, number of actions) or a SpecError naming
+    the field and the fix."""
     if not isinstance(action_spec, DiscreteSpec):
         raise SpecError(
             f"{name}: action_spec is {action_spec!r}; the discrete agents need a DiscreteSpec "
             "(use the continuous agent of the same name for BoundedSpec actions)"
         )
+    if isinstance(observation_spec, Mapping):
+        return _dict_shapes(name, observation_spec), int(action_spec.num_values)
     if (
         isinstance(observation_spec, ArraySpec)
         and len(observation_spec.shape) == 1
@@ -124,6 +138,27 @@ def check_specs(name: str, observation_spec: Any, action_spec: Any) -> tuple[tup
             "uint8 frames by 1/255 itself, so pass the frames as uint8"
         )
     return tuple(observation_spec.shape), int(action_spec.num_values)
+
+
+def _dict_shapes(name: str, spec: Mapping[str, Any]) -> Mapping[str, tuple[int, ...]]:
+    """A dict observation the networks take: a uint8 HWC ``pixels`` frame and float32 vectors
+    (shape () or (D,))."""
+    pixels = spec.get("pixels")
+    if not isinstance(pixels, ArraySpec) or len(pixels.shape) != 3 or pixels.dtype != "uint8":
+        raise SpecError(
+            f"{name}: a dict observation_spec needs 'pixels' ArraySpec((H, W, C), 'uint8') "
+            f"(DeepMind Lab's), got {pixels!r} among keys {sorted(spec)}"
+        )
+    shapes = {"pixels": tuple(pixels.shape)}
+    for k in sorted(set(spec) - {"pixels"}):
+        v = spec[k]
+        if not isinstance(v, ArraySpec) or len(v.shape) > 1 or v.dtype != "float32":
+            raise SpecError(
+                f"{name}: observation {k!r} is {v!r}; beside 'pixels' the discrete agents take "
+                "float32 vectors ArraySpec(() or (D,), 'float32')"
+            )
+        shapes[k] = tuple(v.shape)
+    return MappingProxyType(shapes)
 
 
 class TorchTransition(NamedTuple):
@@ -148,7 +183,16 @@ def frames(
     input on ``device``, float (B, C, H, W) / 255. The frames travel as uint8 and are scaled there.
 
     ``channels_last`` lays the result out channels-last (for a pass that runs backward too);
-    otherwise it keeps the input's memory order (NCHW for the views' frame-major stacks)."""
+    otherwise it keeps the input's memory order (NCHW for the views' frame-major stacks).
+    A dict observation gives a dict: ``pixels`` so converted, each other key a float (B, D)."""
+    if isinstance(x, Mapping):
+        if "pixels" not in x:
+            raise SpecError(f"batch.{field} is a dict without 'pixels' (keys {sorted(x)})")
+        out = {"pixels": frames(x["pixels"], f"{field}['pixels']", channels_last, device)}
+        for k in sorted(set(x) - {"pixels"}):
+            v = common.to_torch(x[k], device, "float32")
+            out[k] = v.reshape(v.shape[0], -1)
+        return out
     array = x if isinstance(x, torch.Tensor) else np.asarray(x)
     if array.dtype in (np.float32, torch.float32) and array.ndim == 2:  # (B, D) features
         return common.to_torch(array, device, "float32")
@@ -193,14 +237,24 @@ class NatureTorso(nn.Module):
     (B, C, H, W) in [0, 1] (what the agents pass), or uint8 (B, H, W, C) stacks, which it
     converts itself the same way."""
 
-    def __init__(self, observation_shape: tuple[int, ...], settings: AtariSettings) -> None:
+    def __init__(self, observation_shape: Shape, settings: AtariSettings) -> None:
         super().__init__()
+        self.vectors: tuple[str, ...] = ()  # a dict's keys beside 'pixels', concatenated after
+        if isinstance(observation_shape, Mapping):
+            self.vectors = tuple(k for k in sorted(observation_shape) if k != "pixels")
+            extra = sum(int(np.prod(observation_shape[k])) for k in self.vectors)
+            self._convolutions(observation_shape["pixels"], settings)
+            self.output_size += extra
+            return
         if len(observation_shape) == 1:  # float features: one hidden layer instead of the convs
             self.convs = nn.Sequential(
                 nn.Linear(observation_shape[0], settings.hidden_size), nn.ReLU()
             )
             self.output_size = settings.hidden_size
             return
+        self._convolutions(observation_shape, settings)
+
+    def _convolutions(self, observation_shape: tuple[int, ...], settings: AtariSettings) -> None:
         channels, kernels, strides = settings.channels, settings.kernel_sizes, settings.strides
         if not len(channels) == len(kernels) == len(strides):
             raise SpecError(
@@ -221,10 +275,43 @@ class NatureTorso(nn.Module):
         self.convs = nn.Sequential(*layers)
         self.output_size = in_channels * height * width
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor | Mapping[str, torch.Tensor]) -> torch.Tensor:
+        if isinstance(x, Mapping):  # pixels through the convolutions, the vectors beside them
+            flat = self.forward(x["pixels"])
+            return torch.cat([flat] + [x[k].reshape(flat.shape[0], -1) for k in self.vectors], 1)
         if x.dtype == torch.uint8:
             x = scaled(x)
         return self.convs(x).flatten(1)
+
+
+class RecurrentCore(nn.Module):
+    """The recurrent discrete agents' body (R2D2's, Kapturowski et al. 2019): the Nature torso
+    -> ReLU(Linear ``hidden_size``) -> an LSTM of ``lstm_size``. ``forward(frames, batch,
+    steps, state)`` takes :func:`frames` of (B*T, ...) observations (:func:`time_steps` flattens
+    a window's) and the LSTM state ((1, B, H), (1, B, H)) or None (zeros); it returns the
+    features (B, T, H) and the state after the last step."""
+
+    def __init__(self, shape: Shape, settings: AtariSettings, lstm_size: int) -> None:
+        super().__init__()
+        self.torso = NatureTorso(shape, settings)
+        self.embed = nn.Sequential(
+            nn.Linear(self.torso.output_size, settings.hidden_size), nn.ReLU()
+        )
+        self.lstm = nn.LSTM(settings.hidden_size, lstm_size, batch_first=True)
+        self.output_size = lstm_size
+
+    def forward(self, frames: Any, batch: int, steps: int, state: Any = None):
+        x = self.embed(self.torso(frames)).reshape(batch, steps, -1)
+        return self.lstm(x, state)
+
+
+def time_steps(x: Any, start: int, stop: int) -> Any:
+    """Steps [start, stop) of a window's (B, T, ...) arrays (a dict's each), flattened to
+    (B * (stop - start), ...): what :func:`frames` and :class:`RecurrentCore` take."""
+    if isinstance(x, Mapping):
+        return {k: time_steps(v, start, stop) for k, v in x.items()}
+    part = x[:, start:stop]
+    return part.reshape(part.shape[0] * part.shape[1], *part.shape[2:])
 
 
 def mlp_head(in_size: int, hidden_size: int, out_size: int) -> nn.Sequential:
@@ -238,7 +325,7 @@ class QNetwork(nn.Module):
     (REM's multi-head network: one shared torso and hidden layer, as in Agarwal et al.)."""
 
     def __init__(
-        self, shape: tuple[int, ...], num_actions: int, settings: AtariSettings, num_heads: int = 1
+        self, shape: Shape, num_actions: int, settings: AtariSettings, num_heads: int = 1
     ) -> None:
         super().__init__()
         self.torso = NatureTorso(shape, settings)
@@ -268,7 +355,7 @@ def build(
     config: Any,
     seed: int,
     device: torch.device,
-    make: Callable[[tuple[int, ...], int, AtariSettings], nn.Module],
+    make: Callable[[Shape, int, AtariSettings], nn.Module],
     target: bool = True,
     optimizer: Callable[[list[nn.Parameter]], torch.optim.Optimizer] | None = None,
 ) -> DiscreteParts:

@@ -9,7 +9,11 @@ from rlu.domains import DOMAINS
 
 
 def _dataset_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--run", help="Atari run: 1..5 or run_1..run_5 (default 1)")
+    p.add_argument(
+        "--run",
+        help="the dataset's run: Atari 1..5 or run_1..run_5, bsuite NOISE/RUN (0.1/3), DeepMind "
+        "Lab training_0..2 or seekavoid's snapshot_K_eps_E (default: the first)",
+    )
     p.add_argument("--challenge", choices=["none", "easy"], help="RWRL combined challenge")
     p.add_argument("--size", choices=["small", "medium", "large"], help="RWRL dataset size")
 
@@ -59,7 +63,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         required=True,
         help="atari, atari_episodes_ordered, "
         "dm_control_suite, dm_control_suite_episodes, dm_locomotion, "
-        "dm_locomotion_episodes, rwrl",
+        "dm_locomotion_episodes, rwrl, bsuite, dmlab",
     )
     p.add_argument(
         "--task",
@@ -308,7 +312,7 @@ def _convert_job(args: argparse.Namespace, tasks: list[str], backend: Any) -> in
             shards = list(sel.objects)
             kind = DOMAINS[ref.task.domain].datasets
             challenge = sel.binding.split("/")[0] if kind == "challenge_size" else None
-            run = sel.binding if kind == "runs" else None  # as load_dataset does
+            run = sel.binding if kind in ("runs", "run_names") else None  # as load_dataset does
         else:
             shards = catalog.find_shards(args.src, sel, args.shards) if args.src else args.files
             challenge = _rwrl_challenge(ref, args, shards)

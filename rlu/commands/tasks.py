@@ -12,7 +12,7 @@ from rlu.types import RluError
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("list", help="list every task of the suite")
-    p.add_argument("--domain", help="control_suite, locomotion, atari or rwrl")
+    p.add_argument("--domain", help="control_suite, locomotion, atari, rwrl, bsuite or dmlab")
     p.add_argument("--selection", choices=["online", "offline"])
     p.add_argument("--json", action="store_true", help="print a JSON array")
     p.set_defaults(func=_list)
@@ -46,6 +46,11 @@ def _list(args: argparse.Namespace) -> int:
     for r in rows:
         print("  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip())
     print(f"{len(tasks)} tasks")
+    from rlu.domains import DOMAINS
+
+    for name in dict.fromkeys(t.domain for t in tasks):  # in the table's order
+        if DOMAINS[name].data_only:
+            print(f"{name}: data only, no env ({DOMAINS[name].data_only})")
     return 0
 
 
@@ -146,6 +151,10 @@ def _readable_task(info: dict, ref) -> dict:
         if k == "release" and single:
             v = [{**r, "shards": r["shards"][""]} for r in v]
         out[k] = v
+    from rlu.domains import DOMAINS
+
+    if DOMAINS[ref.task.domain].data_only:
+        out["data_only"] = f"no env: {DOMAINS[ref.task.domain].data_only}"
     return out
 
 

@@ -48,9 +48,16 @@ class Domain:
     """Top-level modules its envs import: the command line names ``extra`` when one is missing."""
     mujoco: bool = False
     """Whether its envs are MuJoCo's (they need a GL backend to render)."""
-    datasets: Literal["one", "runs", "challenge_size", "noise_run"] = "one"
+    env_install: str | None = None
+    """How its env's packages are installed where no pip extra can (DeepMind Lab is built from
+    source); None: ``extra`` installs them."""
+    data_only: str | None = None
+    """Why rlu makes no env of the domain, whose tasks are then data only (download, convert,
+    train offline; ``rlu list`` and ``make_env`` say so); None: it has envs."""
+    datasets: Literal["one", "runs", "challenge_size", "noise_run", "run_names"] = "one"
     """How a task's release datasets are told apart: one per task, Atari's ``run_N``, RWRL's
-    ``challenge/size``, bsuite's ``noise/run`` (``--run 0.1/3``)."""
+    ``challenge/size``, bsuite's ``noise/run`` (``--run 0.1/3``), DMLab's run folders by name
+    (``--run training_0``)."""
     challenges: tuple[str, ...] = ()
     """Env challenges (``make_env(..., challenge=)``), the first the default; () takes none."""
     step_limit_setting: str | None = None
@@ -89,7 +96,7 @@ class Domain:
 
 
 # One line per domain: the module rlu/domains/<name>.py, whose DOMAIN is the entry.
-_MODULES = ("control_suite", "locomotion", "atari", "rwrl", "bsuite")
+_MODULES = ("control_suite", "locomotion", "atari", "rwrl", "bsuite", "dmlab")
 
 
 def _load() -> Mapping[str, Domain]:

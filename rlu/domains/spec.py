@@ -65,7 +65,7 @@ class ReleaseDataset:
 def _binding_fields(binding: str) -> dict[str, str]:
     if not binding:
         return {}
-    if binding.startswith("run_"):
+    if "/" not in binding:  # a run: Atari's run_N, DMLab's training_0
         return {"run": binding}
     from rlu.domains.rwrl import RWRL_SIZES
 
@@ -172,7 +172,7 @@ class TaskRef:
     family: str | None = None
     """The release family the name reads (TFDS names), None: the task's default."""
     run: str | None = None
-    """Atari run ``run_N`` the name picks."""
+    """The run the name picks: Atari's ``run_N``, DMLab's ``training_0``."""
     challenge: str | None = None
     """RWRL challenge (``none`` / ``easy``) the name picks."""
     size: str | None = None
@@ -203,8 +203,8 @@ class TaskRef:
 
 
 def _norm(key: str, value: str | int) -> str:
-    if key == "run":
-        return str(value) if str(value).startswith("run_") else f"run_{value}"
+    if key == "run":  # Atari's 3 is run_3; named runs (DMLab's training_0) stay as they are
+        return f"run_{value}" if str(value).isdigit() else str(value)
     if key == "size":
         from rlu.domains.rwrl import RWRL_SIZES
 

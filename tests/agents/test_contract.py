@@ -2,7 +2,8 @@
 API only: it runs over ``rlu.agents.AGENTS``, so a new agent is tested by being registered.
 
 Cases: continuous agents on low-dimensional dict observations, on features + a camera image and,
-where the config has ``recurrent``, on sequence windows; discrete agents on Atari frame stacks.
+where the config has ``recurrent``, on sequence windows; discrete agents on Atari frame stacks
+(windows of them where the config has ``recurrent``).
 ``SHRINK`` makes the networks tiny so the file runs in seconds (the code paths are the presets'
 own); an agent without an entry runs its ``small`` preset.
 """
@@ -54,9 +55,12 @@ SHRINK = {
                         torso_hidden=16, warmup_steps=1),
     ("dt", True): {"atari.context_length": 3, "atari.num_layers": 1, "atari.num_heads": 2,
                    "atari.batch_size": 4, "atari.max_timestep": 50},
+    ("bc", True): {"lstm_size": 8, "sequence_length": 4},
+    ("r2d2", True): {"atari.batch_size": 4, "atari.n_step": 2, "lstm_size": 8,
+                     "sequence_length": 3, "burn_in": 2},
 }  # fmt: skip
 # Agents that learn from sequence windows whatever the observations (no `recurrent` switch).
-ALWAYS_SEQUENCE = {"dt"}
+ALWAYS_SEQUENCE = {"dt", "r2d2"}
 UPDATES = 3
 
 
@@ -65,6 +69,9 @@ def cases() -> list[tuple[str, bool, str]]:
     for name, discrete in sorted(AGENTS):
         if discrete:
             out.append((name, True, "atari"))
+            fields = {f.name for f in dataclasses.fields(agent_module(name, True).Config)}
+            if "recurrent" in fields:
+                out.append((name, True, "atari_sequence"))
             continue
         out += [(name, False, "lowdim"), (name, False, "image")]
         fields = {f.name for f in dataclasses.fields(agent_module(name, False).Config)}
@@ -87,7 +94,7 @@ def one_thread():
 
 
 def specs(kind: str):
-    if kind == "atari":
+    if kind in ("atari", "atari_sequence"):
         return ATARI_OBS, ATARI_ACTION
     return (IMAGE_OBS if kind == "image" else LOWDIM_OBS), BOX
 
@@ -95,7 +102,7 @@ def specs(kind: str):
 def build(name: str, discrete: bool, kind: str, seed: int = 0, **extra):
     obs_spec, action_spec = specs(kind)
     overrides = dict(TINY_ATARI if discrete else {}, **SHRINK.get((name, discrete), {}))
-    if kind == "sequence":
+    if kind in ("sequence", "atari_sequence"):
         overrides["recurrent"] = True
     agent = make_agent(name, obs_spec, action_spec, seed=seed, **overrides, **extra)
     if agent.batch_spec.statistics:  # what the loop does before the first update
@@ -168,7 +175,7 @@ def test_update_gives_metrics_and_moves_every_trainable_parameter(name, discrete
     assert isinstance(agent.batch_spec, BatchSpec)
     assert isinstance(agent.pretrain_steps, int) and agent.pretrain_steps >= 0
     assert isinstance(agent.num_steps, int) and agent.num_steps >= 1
-    sequence = kind == "sequence" or name in ALWAYS_SEQUENCE
+    sequence = kind in ("sequence", "atari_sequence") or name in ALWAYS_SEQUENCE
     assert agent.batch_spec.kind == ("sequence" if sequence else "transition")
     before = trainable(agent)
     assert before, f"{name}: agent.modules holds no trainable parameter"

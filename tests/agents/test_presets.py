@@ -29,8 +29,9 @@ TINY = {"atari.channels": (4, 8, 8), "atari.hidden_size": 16}
 def test_atari_table_is_every_discrete_paper_preset():
     # dopamine_dqn is the data's online behaviour agent, with Dopamine's settings, not the
     # paper's offline table (tests/agents/test_dqn_online.py checks them); dt is not one of the
-    # paper's baselines and has its own paper's settings (tests/agents/test_dt.py)
-    for name in [n for n in DISCRETE_AGENTS if n not in ("dopamine_dqn", "dt")]:
+    # paper's baselines and has its own paper's settings (tests/agents/test_dt.py), as has r2d2
+    # (Kapturowski et al.'s: tests/agents/test_r2d2.py)
+    for name in [n for n in DISCRETE_AGENTS if n not in ("dopamine_dqn", "dt", "r2d2")]:
         config = make_config(name, True, "paper")
         atari = config.atari
         assert atari == dc.AtariSettings()

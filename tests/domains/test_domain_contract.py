@@ -4,9 +4,11 @@ tested by being registered (as the agents' contract test does for agents).
 Every domain's tasks resolve by id, by their Gymnasium id's parts and by each TFDS builder's
 example name; every release family its tasks name is a family the reader decodes, and each
 dataset's object names build; its env is made and stepped where its extra is installed (else the
-test skips naming the extra); where a release shard of the domain is among the fixtures (files
-TensorFlow wrote), it converts from the command line, an agent trains on it for a few steps and
-is evaluated in the env, and ``rlu report`` reads the run.
+test skips naming the extra), or, for a data-only domain (DeepMind Lab), refused saying why;
+where a release shard of the domain is among the fixtures (files TensorFlow wrote), it converts
+from the command line, an agent trains on it for a few steps and is evaluated in the env, and
+``rlu report`` reads the run (a data-only domain's run trains without evaluating, and
+``rlu evaluate`` and ``rlu report`` refuse it with the reason).
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -81,6 +84,8 @@ def test_release_families_decode_and_name_their_objects(name):
 
 def _installed(domain: Domain) -> str | None:
     missing = [p for p in domain.packages if importlib.util.find_spec(p) is None]
+    if missing and domain.env_install:  # no extra installs it (DeepMind Lab)
+        return f"{', '.join(missing)} is not installed: {domain.env_install}"
     return (
         f"the {domain.extra!r} extra is not installed ({', '.join(missing)})" if missing else None
     )
@@ -89,6 +94,13 @@ def _installed(domain: Domain) -> str | None:
 @pytest.mark.parametrize("name", NAMES)
 def test_env_matches_the_task(name):
     domain = DOMAINS[name]
+    if domain.data_only:  # no env: making one says so, with or without its packages
+        from rlu.envs import make_env
+
+        task = list_tasks(name)[0]
+        with pytest.raises(RluError, match="^" + re.escape(f"{task.id}: {domain.data_only}")):
+            make_env(task.id, seed=0)
+        return
     why = _installed(domain)
     if why:
         pytest.skip(why)
@@ -138,12 +150,14 @@ def test_every_fixture_shard_belongs_to_a_domain():
 # slow: 3-9 s a case on a 2-core machine (torch's import, a report)
 @pytest.mark.slow
 @pytest.mark.parametrize("shard,family,task", SHARDS, ids=[s[2] for s in SHARDS])
-def test_a_fixture_shard_converts_trains_evaluates_and_reports(tmp_path, shard, family, task):
+def test_a_fixture_shard_converts_trains_evaluates_and_reports(
+    tmp_path, capsys, shard, family, task
+):
     pytest.importorskip("torch")
     pytest.importorskip("google_crc32c")
     domain = DOMAINS[TASKS[task].domain]
     why = _installed(domain)
-    if why:
+    if why and not domain.data_only:
         pytest.skip(why)
     from rlu.cli import main
 
@@ -153,6 +167,19 @@ def test_a_fixture_shard_converts_trains_evaluates_and_reports(tmp_path, shard, 
         args += ["--challenge", domain.challenges[0]]
     assert main(args) == 0
     agent, batch = ("dqn", "atari.batch_size=4") if TASKS[task].discrete else ("bc", "batch_size=4")
+    if domain.data_only:  # trains offline; evaluating and reporting say there is no env
+        argv = ["train", "--task", task, "--agent", agent, "--dataset", str(data), "--out",
+                str(run), "--steps", "3", "--eval-every", "-1", "--device", "cpu", "--quiet",
+                batch]  # fmt: skip
+        assert main(argv) == 0
+        result = json.loads((run / "result.json").read_text())
+        assert result["steps"] == 3 and result["score"] is None
+        capsys.readouterr()
+        assert main(["evaluate", str(run), "--eval-episodes", "1"]) == 2
+        assert domain.data_only in capsys.readouterr().err
+        assert main(["report", str(run), "--out", str(tmp_path / "report")]) == 2
+        assert "has no evaluation score" in capsys.readouterr().err
+        return
     argv = ["train", "--task", task, "--agent", agent, "--dataset", str(data), "--out", str(run),
             "--steps", "3", "--eval-every", "0", "--eval-episodes", "1", "--eval-envs", "1",
             "--eval-max-steps", "5", "--device", "cpu", "--quiet", batch]  # fmt: skip

@@ -19,7 +19,7 @@ from rlu.types import RluError  # noqa: E402
 def test_every_task_is_registered_under_one_namespace():
     ids = sorted(k for k in gym.registry if k.startswith("rlu/"))
     assert ids == sorted(t.gym_id for t in rlu.list_tasks())
-    assert len(ids) == len(rlu.list_tasks()) == 69  # the paper's 66 and bsuite's 3
+    assert len(ids) == len(rlu.list_tasks()) == 74  # the paper's 66, bsuite's 3, DMLab's 5
     assert rlu.envs.gym_id("rwrl/walker_walk") == "rlu/rwrl-walker_walk-v0"
     for t in rlu.list_tasks():
         assert task_id_of(t.gym_id) == t.id
@@ -36,7 +36,7 @@ def test_import_rlu_registers_nothing_and_imports_no_gymnasium():
         "k.startswith('rlu/')]))"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert out.stdout.split() == ["False", "69"]
+    assert out.stdout.split() == ["False", "74"]
 
 
 @pytest.mark.parametrize(

@@ -3,7 +3,6 @@
 Built on ``TaskSpec.release`` (rlu.tasks), which carries each family's path pattern and its
 per-dataset shard counts; this module binds the dataset (Atari run, RWRL challenge and size),
 expands ``-%05d-of-%05d`` names, and finds already-downloaded shards under a bucket-shaped root.
-bsuite and DMLab are not registry tasks; their object names are built here from the facts file.
 """
 
 from __future__ import annotations
@@ -24,7 +23,6 @@ from rlu.tasks import (
 from rlu.types import RluError
 
 SHARD_RE = re.compile(r"-(\d{5})-of-(\d{5})$")
-DMLAB_SHARDS = 500
 
 
 @dataclass(frozen=True)
@@ -86,12 +84,14 @@ def dataset_binding(
                 f"released: {', '.join(RWRL_DATASETS)} (challenge/size)"
             )
         return b
-    if kind == "noise_run":
+    if kind in ("noise_run", "run_names"):  # bsuite's 0.1/3, DMLab's training_0
         b = str(run) if run is not None else task.datasets[0]
         if b not in task.datasets or challenge is not None or size is not None:
+            some = task.datasets
+            named = ", ".join(some) if len(some) <= 12 else f"{', '.join(some[:3])}, ... {some[-1]}"
+            form = "NOISE/RUN" if kind == "noise_run" else "RUN"
             raise RluError(
-                f"{task.id}: no released dataset run={run!r}; give --run NOISE/RUN, one of "
-                f"{', '.join(task.datasets[:3])}, ... {task.datasets[-1]}"
+                f"{task.id}: no released dataset run={run!r}; give --run {form}, one of {named}"
             )
         return b
     if run is not None or challenge is not None or size is not None:

@@ -280,11 +280,6 @@ def plan_conversion(
     provenance."""
     get_family(family)
     task = get_task(task_id)
-    if family == "dmlab":
-        raise RluError(
-            f"{family} files decode with rlu.data.release.families, but {family} has no task in "
-            "the registry to convert into; read them with families.iter_segments"
-        )
     task.release_dataset(family)  # the family must belong to the task
     if DOMAINS[task.domain].challenges and challenge is None:
         raise RluError(f"{task.id}: say which challenge the files are from: --challenge none|easy")
@@ -295,17 +290,19 @@ def plan_conversion(
             raise RluError(f"{p}: no such shard file")
     schema = schema_for(task, family, challenge, image_encoding)
     meta: dict[str, Any] = {}
-    if DOMAINS[task.domain].datasets == "runs":
+    kind = DOMAINS[task.domain].datasets
+    if kind == "runs":
         r = run if run is not None else _run_from_names(paths)
         if r is not None:
             meta["run"] = int(str(r).removeprefix("run_"))
+    named_run = _run_folder(task, paths, run) if kind == "run_names" else None
     prov = {
         "source": "rl_unplugged release",
         "family": family,
         **({"reward": ATARI_REWARD[family]} if family in ATARI_REWARD else {}),
         "task": task.id,
         "challenge": challenge,
-        "run": meta.get("run"),
+        "run": meta.get("run", named_run),
         "code_version": _version(),
         **(provenance or {}),
     }
@@ -505,6 +502,20 @@ def convert(
 def _run_from_names(paths: Sequence[str]) -> int | None:
     runs = {m.group(1) for p in paths if (m := _RUN_RE.search(os.path.basename(p)))}
     return int(runs.pop()) if len(runs) == 1 else None
+
+
+def _run_folder(task: TaskSpec, paths: Sequence[str], run: str | int | None) -> str | None:
+    """A named run (DMLab's ``training_0``): ``run`` if given, else the folder all the shards
+    are in when it is one of the task's runs (``dmlab/<level>/<run>/tfrecord-...``)."""
+    if run is not None:
+        if str(run) not in task.datasets:
+            raise RluError(
+                f"{task.id}: no released run {run!r}; use one of {', '.join(task.datasets)}"
+            )
+        return str(run)
+    folders = {os.path.basename(os.path.dirname(os.path.abspath(p))) for p in paths}
+    folder = folders.pop() if len(folders) == 1 else None
+    return folder if folder in task.datasets else None
 
 
 def _version() -> str:

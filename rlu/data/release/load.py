@@ -151,7 +151,7 @@ def _fetch_and_convert(sel, dest, cache_dir, base_url, workers, progress) -> Non
         sel.task.id,
         dest,
         challenge=sel.binding.split("/")[0] if kind == "challenge_size" else None,
-        run=sel.binding if kind == "runs" else None,
+        run=sel.binding if kind in ("runs", "run_names") else None,
         workers=workers,
         progress=progress is not False,
         provenance={
@@ -222,6 +222,8 @@ def download_command(
     kind = DOMAINS[sel.task.domain].datasets
     if kind == "runs":
         parts += ["--run", sel.binding.removeprefix("run_")]
+    elif kind in ("noise_run", "run_names"):  # bsuite's 0.1/3, DMLab's training_0
+        parts += ["--run", sel.binding]
     elif kind == "challenge_size":
         challenge, size = sel.binding.split("/")
         parts += ["--challenge", challenge, "--size", size]
