@@ -39,13 +39,13 @@ from typing import Any
 
 import numpy as np
 
-from rlu.files import bounds, shape_of
+from rlu.files import Checked, bounds, shape_of
 from rlu.training.config import RunSettings
 from rlu.types import ArraySpec, RluError
 
 
 @dataclass(frozen=True)
-class TrainConfig:
+class TrainConfig(Checked):
     """What one run trains, and how (``run``)."""
 
     task: str
@@ -64,7 +64,9 @@ class TrainConfig:
     """Agent config fields to change from the preset."""
     run: RunSettings = field(default_factory=RunSettings)
     """How the run is run: preset, budget, evaluation, checkpoints, runtime."""
-    weights: tuple[float, ...] | None = field(default=None, metadata=bounds(metavar="W"))
+    weights: tuple[float, ...] | None = field(
+        default=None, metadata=bounds(gt=0.0, max=1e12, metavar="W")
+    )
     """Share of each dataset's samples in a mixture (default: by their sizes)."""
 
     def __post_init__(self) -> None:
@@ -87,6 +89,7 @@ class TrainConfig:
                     f"weights {list(w)}; give one positive number per dataset ({len(paths)})"
                 )
             object.__setattr__(self, "weights", w)
+        super().__post_init__()
 
     def datasets(self) -> tuple[str, ...]:
         """The dataset paths (one, or a mixture's)."""
