@@ -133,14 +133,14 @@ def _replace(config: Any, path: str, value: Any, agent: str, full: str = "") -> 
             and head in {g.name for g in dataclasses.fields(getattr(config, f))}
         ]
         hint = f"; did you mean {' or '.join(nested)}?" if nested else ""
-        raise RluError(
+        raise ConfigError(
             f"agent {agent!r} config has no field {path!r}{hint} fields: "
             f"{', '.join(sorted(fields))}"
         )
     current = getattr(config, head)
     if rest:
         if not dataclasses.is_dataclass(current):
-            raise RluError(f"agent {agent!r} config field {head!r} has no sub-fields ({path!r})")
+            raise ConfigError(f"agent {agent!r} config field {head!r} has no sub-fields ({path!r})")
         value = _replace(current, rest, value, agent, full)
     elif dataclasses.is_dataclass(current) and isinstance(value, Mapping):
         value = config_from_json(type(current), {**dataclasses.asdict(current), **value})

@@ -41,7 +41,7 @@ import numpy as np
 
 from rlu.files import Checked, bounds, shape_of
 from rlu.training.config import RunSettings
-from rlu.types import ArraySpec, RluError
+from rlu.types import ArraySpec, ConfigError, RluError
 
 
 @dataclass(frozen=True)
@@ -122,6 +122,38 @@ def agent_config(name: str, discrete: bool, preset: str, overrides: Mapping[str,
     from rlu.agents import make_config
 
     return make_config(name, discrete, preset, **overrides)
+
+
+def check_agent_config(config: TrainConfig, origins: Mapping[str, str] | None = None) -> None:
+    """Build ``config``'s agent config (its preset with the overrides) once, before a dataset
+    is opened or a folder made, so that a bad override fails first; ``origins`` says where each
+    override came from (``{"gamma": "bc.yaml: overrides.gamma"}``), and its error says so. The
+    action kind comes from the task registry, or from the agent when it has one kind only; a
+    task rlu does not know with an agent of both kinds is checked once the data says which
+    (``rlu.training.prepare``)."""
+    from rlu.agents import AGENTS, make_config, trusted_agents
+    from rlu.tasks import TASKS
+
+    if "." in config.agent and config.agent not in trusted_agents():
+        return  # checked once train() has imported it (trust)
+    spec = TASKS.get(config.task)
+    if spec is not None:
+        discrete = spec.discrete
+    else:
+        kinds = {d for n, d in AGENTS if n == config.agent}
+        if "." in config.agent:
+            kinds = {False}  # a trusted module serves both kinds
+        if len(kinds) != 1:
+            return
+        (discrete,) = kinds
+    preset = config.run.preset
+    for key, value in config.overrides.items():
+        try:
+            make_config(config.agent, discrete, preset, **{key: value})
+        except ConfigError as e:
+            where = (origins or {}).get(key)
+            raise (ConfigError(f"{where}: {e}") if where else e) from None
+    make_config(config.agent, discrete, preset, **config.overrides)
 
 
 def parse_overrides(items: list[str] | None) -> dict[str, Any]:
@@ -222,6 +254,7 @@ def train(
     from rlu.locks import OutputLock
 
     trust(config.agent, config.run.env)
+    check_agent_config(config)  # before the lock file, its folder, the data
     with OutputLock(Path(out), "run folder"):
         return _train(config, out, resume, progress, tuple(loggers))
 
