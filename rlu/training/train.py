@@ -70,6 +70,7 @@ class TrainConfig(Checked):
     """Share of each dataset's samples in a mixture (default: by their sizes)."""
 
     def __post_init__(self) -> None:
+        super().__post_init__()  # every field's type and bounds (rlu.files.Checked)
         paths = (self.dataset,) if isinstance(self.dataset, str | os.PathLike) else self.dataset
         if (
             not isinstance(paths, tuple | list)
@@ -89,7 +90,6 @@ class TrainConfig(Checked):
                     f"weights {list(w)}; give one positive number per dataset ({len(paths)})"
                 )
             object.__setattr__(self, "weights", w)
-        super().__post_init__()
 
     def datasets(self) -> tuple[str, ...]:
         """The dataset paths (one, or a mixture's)."""
