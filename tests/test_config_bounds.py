@@ -345,3 +345,16 @@ def test_config_error_is_an_rlu_error_in_the_public_types():
 
     assert issubclass(ConfigError, RluError)
     assert "ConfigError" in rlu.types.__all__
+
+
+def test_a_sweep_grid_point_out_of_bounds_is_refused_before_the_sweep_folder(tmp_path):
+    from rlu.generate.recipe import bundled_dataset
+    from rlu.training.sweep import SweepConfig, sweep
+
+    task = "control_suite/cartpole_swingup"
+    config = SweepConfig(tasks=(task,), agents=("d4pg",), datasets={task: str(bundled_dataset())},
+                         grid={"gamma": [0.9, 2.0]})  # fmt: skip
+    with pytest.raises(ConfigError, match=f"sweep grid of d4pg on {task}: agent 'd4pg' config "
+                       "field 'gamma' is 2.0; expected a number from 0.0 to 1.0"):  # fmt: skip
+        sweep(config, tmp_path / "sweep")
+    assert not (tmp_path / "sweep").exists()

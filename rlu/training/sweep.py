@@ -34,7 +34,7 @@ from rlu.files import bounds, check_output, make_folder, shape_of
 from rlu.training import runs
 from rlu.training.config import RunSettings
 from rlu.training.loggers import LOGGERS
-from rlu.types import DiscreteSpec, RluError
+from rlu.types import ConfigError, DiscreteSpec, RluError
 from rlu.workers import Backend, run_jobs
 
 
@@ -122,6 +122,7 @@ def expand(config: SweepConfig, out: str | os.PathLike) -> list[RunSpec]:
     """Every run of the sweep, in (task, agent, config, seed) order. A module path among the
     agents (or the env factory) is imported here: the config came from code or the command
     line, never from a file."""
+    from rlu.agents import make_config
     from rlu.data import open_dataset
     from rlu.training.train import trust
 
@@ -146,6 +147,10 @@ def expand(config: SweepConfig, out: str | os.PathLike) -> list[RunSpec]:
             if config.max_configs is not None:
                 settings = settings[: config.max_configs]
             for overrides in settings:
+                try:  # every grid point's config checked before the sweep folder is made
+                    make_config(agent, discrete, preset, **overrides)
+                except ConfigError as e:
+                    raise ConfigError(f"sweep grid of {agent} on {task}: {e}") from None
                 label = config_label(overrides)
                 for seed in config.seeds:
                     run_dir = Path(out) / _slug(task) / _slug(agent) / _slug(label) / f"seed_{seed}"
