@@ -640,7 +640,7 @@ def check_fields(config: Any) -> None:
     :class:`rlu.types.ConfigError` names the config, the field, the value and the bound. A
     whole number given as a float becomes an int, a list for a tuple field a tuple; a composed
     dataclass must be an instance of its class (which checked itself)."""
-    cls = type(config)
+    cls: type = type(config)
     for name, check, optional in _field_checks(cls):
         value = getattr(config, name)
         if isinstance(check, type):
