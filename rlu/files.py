@@ -35,6 +35,7 @@ import errno
 import functools
 import json
 import math
+import numbers
 import os
 import secrets
 import stat
@@ -316,6 +317,8 @@ class Int(Shape):
     def check(self, value: Any, where: str) -> Any:
         if isinstance(value, float) and value.is_integer() and abs(value) < 2**53:
             value = int(value)  # 1e3 written by hand
+        elif isinstance(value, numbers.Integral) and not isinstance(value, bool | int):
+            value = int(value)  # a numpy integer, from code
         if isinstance(value, bool) or not isinstance(value, int):
             raise Bad(where, f"is {_name(value)} ({_short(value)}); expected {self.describe()}")
         if (self.min is not None and value < self.min) or (
@@ -339,6 +342,8 @@ class Float(Shape):
     lt: float | None = None
 
     def check(self, value: Any, where: str) -> Any:
+        if isinstance(value, numbers.Real) and not isinstance(value, bool | int | float):
+            value = float(value)  # a numpy float32, from code
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise Bad(where, f"is {_name(value)} ({_short(value)}); expected {self.describe()}")
         if not math.isfinite(value):
@@ -638,7 +643,8 @@ def check_fields(config: Any) -> None:
     """Check every field of config dataclass instance ``config`` against its declared type and
     its :func:`bounds` (the shapes :func:`shape_of` reads files with): a
     :class:`rlu.types.ConfigError` names the config, the field, the value and the bound. A
-    whole number given as a float becomes an int, a list for a tuple field a tuple; a composed
+    whole number given as a float (or a numpy integer) becomes an int, a numpy float a float, a
+    list for a tuple field a tuple; a composed
     dataclass must be an instance of its class (which checked itself)."""
     cls: type = type(config)
     for name, check, optional in _field_checks(cls):
@@ -654,7 +660,7 @@ def check_fields(config: Any) -> None:
             out = check.check(value, name)
         except Bad as e:
             raise ConfigError(f"{cls.__name__} field {e.where!r} {e.what}") from None
-        if type(out) is not type(value) and isinstance(out, tuple | int):
+        if type(out) is not type(value) and isinstance(out, tuple | int | float):
             object.__setattr__(config, name, out)  # 1e3 -> 1000, [256, 256] -> (256, 256)
 
 

@@ -358,3 +358,17 @@ def test_a_sweep_grid_point_out_of_bounds_is_refused_before_the_sweep_folder(tmp
                        "field 'gamma' is 2.0; expected a number from 0.0 to 1.0"):  # fmt: skip
         sweep(config, tmp_path / "sweep")
     assert not (tmp_path / "sweep").exists()
+
+
+def test_numpy_numbers_from_code_become_python_numbers():
+    import numpy as np
+
+    from rlu.agents.bc import BCConfig
+    from rlu.agents.td3bc import TD3BCConfig
+
+    config = BCConfig(batch_size=np.int64(64), learning_rate=np.float32(0.5))
+    assert type(config.batch_size) is int and config.batch_size == 64
+    assert type(config.learning_rate) is float and config.learning_rate == 0.5
+    assert TD3BCConfig(hidden_layers=[np.int64(8), 8]).hidden_layers == (8, 8)
+    with pytest.raises(ConfigError, match="'batch_size' is 0"):
+        BCConfig(batch_size=np.int32(0))
