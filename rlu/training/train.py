@@ -128,15 +128,15 @@ def check_agent_config(config: TrainConfig, origins: Mapping[str, str] | None = 
     """Build ``config``'s agent config (its preset with the overrides) once, before a dataset
     is opened or a folder made, so that a bad override fails first; ``origins`` says where each
     override came from (``{"gamma": "bc.yaml: overrides.gamma"}``), and its error says so. The
-    action kind comes from the task registry, or from the agent when it has one kind only; a
-    task rlu does not know with an agent of both kinds is checked once the data says which
-    (``rlu.training.prepare``)."""
+    action kind comes from the task registry (without an env factory of its own, the data must
+    match the task), or from the agent when it has one kind only; otherwise the config is
+    checked once the data says which (``rlu.training.prepare``)."""
     from rlu.agents import AGENTS, make_config, trusted_agents
     from rlu.tasks import TASKS
 
     if "." in config.agent and config.agent not in trusted_agents():
         return  # checked once train() has imported it (trust)
-    spec = TASKS.get(config.task)
+    spec = TASKS.get(config.task) if config.run.env is None else None  # else the data decides
     if spec is not None:
         discrete = spec.discrete
     else:
