@@ -16,7 +16,10 @@ Reading. A JSON file rlu reads is checked at the boundary, once, against a *shap
 (:class:`Shape`: types, ranges, sizes, nesting depth) before any value is used; a shape is written
 as data (``Record({"step": Int(min=0)})``) or derived from a frozen config dataclass
 (:func:`shape_of`: type hints, plus ``min`` / ``max`` / ``choices`` in a field's metadata). A bad
-file is a :class:`rlu.types.FormatError` naming the file, the field and the fix. The file must be
+file is a :class:`rlu.types.FormatError` naming the file, the field and the fix. The same
+shapes check a config dataclass deriving from :class:`Checked` whenever one is made
+(:func:`check_fields`: a :class:`rlu.types.ConfigError`), so a value is held to one set of
+bounds whether it came from a file, an override or Python. The file must be
 a regular file no larger than ``max_bytes``: a FIFO, a device or a runaway file is refused before
 it is read.
 
