@@ -96,7 +96,7 @@ class AtariDT(Checked):
     """Attention heads per block."""
     hidden_size: int = field(default=128, metadata=bounds(min=1, max=MAX_WIDTH))
     """Width of the token embeddings and of the transformer (minGPT's n_embd)."""
-    dropout: float = field(default=0.1, metadata=bounds(min=0.0, max=1.0))
+    dropout: float = field(default=0.1, metadata=bounds(min=0.0, lt=1.0))
     """Dropout of the embeddings, the attention weights and both residual branches."""
     channels: tuple[int, ...] = field(
         default=(32, 64, 64), metadata=bounds(min=1, max=4096, min_len=1, max_len=16)
@@ -157,7 +157,7 @@ class DTConfig(Checked):
     """Attention heads per block."""
     hidden_size: int = field(default=128, metadata=bounds(min=1, max=MAX_WIDTH))
     """Width of the token embeddings and of the transformer (the gym code's embed_dim)."""
-    dropout: float = field(default=0.1, metadata=bounds(min=0.0, max=1.0))
+    dropout: float = field(default=0.1, metadata=bounds(min=0.0, lt=1.0))
     """Dropout of the embeddings, the attention weights and both residual branches."""
     torso_hidden: int = field(default=64, metadata=bounds(min=1, max=MAX_WIDTH))
     """Embedding size of each camera's ResNet torso (camera observations only)."""
