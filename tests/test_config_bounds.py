@@ -372,3 +372,17 @@ def test_numpy_numbers_from_code_become_python_numbers():
     assert TD3BCConfig(hidden_layers=[np.int64(8), 8]).hidden_layers == (8, 8)
     with pytest.raises(ConfigError, match="'batch_size' is 0"):
         BCConfig(batch_size=np.int32(0))
+
+
+def test_train_config_from_file_names_the_file_and_key_of_a_bad_override(tmp_path):
+    pytest.importorskip("yaml")
+    from rlu.training.train import TrainConfig
+
+    path = tmp_path / "bc.yaml"
+    path.write_text("task: control_suite/cartpole_swingup\nagent: bc\ndataset: d\n"
+                    "overrides:\n  batch_size: 256\n  num_layers: 65\n")  # fmt: skip
+    with pytest.raises(ConfigError, match=f"{path}: overrides.num_layers: agent 'bc' config "
+                       "field 'num_layers' is 65; expected an integer from 1 to 64"):  # fmt: skip
+        TrainConfig.from_file(path)
+    ok = TrainConfig.from_file(path, overrides={"num_layers": 4})
+    assert ok.overrides == {"num_layers": 4}

@@ -111,10 +111,15 @@ class TrainConfig(Checked):
         TrainConfig's fields (``run:`` holding RunSettings'), or a run folder's config.json.
         ``fields`` fill or replace top-level fields (``TrainConfig.from_file("bc.yaml",
         seed=1)``); a module path in the file (a dotted agent, ``run.env``) is refused unless
-        ``fields`` names that field (names in files are never imported)."""
+        ``fields`` names that field (names in files are never imported). The file's overrides
+        are checked against the agent's config here (:func:`check_agent_config`)."""
         from rlu.training.config import config_from_file
 
-        return config_from_file(cls, os.fspath(path), fields)
+        config = config_from_file(cls, os.fspath(path), fields)
+        if "overrides" not in fields:  # the file's: a bad one names the file and its key
+            origins = {key: f"{os.fspath(path)}: overrides.{key}" for key in config.overrides}
+            check_agent_config(config, origins)
+        return config
 
 
 # --- agents ---------------------------------------------------------------------------------
