@@ -17,6 +17,7 @@ from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from rlu.files import Checked
 from rlu.types import RluError
 
 DEVICES = "auto, cpu, cuda or cuda:N"
@@ -66,7 +67,7 @@ waiting (a deeper queue only holds more pinned memory)."""
 
 
 @dataclass(frozen=True)
-class Runtime:
+class Runtime(Checked):
     """Where and how a run computes (``rlu.training.config.RunSettings.runtime``)."""
 
     device: str = field(default="cpu", metadata={"cli_default": "auto", "metavar": "DEVICE"})
@@ -81,7 +82,7 @@ class Runtime:
     IEEE fp32, so fp32 means fp32 (PyTorch's own default runs cuDNN convolutions in TF32)."""
     compile: bool = False
     """``torch.compile`` the forward of every agent module (opt-in: the first updates compile)."""
-    prefetch: int | None = field(default=None, metadata={"min": 0, "metavar": "N"})
+    prefetch: int | None = field(default=None, metadata={"min": 0, "max": 64, "metavar": "N"})
     """Batches sampled ahead of the learner by a background thread (on CUDA copied from pinned
     memory on a side stream); None: 2 on CUDA, 0 on the CPU (sampled in line, as before)."""
     data_on_device: bool = False
@@ -94,14 +95,7 @@ class Runtime:
                 f"precision {self.precision!r}; use one of {', '.join(PRECISIONS)} "
                 "(--precision bf16 trains under bfloat16 autocast)"
             )
-        if self.prefetch is not None and (
-            isinstance(self.prefetch, bool) or not isinstance(self.prefetch, int)
-            or self.prefetch < 0
-        ):  # fmt: skip
-            raise RluError(
-                f"prefetch {self.prefetch!r}; give the batches to sample ahead as an integer "
-                ">= 0 (0: sample in line), or leave it unset for the device's default"
-            )
+        super().__post_init__()  # every field's type and bounds: prefetch an int in [0, 64]
 
     def resolve(self) -> Runtime:
         """This runtime on this machine: ``device`` as the canonical name of an existing

@@ -16,7 +16,10 @@ Reading. A JSON file rlu reads is checked at the boundary, once, against a *shap
 (:class:`Shape`: types, ranges, sizes, nesting depth) before any value is used; a shape is written
 as data (``Record({"step": Int(min=0)})``) or derived from a frozen config dataclass
 (:func:`shape_of`: type hints, plus ``min`` / ``max`` / ``choices`` in a field's metadata). A bad
-file is a :class:`rlu.types.FormatError` naming the file, the field and the fix. The file must be
+file is a :class:`rlu.types.FormatError` naming the file, the field and the fix. The same
+shapes check a config dataclass deriving from :class:`Checked` whenever one is made
+(:func:`check_fields`: a :class:`rlu.types.ConfigError`), so a value is held to one set of
+bounds whether it came from a file, an override or Python. The file must be
 a regular file no larger than ``max_bytes``: a FIFO, a device or a runaway file is refused before
 it is read.
 
@@ -32,8 +35,10 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import errno
+import functools
 import json
 import math
+import numbers
 import os
 import secrets
 import stat
@@ -43,7 +48,7 @@ from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from rlu.types import FormatError, RluError
+from rlu.types import ConfigError, FormatError, RluError
 
 MAX_JSON_BYTES = 64 << 20
 """Largest JSON file rlu reads for its own state (a results.jsonl of 100k runs is ~50 MB)."""
@@ -56,6 +61,15 @@ MAX_STR = 1 << 20
 MAX_STEPS = 10**9
 """Most learner steps a run may be given (the paper's longest budget is 2M; 1e9 is weeks on a
 GPU): a larger number is a mistake, not a budget."""
+MAX_BATCH = 1 << 20
+"""Most rows in one batch a config may ask for (the paper's largest is 1,024)."""
+MAX_WIDTH = 1 << 16
+"""Widest layer a config may ask for (the paper's widest is 1,024 units)."""
+MAX_LAYERS = 64
+"""Most layers in one network a config may ask for (the paper's deepest MLP has 8)."""
+MAX_LR = 10.0
+"""Largest learning rate a config may ask for (the paper's largest is 1e-3); every learning
+rate is also > 0."""
 
 
 # --- writing --------------------------------------------------------------------------------
@@ -306,6 +320,8 @@ class Int(Shape):
     def check(self, value: Any, where: str) -> Any:
         if isinstance(value, float) and value.is_integer() and abs(value) < 2**53:
             value = int(value)  # 1e3 written by hand
+        elif isinstance(value, numbers.Integral) and not isinstance(value, bool | int):
+            value = int(value)  # a numpy integer, from code
         if isinstance(value, bool) or not isinstance(value, int):
             raise Bad(where, f"is {_name(value)} ({_short(value)}); expected {self.describe()}")
         if (self.min is not None and value < self.min) or (
@@ -320,22 +336,40 @@ class Int(Shape):
 
 @dataclasses.dataclass(frozen=True)
 class Float(Shape):
+    """A finite number in [min, max]; ``gt`` / ``lt``: strictly above / below it (a learning
+    rate > 0, Adam's betas < 1)."""
+
     min: float | None = None
     max: float | None = None
+    gt: float | None = None
+    lt: float | None = None
 
     def check(self, value: Any, where: str) -> Any:
+        if isinstance(value, numbers.Real) and not isinstance(value, bool | int | float):
+            value = float(value)  # a numpy float32, from code
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise Bad(where, f"is {_name(value)} ({_short(value)}); expected {self.describe()}")
         if not math.isfinite(value):
-            raise Bad(where, f"is {value}; expected a finite number")
-        if (self.min is not None and value < self.min) or (
-            self.max is not None and value > self.max
+            finite = self.describe().replace("a number", "a finite number", 1)
+            raise Bad(where, f"is {value}; expected {finite}")
+        if (
+            (self.min is not None and value < self.min)
+            or (self.max is not None and value > self.max)
+            or (self.gt is not None and value <= self.gt)
+            or (self.lt is not None and value >= self.lt)
         ):
             raise Bad(where, f"is {value}; expected {self.describe()}")
         return value
 
     def describe(self) -> str:
-        return "a number" + _range(self.min, self.max)
+        if self.gt is None and self.lt is None:
+            return "a number" + _range(self.min, self.max)
+        parts = [
+            f"{op} {bound}"
+            for op, bound in (("> ", self.gt), (">=", self.min), ("<", self.lt), ("<=", self.max))
+            if bound is not None
+        ]
+        return "a number " + " and ".join(p.replace("  ", " ") for p in parts)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -391,7 +425,12 @@ class ListOf(Shape):
         if not isinstance(value, list | tuple):
             raise Bad(where, f"is {_name(value)} ({_short(value)}); expected {self.describe()}")
         if not self.min_len <= len(value) <= self.max_len:
-            raise Bad(where, f"has {len(value)} items; expected {self.min_len} to {self.max_len}")
+            want = (
+                f"exactly {self.min_len}"
+                if self.min_len == self.max_len
+                else f"{self.min_len} to {self.max_len}"
+            )
+            raise Bad(where, f"has {len(value)} items; expected {want}")
         out = [self.item.check(v, f"{where}[{i}]") for i, v in enumerate(value)]
         return tuple(out) if self.as_tuple else out
 
@@ -502,10 +541,30 @@ def _short(value: Any) -> str:
 
 
 # --- shapes of config dataclasses -----------------------------------------------------------
-def bounds(min: float | None = None, max: float | None = None, **more: Any) -> dict[str, Any]:
-    """A field's metadata for :func:`shape_of` and the CLI: ``field(default=1, metadata=
-    bounds(min=1))``."""
-    return {k: v for k, v in {"min": min, "max": max, **more}.items() if v is not None}
+def bounds(
+    min: float | None = None,
+    max: float | None = None,
+    *,
+    gt: float | None = None,
+    lt: float | None = None,
+    min_len: int | None = None,
+    max_len: int | None = None,
+    **more: Any,
+) -> dict[str, Any]:
+    """A field's metadata for :func:`shape_of`, :class:`Checked` and the CLI: ``field(default=1,
+    metadata=bounds(min=1, max=64))``. ``gt`` / ``lt``: strictly above / below (a learning rate:
+    ``gt=0``); on a tuple field ``min`` / ``max`` / ``gt`` / ``lt`` bound each item and
+    ``min_len`` / ``max_len`` its length."""
+    given = {
+        "min": min,
+        "max": max,
+        "gt": gt,
+        "lt": lt,
+        "min_len": min_len,
+        "max_len": max_len,
+        **more,
+    }
+    return {k: v for k, v in given.items() if v is not None}
 
 
 def _shape_of_hint(hint: Any, meta: Mapping[str, Any]) -> Shape:
@@ -522,7 +581,7 @@ def _shape_of_hint(hint: Any, meta: Mapping[str, Any]) -> Shape:
     if hint is int:
         return Int(meta.get("min"), meta.get("max"))
     if hint is float:
-        return Float(meta.get("min"), meta.get("max"))
+        return Float(meta.get("min"), meta.get("max"), meta.get("gt"), meta.get("lt"))
     if hint is str:
         choices = meta.get("choices")
         return Str(tuple(choices) if choices is not None else None)
@@ -530,9 +589,13 @@ def _shape_of_hint(hint: Any, meta: Mapping[str, Any]) -> Shape:
         return Str(tuple(args))
     if origin in (tuple, list, Sequence, typing.Sequence):
         item = args[0] if args else Any
-        if item is Any:
-            return ListOf(AnyJSON(), as_tuple=origin is tuple)
-        return ListOf(_shape_of_hint(item, meta), as_tuple=origin is tuple)
+        fixed = origin is tuple and bool(args) and args[-1] is not Ellipsis
+        if fixed and len(set(args)) > 1:
+            return AnyJSON()  # a tuple of mixed items: no config field has one
+        lo = len(args) if fixed else meta.get("min_len", 0)
+        hi = len(args) if fixed else meta.get("max_len", MAX_ITEMS)
+        shape = AnyJSON() if item is Any else _shape_of_hint(item, meta)
+        return ListOf(shape, max_len=hi, min_len=lo, as_tuple=origin is tuple)
     if origin in (dict, Mapping, typing.Mapping):
         value = args[1] if len(args) == 2 else Any
         return MapOf(AnyJSON() if value is Any else _shape_of_hint(value, {}))
@@ -559,6 +622,60 @@ def shape_of(cls: type) -> Record:
         )
         (optional if has_default else required)[f.name] = shape
     return Record(required, optional, extra=False)
+
+
+@functools.cache
+def _field_checks(cls: type) -> tuple[tuple[str, Shape | type, bool], ...]:
+    """Per field of dataclass ``cls``: (name, its shape, False), or for a composed dataclass
+    (name, its class, whether None is allowed); derived once per class."""
+    hints = typing.get_type_hints(cls)
+    out: list[tuple[str, Shape | type, bool]] = []
+    for f in dataclasses.fields(cls):
+        hint = hints[f.name]
+        args = typing.get_args(hint)
+        union = typing.get_origin(hint) in (typing.Union, types.UnionType)
+        rest = [a for a in args if a is not type(None)] if union else [hint]
+        if len(rest) == 1 and isinstance(rest[0], type) and dataclasses.is_dataclass(rest[0]):
+            out.append((f.name, rest[0], union))
+        else:
+            out.append((f.name, _shape_of_hint(hint, f.metadata), False))
+    return tuple(out)
+
+
+def check_fields(config: Any) -> None:
+    """Check every field of config dataclass instance ``config`` against its declared type and
+    its :func:`bounds` (the shapes :func:`shape_of` reads files with): a
+    :class:`rlu.types.ConfigError` names the config, the field, the value and the bound. A
+    whole number given as a float (or a numpy integer) becomes an int, a numpy float a float, a
+    list for a tuple field a tuple; a composed
+    dataclass must be an instance of its class (which checked itself)."""
+    cls: type = type(config)
+    for name, check, optional in _field_checks(cls):
+        value = getattr(config, name)
+        if isinstance(check, type):
+            if not (isinstance(value, check) or (optional and value is None)):
+                raise ConfigError(
+                    f"{cls.__name__} field {name!r} is {_name(value)} ({_short(value)}); "
+                    f"expected a {check.__name__}"
+                )
+            continue
+        try:
+            out = check.check(value, name)
+        except Bad as e:
+            raise ConfigError(f"{cls.__name__} field {e.where!r} {e.what}") from None
+        if type(out) is not type(value) and isinstance(out, tuple | int | float):
+            object.__setattr__(config, name, out)  # 1e3 -> 1000, [256, 256] -> (256, 256)
+
+
+class Checked:
+    """Base of a frozen config dataclass whose every field is checked when it is made (from
+    Python, a file, an override, ``dataclasses.replace``): :func:`check_fields`. A subclass with
+    its own ``__post_init__`` calls ``super().__post_init__()`` first."""
+
+    __slots__ = ()
+
+    def __post_init__(self) -> None:
+        check_fields(self)
 
 
 def check_value(shape: Shape, value: Any, what: str, fix: str) -> Any:

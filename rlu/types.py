@@ -26,6 +26,7 @@ __all__ = [
     "ArraySpec",
     "BatchSpec",
     "BoundedSpec",
+    "ConfigError",
     "DataStatistics",
     "DiscreteSpec",
     "FormatError",
@@ -47,6 +48,12 @@ class RluError(Exception):
 
 class FormatError(RluError):
     """A file is not in the format it claims to be (corrupt, truncated, wrong schema)."""
+
+
+class ConfigError(RluError):
+    """A configured value is outside its field's type or range (an agent config, composed
+    settings, run settings): the message names the config, the field, the value, the bound and,
+    where known, where the value came from (a file and key, or a flag)."""
 
 
 class SpecError(RluError):

@@ -80,8 +80,9 @@ def test_runtime_refuses_what_the_device_cannot_do(two_gpus, monkeypatch):
 
 @pytest.mark.parametrize(
     ("field", "value", "match"),
-    [("precision", "fp16", "fp32, bf16"), ("prefetch", -1, ">= 0"), ("prefetch", True, ">= 0"),
-     ("prefetch", 1.5, ">= 0")],
+    [("precision", "fp16", "fp32, bf16"), ("prefetch", -1, "an integer from 0 to 64"),
+     ("prefetch", True, "a boolean"), ("prefetch", 1.5, "an integer from 0 to 64"),
+     ("prefetch", 65, "'prefetch' is 65; expected an integer from 0 to 64")],
 )  # fmt: skip
 def test_runtime_fields_are_checked(field, value, match):
     with pytest.raises(RluError, match=match):

@@ -26,7 +26,7 @@ import typing
 from collections.abc import Mapping
 from typing import Any
 
-from rlu.types import ActionSpec, DiscreteSpec, ObservationSpec, RluError
+from rlu.types import ActionSpec, ConfigError, DiscreteSpec, ObservationSpec, RluError
 
 # (name, discrete) -> module path. The module holds Config, Agent, PRESETS and GRID.
 AGENTS: dict[tuple[str, bool], str] = {
@@ -121,8 +121,10 @@ def agent_module(name: str, discrete: bool) -> Any:
     return importlib.import_module(path)
 
 
-def _replace(config: Any, path: str, value: Any, agent: str) -> Any:
-    """``dataclasses.replace`` along a dotted field path (``atari.batch_size``)."""
+def _replace(config: Any, path: str, value: Any, agent: str, full: str = "") -> Any:
+    """``dataclasses.replace`` along a dotted field path (``atari.batch_size``; ``full``: the
+    whole path, for messages)."""
+    full = full or path
     head, _, rest = path.partition(".")
     fields = {f.name for f in dataclasses.fields(config)}
     if head not in fields:
@@ -133,27 +135,32 @@ def _replace(config: Any, path: str, value: Any, agent: str) -> Any:
             and head in {g.name for g in dataclasses.fields(getattr(config, f))}
         ]
         hint = f"; did you mean {' or '.join(nested)}?" if nested else ""
-        raise RluError(
+        raise ConfigError(
             f"agent {agent!r} config has no field {path!r}{hint} fields: "
             f"{', '.join(sorted(fields))}"
         )
     current = getattr(config, head)
     if rest:
         if not dataclasses.is_dataclass(current):
-            raise RluError(f"agent {agent!r} config field {head!r} has no sub-fields ({path!r})")
-        value = _replace(current, rest, value, agent)
+            raise ConfigError(f"agent {agent!r} config field {head!r} has no sub-fields ({path!r})")
+        value = _replace(current, rest, value, agent, full)
     elif dataclasses.is_dataclass(current) and isinstance(value, Mapping):
         value = config_from_json(type(current), {**dataclasses.asdict(current), **value})
     else:
-        value = _checked(type(config), head, value, agent)
-    return dataclasses.replace(config, **{head: value})
+        value = _checked(type(config), head, value, agent, full)
+    try:
+        return dataclasses.replace(config, **{head: value})
+    except ConfigError as e:  # a check of the whole config (its own __post_init__)
+        from rlu.files import _short
+
+        raise ConfigError(f"agent {agent!r}: {e} (override {full}={_short(value)})") from None
 
 
-def _checked(cls: type, name: str, value: Any, agent: str) -> Any:
-    """An override's value, checked against the field's type (lists as tuples): a string for a
-    number, a float for a count, a list of strings for layer widths are errors naming the
-    field, its type and the value."""
-    from rlu.files import Bad, field_shape
+def _checked(cls: type, name: str, value: Any, agent: str, full: str) -> Any:
+    """An override's value, checked against the field's type and bounds (lists as tuples): a
+    string for a number, a float for a count, a list of strings for layer widths, a value out
+    of range are errors naming the field, the value, the bound and the override (``full``)."""
+    from rlu.files import Bad, _short, field_shape
 
     if isinstance(value, tuple):
         value = list(value)
@@ -161,8 +168,8 @@ def _checked(cls: type, name: str, value: Any, agent: str) -> Any:
     try:
         return shape.check(value, name)
     except Bad as e:
-        raise RluError(
-            f"agent {agent!r} config field {e.where!r} {e.what} (override {name}=...)"
+        raise ConfigError(
+            f"agent {agent!r} config field {e.where!r} {e.what} (override {full}={_short(value)})"
         ) from None
 
 
@@ -219,6 +226,10 @@ def make_agent(
     module = agent_module(name, discrete)
     if config is None:
         config = make_config(name, discrete, preset, **overrides)
+    elif dataclasses.is_dataclass(config) and not isinstance(config, type):
+        from rlu.files import check_fields
+
+        check_fields(config)  # a config built past its checks (object.__setattr__, a copy)
     return module.Agent(observation_spec, action_spec, config, seed=seed, device=device)
 
 

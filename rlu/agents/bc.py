@@ -25,13 +25,13 @@ from torch import nn
 from rlu.agents import common
 from rlu.agents import networks as nets
 from rlu.agents.losses import mixture_log_prob
-from rlu.files import MAX_STEPS, bounds
+from rlu.files import MAX_LR, MAX_STEPS, Checked, bounds
 from rlu.seeds import stream_seed
 from rlu.types import BatchSpec, Sequence, Transition
 
 
 @dataclass(frozen=True)
-class BCConfig:
+class BCConfig(Checked):
     hidden_size: int = field(default=1024, metadata=bounds(min=1, max=16384))
     """Width of the residual MLP."""
     num_layers: int = field(default=8, metadata=bounds(min=1, max=64))
@@ -42,7 +42,7 @@ class BCConfig:
     """Gaussian components of the policy head."""
     eval_variance: float = field(default=1e-4, metadata=bounds(min=1e-12, max=1e6))
     """Variance of every component when acting greedily (the paper's evaluation, 1e-4)."""
-    learning_rate: float = field(default=1e-4, metadata=bounds(min=0.0, max=10.0))
+    learning_rate: float = field(default=1e-4, metadata=bounds(gt=0.0, max=MAX_LR))
     """Adam learning rate."""
     batch_size: int = field(default=1024, metadata=bounds(min=1, max=1 << 20))
     """Transitions per update; windows per update when recurrent (the paper: 1024 and 128)."""

@@ -20,7 +20,7 @@ the agent's own generator.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -29,52 +29,60 @@ from torch import nn
 from rlu.agents import common
 from rlu.agents import networks as nets
 from rlu.agents.losses import vae_loss
+from rlu.files import MAX_BATCH, MAX_LAYERS, MAX_LR, MAX_STEPS, MAX_WIDTH, Checked, bounds
 from rlu.seeds import stream_seed
 from rlu.types import BatchSpec, Transition
 
 
 @dataclass(frozen=True)
-class BCQConfig:
-    actor_layers: tuple[int, ...] = (400, 300)
+class BCQConfig(Checked):
+    actor_layers: tuple[int, ...] = field(
+        default=(400, 300), metadata=bounds(min=1, max=MAX_WIDTH, min_len=1, max_len=MAX_LAYERS)
+    )
     """Perturbation network hidden sizes."""
-    critic_layers: tuple[int, ...] = (400, 300)
+    critic_layers: tuple[int, ...] = field(
+        default=(400, 300), metadata=bounds(min=1, max=MAX_WIDTH, min_len=1, max_len=MAX_LAYERS)
+    )
     """Hidden sizes of each of the twin critics."""
-    vae_layers: tuple[int, ...] = (750, 750)
+    vae_layers: tuple[int, ...] = field(
+        default=(750, 750), metadata=bounds(min=1, max=MAX_WIDTH, min_len=1, max_len=MAX_LAYERS)
+    )
     """Hidden sizes of the VAE encoder and of its decoder."""
-    torso_hidden: int = 64
+    torso_hidden: int = field(default=64, metadata=bounds(min=1, max=MAX_WIDTH))
     """Camera ResNet embedding size."""
-    phi: float = 0.05
+    phi: float = field(default=0.05, metadata=bounds(min=0.0, max=2.0))
     """Largest perturbation, in units of the action range's half-width."""
-    lmbda: float = 0.75
+    lmbda: float = field(default=0.75, metadata=bounds(min=0.0, max=1.0))
     """Weight of the min in the soft clipped double-Q target."""
-    num_samples: int = 10
+    num_samples: int = field(default=10, metadata=bounds(min=1, max=10_000))
     """VAE actions sampled per next state (target) and per state (acting)."""
-    cpu_slice_rows: int = 640
+    cpu_slice_rows: int = field(default=640, metadata=bounds(min=0, max=1 << 30))
     """On a CPU, the target pass (``num_samples`` x batch rows through the VAE decoder, the
     perturbation network and both target critics, no gradients) runs in slices of this many
     rows, so that one slice's activations stay in the core's cache: the same values up to float
     rounding, the whole update 1.16x faster at the paper's widths and batch 256 (docs/agents.md).
     0, or a GPU: one pass over all rows."""
-    gamma: float = 0.99
+    gamma: float = field(default=0.99, metadata=bounds(min=0.0, max=1.0))
     """Discount."""
-    target_update_period: int = 100
+    target_update_period: int = field(default=100, metadata=bounds(min=0, max=MAX_STEPS))
     """Updates between hard copies into the target networks (the paper's table, shared by its
     continuous agents); 0: Polyak averaging with ``tau`` every update (the original BCQ)."""
-    tau: float = 0.005
+    tau: float = field(default=0.005, metadata=bounds(gt=0.0, max=1.0))
     """Polyak rate of the target networks when ``target_update_period`` is 0."""
-    actor_lr: float = 1e-3
+    actor_lr: float = field(default=1e-3, metadata=bounds(gt=0.0, max=MAX_LR))
     """Adam learning rate of the perturbation network."""
-    critic_lr: float = 1e-3
+    critic_lr: float = field(default=1e-3, metadata=bounds(gt=0.0, max=MAX_LR))
     """Adam learning rate of the critics."""
-    vae_lr: float = 1e-3
+    vae_lr: float = field(default=1e-3, metadata=bounds(gt=0.0, max=MAX_LR))
     """Adam learning rate of the VAE."""
-    batch_size: int = 1024
+    batch_size: int = field(default=1024, metadata=bounds(min=1, max=MAX_BATCH))
     """Transitions per update."""
-    num_steps: int = 1_000_000
+    num_steps: int = field(default=1_000_000, metadata=bounds(min=1, max=MAX_STEPS))
     """Learner steps of a full run: what ``rlu train`` runs when no --steps is given. The paper
     states no budget for the continuous baselines; 1M is rlu's choice."""
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         common.slice_rows("BCQ", self.cpu_slice_rows)
 
 

@@ -43,7 +43,7 @@ Deviations and choices:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -52,6 +52,7 @@ from torch import nn
 from rlu.agents import common
 from rlu.agents import networks as nets
 from rlu.agents.losses import tanh_gaussian_log_prob
+from rlu.files import MAX_BATCH, MAX_LAYERS, MAX_LR, MAX_STEPS, MAX_WIDTH, Checked, bounds
 from rlu.seeds import stream_seed
 from rlu.types import BatchSpec, Transition
 
@@ -60,41 +61,47 @@ CLIP = 1.0 - 1e-4
 
 
 @dataclass(frozen=True)
-class CQLConfig:
-    policy_layers: tuple[int, ...] = (256, 256, 256)
+class CQLConfig(Checked):
+    policy_layers: tuple[int, ...] = field(
+        default=(256, 256, 256),
+        metadata=bounds(min=1, max=MAX_WIDTH, min_len=1, max_len=MAX_LAYERS),
+    )
     """Hidden sizes of the tanh-Gaussian policy (ReLU)."""
-    critic_layers: tuple[int, ...] = (256, 256, 256)
+    critic_layers: tuple[int, ...] = field(
+        default=(256, 256, 256),
+        metadata=bounds(min=1, max=MAX_WIDTH, min_len=1, max_len=MAX_LAYERS),
+    )
     """Hidden sizes of each of the twin critics (ReLU)."""
-    torso_hidden: int = 64
+    torso_hidden: int = field(default=64, metadata=bounds(min=1, max=MAX_WIDTH))
     """Camera ResNet embedding size."""
-    cql_weight: float = 5.0
+    cql_weight: float = field(default=5.0, metadata=bounds(min=0.0, max=1e6))
     """alpha': weight of the conservative regulariser (fixed, or the multiplier's start)."""
-    lagrange_threshold: float | None = None
+    lagrange_threshold: float | None = field(default=None, metadata=bounds(min=0.0, max=1e6))
     """With a value, alpha' is a Lagrange multiplier holding the regulariser near it (the
     original's ``lagrange_thresh``: 10 for AntMaze); None keeps alpha' fixed (Gym MuJoCo)."""
-    cql_temperature: float = 1.0
+    cql_temperature: float = field(default=1.0, metadata=bounds(gt=0.0, max=1e6))
     """T of the log-sum-exp."""
-    num_samples: int = 10
+    num_samples: int = field(default=10, metadata=bounds(min=1, max=10_000))
     """N: actions per proposal (uniform, pi(s), pi(s')) in the log-sum-exp."""
-    target_entropy: float | None = None
+    target_entropy: float | None = field(default=None, metadata=bounds(min=-1e6, max=1e6))
     """Target of the entropy tuning; None means -(action dimensions), SAC's default."""
-    bc_steps: int = 40_000
+    bc_steps: int = field(default=40_000, metadata=bounds(min=0, max=MAX_STEPS))
     """Updates during which the policy clones the data instead of maximising Q."""
-    gamma: float = 0.99
+    gamma: float = field(default=0.99, metadata=bounds(min=0.0, max=1.0))
     """Discount."""
-    tau: float = 0.005
+    tau: float = field(default=0.005, metadata=bounds(gt=0.0, max=1.0))
     """Polyak rate of the target critics, every update."""
-    reward_scale: float = 1.0
+    reward_scale: float = field(default=1.0, metadata=bounds(gt=0.0, max=1e6))
     """Factor on every reward before the target."""
-    policy_lr: float = 1e-4
+    policy_lr: float = field(default=1e-4, metadata=bounds(gt=0.0, max=MAX_LR))
     """Adam learning rate of the policy."""
-    critic_lr: float = 3e-4
+    critic_lr: float = field(default=3e-4, metadata=bounds(gt=0.0, max=MAX_LR))
     """Adam learning rate of the critics and of the Lagrange multiplier."""
-    alpha_lr: float = 1e-4
+    alpha_lr: float = field(default=1e-4, metadata=bounds(gt=0.0, max=MAX_LR))
     """Adam learning rate of the entropy weight (the original uses the policy's rate)."""
-    batch_size: int = 256
+    batch_size: int = field(default=256, metadata=bounds(min=1, max=MAX_BATCH))
     """Transitions per update."""
-    num_steps: int = 1_000_000
+    num_steps: int = field(default=1_000_000, metadata=bounds(min=1, max=MAX_STEPS))
     """Learner steps of a full run: what ``rlu train`` runs when no --steps is given. rlu's
     choice, as for the other continuous baselines (the README reports numbers at 500k)."""
 

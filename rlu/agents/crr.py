@@ -37,7 +37,7 @@ Deviations:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -51,6 +51,7 @@ from rlu.agents.losses import (
     categorical_projection,
     mixture_log_prob,
 )
+from rlu.files import MAX_BATCH, MAX_LAYERS, MAX_LR, MAX_STEPS, MAX_WIDTH, Checked, bounds
 from rlu.seeds import stream_seed
 from rlu.types import BatchSpec, RluError, Transition
 
@@ -59,46 +60,46 @@ BASELINES = ("mean", "max")
 
 
 @dataclass(frozen=True)
-class CRRConfig:
-    hidden_size: int = 1024
+class CRRConfig(Checked):
+    hidden_size: int = field(default=1024, metadata=bounds(min=1, max=MAX_WIDTH))
     """Width of the residual MLPs of policy and critic."""
-    num_layers: int = 8
+    num_layers: int = field(default=8, metadata=bounds(min=1, max=MAX_LAYERS))
     """Layers of each residual MLP (normalised every two)."""
-    torso_hidden: int = 64
+    torso_hidden: int = field(default=64, metadata=bounds(min=1, max=MAX_WIDTH))
     """Camera ResNet embedding size (as the paper's ABM and BC)."""
-    mixture_components: int = 5
+    mixture_components: int = field(default=5, metadata=bounds(min=1, max=1024))
     """Gaussian components of the policy head."""
-    num_atoms: int = 21
+    num_atoms: int = field(default=21, metadata=bounds(min=2, max=10_000))
     """Atoms of the categorical critic."""
-    vmin: float = 0.0
+    vmin: float = field(default=0.0, metadata=bounds(min=-1e9, max=1e9))
     """Lowest atom."""
-    vmax: float = 100.0
+    vmax: float = field(default=100.0, metadata=bounds(min=-1e9, max=1e9))
     """Highest atom."""
-    advantage_weight: str = "exp"
+    advantage_weight: str = field(default="exp", metadata=bounds(choices=WEIGHTS))
     """f(A): 'exp' (min(exp(A / beta), ratio_upper_bound)) or 'binary' (1[A > 0])."""
-    baseline: str = "mean"
+    baseline: str = field(default="mean", metadata=bounds(choices=BASELINES))
     """How the m critic values of policy samples reduce to V(s): 'mean' or 'max'."""
-    num_advantage_samples: int = 4
+    num_advantage_samples: int = field(default=4, metadata=bounds(min=1, max=10_000))
     """m: policy samples per state in the advantage baseline."""
-    beta: float = 1.0
+    beta: float = field(default=1.0, metadata=bounds(gt=0.0, max=1e6))
     """Temperature of the 'exp' weights."""
-    ratio_upper_bound: float = 20.0
+    ratio_upper_bound: float = field(default=20.0, metadata=bounds(gt=0.0, max=1e9))
     """Cap on the 'exp' weights."""
-    num_target_samples: int = 1
+    num_target_samples: int = field(default=1, metadata=bounds(min=1, max=10_000))
     """Target-policy actions per next state; their distributions are averaged in the target."""
-    gamma: float = 0.99
+    gamma: float = field(default=0.99, metadata=bounds(min=0.0, max=1.0))
     """Discount."""
-    target_update_period: int = 100
+    target_update_period: int = field(default=100, metadata=bounds(min=1, max=MAX_STEPS))
     """Learner steps between hard copies into the target policy and critic."""
-    policy_lr: float = 1e-4
+    policy_lr: float = field(default=1e-4, metadata=bounds(gt=0.0, max=MAX_LR))
     """Adam learning rate of the policy."""
-    critic_lr: float = 1e-4
+    critic_lr: float = field(default=1e-4, metadata=bounds(gt=0.0, max=MAX_LR))
     """Adam learning rate of the critic."""
-    max_grad_norm: float = 40.0
+    max_grad_norm: float = field(default=40.0, metadata=bounds(min=0.0, max=1e9))
     """Global-norm clip of each network's gradient (Acme's ``clipping``); 0 switches it off."""
-    batch_size: int = 256
+    batch_size: int = field(default=256, metadata=bounds(min=1, max=MAX_BATCH))
     """Transitions per update."""
-    num_steps: int = 1_000_000
+    num_steps: int = field(default=1_000_000, metadata=bounds(min=1, max=MAX_STEPS))
     """Learner steps of a full run: what ``rlu train`` runs when no --steps is given. rlu's
     choice, as for the other continuous baselines."""
 

@@ -35,7 +35,7 @@ import torch
 from torch import nn
 
 from rlu.agents import common
-from rlu.files import MAX_STEPS, bounds
+from rlu.files import MAX_BATCH, MAX_STEPS, MAX_WIDTH, Checked, bounds
 from rlu.seeds import stream_seed
 from rlu.types import ArraySpec, BatchSpec, DiscreteSpec, SpecError, Transition
 
@@ -48,11 +48,11 @@ for DQN and BC, so the grid read here is {3e-5, 5e-5, 1e-4}: the values the pape
 
 
 @dataclass(frozen=True)
-class AtariSettings:
+class AtariSettings(Checked):
     """The settings every discrete baseline shares (paper appendix A.2), composed into each
     agent's config as its ``atari`` field (override as ``atari.batch_size=32``)."""
 
-    batch_size: int = field(default=256, metadata=bounds(min=1, max=1 << 20))
+    batch_size: int = field(default=256, metadata=bounds(min=1, max=MAX_BATCH))
     """Transitions per update."""
     gamma: float = field(default=0.99, metadata=bounds(min=0.0, max=1.0))
     """Discount factor of the TD target."""
@@ -73,13 +73,19 @@ class AtariSettings:
     """Where the Huber loss of the TD error turns linear."""
     num_steps: int = field(default=2_000_000, metadata=bounds(min=1, max=MAX_STEPS))
     """Learner steps of a full run (the table's 2M): what ``rlu train`` runs without --steps."""
-    channels: tuple[int, ...] = field(default=(32, 64, 64), metadata=bounds(min=1, max=4096))
+    channels: tuple[int, ...] = field(
+        default=(32, 64, 64), metadata=bounds(min=1, max=4096, min_len=1, max_len=16)
+    )
     """Nature CNN output channels per convolution."""
-    kernel_sizes: tuple[int, ...] = field(default=(8, 4, 3), metadata=bounds(min=1, max=84))
+    kernel_sizes: tuple[int, ...] = field(
+        default=(8, 4, 3), metadata=bounds(min=1, max=84, min_len=1, max_len=16)
+    )
     """Nature CNN square filter sizes."""
-    strides: tuple[int, ...] = field(default=(4, 2, 1), metadata=bounds(min=1, max=84))
+    strides: tuple[int, ...] = field(
+        default=(4, 2, 1), metadata=bounds(min=1, max=84, min_len=1, max_len=16)
+    )
     """Nature CNN strides."""
-    hidden_size: int = field(default=512, metadata=bounds(min=1, max=16384))
+    hidden_size: int = field(default=512, metadata=bounds(min=1, max=MAX_WIDTH))
     """Units of the fully connected layer after the convolutions."""
 
     def batch_spec(self) -> BatchSpec:

@@ -37,7 +37,7 @@ torso (one per network), as the other continuous agents.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -54,6 +54,7 @@ from rlu.agents.losses import (
     gaussian_log_prob,
     mpo_e_step,
 )
+from rlu.files import MAX_BATCH, MAX_LAYERS, MAX_LR, MAX_STEPS, MAX_WIDTH, Checked, bounds
 from rlu.seeds import stream_seed
 from rlu.types import BatchSpec, Transition
 
@@ -62,63 +63,70 @@ DUAL_EPS = 1e-8  # added to every softplus(dual)
 
 
 @dataclass(frozen=True)
-class DMPOConfig:
-    policy_layers: tuple[int, ...] = (256, 256, 256)
+class DMPOConfig(Checked):
+    policy_layers: tuple[int, ...] = field(
+        default=(256, 256, 256),
+        metadata=bounds(min=1, max=MAX_WIDTH, min_len=1, max_len=MAX_LAYERS),
+    )
     """Acme's policy LayerNormMLP sizes (final activation on)."""
-    critic_layers: tuple[int, ...] = (512, 512, 256)
+    critic_layers: tuple[int, ...] = field(
+        default=(512, 512, 256),
+        metadata=bounds(min=1, max=MAX_WIDTH, min_len=1, max_len=MAX_LAYERS),
+    )
     """Acme's critic LayerNormMLP sizes (final activation on)."""
-    torso_hidden: int = 512
+    torso_hidden: int = field(default=512, metadata=bounds(min=1, max=MAX_WIDTH))
     """Camera ResNet embedding size (as D4PG's)."""
-    init_scale: float = 0.7
+    init_scale: float = field(default=0.7, metadata=bounds(gt=0.0, max=1e3))
     """The policy's standard deviation at initialisation."""
-    min_scale: float = 1e-6
+    min_scale: float = field(default=1e-6, metadata=bounds(min=0.0, max=1e3))
     """Floor of the policy's standard deviation."""
-    num_atoms: int = 51
+    num_atoms: int = field(default=51, metadata=bounds(min=2, max=10_000))
     """Atoms of the categorical critic."""
-    vmin: float = -150.0
+    vmin: float = field(default=-150.0, metadata=bounds(min=-1e9, max=1e9))
     """Lowest atom."""
-    vmax: float = 150.0
+    vmax: float = field(default=150.0, metadata=bounds(min=-1e9, max=1e9))
     """Highest atom."""
-    gamma: float = 0.99
+    gamma: float = field(default=0.99, metadata=bounds(min=0.0, max=1.0))
     """Per-step discount; the data layer's n-step reward must be discounted with this gamma."""
-    n_step: int = 5
+    n_step: int = field(default=5, metadata=bounds(min=1, max=1000))
     """Steps of the n-step return."""
-    num_samples: int = 20
+    num_samples: int = field(default=20, metadata=bounds(min=1, max=10_000))
     """Actions sampled from the target policy per state (critic target, E-step, M-step)."""
-    cpu_slice_rows: int = 512
+    cpu_slice_rows: int = field(default=512, metadata=bounds(min=0, max=1 << 30))
     """On a CPU, the target critic's pass over the ``num_samples`` x batch sampled actions (no
     gradients) runs in slices of whole samples, max(1, this // batch) samples a slice, so that
     one slice's activations stay in the core's cache (docs/agents.md). 0, or a GPU: one pass."""
-    epsilon: float = 0.1
+    epsilon: float = field(default=0.1, metadata=bounds(gt=0.0, max=1e3))
     """KL bound of the E-step (temperature dual)."""
-    epsilon_penalty: float = 1e-3
+    epsilon_penalty: float = field(default=1e-3, metadata=bounds(gt=0.0, max=1e3))
     """KL bound of the action-penalty E-step (MO-MPO)."""
-    epsilon_mean: float = 2.5e-3
+    epsilon_mean: float = field(default=2.5e-3, metadata=bounds(gt=0.0, max=1e3))
     """KL bound on the policy mean's move per update, per action dimension."""
-    epsilon_stddev: float = 1e-6
+    epsilon_stddev: float = field(default=1e-6, metadata=bounds(gt=0.0, max=1e3))
     """KL bound on the policy standard deviation's move per update, per action dimension."""
-    init_log_temperature: float = 10.0
+    init_log_temperature: float = field(default=10.0, metadata=bounds(min=-1e4, max=1e4))
     """Initial log temperature (and log penalty temperature), before the softplus."""
-    init_log_alpha_mean: float = 10.0
+    init_log_alpha_mean: float = field(default=10.0, metadata=bounds(min=-1e4, max=1e4))
     """Initial log multiplier of the mean's KL bound."""
-    init_log_alpha_stddev: float = 1000.0
+    init_log_alpha_stddev: float = field(default=1000.0, metadata=bounds(min=-1e4, max=1e4))
     """Initial log multiplier of the standard deviation's KL bound."""
-    target_update_period: int = 100
+    target_update_period: int = field(default=100, metadata=bounds(min=1, max=MAX_STEPS))
     """Learner steps between hard copies into the target policy and critic."""
-    policy_lr: float = 1e-4
+    policy_lr: float = field(default=1e-4, metadata=bounds(gt=0.0, max=MAX_LR))
     """Adam learning rate of the policy."""
-    critic_lr: float = 1e-4
+    critic_lr: float = field(default=1e-4, metadata=bounds(gt=0.0, max=MAX_LR))
     """Adam learning rate of the critic."""
-    dual_lr: float = 1e-2
+    dual_lr: float = field(default=1e-2, metadata=bounds(gt=0.0, max=MAX_LR))
     """Adam learning rate of the temperatures and KL multipliers."""
-    max_grad_norm: float = 40.0
+    max_grad_norm: float = field(default=40.0, metadata=bounds(min=0.0, max=1e9))
     """Global-norm clip of the policy's and the critic's gradients (0: none)."""
-    batch_size: int = 256
+    batch_size: int = field(default=256, metadata=bounds(min=1, max=MAX_BATCH))
     """Transitions per update."""
-    num_steps: int = 1_000_000
+    num_steps: int = field(default=1_000_000, metadata=bounds(min=1, max=MAX_STEPS))
     """Learner steps of a full run (what ``rlu train`` runs when no --steps is given)."""
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         common.slice_rows("DMPO", self.cpu_slice_rows)
 
 

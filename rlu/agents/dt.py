@@ -76,6 +76,7 @@ from torch.nn import functional as F
 from rlu.agents import common
 from rlu.agents import discrete_common as dc
 from rlu.agents import networks as nets
+from rlu.files import MAX_BATCH, MAX_LAYERS, MAX_LR, MAX_STEPS, MAX_WIDTH, Checked, bounds
 from rlu.seeds import stream_seed
 from rlu.types import BatchSpec, DiscreteSpec, RluError, Sequence
 
@@ -83,106 +84,112 @@ TIMESTEPS = ("episode", "context")
 
 
 @dataclass(frozen=True)
-class AtariDT:
+class AtariDT(Checked):
     """DT's settings for discrete actions (Atari), the ``atari`` field of :class:`DTConfig`:
     the DT Atari code's (``atari/run_dt_atari.py``, ``atari/mingpt``)."""
 
-    context_length: int = 30
+    context_length: int = field(default=30, metadata=bounds(min=1, max=10_000))
     """K: steps per training window and per acting context (the Atari code: 30, Pong 50)."""
-    num_layers: int = 6
+    num_layers: int = field(default=6, metadata=bounds(min=1, max=MAX_LAYERS))
     """Transformer blocks."""
-    num_heads: int = 8
+    num_heads: int = field(default=8, metadata=bounds(min=1, max=1024))
     """Attention heads per block."""
-    hidden_size: int = 128
+    hidden_size: int = field(default=128, metadata=bounds(min=1, max=MAX_WIDTH))
     """Width of the token embeddings and of the transformer (minGPT's n_embd)."""
-    dropout: float = 0.1
+    dropout: float = field(default=0.1, metadata=bounds(min=0.0, lt=1.0))
     """Dropout of the embeddings, the attention weights and both residual branches."""
-    channels: tuple[int, ...] = (32, 64, 64)
+    channels: tuple[int, ...] = field(
+        default=(32, 64, 64), metadata=bounds(min=1, max=4096, min_len=1, max_len=16)
+    )
     """Nature CNN output channels per convolution (then a linear layer to the width, tanh)."""
-    kernel_sizes: tuple[int, ...] = (8, 4, 3)
+    kernel_sizes: tuple[int, ...] = field(
+        default=(8, 4, 3), metadata=bounds(min=1, max=84, min_len=1, max_len=16)
+    )
     """Nature CNN square filter sizes."""
-    strides: tuple[int, ...] = (4, 2, 1)
+    strides: tuple[int, ...] = field(
+        default=(4, 2, 1), metadata=bounds(min=1, max=84, min_len=1, max_len=16)
+    )
     """Nature CNN strides."""
-    learning_rate: float = 6e-4
+    learning_rate: float = field(default=6e-4, metadata=bounds(gt=0.0, max=MAX_LR))
     """AdamW's base learning rate."""
-    betas: tuple[float, float] = (0.9, 0.95)
+    betas: tuple[float, float] = field(default=(0.9, 0.95), metadata=bounds(min=0.0, lt=1.0))
     """AdamW's betas."""
-    weight_decay: float = 0.1
+    weight_decay: float = field(default=0.1, metadata=bounds(min=0.0, max=1e3))
     """AdamW's weight decay of the linear and convolution weights (biases, LayerNorms,
     embeddings and position embeddings: none, minGPT's split)."""
-    max_grad_norm: float = 1.0
+    max_grad_norm: float = field(default=1.0, metadata=bounds(min=0.0, max=1e9))
     """Global gradient norm clip."""
-    warmup_tokens: int = 10_240
+    warmup_tokens: int = field(default=10_240, metadata=bounds(min=0, max=10**13))
     """Tokens (batch_size x context_length per update) of the linear learning-rate warm-up
     (the Atari code: 512 x 20)."""
-    final_tokens: int = 90_000_000
+    final_tokens: int = field(default=90_000_000, metadata=bounds(min=1, max=10**13))
     """Tokens at which the cosine decay reaches 10 % of the base rate (the Atari code:
     2 x its 500,000 steps x 3K)."""
-    batch_size: int = 128
+    batch_size: int = field(default=128, metadata=bounds(min=1, max=MAX_BATCH))
     """Windows per update (the Atari code: 128, Pong 512)."""
-    num_steps: int = 19_530
+    num_steps: int = field(default=19_530, metadata=bounds(min=1, max=MAX_STEPS))
     """Learner steps of a full run: 5 epochs of 3,906 batches of 128 over the DT paper's
     500,000 steps (Pong: 4,885 of 512); ``rlu train`` runs them without --steps."""
-    max_timestep: int = 27_000
+    max_timestep: int = field(default=27_000, metadata=bounds(min=1, max=10**7))
     """Largest timestep with its own global embedding (later ones share it); the env's cap of
     27,000 agent steps (the Atari code: its data's longest episode)."""
-    return_scale: float = 1.0
+    return_scale: float = field(default=1.0, metadata=bounds(gt=0.0, max=1e9))
     """Returns to go are divided by it before their embedding (the Atari code: raw returns)."""
-    target_return: float | None = None
+    target_return: float | None = field(default=None, metadata=bounds(min=-1e9, max=1e9))
     """The return the first step of an evaluation episode conditions on; None: rlu's rule,
     ``target_multiplier`` x the data's best whole-episode return (module docstring)."""
-    target_multiplier: float = 1.0
+    target_multiplier: float = field(default=1.0, metadata=bounds(min=-1e3, max=1e3))
     """The rule's multiple of the data's best return (used when ``target_return`` is None)."""
     sample_actions: bool = True
     """Greedy acting samples the softmax (the Atari code's evaluation); False: the argmax."""
 
 
 @dataclass(frozen=True)
-class DTConfig:
+class DTConfig(Checked):
     """DT's settings for continuous actions (the gym code's, ``gym/experiment.py``), and in
     ``atari`` those for discrete actions."""
 
-    context_length: int = 20
+    context_length: int = field(default=20, metadata=bounds(min=1, max=10_000))
     """K: steps per training window and per acting context."""
-    num_layers: int = 3
+    num_layers: int = field(default=3, metadata=bounds(min=1, max=MAX_LAYERS))
     """Transformer blocks."""
-    num_heads: int = 1
+    num_heads: int = field(default=1, metadata=bounds(min=1, max=1024))
     """Attention heads per block."""
-    hidden_size: int = 128
+    hidden_size: int = field(default=128, metadata=bounds(min=1, max=MAX_WIDTH))
     """Width of the token embeddings and of the transformer (the gym code's embed_dim)."""
-    dropout: float = 0.1
+    dropout: float = field(default=0.1, metadata=bounds(min=0.0, lt=1.0))
     """Dropout of the embeddings, the attention weights and both residual branches."""
-    torso_hidden: int = 64
+    torso_hidden: int = field(default=64, metadata=bounds(min=1, max=MAX_WIDTH))
     """Embedding size of each camera's ResNet torso (camera observations only)."""
     normalize_observations: bool = True
     """States normalised by the data's mean and std (the gym code's; cameras pass unchanged)."""
-    learning_rate: float = 1e-4
+    learning_rate: float = field(default=1e-4, metadata=bounds(gt=0.0, max=MAX_LR))
     """AdamW's learning rate after the warm-up."""
-    betas: tuple[float, float] = (0.9, 0.999)
+    betas: tuple[float, float] = field(default=(0.9, 0.999), metadata=bounds(min=0.0, lt=1.0))
     """AdamW's betas (PyTorch's default, as the gym code)."""
-    weight_decay: float = 1e-4
+    weight_decay: float = field(default=1e-4, metadata=bounds(min=0.0, max=1e3))
     """AdamW's weight decay, on every parameter (the gym code's)."""
-    max_grad_norm: float = 0.25
+    max_grad_norm: float = field(default=0.25, metadata=bounds(min=0.0, max=1e9))
     """Global gradient norm clip."""
-    warmup_steps: int = 10_000
+    warmup_steps: int = field(default=10_000, metadata=bounds(min=0, max=MAX_STEPS))
     """Updates of the linear learning-rate warm-up, ``min((step + 1) / warmup_steps, 1)``."""
-    batch_size: int = 64
+    batch_size: int = field(default=64, metadata=bounds(min=1, max=MAX_BATCH))
     """Windows per update."""
-    num_steps: int = 100_000
+    num_steps: int = field(default=100_000, metadata=bounds(min=1, max=MAX_STEPS))
     """Learner steps of a full run (the gym code: 10 iterations of 10,000); ``rlu train`` runs
     them without --steps."""
-    timesteps: str = "episode"
+    timesteps: str = field(default="episode", metadata=bounds(choices=TIMESTEPS))
     """'episode': embed each step's timestep in its episode (the gym code); 'context': its
     position in the window, for window files whose segments start mid-episode (seq40)."""
-    max_timestep: int = 999
+    max_timestep: int = field(default=999, metadata=bounds(min=1, max=10**7))
     """Largest timestep with its own embedding, later ones share it (the gym code's 1,000
     entries of max_ep_len)."""
-    return_scale: float = 1000.0
+    return_scale: float = field(default=1000.0, metadata=bounds(gt=0.0, max=1e9))
     """Returns to go are divided by it before their embedding (the gym code: 1,000)."""
-    target_return: float | None = None
+    target_return: float | None = field(default=None, metadata=bounds(min=-1e9, max=1e9))
     """The return the first step of an evaluation episode conditions on; None: rlu's rule,
     ``target_multiplier`` x the data's best whole-episode return (module docstring)."""
-    target_multiplier: float = 1.0
+    target_multiplier: float = field(default=1.0, metadata=bounds(min=-1e3, max=1e3))
     """The rule's multiple of the data's best return (used when ``target_return`` is None)."""
     atari: AtariDT = field(default_factory=AtariDT)
     """The settings of discrete actions (Atari)."""

@@ -46,7 +46,7 @@ from torch import nn
 from rlu.agents import common
 from rlu.agents import discrete_common as dc
 from rlu.agents import networks as nets
-from rlu.files import bounds
+from rlu.files import MAX_LR, Checked, bounds
 from rlu.types import BatchSpec, RluError, Sequence
 
 PAPER_ATARI = dc.AtariSettings(
@@ -56,11 +56,11 @@ PAPER_ATARI = dc.AtariSettings(
 
 
 @dataclass(frozen=True)
-class R2D2Config:
+class R2D2Config(Checked):
     atari: dc.AtariSettings = field(default_factory=lambda: PAPER_ATARI)
     """Network, batch (windows per update), discount, n-step, Adam epsilon, target period,
     epsilons and budget (R2D2's values: batch 64, gamma 0.997, n 5, Adam epsilon 1e-3)."""
-    learning_rate: float = field(default=1e-4, metadata=bounds(min=0.0, max=1.0))
+    learning_rate: float = field(default=1e-4, metadata=bounds(gt=0.0, max=MAX_LR))
     """Adam step size (R2D2's 1e-4)."""
     sequence_length: int = field(default=80, metadata=bounds(min=1, max=100_000))
     """Steps of a window the loss is over (R2D2's 80)."""

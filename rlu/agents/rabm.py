@@ -30,7 +30,7 @@ variance 1e-4 (``eval_variance``, as BC's); ``act(greedy=False)`` samples the le
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -39,61 +39,62 @@ from torch.nn import functional as F
 
 from rlu.agents import common, losses
 from rlu.agents import networks as nets
+from rlu.files import MAX_BATCH, MAX_LAYERS, MAX_LR, MAX_STEPS, MAX_WIDTH, Checked, bounds
 from rlu.seeds import stream_seed
 from rlu.types import BatchSpec, Sequence, Transition
 
 
 @dataclass(frozen=True)
-class RABMConfig:
-    hidden_size: int = 1024
+class RABMConfig(Checked):
+    hidden_size: int = field(default=1024, metadata=bounds(min=1, max=MAX_WIDTH))
     """Width of the residual MLPs."""
-    num_layers: int = 8
+    num_layers: int = field(default=8, metadata=bounds(min=1, max=MAX_LAYERS))
     """Layers of the residual MLPs."""
-    torso_hidden: int = 64
+    torso_hidden: int = field(default=64, metadata=bounds(min=1, max=MAX_WIDTH))
     """Camera ResNet embedding size (table 5, ABM & BC column)."""
     recurrent: bool = False
     """Two LSTM layers after each MLP; trains on sequence windows."""
-    lstm_hidden: int = 1024
+    lstm_hidden: int = field(default=1024, metadata=bounds(min=1, max=MAX_WIDTH))
     """Hidden size of each LSTM layer."""
-    sequence_length: int = 40
+    sequence_length: int = field(default=40, metadata=bounds(min=1, max=100_000))
     """Window length of recurrent batches."""
-    num_atoms: int = 21
+    num_atoms: int = field(default=21, metadata=bounds(min=2, max=10_000))
     """Atoms of the categorical critic."""
-    vmin: float = 0.0
+    vmin: float = field(default=0.0, metadata=bounds(min=-1e9, max=1e9))
     """Lowest atom."""
-    vmax: float = 100.0
+    vmax: float = field(default=100.0, metadata=bounds(min=-1e9, max=1e9))
     """Highest atom."""
-    gamma: float = 0.99
+    gamma: float = field(default=0.99, metadata=bounds(min=0.0, max=1.0))
     """Discount (of the n-step reward too)."""
-    n_step: int = 1
+    n_step: int = field(default=1, metadata=bounds(min=1, max=1000))
     """Steps of the return the data layer sums (transition batches only)."""
-    target_update_period: int = 100
+    target_update_period: int = field(default=100, metadata=bounds(min=1, max=MAX_STEPS))
     """Learner steps between hard copies into the target policy and critic."""
-    prior_lr: float = 1e-4
+    prior_lr: float = field(default=1e-4, metadata=bounds(gt=0.0, max=MAX_LR))
     """Adam learning rate of the ABM prior."""
-    policy_lr: float = 1e-4
+    policy_lr: float = field(default=1e-4, metadata=bounds(gt=0.0, max=MAX_LR))
     """Adam learning rate of the policy."""
-    critic_lr: float = 1e-4
+    critic_lr: float = field(default=1e-4, metadata=bounds(gt=0.0, max=MAX_LR))
     """Adam learning rate of the critic."""
-    dual_lr: float = 1e-2
+    dual_lr: float = field(default=1e-2, metadata=bounds(gt=0.0, max=MAX_LR))
     """Adam learning rate of MPO's temperature and KL multipliers (Acme's MPO: 1e-2)."""
-    num_samples: int = 20
+    num_samples: int = field(default=20, metadata=bounds(min=1, max=10_000))
     """Actions sampled per state for the E-step, the advantage baseline and the critic target."""
-    epsilon: float = 0.1
+    epsilon: float = field(default=0.1, metadata=bounds(gt=0.0, max=1e3))
     """KL bound of the E-step (temperature dual)."""
-    epsilon_mean: float = 2.5e-3
+    epsilon_mean: float = field(default=2.5e-3, metadata=bounds(gt=0.0, max=1e3))
     """KL bound on the policy mean's move per update."""
-    epsilon_std: float = 1e-6
+    epsilon_std: float = field(default=1e-6, metadata=bounds(gt=0.0, max=1e3))
     """KL bound on the policy standard deviation's move per update."""
     advantage_weights: str = "binary"
     """ABM prior weights: 'binary' (1[A >= 0], ABM+) or 'exp' (exp(A / advantage_temperature))."""
-    advantage_temperature: float = 1.0
+    advantage_temperature: float = field(default=1.0, metadata=bounds(gt=0.0, max=1e6))
     """Temperature of the 'exp' advantage weights."""
-    eval_variance: float = 1e-4
+    eval_variance: float = field(default=1e-4, metadata=bounds(min=1e-12, max=1e6))
     """Variance of the policy when acting greedily (the paper's evaluation, as BC's)."""
-    batch_size: int = 1024
+    batch_size: int = field(default=1024, metadata=bounds(min=1, max=MAX_BATCH))
     """Transitions per update; windows per update when recurrent (as BC: 1024 and 128)."""
-    num_steps: int = 1_000_000
+    num_steps: int = field(default=1_000_000, metadata=bounds(min=1, max=MAX_STEPS))
     """Learner steps of a full run: what ``rlu train`` runs when no --steps is given. The paper
     states no budget for the continuous baselines; 1M is rlu's choice."""
 

@@ -59,7 +59,7 @@ Deviations and choices:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -68,50 +68,57 @@ from torch import nn
 from rlu.agents import common
 from rlu.agents import networks as nets
 from rlu.agents.losses import smoothed_target_action
+from rlu.files import MAX_BATCH, MAX_LAYERS, MAX_LR, MAX_STEPS, MAX_WIDTH, Checked, bounds
 from rlu.seeds import stream_seed
 from rlu.types import BatchSpec, DataStatistics, Transition
 
 
 @dataclass(frozen=True)
-class ReBRACConfig:
+class ReBRACConfig(Checked):
     """In the order of the original's ``Config`` (its names in the field docstrings)."""
 
-    actor_lr: float = 1e-3
+    actor_lr: float = field(default=1e-3, metadata=bounds(gt=0.0, max=MAX_LR))
     """``actor_learning_rate``: Adam's rate for the actor (Gym-MuJoCo; 3e-4 elsewhere)."""
-    critic_lr: float = 1e-3
+    critic_lr: float = field(default=1e-3, metadata=bounds(gt=0.0, max=MAX_LR))
     """``critic_learning_rate``: Adam's rate for the critics (Gym-MuJoCo; 3e-4 Adroit, 5e-5
     AntMaze)."""
-    actor_layers: tuple[int, ...] = (256, 256, 256)
+    actor_layers: tuple[int, ...] = field(
+        default=(256, 256, 256),
+        metadata=bounds(min=1, max=MAX_WIDTH, min_len=1, max_len=MAX_LAYERS),
+    )
     """``hidden_dim`` x ``actor_n_hiddens``: the actor's hidden sizes (ReLU, tanh output)."""
-    critic_layers: tuple[int, ...] = (256, 256, 256)
+    critic_layers: tuple[int, ...] = field(
+        default=(256, 256, 256),
+        metadata=bounds(min=1, max=MAX_WIDTH, min_len=1, max_len=MAX_LAYERS),
+    )
     """``hidden_dim`` x ``critic_n_hiddens``: each critic's hidden sizes (ReLU)."""
-    torso_hidden: int = 64
+    torso_hidden: int = field(default=64, metadata=bounds(min=1, max=MAX_WIDTH))
     """Camera ResNet embedding size (rlu's; the original has feature observations only)."""
-    gamma: float = 0.99
+    gamma: float = field(default=0.99, metadata=bounds(min=0.0, max=1.0))
     """``gamma``: the discount (the paper's AntMaze runs use 0.999)."""
-    tau: float = 0.005
+    tau: float = field(default=0.005, metadata=bounds(gt=0.0, max=1.0))
     """``tau``: Polyak rate of the target actor and critics, on the actor's updates."""
-    actor_bc_coef: float = 0.01
+    actor_bc_coef: float = field(default=0.01, metadata=bounds(min=0.0, max=1e6))
     """``actor_bc_coef``, beta_1: weight of the actor's ||pi(s) - a||^2 (tuned per dataset; the
     paper's most frequent Gym-MuJoCo pick; the original's default 1.0)."""
-    critic_bc_coef: float = 0.01
+    critic_bc_coef: float = field(default=0.01, metadata=bounds(min=0.0, max=1e6))
     """``critic_bc_coef``, beta_2: weight of the target's ||a' - a'_D||^2 (tuned per dataset;
     the paper's most frequent Gym-MuJoCo pick; the original's default 1.0)."""
     actor_layer_norm: bool = False
     """``actor_ln``: a LayerNorm after every hidden ReLU of the actor."""
     critic_layer_norm: bool = True
     """``critic_ln``: a LayerNorm after every hidden ReLU of the critics."""
-    policy_noise: float = 0.2
+    policy_noise: float = field(default=0.2, metadata=bounds(min=0.0, max=1e3))
     """``policy_noise``: std of the noise on the target actor's actions (in [-1, 1])."""
-    noise_clip: float = 0.5
+    noise_clip: float = field(default=0.5, metadata=bounds(min=0.0, max=1e3))
     """``noise_clip``: that noise is clipped to +-noise_clip."""
-    policy_freq: int = 2
+    policy_freq: int = field(default=2, metadata=bounds(min=1, max=1000))
     """``policy_freq``: the actor and the targets learn on every policy_freq-th update."""
     normalize_q: bool = True
     """``normalize_q``: scale the actor's Q term by 1 / E|Q|, held fixed (TD3+BC's lambda)."""
-    batch_size: int = 1024
+    batch_size: int = field(default=1024, metadata=bounds(min=1, max=MAX_BATCH))
     """``batch_size``: transitions per update (Gym-MuJoCo; 256 in the paper's other domains)."""
-    num_steps: int = 1_000_000
+    num_steps: int = field(default=1_000_000, metadata=bounds(min=1, max=MAX_STEPS))
     """``num_epochs`` x ``num_updates_on_epoch`` (1000 x 1000): learner steps of a full run."""
     normalize_observations: bool = False
     """``normalize_states``: standardise observations, (s - mean) / (std + 1e-3), with the

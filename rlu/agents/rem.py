@@ -33,16 +33,17 @@ from torch import nn
 
 from rlu.agents import common
 from rlu.agents import discrete_common as dc
+from rlu.files import MAX_LR, Checked, bounds
 from rlu.types import Transition
 
 
 @dataclass(frozen=True)
-class REMConfig:
+class REMConfig(Checked):
     atari: dc.AtariSettings = field(default_factory=dc.AtariSettings)
     """Settings shared by the Atari baselines (batch, discount, network, epsilons, budget)."""
-    learning_rate: float = 1e-4
+    learning_rate: float = field(default=1e-4, metadata=bounds(gt=0.0, max=MAX_LR))
     """Adam step size; the paper's online policy selection picked 1e-4 for REM."""
-    num_heads: int = 4
+    num_heads: int = field(default=4, metadata=bounds(min=1, max=1024))
     """Q-value estimates mixed by a random convex combination (the paper's 4)."""
     separate_networks: bool = True
     """Each estimate is a Q-network of its own (the paper's "random ensemble of 4 DQN

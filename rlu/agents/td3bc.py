@@ -46,7 +46,7 @@ Deviations and choices:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -55,39 +55,42 @@ from torch.nn import functional as F
 from rlu.agents import common
 from rlu.agents import networks as nets
 from rlu.agents.losses import smoothed_target_action
+from rlu.files import MAX_BATCH, MAX_LAYERS, MAX_LR, MAX_STEPS, MAX_WIDTH, Checked, bounds
 from rlu.seeds import stream_seed
 from rlu.types import BatchSpec, DataStatistics, Transition
 
 
 @dataclass(frozen=True)
-class TD3BCConfig:
-    hidden_layers: tuple[int, ...] = (256, 256)
+class TD3BCConfig(Checked):
+    hidden_layers: tuple[int, ...] = field(
+        default=(256, 256), metadata=bounds(min=1, max=MAX_WIDTH, min_len=1, max_len=MAX_LAYERS)
+    )
     """Hidden sizes of the actor and of each critic (ReLU MLPs)."""
-    torso_hidden: int = 64
+    torso_hidden: int = field(default=64, metadata=bounds(min=1, max=MAX_WIDTH))
     """Camera ResNet embedding size."""
-    alpha: float = 2.5
+    alpha: float = field(default=2.5, metadata=bounds(min=0.0, max=1e6))
     """alpha of lambda = alpha / E|Q|: the weight of the Q term against behaviour cloning."""
-    policy_noise: float = 0.2
+    policy_noise: float = field(default=0.2, metadata=bounds(min=0.0, max=1e3))
     """Standard deviation of the target policy smoothing noise (actions in [-1, 1])."""
-    noise_clip: float = 0.5
+    noise_clip: float = field(default=0.5, metadata=bounds(min=0.0, max=1e3))
     """The smoothing noise is clipped to [-noise_clip, noise_clip]."""
-    policy_freq: int = 2
+    policy_freq: int = field(default=2, metadata=bounds(min=1, max=1000))
     """The actor and the target networks learn on every policy_freq-th update."""
-    gamma: float = 0.99
+    gamma: float = field(default=0.99, metadata=bounds(min=0.0, max=1.0))
     """Discount."""
-    tau: float = 0.005
+    tau: float = field(default=0.005, metadata=bounds(gt=0.0, max=1.0))
     """Polyak rate of the target actor and critics, on the updates that step the actor."""
-    actor_lr: float = 3e-4
+    actor_lr: float = field(default=3e-4, metadata=bounds(gt=0.0, max=MAX_LR))
     """Adam learning rate of the actor."""
-    critic_lr: float = 3e-4
+    critic_lr: float = field(default=3e-4, metadata=bounds(gt=0.0, max=MAX_LR))
     """Adam learning rate of the twin critics."""
     normalize_observations: bool = True
     """Standardise observations with the dataset's per-feature mean and std."""
-    observation_eps: float = 1e-3
+    observation_eps: float = field(default=1e-3, metadata=bounds(gt=0.0, max=1e3))
     """eps of (s - mean) / (std + eps), the original's ``normalize_states(eps=1e-3)``."""
-    batch_size: int = 256
+    batch_size: int = field(default=256, metadata=bounds(min=1, max=MAX_BATCH))
     """Transitions per update."""
-    num_steps: int = 1_000_000
+    num_steps: int = field(default=1_000_000, metadata=bounds(min=1, max=MAX_STEPS))
     """Learner steps of a full run (the original's ``max_timesteps`` 1M)."""
 
 

@@ -255,12 +255,15 @@ def _train(args: argparse.Namespace) -> int:
     import sys
 
     from rlu.training.config import RunSettings
-    from rlu.training.train import TrainConfig, parse_overrides, train
+    from rlu.training.train import TrainConfig, check_agent_config, parse_overrides, train
     from rlu.types import RluError
 
     overrides = parse_overrides(args.overrides)
+    origins = {key: "the command line" for key in overrides}
     if args.config is not None:
-        overrides = {**_from_config_file(args), **overrides}
+        from_file = _from_config_file(args)
+        origins = {key: f"{args.config}: overrides.{key}" for key in from_file} | origins
+        overrides = {**from_file, **overrides}
     for name in ("task", "agent", "dataset"):
         if getattr(args, name) is None:
             raise RluError(f"--{name} is missing: give it on the command line or in --config")
@@ -273,6 +276,7 @@ def _train(args: argparse.Namespace) -> int:
         overrides=overrides,
         run=from_args(RunSettings, args),
     )
+    check_agent_config(config, origins)  # before the device, the data or a folder
     print(f"rlu train: {args.agent} on {config.run.runtime.resolve().device}", file=sys.stderr)
     result = train(
         config,

@@ -21,27 +21,30 @@ from typing import Any
 import numpy as np
 
 from rlu.devices import resolve_device
+from rlu.files import MAX_BATCH, MAX_LAYERS, MAX_LR, MAX_STEPS, MAX_WIDTH, Checked, bounds
 from rlu.types import DiscreteSpec, Policy, RluError
 
 
 @dataclass(frozen=True)
-class FQEConfig:
+class FQEConfig(Checked):
     """Fitted Q Evaluation's settings: discount, network, optimiser, steps and batches (``rlu report
     --fqe`` takes ``--fqe-steps``)."""
 
-    gamma: float = 0.99
+    gamma: float = field(default=0.99, metadata=bounds(min=0.0, max=1.0))
     """Discount of the estimated value."""
-    hidden: tuple[int, ...] = (128, 128)
+    hidden: tuple[int, ...] = field(
+        default=(128, 128), metadata=bounds(min=1, max=MAX_WIDTH, min_len=1, max_len=MAX_LAYERS)
+    )
     """MLP hidden layer sizes."""
-    learning_rate: float = 1e-3
+    learning_rate: float = field(default=1e-3, metadata=bounds(gt=0.0, max=MAX_LR))
     """Adam learning rate."""
-    steps: int = field(default=2000, metadata={"min": 1, "metavar": "N"})
+    steps: int = field(default=2000, metadata=bounds(min=1, max=MAX_STEPS, metavar="N"))
     """FQE gradient steps."""
-    batch_size: int = field(default=256, metadata={"min": 1, "metavar": "N"})
+    batch_size: int = field(default=256, metadata=bounds(min=1, max=MAX_BATCH, metavar="N"))
     """Transitions per gradient step."""
-    target_period: int = field(default=100, metadata={"min": 1, "metavar": "N"})
+    target_period: int = field(default=100, metadata=bounds(min=1, max=MAX_STEPS, metavar="N"))
     """Steps between copies of the online network into the target network."""
-    seed: int = 0
+    seed: int = field(default=0, metadata=bounds(min=0, max=2**63 - 1))
     """Seeds the network initialisation and the minibatch order."""
 
 

@@ -30,14 +30,14 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from rlu.devices import Runtime
-from rlu.files import MAX_STEPS, bounds
+from rlu.files import MAX_DEPTH, MAX_STEPS, Checked, bounds
 
 EVAL_EVERY_MIN = 10_000
 """Fewest learner steps between two periodic evaluations when ``eval_every`` is left unset."""
 
 
 @dataclass(frozen=True)
-class RunSettings:
+class RunSettings(Checked):
     """How one training run is run (see the module docstring)."""
 
     preset: str = "small"
@@ -45,30 +45,34 @@ class RunSettings:
     paper's settings and budget, e.g. 2M steps on Atari); numbers beside the paper's need paper."""
     steps: int | None = field(default=None, metadata=bounds(min=1, max=MAX_STEPS))
     """Learner steps (default: the preset's num_steps)."""
-    eval_every: int | None = field(default=None, metadata=bounds(min=-1))
+    eval_every: int | None = field(default=None, metadata=bounds(min=-1, max=MAX_STEPS))
     """Learner steps between evaluations in the env (default: every max(10,000, steps / 10) and
     at the end; 0: only at the end; -1: never)."""
     eval_at_start: bool = False
     """Also evaluate the untrained agent before its first update (step 0 of the learning
     curve in eval.jsonl)."""
-    eval_episodes: int = field(default=5, metadata=bounds(min=1, metavar="N"))
+    eval_episodes: int = field(default=5, metadata=bounds(min=1, max=100_000, metavar="N"))
     """Env episodes per evaluation."""
-    eval_envs: int = field(default=4, metadata=bounds(min=1, metavar="N"))
+    eval_envs: int = field(default=4, metadata=bounds(min=1, max=1024, metavar="N"))
     """Envs stepped in lockstep during an evaluation (the returns do not depend on it)."""
-    eval_max_steps: int | None = field(default=None, metadata=bounds(min=1, metavar="N"))
+    eval_max_steps: int | None = field(
+        default=None, metadata=bounds(min=1, max=MAX_STEPS, metavar="N")
+    )
     """Cap on an evaluation episode's steps on top of the env's own limit (default: the env's)."""
-    log_every: int = field(default=100, metadata=bounds(min=1, metavar="N"))
+    log_every: int = field(default=100, metadata=bounds(min=1, max=MAX_STEPS, metavar="N"))
     """Learner steps between lines of metrics.jsonl."""
-    checkpoint_every: int = field(default=1000, metadata=bounds(min=1, metavar="N"))
+    checkpoint_every: int = field(default=1000, metadata=bounds(min=1, max=MAX_STEPS, metavar="N"))
     """Learner steps between checkpoints (one is always written at the end)."""
-    keep_checkpoints: int = field(default=2, metadata=bounds(min=1, metavar="N"))
+    keep_checkpoints: int = field(default=2, metadata=bounds(min=1, max=1000, metavar="N"))
     """Checkpoints kept on disk (the newest)."""
     env: str | None = field(default=None, metadata=bounds(metavar="MODULE:FUNCTION"))
     """Env factory 'module:function' taking (task_id, seed=...), imported because you typed it
     (default: rlu.envs.make_env); a run folder's config.json never names one that is imported."""
     challenge: str | None = field(default=None, metadata=bounds(choices=("none", "easy")))
     """RWRL: the challenge to evaluate under (default: the one the data was recorded under)."""
-    torch_threads: int = field(default=1, metadata=bounds(min=1, flag="--threads", metavar="N"))
+    torch_threads: int = field(
+        default=1, metadata=bounds(min=1, max=1024, flag="--threads", metavar="N")
+    )
     """torch threads per run (1: faster than one per core for these batch sizes on a shared
     machine; bench/README.md)."""
     sampler: str = field(default="auto", metadata=bounds(choices=("auto", "uniform", "stream")))
@@ -76,10 +80,10 @@ class RunSettings:
     stream (rlu.data.StreamSampler: the files read in order into a bounded buffer, every sample
     drawn --stream-reuse times a pass: for runs larger than the page cache and mixtures; docs/
     data.md), or auto: uniform for one dataset, stream for several."""
-    stream_memory: int = field(default=2048, metadata=bounds(min=16, metavar="MB"))
+    stream_memory: int = field(default=2048, metadata=bounds(min=16, max=1 << 20, metavar="MB"))
     """The stream sampler's buffer of decoded frames and steps, in MB (its batches depend on
     it: a resumed run keeps it)."""
-    stream_reuse: int = field(default=8, metadata=bounds(min=1, metavar="N"))
+    stream_reuse: int = field(default=8, metadata=bounds(min=1, max=10_000, metavar="N"))
     """Draws of each sample per pass of the stream sampler."""
     runtime: Runtime = field(default_factory=Runtime)
     """Device, precision, TF32, compile and data path: how the run computes, which may change
@@ -130,8 +134,11 @@ def _scalar(hint: Any) -> tuple[Any, bool]:
 
 
 def checked(kind: Any, meta: dict[str, Any], flag: str) -> Any:
-    """An argparse ``type`` parsing ``kind`` (int or float) within ``meta``'s min / max."""
-    lo, hi = meta.get("min"), meta.get("max")
+    """An argparse ``type`` parsing ``kind`` (int or float) within ``meta``'s bounds (``min`` /
+    ``max`` / ``gt``, as :func:`rlu.files.bounds` writes them)."""
+    import math
+
+    lo, hi, gt = meta.get("min"), meta.get("max"), meta.get("gt")
 
     def parse(text: str) -> Any:
         try:
@@ -139,16 +146,25 @@ def checked(kind: Any, meta: dict[str, Any], flag: str) -> Any:
         except ValueError:
             name = "an integer" if kind is int else "a number"
             raise argparse.ArgumentTypeError(f"{text!r} is not {name}") from None
-        if (lo is not None and value < lo) or (hi is not None and value > hi):
+        if (
+            not math.isfinite(value)
+            or (lo is not None and value < lo)
+            or (hi is not None and value > hi)
+            or (gt is not None and value <= gt)
+        ):
             want = " and ".join(
                 s
                 for s in (
+                    f"> {gt}" if gt is not None else "",
                     f">= {lo}" if lo is not None else "",
                     f"<= {hi}" if hi is not None else "",
                 )
                 if s
             )
-            raise argparse.ArgumentTypeError(f"{value} is out of range; give a value {want}")
+            raise argparse.ArgumentTypeError(
+                f"{value} is out of range; give a {'finite ' if kind is float else ''}value "
+                f"{want}".rstrip()
+            )
         return value
 
     parse.__name__ = kind.__name__  # argparse names the type in its own messages
@@ -260,7 +276,9 @@ def read_config_file(path: str, cls: type) -> dict[str, Any]:
     """A config file (JSON, or YAML by its .yaml / .yml name) holding some fields of dataclass
     ``cls`` (nested dataclasses as objects), checked against their shapes; a run folder's
     config.json (``{"train": {...}, ...}``) gives its ``train`` object. YAML is read with
-    PyYAML's safe loader and anchors / aliases are refused (their expansion is unbounded)."""
+    PyYAML's safe loader, after a pass over its events that refuses anchors / aliases (their
+    expansion is unbounded) and nesting deeper than ``rlu.files.MAX_DEPTH``; the file is at most
+    ``MAX_CONFIG_BYTES``, so reading it is bounded in time and memory too."""
     from pathlib import Path
 
     from rlu.files import check_value, parse_json, read_bytes
@@ -277,9 +295,19 @@ def read_config_file(path: str, cls: type) -> dict[str, Any]:
                 f"{path}: reading YAML needs PyYAML: {install_hint('agents')}"
             ) from None
         try:
+            depth = 0
             for event in yaml.parse(raw, Loader=yaml.SafeLoader):
                 if isinstance(event, yaml.AliasEvent):
                     raise FormatError(f"{path}: YAML aliases (*name) are not read; {fix}")
+                if isinstance(event, yaml.CollectionStartEvent):
+                    depth += 1
+                    if depth > MAX_DEPTH:
+                        raise FormatError(
+                            f"{path}: YAML nested deeper than {MAX_DEPTH} levels (line "
+                            f"{event.start_mark.line + 1}); a run config nests 3; {fix}"
+                        )
+                elif isinstance(event, yaml.CollectionEndEvent):
+                    depth -= 1
             data = yaml.safe_load(raw)
         except yaml.YAMLError as e:
             why = " ".join(str(e).split())[:200]

@@ -30,16 +30,16 @@ from pathlib import Path
 from typing import Any
 
 from rlu.devices import check_ray_gpus
-from rlu.files import bounds, check_output, make_folder, shape_of
+from rlu.files import Checked, bounds, check_output, make_folder, shape_of
 from rlu.training import runs
 from rlu.training.config import RunSettings
 from rlu.training.loggers import LOGGERS
-from rlu.types import DiscreteSpec, RluError
+from rlu.types import ConfigError, DiscreteSpec, RluError
 from rlu.workers import Backend, run_jobs
 
 
 @dataclass(frozen=True)
-class SweepConfig:
+class SweepConfig(Checked):
     """Tasks x agents x grids x seeds, every run run by ``run`` (the template)."""
 
     tasks: tuple[str, ...]
@@ -50,11 +50,13 @@ class SweepConfig:
     """The data of each task, as rlu.load_dataset names it (a task id, a TFDS name or a folder;
     a task left out trains on its own id's dataset), stored as the resolved folder: a sweep
     folder reports from anywhere."""
-    seeds: tuple[int, ...] = field(default=(0,), metadata=bounds(min=0, max=2**63 - 1))
+    seeds: tuple[int, ...] = field(
+        default=(0,), metadata=bounds(min=0, max=2**63 - 1, min_len=1, max_len=10_000)
+    )
     """Seeds of every configuration."""
     grid: Mapping[str, Sequence[Any]] | None = None
     """Grid for every agent ({field: [values]}); None: each agent module's paper GRID."""
-    max_configs: int | None = field(default=None, metadata=bounds(min=1))
+    max_configs: int | None = field(default=None, metadata=bounds(min=1, max=10**6))
     """Keep only the first N configurations of each grid (in grid order)."""
     task_presets: Mapping[str, str] = field(default_factory=dict)
     """Per-task preset replacing ``run.preset`` for the agents that have it: the paper's
@@ -122,6 +124,7 @@ def expand(config: SweepConfig, out: str | os.PathLike) -> list[RunSpec]:
     """Every run of the sweep, in (task, agent, config, seed) order. A module path among the
     agents (or the env factory) is imported here: the config came from code or the command
     line, never from a file."""
+    from rlu.agents import make_config
     from rlu.data import open_dataset
     from rlu.training.train import trust
 
@@ -146,6 +149,10 @@ def expand(config: SweepConfig, out: str | os.PathLike) -> list[RunSpec]:
             if config.max_configs is not None:
                 settings = settings[: config.max_configs]
             for overrides in settings:
+                try:  # every grid point's config checked before the sweep folder is made
+                    make_config(agent, discrete, preset, **overrides)
+                except ConfigError as e:
+                    raise ConfigError(f"sweep grid of {agent} on {task}: {e}") from None
                 label = config_label(overrides)
                 for seed in config.seeds:
                     run_dir = Path(out) / _slug(task) / _slug(agent) / _slug(label) / f"seed_{seed}"

@@ -39,13 +39,13 @@ from typing import Any
 
 import numpy as np
 
-from rlu.files import bounds, shape_of
+from rlu.files import Checked, bounds, shape_of
 from rlu.training.config import RunSettings
-from rlu.types import ArraySpec, RluError
+from rlu.types import ArraySpec, ConfigError, RluError
 
 
 @dataclass(frozen=True)
-class TrainConfig:
+class TrainConfig(Checked):
     """What one run trains, and how (``run``)."""
 
     task: str
@@ -64,10 +64,13 @@ class TrainConfig:
     """Agent config fields to change from the preset."""
     run: RunSettings = field(default_factory=RunSettings)
     """How the run is run: preset, budget, evaluation, checkpoints, runtime."""
-    weights: tuple[float, ...] | None = field(default=None, metadata=bounds(metavar="W"))
+    weights: tuple[float, ...] | None = field(
+        default=None, metadata=bounds(gt=0.0, max=1e12, metavar="W")
+    )
     """Share of each dataset's samples in a mixture (default: by their sizes)."""
 
     def __post_init__(self) -> None:
+        super().__post_init__()  # every field's type and bounds (rlu.files.Checked)
         paths = (self.dataset,) if isinstance(self.dataset, str | os.PathLike) else self.dataset
         if (
             not isinstance(paths, tuple | list)
@@ -108,10 +111,15 @@ class TrainConfig:
         TrainConfig's fields (``run:`` holding RunSettings'), or a run folder's config.json.
         ``fields`` fill or replace top-level fields (``TrainConfig.from_file("bc.yaml",
         seed=1)``); a module path in the file (a dotted agent, ``run.env``) is refused unless
-        ``fields`` names that field (names in files are never imported)."""
+        ``fields`` names that field (names in files are never imported). The file's overrides
+        are checked against the agent's config here (:func:`check_agent_config`)."""
         from rlu.training.config import config_from_file
 
-        return config_from_file(cls, os.fspath(path), fields)
+        config = config_from_file(cls, os.fspath(path), fields)
+        if "overrides" not in fields:  # the file's: a bad one names the file and its key
+            origins = {key: f"{os.fspath(path)}: overrides.{key}" for key in config.overrides}
+            check_agent_config(config, origins)
+        return config
 
 
 # --- agents ---------------------------------------------------------------------------------
@@ -119,6 +127,38 @@ def agent_config(name: str, discrete: bool, preset: str, overrides: Mapping[str,
     from rlu.agents import make_config
 
     return make_config(name, discrete, preset, **overrides)
+
+
+def check_agent_config(config: TrainConfig, origins: Mapping[str, str] | None = None) -> None:
+    """Build ``config``'s agent config (its preset with the overrides) once, before a dataset
+    is opened or a folder made, so that a bad override fails first; ``origins`` says where each
+    override came from (``{"gamma": "bc.yaml: overrides.gamma"}``), and its error says so. The
+    action kind comes from the task registry (without an env factory of its own, the data must
+    match the task), or from the agent when it has one kind only; otherwise the config is
+    checked once the data says which (``rlu.training.prepare``)."""
+    from rlu.agents import AGENTS, make_config, trusted_agents
+    from rlu.tasks import TASKS
+
+    if "." in config.agent and config.agent not in trusted_agents():
+        return  # checked once train() has imported it (trust)
+    spec = TASKS.get(config.task) if config.run.env is None else None  # else the data decides
+    if spec is not None:
+        discrete = spec.discrete
+    else:
+        kinds = {d for n, d in AGENTS if n == config.agent}
+        if "." in config.agent:
+            kinds = {False}  # a trusted module serves both kinds
+        if len(kinds) != 1:
+            return
+        (discrete,) = kinds
+    preset = config.run.preset
+    for key, value in config.overrides.items():
+        try:
+            make_config(config.agent, discrete, preset, **{key: value})
+        except ConfigError as e:
+            where = (origins or {}).get(key)
+            raise (ConfigError(f"{where}: {e}") if where else e) from None
+    make_config(config.agent, discrete, preset, **config.overrides)
 
 
 def parse_overrides(items: list[str] | None) -> dict[str, Any]:
@@ -219,6 +259,7 @@ def train(
     from rlu.locks import OutputLock
 
     trust(config.agent, config.run.env)
+    check_agent_config(config)  # before the lock file, its folder, the data
     with OutputLock(Path(out), "run folder"):
         return _train(config, out, resume, progress, tuple(loggers))
 
