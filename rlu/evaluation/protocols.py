@@ -42,9 +42,10 @@ class Selection:
         return float(np.mean(self.scores))
 
     @property
-    def std(self) -> float:
-        """The standard deviation of the scores over seeds."""
-        return float(np.std(self.scores))
+    def std(self) -> float | None:
+        """The sample standard deviation (ddof 1) of the scores over seeds, as every spread rlu
+        reports; None with one seed (it has no spread)."""
+        return float(np.std(self.scores, ddof=1)) if len(self.scores) > 1 else None
 
 
 def _group(records: Iterable[Mapping[str, Any]]) -> dict[tuple[str, str, str], dict[int, float]]:

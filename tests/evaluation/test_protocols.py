@@ -40,6 +40,9 @@ def test_online_selection_picks_best_mean_per_task():
     assert best[("off", "bc")].config == "lr=2"
     sel = best[("on2", "bc")]
     assert sel.scores == (100.0, 100.0) and sel.mean == 100.0 and sel.std == 0.0
+    assert best[("on1", "bc")].std == pytest.approx(2**0.5)  # 20, 22: the sample std
+    one = protocols.Selection("t", "bc", "c", (5.0,), (0,))
+    assert one.std is None  # one seed has no spread
 
 
 def test_naive_offline_selection_mean_and_median():
