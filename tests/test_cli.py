@@ -97,7 +97,8 @@ def test_info_json_lists_every_episode_return(capsys):
 def test_train_and_evaluate_defaults_are_quick():
     """A short train evaluates once, at the end; long ones at most 10 times; one torch thread."""
     from rlu.cli import build_parser
-    from rlu.training.config import RunSettings, from_args
+    from rlu.commands._options import from_args
+    from rlu.training.config import RunSettings
 
     parser = build_parser()
     base = ["train", "--task", "t", "--agent", "bc", "--dataset", "d", "--out", "o"]

@@ -6,8 +6,8 @@ from __future__ import annotations
 import argparse
 import os
 
+from rlu.commands._options import checked
 from rlu.domains import DOMAINS
-from rlu.training.config import checked
 
 
 def register(sub: argparse._SubParsersAction) -> None:

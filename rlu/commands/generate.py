@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from rlu.training.config import add_options, checked, field_docs
+from rlu.commands._options import add_options, checked, field_docs
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -45,10 +45,10 @@ def _run(args: argparse.Namespace) -> int:
     import dataclasses
     import time
 
+    from rlu.commands._options import from_args
     from rlu.data import open_dataset
     from rlu.generate import GenerateConfig, generate, run_count
     from rlu.generate.rwrl import SUMMARY
-    from rlu.training.config import from_args
     from rlu.workers import Backend
 
     t0 = time.perf_counter()

@@ -8,8 +8,8 @@ import argparse
 import json
 import math
 
+from rlu.commands._options import checked
 from rlu.commands.train import add_device_option
-from rlu.training.config import checked
 
 
 def register(sub: argparse._SubParsersAction) -> None:

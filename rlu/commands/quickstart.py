@@ -72,13 +72,13 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _count(text: str) -> int:
-    from rlu.training.config import checked
+    from rlu.commands._options import checked
 
     return checked(int, {"min": 1}, "this option")(text)
 
 
 def _seed(text: str) -> int:
-    from rlu.training.config import checked
+    from rlu.commands._options import checked
 
     return checked(int, {"min": 0}, "--seed")(text)
 

@@ -16,13 +16,14 @@ import argparse
 import json
 from typing import Any
 
+from rlu.commands._options import add_options, checked, from_args
 from rlu.commands._video import (
     add_video_options,
     check_video_options,
     evaluation_watch,
     report_videos,
 )
-from rlu.training.config import EVAL_EVERY_MIN, add_options, checked, from_args
+from rlu.training.config import EVAL_EVERY_MIN
 from rlu.training.loggers import LOGGERS
 
 __all__ = ["EVAL_EVERY_MIN", "add_device_option", "add_backend_options", "register"]
@@ -319,7 +320,8 @@ def _from_config_file(args: argparse.Namespace) -> dict[str, Any]:
     """Fill the options the user did not type from ``--config``; returns its overrides. A module
     path the file names (agent, env factory) is refused unless typed too: names in files are
     never imported."""
-    from rlu.training.config import RunSettings, flat_values, read_config_file, typed_dests
+    from rlu.commands._options import flat_values, typed_dests
+    from rlu.training.config import RunSettings, read_config_file
     from rlu.training.train import TrainConfig
 
     data = read_config_file(args.config, TrainConfig)
@@ -462,7 +464,8 @@ def _sweep_config_file(args: argparse.Namespace) -> dict[str, Any]:
     file's datasets, grid and task presets for the caller to merge with the typed ones. An
     agent module or env factory named in the file is refused unless typed too: names in files
     are never imported."""
-    from rlu.training.config import RunSettings, flat_values, read_config_file, typed_dests
+    from rlu.commands._options import flat_values, typed_dests
+    from rlu.training.config import RunSettings, read_config_file
     from rlu.training.sweep import SweepConfig
     from rlu.training.train import TrainConfig
     from rlu.types import FormatError, RluError

@@ -2,7 +2,7 @@
 
 :class:`GenerateConfig` is passed whole from ``rlu.generate.generate`` through the recipes to
 every run; the command's flags, their help and range checks come from its fields
-(``rlu.training.config.add_options``). What is recorded (task, scale, runs, seed, policy) decides
+(``rlu.commands._options.add_options``). What is recorded (task, scale, runs, seed, policy) decides
 the bytes; how it runs (device, backend, progress, the work folder) does not, except the device,
 whose arithmetic the bytes follow. Standard library only.
 """

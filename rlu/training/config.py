@@ -1,29 +1,21 @@
-"""How a training run is run, in one frozen value, and the command-line options derived from it.
+"""How a training run is run, in one frozen value, and its config files.
 
 :class:`RunSettings` holds everything about a run that is not *what* it trains (task, agent,
 dataset, seed, agent overrides): preset, budget, evaluation, logging, checkpoints, the env
 factory, threads and the runtime (``rlu.devices.Runtime``). ``rlu.training.train.TrainConfig``
 composes it; ``rlu.training.sweep.SweepConfig`` holds one as the template of every run; the quick
 start builds one. A new training option is one field here: its flag, type check, range check and
-help text come from the field (:func:`add_options`, :func:`from_args`), its JSON check in a run's
-config.json from the same field (``rlu.files.shape_of``).
-
-A field's metadata may hold ``min`` / ``max`` / ``choices`` (checked by the parser and in files),
-``flag`` (the option's name when it is not ``--field-name``), ``cli_default`` (the command line's
-default where it differs on purpose from the library's: ``--device auto``), ``metavar``.
-Help text is the field's docstring (the string literal under it), read from the source once.
+help text come from the field (``rlu.commands._options``: the command line's side), its check in
+Python and in a run's config.json from the same field (``rlu.files.Checked``,
+``rlu.files.shape_of``). Config files (:func:`read_config_file`, :func:`config_from_file`) are
+read here, below the commands, because the library reads them too.
 
 Standard library only.
 """
 
 from __future__ import annotations
 
-import argparse
-import ast
 import dataclasses
-import functools
-import inspect
-import textwrap
 import types
 import typing
 from dataclasses import dataclass, field
@@ -99,158 +91,14 @@ class RunSettings(Checked):
         return self.eval_every or total
 
 
-# --- field docs -----------------------------------------------------------------------------
-@functools.cache
-def field_docs(cls: type) -> dict[str, str]:
-    """The docstring under each field of dataclass ``cls`` (and of its bases), one line."""
-    docs: dict[str, str] = {}
-    for klass in reversed(cls.__mro__):
-        if not dataclasses.is_dataclass(klass):
-            continue
-        try:
-            tree = ast.parse(textwrap.dedent(inspect.getsource(klass)))
-        except (OSError, TypeError):
-            continue
-        body = tree.body[0].body if tree.body and isinstance(tree.body[0], ast.ClassDef) else []
-        for node, nxt in zip(body, body[1:], strict=False):
-            if (
-                isinstance(node, ast.AnnAssign)
-                and isinstance(node.target, ast.Name)
-                and isinstance(nxt, ast.Expr)
-                and isinstance(nxt.value, ast.Constant)
-                and isinstance(nxt.value.value, str)
-            ):
-                docs[node.target.id] = " ".join(nxt.value.value.split())
-    return docs
-
-
-# --- options from fields --------------------------------------------------------------------
-def _scalar(hint: Any) -> tuple[Any, bool]:
-    """(the non-None type of a hint, whether None is allowed)."""
+# --- type hints -----------------------------------------------------------------------------
+def scalar_hint(hint: Any) -> tuple[Any, bool]:
+    """(the non-None type of a hint, whether None is allowed): how a field's declared type is read
+    here and by the command line's options (``rlu.commands._options``)."""
     if typing.get_origin(hint) in (typing.Union, types.UnionType):
         rest = [a for a in typing.get_args(hint) if a is not type(None)]
         return (rest[0] if len(rest) == 1 else str), True
     return hint, False
-
-
-def checked(kind: Any, meta: dict[str, Any], flag: str) -> Any:
-    """An argparse ``type`` parsing ``kind`` (int or float) within ``meta``'s bounds (``min`` /
-    ``max`` / ``gt``, as :func:`rlu.files.bounds` writes them)."""
-    import math
-
-    lo, hi, gt = meta.get("min"), meta.get("max"), meta.get("gt")
-
-    def parse(text: str) -> Any:
-        try:
-            value = kind(text)
-        except ValueError:
-            name = "an integer" if kind is int else "a number"
-            raise argparse.ArgumentTypeError(f"{text!r} is not {name}") from None
-        if (
-            not math.isfinite(value)
-            or (lo is not None and value < lo)
-            or (hi is not None and value > hi)
-            or (gt is not None and value <= gt)
-        ):
-            want = " and ".join(
-                s
-                for s in (
-                    f"> {gt}" if gt is not None else "",
-                    f">= {lo}" if lo is not None else "",
-                    f"<= {hi}" if hi is not None else "",
-                )
-                if s
-            )
-            raise argparse.ArgumentTypeError(
-                f"{value} is out of range; give a {'finite ' if kind is float else ''}value "
-                f"{want}".rstrip()
-            )
-        return value
-
-    parse.__name__ = kind.__name__  # argparse names the type in its own messages
-    return parse
-
-
-def add_options(
-    parser: argparse.ArgumentParser | argparse._ArgumentGroup,
-    cls: type,
-    only: tuple[str, ...] | None = None,
-    skip: tuple[str, ...] = (),
-    dest_prefix: str = "",
-    flag_prefix: str = "--",
-    require: bool = True,
-) -> None:
-    """One option per field of dataclass ``cls`` (nested dataclasses: their fields, flattened),
-    typed, range-checked and helped by the field; ``only`` / ``skip`` choose fields. A field
-    without a default is a required option (``require=False``: the command checks it, e.g.
-    after reading a config file); a tuple field takes one or more values."""
-    hints = typing.get_type_hints(cls)
-    docs = field_docs(cls)
-    for f in dataclasses.fields(cls):
-        if (only is not None and f.name not in only) or f.name in skip:
-            continue
-        hint, _ = _scalar(hints[f.name])
-        if dataclasses.is_dataclass(hint):
-            add_options(parser, hint, dest_prefix=f"{dest_prefix}{f.name}.")
-            continue
-        meta = dict(f.metadata)
-        flag = meta.get("flag", flag_prefix + f.name.replace("_", "-"))
-        required = f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
-        default = f.default if f.default is not dataclasses.MISSING else None
-        default = meta.get("cli_default", default)
-        doc = docs.get(f.name, "")
-        kwargs: dict[str, Any] = {"dest": dest_prefix + f.name}
-        if required and require:
-            kwargs["required"] = True
-        elif required:
-            kwargs["default"] = None
-        else:
-            kwargs["default"] = list(default) if isinstance(default, tuple) else default
-        item = hint
-        if typing.get_origin(hint) is tuple:
-            item = typing.get_args(hint)[0]
-            kwargs["nargs"] = "+"
-        if item is bool:
-            kwargs["action"] = "store_true"
-            kwargs["help"] = doc
-        else:
-            if item in (int, float):
-                kwargs["type"] = checked(item, meta, flag)
-            if "choices" in meta:
-                kwargs["choices"] = list(meta["choices"])
-            if "metavar" in meta:
-                kwargs["metavar"] = meta["metavar"]
-            shown = ""
-            if required and not require:
-                doc += " (required, on the command line or in --config)"
-            if not required and default is not None and "(default" not in doc:
-                value = " ".join(map(str, default)) if isinstance(default, tuple) else default
-                shown = f" (default: {value})"
-            kwargs["help"] = (doc + shown).replace("%", "%%")
-        parser.add_argument(flag, **kwargs)
-
-
-def from_args(cls: type, args: argparse.Namespace, dest_prefix: str = "", **given: Any) -> Any:
-    """The ``cls`` value of the options :func:`add_options` made (``given`` fills or overrides
-    fields the command sets itself)."""
-    hints = typing.get_type_hints(cls)
-    values: dict[str, Any] = {}
-    ns = vars(args)
-    for f in dataclasses.fields(cls):
-        if f.name in given:
-            values[f.name] = given[f.name]
-            continue
-        hint, _ = _scalar(hints[f.name])
-        if dataclasses.is_dataclass(hint):
-            if any(k.startswith(f"{dest_prefix}{f.name}.") for k in ns):
-                values[f.name] = from_args(hint, args, f"{dest_prefix}{f.name}.")
-            continue
-        if dest_prefix + f.name in ns:
-            value = ns[dest_prefix + f.name]
-            if typing.get_origin(hint) is tuple and isinstance(value, list):
-                value = tuple(value)
-            values[f.name] = value
-    return cls(**values)
 
 
 # --- config files ---------------------------------------------------------------------------
@@ -266,7 +114,7 @@ def _optional_shape(cls: type) -> Any:
     fields = {**shape.required, **shape.optional}
     hints = typing.get_type_hints(cls)
     for f in dataclasses.fields(cls):
-        hint, _ = _scalar(hints[f.name])
+        hint, _ = scalar_hint(hints[f.name])
         if dataclasses.is_dataclass(hint):
             fields[f.name] = _optional_shape(hint)
     return Record({}, fields, extra=False)
@@ -319,30 +167,6 @@ def read_config_file(path: str, cls: type) -> dict[str, Any]:
     if isinstance(data, dict) and "train" in data and "agent_config" in data:
         data = data["train"]  # a run folder's config.json
     return check_value(_optional_shape(cls), data, str(path), fix)
-
-
-def typed_dests(parser: argparse.ArgumentParser, argv: list[str]) -> set[str]:
-    """The ``dest`` of every option of ``parser`` that ``argv`` names (what the user typed; the
-    parser takes no abbreviations, so a typed option is one of its full names)."""
-    tokens = {t.split("=", 1)[0] for t in argv if t.startswith("--")}
-    return {a.dest for a in parser._actions if tokens & set(a.option_strings)}
-
-
-def flat_values(cls: type, data: dict[str, Any], dest_prefix: str = "") -> dict[str, Any]:
-    """A (partial) nested config dict as the option dests :func:`add_options` gives the same
-    fields (a nested dataclass's fields under ``dest_prefix + name + "."``)."""
-    hints = typing.get_type_hints(cls)
-    out: dict[str, Any] = {}
-    for f in dataclasses.fields(cls):
-        if f.name not in data:
-            continue
-        hint, _ = _scalar(hints[f.name])
-        if dataclasses.is_dataclass(hint):
-            out.update(flat_values(hint, data[f.name], f"{dest_prefix}{f.name}."))
-        else:
-            value = data[f.name]
-            out[dest_prefix + f.name] = list(value) if isinstance(value, tuple) else value
-    return out
 
 
 def config_from_file(cls: type, path: str, given: dict[str, Any] | None = None) -> Any:
@@ -399,7 +223,7 @@ def _build(cls: type, data: dict[str, Any]) -> Any:
         if f.name not in data:
             continue
         value = data[f.name]
-        hint, _ = _scalar(hints[f.name])
+        hint, _ = scalar_hint(hints[f.name])
         if dataclasses.is_dataclass(hint) and isinstance(value, dict):
             value = _build(hint, value)
         elif typing.get_origin(hint) is tuple and isinstance(value, list):

@@ -184,7 +184,8 @@ def test_eval_at_start_adds_step_0_and_changes_nothing_else(pendulum_datasets, t
     """The option added to prove the run-settings value: one field in RunSettings and its use in
     the loop; its flag and help come from the field."""
     from rlu.cli import build_parser
-    from rlu.training.config import RunSettings, from_args
+    from rlu.commands._options import from_args
+    from rlu.training.config import RunSettings
 
     data = pendulum_datasets["test/pendulum"]
     train(_config(data), tmp_path / "plain")
