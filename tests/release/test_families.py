@@ -27,13 +27,14 @@ def window_record(rng, t, obs_dims, camera=False, step_type=None, discount=None)
     return rec
 
 
-def atari_record(rng, d_t=1.0, episode_id=5):
+def atari_record(rng, d_t=1.0, episode_id=5, num_actions=6):
+    """A transition of the release's atari family; actions among ``num_actions`` (Pong's 6)."""
     frames = rng.integers(0, 256, (5, 84, 84), dtype=np.uint8)
     return {
         "o_t": np.moveaxis(frames[:4], 0, -1),
         "o_tp1": np.moveaxis(frames[1:], 0, -1),
-        "a_t": np.int32(rng.integers(0, 6)),
-        "a_tp1": np.int32(rng.integers(0, 6)),
+        "a_t": np.int32(rng.integers(0, num_actions)),
+        "a_tp1": np.int32(rng.integers(0, num_actions)),
         "r_t": np.float32(rng.choice([-1, 0, 1])),
         "d_t": np.float32(d_t),
         "episode_id": np.uint64(episode_id),

@@ -184,9 +184,10 @@ def test_download_in_the_shard_jobs_equals_load_dataset(tmp_path, bucket):
 def test_cli_many_tasks_under_out_root(tmp_path, capsys):
     root = tmp_path / "bucket"
     made = {}
-    for game in ("Pong", "Breakout"):
+    for game, actions in (("Pong", 6), ("Breakout", 4)):
         recs = [
-            [atari_record(np.random.default_rng(j + 7 * i)) for j in range(3)] for i in range(2)
+            [atari_record(np.random.default_rng(j + 7 * i), num_actions=actions) for j in range(3)]
+            for i in range(2)
         ]
         made[game] = shards(root, "atari", game, recs, "run_1")
     out = tmp_path / "datasets"
