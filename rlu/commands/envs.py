@@ -83,6 +83,8 @@ def _random_scores(args: argparse.Namespace) -> int:
             continue
         if args.domain and t.domain not in args.domain:
             continue
+        if DOMAINS[t.domain].data_only and not args.task:
+            continue  # no env to play (a task named with --task gets the domain's refusal)
         chosen.append(t)
     if args.task:
         known = {t.id for t in chosen}
