@@ -48,7 +48,7 @@ ALLOWED: dict[tuple[str, str, str], str] = {
     ("rlu/cli.py", "main", "open"): "os.devnull for a silenced stdout/stderr",
     ("rlu/cli.py", "_drop_stdout", "os.open"): "os.devnull",
     ("rlu/data/stream.py", "_pread_into", "os.open"): (
-        "reads: its flags parameter is O_RDONLY | O_NOFOLLOW from its one caller"
+        "reads: its flags parameter is O_RDONLY | O_NOFOLLOW, from _read"
     ),
     ("rlu/generate/policies.py", "write_npz", "zipfile"): (
         "builds the archive in an io.BytesIO; the bytes then go through write_atomic"
@@ -79,7 +79,8 @@ ALLOWED: dict[tuple[str, str, str], str] = {
     ),
     # --- writes a path its caller got from rlu.files --------------------------------------
     ("rlu/data/roundtrip.py", "NpzWriter.__init__", "zipfile"): (
-        "writes the path its callers give: an atomic_path temporary or SourceWriter's mkstemp"
+        "writes the path its callers give: an atomic_path temporary (write_sidecar, "
+        "d4rl._write_npz) or SourceWriter's mkstemp"
     ),
     ("rlu/data/roundtrip.py", "NpzWriter.member", "open"): "a member of that archive",
     ("rlu/evaluation/video.py", "_gif_writer.open_writer.add", "save"): (
@@ -97,7 +98,8 @@ ALLOWED: dict[tuple[str, str, str], str] = {
             "render_improvement",
         )
     },
-    # --- a staging folder or temporary renamed into place ---------------------------------
+    # --- a staging folder or temporary renamed into place (a rename replaces a link planted
+    # at the destination; it never writes through one) ------------------------------------
     ("rlu/data/store/writer.py", "DatasetWriter._finalise", "os.rename"): (
         "the staging folder renamed onto the destination, under the OutputLock"
     ),
@@ -138,13 +140,35 @@ def _dotted(node: ast.AST) -> str | None:
     return None
 
 
-def _call_name(call: ast.Call) -> str:
-    """``np.save`` for a dotted callee; ``?.save`` for a method of an expression
-    (``frames[0].save``)."""
+def _call_name(call: ast.Call, aliases: dict[str, str] | None = None) -> str:
+    """``np.save`` for a dotted callee, its first part resolved through the module's imports
+    (``from shutil import copy as cp``: ``cp`` -> ``shutil.copy``); ``?.save`` for a method of
+    an expression (``frames[0].save``)."""
     name = _dotted(call.func)
     if name is None and isinstance(call.func, ast.Attribute):
         return f"?.{call.func.attr}"
+    if name and aliases:
+        first, dot, rest = name.partition(".")
+        if first in aliases:
+            name = aliases[first] + dot + rest
     return name or ""
+
+
+def _aliases(tree: ast.Module) -> dict[str, str]:
+    """Names a module's imports bind -> what they are (``np`` -> ``numpy``, ``replace`` ->
+    ``os.replace``); rlu's own modules are left as they are."""
+    out = {}
+    for n in ast.walk(tree):
+        if isinstance(n, ast.Import):
+            for a in n.names:
+                if a.asname and not a.name.startswith("rlu"):
+                    out[a.asname] = a.name
+        elif isinstance(n, ast.ImportFrom) and n.module and n.level == 0:
+            if n.module.startswith("rlu"):
+                continue
+            for a in n.names:
+                out[a.asname or a.name] = f"{n.module}.{a.name}"
+    return out
 
 
 def _last(name: str) -> str:
@@ -182,6 +206,7 @@ class _Walker:
     def __init__(self, source: str, file: str):
         self.file = file
         self.tree = ast.parse(source)
+        self.aliases = _aliases(self.tree)
         self.sites: list[Site] = []
         self.class_taint: dict[str, set[str]] = {}
 
@@ -241,7 +266,7 @@ class _Walker:
         self.sites.append(Site(self.file, call.lineno, fn, kind, guarded))
 
     def _classify(self, call: ast.Call, fn: str, taint: set[str]) -> None:
-        name = _call_name(call)
+        name = _call_name(call, self.aliases)
         last = _last(name)
         head = name.rpartition(".")[0]
         arg = call.args
@@ -262,17 +287,18 @@ class _Walker:
                     self._site(call, fn, "os.open", a0, taint)
             elif _writes(_mode(call, 1), default=False):
                 self._site(call, fn, "os.fdopen", a0, taint)
-        elif last == "open" and recv is not None and head not in ("os", "io", "Image", "tarfile"):
+        elif last == "open" and recv is not None and head not in ("io", "PIL.Image", "tarfile"):
             mode = _mode(call, 0) if not (arg and not isinstance(a0, ast.Constant)) else None
             mode = mode if mode is not None else _mode(call, 1)
-            if _writes(mode):
-                self._site(call, fn, "open", recv, taint)
+            if _writes(mode):  # Path.open(mode), zf.open(member, mode), gzip.open(path, mode)
+                where = ast.Tuple([recv] + ([a0] if a0 is not None else []), ast.Load())
+                self._site(call, fn, "open", where, taint)
         elif name == "tarfile.open":
             if _writes(_mode(call, 1)):
                 self._site(call, fn, "tarfile", a0, taint)
         elif last in ("write_text", "write_bytes", "touch", "symlink_to", "hardlink_to"):
             self._site(call, fn, last, recv, taint)
-        elif head in ("np", "numpy") and last in NP_WRITERS:
+        elif head == "numpy" and last in NP_WRITERS:
             self._site(call, fn, f"np.{last}", a0, taint)
         elif name == "torch.save":
             self._site(call, fn, "torch.save", a1, taint)
@@ -429,6 +455,22 @@ class Report:
          "os.open"]
     )  # fmt: skip
     assert all(s.function == "Report.save" for s in walk_source(src))
+
+
+def test_walker_resolves_imported_names():
+    src = """
+from shutil import copyfile as cp
+from os import replace
+from numpy import savez
+import numpy
+def f(a, b):
+    cp(a, b)
+    replace(a, b)
+    savez(a, x=1)
+    numpy.save(a, 1)
+"""
+    kinds = [s.kind for s in walk_source(src) if not s.guarded]
+    assert kinds == ["shutil.copyfile", "os.replace", "np.savez", "np.save"]
 
 
 def test_walker_accepts_writes_into_what_rlu_files_produced():
