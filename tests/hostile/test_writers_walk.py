@@ -88,18 +88,6 @@ ALLOWED: dict[tuple[str, str, str], str] = {
     ("rlu/evaluation/video.py", "_gif_writer.open_writer.add", "save"): (
         "writes the temporary _Filming.start got from files.atomic_path"
     ),
-    **{
-        ("rlu/report/render.py", fn, "save"): "Figures.save: savefig into files.atomic_path"
-        for fn in (
-            "render_task_bars",
-            "render_atari_median",
-            "render_atari_per_game",
-            "_sensitivity_renderer.render_sensitivity",
-            "render_curves",
-            "render_profiles",
-            "render_improvement",
-        )
-    },
     # --- a staging folder or temporary renamed into place (a rename replaces a link planted
     # at the destination; it never writes through one) ------------------------------------
     ("rlu/data/store/writer.py", "DatasetWriter._finalise", "os.rename"): (
@@ -209,6 +197,13 @@ class _Walker:
         self.file = file
         self.tree = ast.parse(source)
         self.aliases = _aliases(self.tree)
+        self.own_methods = {
+            m.name
+            for c in ast.walk(self.tree)
+            if isinstance(c, ast.ClassDef)
+            for m in c.body
+            if isinstance(m, (ast.FunctionDef, ast.AsyncFunctionDef))
+        }
         self.sites: list[Site] = []
         self.class_taint: dict[str, set[str]] = {}
 
@@ -306,8 +301,8 @@ class _Walker:
             self._site(call, fn, "torch.save", a1, taint)
         elif last == "savefig":
             self._site(call, fn, "savefig", a0, taint)
-        elif last == "save" and recv is not None:
-            self._site(call, fn, "save", a0, taint)
+        elif last == "save" and recv is not None and "save" not in self.own_methods:
+            self._site(call, fn, "save", a0, taint)  # a module's own save() is walked itself
         elif last in FRAME_WRITERS and recv is not None and a0 is not None:
             self._site(call, fn, last, a0, taint)
         elif last == "File" and head.endswith("h5py"):
@@ -476,6 +471,18 @@ def f(a, b):
 """
     kinds = [s.kind for s in walk_source(src) if not s.guarded]
     assert kinds == ["shutil.copyfile", "os.replace", "np.savez", "np.save"]
+
+
+def test_a_modules_own_save_is_walked_not_trusted():
+    src = """
+class Figures:
+    def save(self, fig, name):
+        fig.savefig(name)
+def render(figures, fig):
+    figures.save(fig, "a")
+"""
+    [site] = walk_source(src)
+    assert (site.function, site.kind, site.guarded) == ("Figures.save", "savefig", False)
 
 
 def test_walker_accepts_writes_into_what_rlu_files_produced():
