@@ -222,13 +222,14 @@ class _Walker:
 
     @staticmethod
     def _targets(node: ast.AST) -> list[str]:
-        out = []
-        for n in ast.walk(node):
-            if isinstance(n, (ast.Name, ast.Attribute)):
-                name = _dotted(n)
-                if name:
-                    out.append(name)
-        return out
+        """The names an assignment target binds: ``a``, ``self.fh``, each of ``a, (b, *c)``
+        (never ``self`` itself, nor the container of ``d[k] = ...``)."""
+        if isinstance(node, (ast.Tuple, ast.List)):
+            return [n for e in node.elts for n in _Walker._targets(e)]
+        if isinstance(node, ast.Starred):
+            return _Walker._targets(node.value)
+        name = _dotted(node) if isinstance(node, (ast.Name, ast.Attribute)) else None
+        return [name] if name else []
 
     def _taint(self, body: list[ast.stmt], inherited: set[str]) -> set[str]:
         """Names bound (anywhere in ``body``, nested functions excluded) from a guarded value."""
@@ -471,6 +472,22 @@ def f(a, b):
 """
     kinds = [s.kind for s in walk_source(src) if not s.guarded]
     assert kinds == ["shutil.copyfile", "os.replace", "np.savez", "np.save"]
+
+
+def test_a_guarded_attribute_guards_only_itself():
+    src = """
+import os
+from rlu.files import open_private
+class W:
+    def __init__(self, p, q):
+        self.fd = open_private(p, os.O_WRONLY)
+        self.q = q
+    def out(self, rows):
+        rows[0] = self.fd
+        open(self.q, "w")
+        open(rows, "w")
+"""
+    assert [(s.line, s.guarded) for s in walk_source(src)] == [(10, False), (11, False)]
 
 
 def test_a_modules_own_save_is_walked_not_trusted():
