@@ -21,6 +21,8 @@ PKG = ROOT / "rlu"
 GUARDS = {"atomic_path", "open_private", "open_new"}
 """rlu.files functions whose result is a path or a descriptor a write may use."""
 
+PASS_THROUGH = {"str", "fspath", "Path", "open", "fdopen", "enter_context"}
+"""Calls whose result is the same file as their first argument."""
 WRITE_FLAGS = {"O_WRONLY", "O_RDWR", "O_CREAT", "O_APPEND", "O_TRUNC"}
 NP_WRITERS = {"save", "savez", "savez_compressed", "savetxt"}
 FRAME_WRITERS = {"to_csv", "to_parquet", "to_json", "to_hdf", "to_feather", "to_pickle"}
@@ -210,14 +212,24 @@ class _Walker:
     # taint --------------------------------------------------------------------------------
     @staticmethod
     def _uses(node: ast.AST | None, taint: set[str]) -> bool:
+        """Whether ``node`` is what rlu.files produced: a guard's result, a name bound from one,
+        or one of those passed through ``str`` / ``os.fspath`` / ``Path`` / ``os.open`` /
+        ``os.fdopen`` / ``open`` / ``enter_context``. A path built from one (``tmp.parent /
+        "x"``, ``tmp.with_suffix(...)``) is another file, not guarded."""
         if node is None:
             return False
-        for n in ast.walk(node):
-            if isinstance(n, ast.Call) and _last(_call_name(n)) in GUARDS:
+        if isinstance(node, (ast.Tuple, ast.List)):
+            return any(_Walker._uses(e, taint) for e in node.elts)
+        if isinstance(node, ast.IfExp):
+            return _Walker._uses(node.body, taint) and _Walker._uses(node.orelse, taint)
+        if isinstance(node, (ast.Name, ast.Attribute)):
+            return _dotted(node) in taint
+        if isinstance(node, ast.Call):
+            last = _last(_call_name(node))
+            if last in GUARDS:
                 return True
-            name = _dotted(n) if isinstance(n, (ast.Name, ast.Attribute)) else None
-            if name is not None and name in taint:
-                return True
+            if last in PASS_THROUGH and node.args:
+                return _Walker._uses(node.args[0], taint)
         return False
 
     @staticmethod
@@ -399,7 +411,8 @@ def _own_nodes(stmt: ast.AST, nested: bool = False):
 
 
 def walk_source(source: str, file: str = "<planted>") -> list[Site]:
-    return _Walker(source, file).run()
+    """The write sites of one module's source, in line order."""
+    return sorted(_Walker(source, file).run(), key=lambda s: (s.line, s.kind))
 
 
 def walk_package() -> list[Site]:
@@ -536,8 +549,12 @@ def two(a, b, fig):
         fig.savefig(tmp)
     fig.savefig(b)
     open(check_target(b), "w")
+    with atomic_path(a) as tmp:
+        open(str(tmp), "w")
+        open(tmp.parent / "other", "w")
 """
-    assert [(s.line, s.guarded) for s in walk_source(src)] == [(5, True), (6, False), (7, False)]
+    got = [(s.line, s.guarded) for s in walk_source(src)]
+    assert got == [(5, True), (6, False), (7, False), (9, True), (10, False)]
 
 
 # --- the package ----------------------------------------------------------------------------
