@@ -10,7 +10,10 @@ over the target, the folder synced. A kill leaves the old file or the new one, n
 one. A folder rlu hands to a library that owns it (TensorBoard, W&B) is made by
 :func:`make_folder`. A file rlu opens again and again (a lock, a log it appends to, a cache entry,
 a partial download) goes through :func:`open_private`: never a symbolic link, a hard link or a
-non-file.
+non-file. ``tests/hostile/test_writers_walk.py`` walks the package's syntax trees and fails on
+a write site outside this module (``open`` in a write mode, ``savefig``, ``torch.save``,
+``os.replace``, ...) that neither writes what these functions produced nor is listed there
+with its reason.
 
 Reading. A JSON file rlu reads is checked at the boundary, once, against a *shape* of its own
 (:class:`Shape`: types, ranges, sizes, nesting depth) before any value is used; a shape is written

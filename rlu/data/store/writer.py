@@ -35,6 +35,7 @@ from rlu.data.store.schema import (
     partial_dir,
     segment_columns,
 )
+from rlu.files import open_new, write_atomic
 from rlu.locks import OutputLock
 from rlu.system import available_cores
 from rlu.types import ArraySpec, RluError, SpecError
@@ -142,7 +143,7 @@ class _RawFile:
     def __init__(self, path: Path):
         self.path = path
         path.parent.mkdir(parents=True, exist_ok=True)
-        self.fh = open(path, "wb")
+        self.fh = os.fdopen(open_new(path), "wb")  # new, never through a planted link
         self.hash = hashlib.sha256()
 
     def write(self, data: bytes) -> None:
@@ -482,10 +483,7 @@ class DatasetWriter:
             "files": {str(p.relative_to(self.tmp)): files[p] for p in sorted(files, key=str)},
             "provenance": self.provenance,
         }
-        with open(self.tmp / MANIFEST, "w") as fh:
-            json.dump(manifest, fh, indent=1, sort_keys=True)
-            fh.write("\n")
-            _fsync_close(fh)
+        write_atomic(self.tmp / MANIFEST, json.dumps(manifest, indent=1, sort_keys=True) + "\n")
         for d in {p.parent for p in files} | {self.tmp}:
             _fsync_dir(d)
         if self.dest.exists() and self.overwrite:
