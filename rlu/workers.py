@@ -12,15 +12,28 @@ Standard library only.
 from __future__ import annotations
 
 import dataclasses
+import ipaddress
 import os
+import re
 import signal
+import socket
 import sys
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
-__all__ = ["Backend", "die_with_parent", "node_name", "run_jobs", "send"]
+__all__ = [
+    "RAY_ADDRESS_FORMS",
+    "RAY_CONNECT_TIMEOUT",
+    "Backend",
+    "check_ray_address",
+    "die_with_parent",
+    "node_name",
+    "reach_ray_address",
+    "run_jobs",
+    "send",
+]
 
 
 def die_with_parent(parent: int) -> None:
@@ -48,6 +61,94 @@ def die_with_parent(parent: int) -> None:
     threading.Thread(target=watch, name="rlu-parent-watch", daemon=True).start()
 
 
+# --- Ray addresses --------------------------------------------------------------------------
+RAY_ADDRESS_FORMS = (
+    "auto (the cluster this machine belongs to), local (a new instance of our own), HOST:PORT "
+    "(a cluster's head node, e.g. 10.0.0.5:6379 or [::1]:6379) or ray://HOST:PORT (Ray Client)"
+)
+"""The ``--ray-address`` values rlu takes (what ``ray.init(address=...)`` takes, less the
+forms it guesses at)."""
+RAY_CONNECT_TIMEOUT = 5.0
+"""Seconds rlu waits for a TCP connection to a HOST:PORT Ray address before ``ray.init`` (which
+itself retries an unreachable head for a minute or more)."""
+_LABEL = re.compile(r"(?!-)[A-Za-z0-9-]{1,63}(?<!-)")
+
+
+def _host_ok(host: str) -> bool:
+    """An IPv4 literal, a bracketed IPv6 literal, or a hostname of letters, digits and hyphens
+    (RFC 1123 labels of 1 to 63 characters, 253 in all)."""
+    if host.startswith("[") and host.endswith("]"):
+        try:
+            return ipaddress.ip_address(host[1:-1]).version == 6
+        except ValueError:
+            return False
+    if not host or len(host) > 253:
+        return False
+    if re.fullmatch(r"[0-9.]+", host):  # all digits and dots: an IPv4 literal or nothing
+        try:
+            ipaddress.IPv4Address(host)
+        except ValueError:
+            return False
+        return True
+    return all(_LABEL.fullmatch(label) for label in host.removesuffix(".").split("."))
+
+
+def check_ray_address(address: str) -> tuple[str, int] | None:
+    """Refuse a ``--ray-address`` that is none of ``RAY_ADDRESS_FORMS`` (an
+    :class:`~rlu.types.RluError` naming the flag, the value and the forms); the (host, port) to
+    connect to for HOST:PORT and ray://HOST:PORT, None for auto and local. Nothing is reached."""
+    from rlu.types import RluError
+
+    def refuse(why: str) -> RluError:
+        return RluError(f"--ray-address {str(address)[:200]!r}: {why}; give {RAY_ADDRESS_FORMS}")
+
+    if not isinstance(address, str):
+        raise refuse("not a string")
+    if address in ("auto", "local"):
+        return None
+    rest = address.removeprefix("ray://")
+    host, colon, port = rest.rpartition(":")
+    if not colon:
+        raise refuse("no port (HOST:PORT)")
+    if not re.fullmatch(r"[0-9]{1,5}", port) or not 1 <= int(port) <= 65535:
+        raise refuse(f"port {port[:20]!r} is not a number from 1 to 65535")
+    if ":" in host and not host.startswith("["):
+        raise refuse("an IPv6 host goes in brackets ([::1]:6379)")
+    if not _host_ok(host):
+        raise refuse(f"host {host[:100]!r} is not an IP address or a hostname")
+    return host.removeprefix("[").removesuffix("]"), int(port)
+
+
+def reach_ray_address(address: str, timeout: float = RAY_CONNECT_TIMEOUT) -> None:
+    """Check ``address`` (:func:`check_ray_address`) and, for HOST:PORT and ray://HOST:PORT, open
+    (and close) a TCP connection to it within ``timeout`` seconds: a name that does not resolve,
+    a refused connection, an unreachable network or no answer is one
+    :class:`~rlu.types.RluError` naming the address and the fix, where ``ray.init`` would hang
+    retrying. auto and local are left to Ray."""
+    from rlu.types import RluError
+
+    target = check_ray_address(address)
+    if target is None:
+        return
+    host, port = target
+    try:
+        with socket.create_connection((host, port), timeout=timeout):
+            return
+    except socket.gaierror as e:
+        what = f"the host {host!r} does not resolve ({e.strerror or e})"
+    except ConnectionRefusedError:
+        what = f"{host} refused the connection (nothing listens on port {port})"
+    except TimeoutError:
+        what = f"no answer from {host}:{port} within {timeout:g} s"
+    except OSError as e:
+        what = f"{host}:{port} cannot be reached ({e.strerror or e})"
+    raise RluError(
+        f"--ray-address {address}: {what}; start the cluster's head there (`ray start --head "
+        f"--port={port}` on that machine, `ray start --address={host}:{port}` on the others) "
+        "and check the address, or drop --ray-address to run on a local Ray instance"
+    )
+
+
 # --- the runner -----------------------------------------------------------------------------
 @dataclasses.dataclass(frozen=True)
 class Backend:
@@ -62,7 +163,8 @@ class Backend:
     workers: int = dataclasses.field(default=1, metadata={"min": 1, "metavar": "N"})
     """Local: processes at once (the results do not depend on it)."""
     address: str | None = dataclasses.field(default=None, metadata={"flag": "--ray-address"})
-    """Ray: the cluster's address (default: start a local instance, stopped at the end)."""
+    """Ray: the cluster's address: auto, local, HOST:PORT or ray://HOST:PORT (default: start a
+    local instance, stopped at the end)."""
     gpus_per_job: float = dataclasses.field(
         default=0.0, metadata={"min": 0.0, "flag": "--gpus-per-run"}
     )
@@ -78,11 +180,20 @@ class Backend:
         from rlu.devices import check_gpus_per_run
 
         check_gpus_per_run(self.gpus_per_job)
+        if self.address is not None:
+            check_ray_address(self.address)
         if self.kind == "local" and self.gpus_per_job:
             raise RluError(
                 "--gpus-per-run asks Ray for GPUs; use --backend ray, or drop it (local runs all "
                 "see the machine's GPUs)"
             )
+
+    def reach(self) -> None:
+        """On Ray at a HOST:PORT address: refuse, within ``RAY_CONNECT_TIMEOUT`` seconds, a
+        cluster that does not answer (:func:`reach_ray_address`); commands call it before they
+        make an output folder. Nothing for the local backend, auto or local."""
+        if self.kind == "ray" and self.address is not None:
+            reach_ray_address(self.address)
 
 
 _CHANNEL: Any = None  # a worker process's queue to the parent's on_message
@@ -231,7 +342,8 @@ def _run_ray(
 
     started = False
     if not ray.is_initialized():
-        if backend.address:
+        if backend.address not in (None, "local"):
+            reach_ray_address(backend.address)  # a dead head: seconds, not ray.init's minutes
             ray.init(address=backend.address, log_to_driver=False)
         else:
             # "local": a new instance of our own, never a cluster found on this machine

@@ -55,6 +55,7 @@ def _run(args: argparse.Namespace) -> int:
     config = from_args(GenerateConfig, args, task=args.task, progress=not args.no_progress)
     workers = args.workers or (run_count(config) if args.kind == "local" else 1)
     backend = Backend(args.kind, workers, args.address, args.gpus_per_job)
+    backend.reach()  # a Ray cluster that does not answer: refused before OUT is made
     path = generate(dataclasses.replace(config, backend=backend), args.out)
     from pathlib import Path
 

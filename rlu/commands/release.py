@@ -172,12 +172,13 @@ def _download(args: argparse.Namespace) -> int:
                 print(u)
         return 0
     _check_fetch_args(args)
+    backend = backend_from_args(args)  # a bad or dead --ray-address: refused before the cache
     objects = [o for sel in sels for o in sel.objects]
     if args.kind == "ray":
         from rlu.data.release.jobs import fetch_release
 
         fetch = _fetch(args)
-        got = fetch_release(objects, backend_from_args(args), fetch, progress=not args.quiet)
+        got = fetch_release(objects, backend, fetch, progress=not args.quiet)
         root = fetch.cache_dir
     else:
         d = Downloader(
@@ -224,9 +225,10 @@ def _convert(args: argparse.Namespace) -> int:
         raise RluError(f"{len(tasks)} tasks make {len(tasks)} datasets: give --out-root, not --out")
     if not (args.out or args.out_root or args.download):
         raise RluError("say where the dataset goes: --out DIR (or --out-root ROOT)")
+    backend = backend_from_args(args)  # a bad or dead --ray-address: refused before any output
     sharded = args.kind == "ray" or bool(args.out_root) or args.download or len(tasks) > 1
     if sharded:
-        return _convert_job(args, tasks, backend_from_args(args))
+        return _convert_job(args, tasks, backend)
     return _convert_local(args, tasks[0])
 
 

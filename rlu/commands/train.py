@@ -64,12 +64,16 @@ def add_backend_options(
 
 def backend_from_args(args: argparse.Namespace, jobs: int | None = None) -> Any:
     """The ``rlu.workers.Backend`` of :func:`add_backend_options`' flags (default workers: one
-    per core, never more than ``jobs``)."""
+    per core, never more than ``jobs``), its Ray address checked and, a HOST:PORT one, reached
+    (``Backend.reach``: a cluster that does not answer is refused in seconds, before the command
+    makes its output folder)."""
     from rlu.system import available_cores
     from rlu.workers import Backend
 
     workers = args.workers or min(available_cores(), jobs or available_cores())
-    return Backend(args.kind, max(1, workers), args.address, args.gpus_per_job)
+    backend = Backend(args.kind, max(1, workers), args.address, args.gpus_per_job)
+    backend.reach()
+    return backend
 
 
 def register(sub: argparse._SubParsersAction) -> None:

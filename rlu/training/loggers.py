@@ -225,6 +225,22 @@ WANDB_LOGIN = (
     "and sync later"
 )
 
+WANDB_MODES = ("online", "offline", "disabled", "dryrun", "run", "shared")
+"""The values of WANDB_MODE wandb takes (``wandb.sdk.wandb_settings.Settings.mode``, wandb 0.31;
+exact, lower case); another is refused before a run folder is made, where wandb would refuse it
+from inside ``wandb.init``."""
+
+
+def _wandb_mode() -> str | None:
+    """WANDB_MODE, checked: unset (None) or one of ``WANDB_MODES``."""
+    mode = os.environ.get("WANDB_MODE")
+    if mode is not None and mode not in WANDB_MODES:
+        raise RluError(
+            f"--log-to wandb: WANDB_MODE is {mode[:40]!r}; wandb takes {', '.join(WANDB_MODES)} "
+            "(offline: log under RUN/wandb and sync later); set one or unset WANDB_MODE"
+        )
+    return mode
+
 
 def _wandb_logged_in() -> bool:
     """Whether wandb would find a key (or needs none): WANDB_API_KEY, an offline or disabled
@@ -234,7 +250,7 @@ def _wandb_logged_in() -> bool:
 
     if os.environ.get("WANDB_API_KEY"):
         return True
-    if os.environ.get("WANDB_MODE", "").lower() in ("offline", "disabled", "dryrun"):
+    if _wandb_mode() in ("offline", "disabled", "dryrun"):
         return True
     host = urlparse(os.environ.get("WANDB_BASE_URL", "https://api.wandb.ai")).hostname
     path = os.environ.get("NETRC") or os.path.join(os.path.expanduser("~"), ".netrc")
@@ -265,11 +281,18 @@ class WandbLogger:
     run continues it (and only it: the id does not depend on where the folder lies)."""
 
     @staticmethod
-    def check(run: Path, start: int) -> None:
-        _check_folder(run / "wandb")
-        _wandb_id(run, create=False)
+    def check_settings() -> None:
+        """What no run folder changes: WANDB_MODE is one wandb takes, a key is configured (or
+        the mode needs none)."""
+        _wandb_mode()
         if not _wandb_logged_in():
             raise RluError(f"--log-to wandb: no W&B API key is configured; {WANDB_LOGIN}")
+
+    @staticmethod
+    def check(run: Path, start: int) -> None:
+        WandbLogger.check_settings()
+        _check_folder(run / "wandb")
+        _wandb_id(run, create=False)
 
     def __init__(self, run: Path, start: int, config: Mapping[str, Any]):
         try:
@@ -312,12 +335,22 @@ _CLASSES = {"csv": CsvLogger, "tensorboard": TensorBoardLogger, "wandb": WandbLo
 
 def check_loggers(names: Sequence[str], run: Path, start: int) -> None:
     """Refuse, before a run folder is written, what its loggers ``names`` would fail on: an
-    unknown name, a CSV log that does not read back, a logger folder that is a link, W&B
-    without a key."""
+    unknown name, a CSV log that does not read back, a logger folder that is a link, an unknown
+    WANDB_MODE, W&B without a key."""
     for name in names:
         if name not in _CLASSES:
             raise RluError(f"--log-to {name!r}; loggers are {', '.join(LOGGERS)}")
         _CLASSES[name].check(run, start)
+
+
+def check_logger_settings(names: Sequence[str]) -> None:
+    """Refuse what loggers ``names`` would fail on whatever the run folder: an unknown name, an
+    unknown WANDB_MODE, W&B without a key (a sweep checks them before it makes its folder)."""
+    for name in names:
+        if name not in _CLASSES:
+            raise RluError(f"--log-to {name!r}; loggers are {', '.join(LOGGERS)}")
+        if name == "wandb":
+            WandbLogger.check_settings()
 
 
 def make_loggers(

@@ -33,7 +33,7 @@ from rlu.devices import check_ray_gpus
 from rlu.files import Checked, bounds, check_output, make_folder, shape_of
 from rlu.training import runs
 from rlu.training.config import RunSettings
-from rlu.training.loggers import LOGGERS
+from rlu.training.loggers import LOGGERS, check_logger_settings
 from rlu.types import ConfigError, DiscreteSpec, RluError
 from rlu.workers import Backend, run_jobs
 
@@ -239,6 +239,8 @@ def sweep(
     unknown = [n for n in config.loggers if n not in LOGGERS]
     if unknown:
         raise RluError(f"logger {unknown[0]!r}; loggers are {', '.join(LOGGERS)}")
+    check_logger_settings(config.loggers)  # an unknown WANDB_MODE, no W&B key: before the folder
+    where.reach()  # a Ray cluster that does not answer: refused before the folder
     with OutputLock(out, "sweep folder"):
         cfg_path = out / runs.SWEEP_CONFIG
         if cfg_path.exists():
