@@ -570,6 +570,21 @@ def bounds(
     return {k: v for k, v in given.items() if v is not None}
 
 
+# The bounds most config fields share, named once (``field(default=3e-4, metadata=LEARNING_RATE)``).
+LEARNING_RATE = bounds(gt=0.0, max=MAX_LR)
+"""A learning rate: > 0 and at most ``MAX_LR``."""
+FRACTION = bounds(min=0.0, max=1.0)
+"""A number in [0, 1]: a discount, a Polyak rate, a probability."""
+STEPS = bounds(min=1, max=MAX_STEPS)
+"""A count of learner steps."""
+WIDTH = bounds(min=1, max=MAX_WIDTH)
+"""A layer's width (units, channels, embedding size)."""
+LAYERS = bounds(min=1, max=MAX_WIDTH, min_len=1, max_len=MAX_LAYERS)
+"""A network's hidden sizes: one to ``MAX_LAYERS`` widths."""
+BATCH = bounds(min=1, max=MAX_BATCH)
+"""Rows (or windows) in one batch."""
+
+
 def _shape_of_hint(hint: Any, meta: Mapping[str, Any]) -> Shape:
     origin = typing.get_origin(hint)
     args = typing.get_args(hint)

@@ -25,7 +25,7 @@ from torch import nn
 from rlu.agents import common
 from rlu.agents import networks as nets
 from rlu.agents.losses import mixture_log_prob
-from rlu.files import MAX_LR, MAX_STEPS, Checked, bounds
+from rlu.files import LEARNING_RATE, STEPS, Checked, bounds
 from rlu.seeds import stream_seed
 from rlu.types import BatchSpec, Sequence, Transition
 
@@ -42,11 +42,11 @@ class BCConfig(Checked):
     """Gaussian components of the policy head."""
     eval_variance: float = field(default=1e-4, metadata=bounds(min=1e-12, max=1e6))
     """Variance of every component when acting greedily (the paper's evaluation, 1e-4)."""
-    learning_rate: float = field(default=1e-4, metadata=bounds(gt=0.0, max=MAX_LR))
+    learning_rate: float = field(default=1e-4, metadata=LEARNING_RATE)
     """Adam learning rate."""
     batch_size: int = field(default=1024, metadata=bounds(min=1, max=1 << 20))
     """Transitions per update; windows per update when recurrent (the paper: 1024 and 128)."""
-    num_steps: int = field(default=1_000_000, metadata=bounds(min=1, max=MAX_STEPS))
+    num_steps: int = field(default=1_000_000, metadata=STEPS)
     """Learner steps of a full run: what ``rlu train`` runs when no --steps is given. The paper
     states no budget for the continuous baselines; 1M is rlu's choice."""
     recurrent: bool = False

@@ -31,7 +31,7 @@ from torch import nn
 from rlu.agents import common
 from rlu.agents import discrete_common as dc
 from rlu.agents import networks as nets
-from rlu.files import MAX_LR, Checked, bounds
+from rlu.files import LEARNING_RATE, Checked, bounds
 from rlu.types import BatchSpec, Sequence, Transition
 
 
@@ -40,7 +40,7 @@ class BCConfig(Checked):
     atari: dc.AtariSettings = field(default_factory=dc.AtariSettings)
     """Settings shared by the Atari baselines (batch, network, epsilons, budget; BC uses no
     reward, discount or target network)."""
-    learning_rate: float = field(default=3e-5, metadata=bounds(gt=0.0, max=MAX_LR))
+    learning_rate: float = field(default=3e-5, metadata=LEARNING_RATE)
     """Adam step size; the paper used 3e-5 for BC's offline policy selection."""
     recurrent: bool = False
     """An LSTM after the torso; trains on sequence windows (module docstring)."""

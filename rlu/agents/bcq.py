@@ -29,30 +29,34 @@ from torch import nn
 from rlu.agents import common
 from rlu.agents import networks as nets
 from rlu.agents.losses import vae_loss
-from rlu.files import MAX_BATCH, MAX_LAYERS, MAX_LR, MAX_STEPS, MAX_WIDTH, Checked, bounds
+from rlu.files import (
+    BATCH,
+    FRACTION,
+    LAYERS,
+    LEARNING_RATE,
+    MAX_STEPS,
+    STEPS,
+    WIDTH,
+    Checked,
+    bounds,
+)
 from rlu.seeds import stream_seed
 from rlu.types import BatchSpec, Transition
 
 
 @dataclass(frozen=True)
 class BCQConfig(Checked):
-    actor_layers: tuple[int, ...] = field(
-        default=(400, 300), metadata=bounds(min=1, max=MAX_WIDTH, min_len=1, max_len=MAX_LAYERS)
-    )
+    actor_layers: tuple[int, ...] = field(default=(400, 300), metadata=LAYERS)
     """Perturbation network hidden sizes."""
-    critic_layers: tuple[int, ...] = field(
-        default=(400, 300), metadata=bounds(min=1, max=MAX_WIDTH, min_len=1, max_len=MAX_LAYERS)
-    )
+    critic_layers: tuple[int, ...] = field(default=(400, 300), metadata=LAYERS)
     """Hidden sizes of each of the twin critics."""
-    vae_layers: tuple[int, ...] = field(
-        default=(750, 750), metadata=bounds(min=1, max=MAX_WIDTH, min_len=1, max_len=MAX_LAYERS)
-    )
+    vae_layers: tuple[int, ...] = field(default=(750, 750), metadata=LAYERS)
     """Hidden sizes of the VAE encoder and of its decoder."""
-    torso_hidden: int = field(default=64, metadata=bounds(min=1, max=MAX_WIDTH))
+    torso_hidden: int = field(default=64, metadata=WIDTH)
     """Camera ResNet embedding size."""
     phi: float = field(default=0.05, metadata=bounds(min=0.0, max=2.0))
     """Largest perturbation, in units of the action range's half-width."""
-    lmbda: float = field(default=0.75, metadata=bounds(min=0.0, max=1.0))
+    lmbda: float = field(default=0.75, metadata=FRACTION)
     """Weight of the min in the soft clipped double-Q target."""
     num_samples: int = field(default=10, metadata=bounds(min=1, max=10_000))
     """VAE actions sampled per next state (target) and per state (acting)."""
@@ -62,22 +66,22 @@ class BCQConfig(Checked):
     rows, so that one slice's activations stay in the core's cache: the same values up to float
     rounding, the whole update 1.16x faster at the paper's widths and batch 256 (docs/agents.md).
     0, or a GPU: one pass over all rows."""
-    gamma: float = field(default=0.99, metadata=bounds(min=0.0, max=1.0))
+    gamma: float = field(default=0.99, metadata=FRACTION)
     """Discount."""
     target_update_period: int = field(default=100, metadata=bounds(min=0, max=MAX_STEPS))
     """Updates between hard copies into the target networks (the paper's table, shared by its
     continuous agents); 0: Polyak averaging with ``tau`` every update (the original BCQ)."""
     tau: float = field(default=0.005, metadata=bounds(gt=0.0, max=1.0))
     """Polyak rate of the target networks when ``target_update_period`` is 0."""
-    actor_lr: float = field(default=1e-3, metadata=bounds(gt=0.0, max=MAX_LR))
+    actor_lr: float = field(default=1e-3, metadata=LEARNING_RATE)
     """Adam learning rate of the perturbation network."""
-    critic_lr: float = field(default=1e-3, metadata=bounds(gt=0.0, max=MAX_LR))
+    critic_lr: float = field(default=1e-3, metadata=LEARNING_RATE)
     """Adam learning rate of the critics."""
-    vae_lr: float = field(default=1e-3, metadata=bounds(gt=0.0, max=MAX_LR))
+    vae_lr: float = field(default=1e-3, metadata=LEARNING_RATE)
     """Adam learning rate of the VAE."""
-    batch_size: int = field(default=1024, metadata=bounds(min=1, max=MAX_BATCH))
+    batch_size: int = field(default=1024, metadata=BATCH)
     """Transitions per update."""
-    num_steps: int = field(default=1_000_000, metadata=bounds(min=1, max=MAX_STEPS))
+    num_steps: int = field(default=1_000_000, metadata=STEPS)
     """Learner steps of a full run: what ``rlu train`` runs when no --steps is given. The paper
     states no budget for the continuous baselines; 1M is rlu's choice."""
 

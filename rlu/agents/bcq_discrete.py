@@ -29,7 +29,7 @@ from torch import nn
 
 from rlu.agents import common
 from rlu.agents import discrete_common as dc
-from rlu.files import MAX_LR, Checked, bounds
+from rlu.files import FRACTION, LEARNING_RATE, Checked, bounds
 from rlu.types import Transition
 
 
@@ -37,9 +37,9 @@ from rlu.types import Transition
 class BCQConfig(Checked):
     atari: dc.AtariSettings = field(default_factory=dc.AtariSettings)
     """Settings shared by the Atari baselines (batch, discount, network, epsilons, budget)."""
-    learning_rate: float = field(default=1e-4, metadata=bounds(gt=0.0, max=MAX_LR))
+    learning_rate: float = field(default=1e-4, metadata=LEARNING_RATE)
     """Adam step size; the paper's online policy selection picked 1e-4 for BCQ."""
-    threshold: float = field(default=0.5, metadata=bounds(min=0.0, max=1.0))
+    threshold: float = field(default=0.5, metadata=FRACTION)
     """Allowed actions have pi(a|s) / max_a' pi(a'|s) >= threshold (paper: 0.5 of the grid)."""
     logit_penalty: float = field(default=1e-2, metadata=bounds(min=0.0, max=1e6))
     """Weight of the mean squared imitation logit in the loss (the authors' value)."""

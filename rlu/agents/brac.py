@@ -40,43 +40,47 @@ import torch
 from rlu.agents import common
 from rlu.agents import networks as nets
 from rlu.agents.losses import sample_kl
-from rlu.files import MAX_BATCH, MAX_LAYERS, MAX_LR, MAX_STEPS, MAX_WIDTH, Checked, bounds
+from rlu.files import (
+    BATCH,
+    FRACTION,
+    LAYERS,
+    LEARNING_RATE,
+    MAX_STEPS,
+    STEPS,
+    WIDTH,
+    Checked,
+    bounds,
+)
 from rlu.seeds import stream_seed
 from rlu.types import BatchSpec, Transition
 
 
 @dataclass(frozen=True)
 class BRACConfig(Checked):
-    policy_layers: tuple[int, ...] = field(
-        default=(200, 200), metadata=bounds(min=1, max=MAX_WIDTH, min_len=1, max_len=MAX_LAYERS)
-    )
+    policy_layers: tuple[int, ...] = field(default=(200, 200), metadata=LAYERS)
     """Policy hidden sizes."""
-    critic_layers: tuple[int, ...] = field(
-        default=(300, 300), metadata=bounds(min=1, max=MAX_WIDTH, min_len=1, max_len=MAX_LAYERS)
-    )
+    critic_layers: tuple[int, ...] = field(default=(300, 300), metadata=LAYERS)
     """Hidden sizes of each critic."""
-    behaviour_layers: tuple[int, ...] = field(
-        default=(200, 200), metadata=bounds(min=1, max=MAX_WIDTH, min_len=1, max_len=MAX_LAYERS)
-    )
+    behaviour_layers: tuple[int, ...] = field(default=(200, 200), metadata=LAYERS)
     """Behaviour model hidden sizes."""
-    torso_hidden: int = field(default=64, metadata=bounds(min=1, max=MAX_WIDTH))
+    torso_hidden: int = field(default=64, metadata=WIDTH)
     """Camera ResNet embedding size."""
     alpha: float = field(default=0.1, metadata=bounds(min=0.0, max=1e6))
     """Weight of the KL value penalty (grid {0.1, 0.3, 1.0})."""
     num_kl_samples: int = field(default=4, metadata=bounds(min=1, max=10_000))
     """Policy samples per state in the KL estimate."""
-    gamma: float = field(default=0.99, metadata=bounds(min=0.0, max=1.0))
+    gamma: float = field(default=0.99, metadata=FRACTION)
     """Discount."""
     target_update_period: int = field(default=100, metadata=bounds(min=0, max=MAX_STEPS))
     """Updates between hard copies into the target critics (the paper's table, shared by its
     continuous agents); 0: Polyak averaging with ``tau`` every update (the original BRAC)."""
     tau: float = field(default=0.005, metadata=bounds(gt=0.0, max=1.0))
     """Polyak rate of the target critics when ``target_update_period`` is 0."""
-    policy_lr: float = field(default=3e-5, metadata=bounds(gt=0.0, max=MAX_LR))
+    policy_lr: float = field(default=3e-5, metadata=LEARNING_RATE)
     """Adam learning rate of the policy (grid {1e-5, 1e-4, 3e-5})."""
-    critic_lr: float = field(default=1e-3, metadata=bounds(gt=0.0, max=MAX_LR))
+    critic_lr: float = field(default=1e-3, metadata=LEARNING_RATE)
     """Adam learning rate of the critics."""
-    behaviour_lr: float = field(default=5e-4, metadata=bounds(gt=0.0, max=MAX_LR))
+    behaviour_lr: float = field(default=5e-4, metadata=LEARNING_RATE)
     """Adam learning rate of the behaviour model."""
     behaviour_steps: int = field(default=300_000, metadata=bounds(min=0, max=MAX_STEPS))
     """Updates spent training only the behaviour model before the agent trains (pre-training,
@@ -84,9 +88,9 @@ class BRACConfig(Checked):
     warm_start_steps: int = field(default=20_000, metadata=bounds(min=0, max=MAX_STEPS))
     """Agent updates, after the behaviour phase, whose policy loss has no Q term, only the KL
     penalty (the original's ``warm_start=20000``); 0: none."""
-    batch_size: int = field(default=256, metadata=bounds(min=1, max=MAX_BATCH))
+    batch_size: int = field(default=256, metadata=BATCH)
     """Transitions per update."""
-    num_steps: int = field(default=1_000_000, metadata=bounds(min=1, max=MAX_STEPS))
+    num_steps: int = field(default=1_000_000, metadata=STEPS)
     """Learner steps of a full run: what ``rlu train`` runs when no --steps is given. The paper
     states no budget for the continuous baselines; 1M is rlu's choice."""
 

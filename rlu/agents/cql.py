@@ -52,7 +52,17 @@ from torch import nn
 from rlu.agents import common
 from rlu.agents import networks as nets
 from rlu.agents.losses import tanh_gaussian_log_prob
-from rlu.files import MAX_BATCH, MAX_LAYERS, MAX_LR, MAX_STEPS, MAX_WIDTH, Checked, bounds
+from rlu.files import (
+    BATCH,
+    FRACTION,
+    LAYERS,
+    LEARNING_RATE,
+    MAX_STEPS,
+    STEPS,
+    WIDTH,
+    Checked,
+    bounds,
+)
 from rlu.seeds import stream_seed
 from rlu.types import BatchSpec, Transition
 
@@ -64,15 +74,15 @@ CLIP = 1.0 - 1e-4
 class CQLConfig(Checked):
     policy_layers: tuple[int, ...] = field(
         default=(256, 256, 256),
-        metadata=bounds(min=1, max=MAX_WIDTH, min_len=1, max_len=MAX_LAYERS),
+        metadata=LAYERS,
     )
     """Hidden sizes of the tanh-Gaussian policy (ReLU)."""
     critic_layers: tuple[int, ...] = field(
         default=(256, 256, 256),
-        metadata=bounds(min=1, max=MAX_WIDTH, min_len=1, max_len=MAX_LAYERS),
+        metadata=LAYERS,
     )
     """Hidden sizes of each of the twin critics (ReLU)."""
-    torso_hidden: int = field(default=64, metadata=bounds(min=1, max=MAX_WIDTH))
+    torso_hidden: int = field(default=64, metadata=WIDTH)
     """Camera ResNet embedding size."""
     cql_weight: float = field(default=5.0, metadata=bounds(min=0.0, max=1e6))
     """alpha': weight of the conservative regulariser (fixed, or the multiplier's start)."""
@@ -87,21 +97,21 @@ class CQLConfig(Checked):
     """Target of the entropy tuning; None means -(action dimensions), SAC's default."""
     bc_steps: int = field(default=40_000, metadata=bounds(min=0, max=MAX_STEPS))
     """Updates during which the policy clones the data instead of maximising Q."""
-    gamma: float = field(default=0.99, metadata=bounds(min=0.0, max=1.0))
+    gamma: float = field(default=0.99, metadata=FRACTION)
     """Discount."""
     tau: float = field(default=0.005, metadata=bounds(gt=0.0, max=1.0))
     """Polyak rate of the target critics, every update."""
     reward_scale: float = field(default=1.0, metadata=bounds(gt=0.0, max=1e6))
     """Factor on every reward before the target."""
-    policy_lr: float = field(default=1e-4, metadata=bounds(gt=0.0, max=MAX_LR))
+    policy_lr: float = field(default=1e-4, metadata=LEARNING_RATE)
     """Adam learning rate of the policy."""
-    critic_lr: float = field(default=3e-4, metadata=bounds(gt=0.0, max=MAX_LR))
+    critic_lr: float = field(default=3e-4, metadata=LEARNING_RATE)
     """Adam learning rate of the critics and of the Lagrange multiplier."""
-    alpha_lr: float = field(default=1e-4, metadata=bounds(gt=0.0, max=MAX_LR))
+    alpha_lr: float = field(default=1e-4, metadata=LEARNING_RATE)
     """Adam learning rate of the entropy weight (the original uses the policy's rate)."""
-    batch_size: int = field(default=256, metadata=bounds(min=1, max=MAX_BATCH))
+    batch_size: int = field(default=256, metadata=BATCH)
     """Transitions per update."""
-    num_steps: int = field(default=1_000_000, metadata=bounds(min=1, max=MAX_STEPS))
+    num_steps: int = field(default=1_000_000, metadata=STEPS)
     """Learner steps of a full run: what ``rlu train`` runs when no --steps is given. rlu's
     choice, as for the other continuous baselines (the README reports numbers at 500k)."""
 

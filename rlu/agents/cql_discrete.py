@@ -47,7 +47,7 @@ import torch
 
 from rlu.agents import common
 from rlu.agents import discrete_common as dc
-from rlu.files import MAX_LR, Checked, bounds
+from rlu.files import LEARNING_RATE, Checked, bounds
 from rlu.types import Transition
 
 
@@ -55,7 +55,7 @@ from rlu.types import Transition
 class DiscreteCQLConfig(Checked):
     atari: dc.AtariSettings = field(default_factory=dc.AtariSettings)
     """Settings shared by the Atari baselines (batch, discount, network, epsilons, budget)."""
-    learning_rate: float = field(default=5e-5, metadata=bounds(gt=0.0, max=MAX_LR))
+    learning_rate: float = field(default=5e-5, metadata=LEARNING_RATE)
     """Adam step size: the CQL authors' Atari value, one of RL Unplugged's grid."""
     alpha: float = field(default=1.0, metadata=bounds(min=0.0, max=1e6))
     """Weight of the CQL(H) regulariser (the authors' ``minq_weight``); 0 gives double DQN."""

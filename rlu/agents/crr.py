@@ -51,7 +51,16 @@ from rlu.agents.losses import (
     categorical_projection,
     mixture_log_prob,
 )
-from rlu.files import MAX_BATCH, MAX_LAYERS, MAX_LR, MAX_STEPS, MAX_WIDTH, Checked, bounds
+from rlu.files import (
+    BATCH,
+    FRACTION,
+    LEARNING_RATE,
+    MAX_LAYERS,
+    STEPS,
+    WIDTH,
+    Checked,
+    bounds,
+)
 from rlu.seeds import stream_seed
 from rlu.types import BatchSpec, RluError, Transition
 
@@ -61,11 +70,11 @@ BASELINES = ("mean", "max")
 
 @dataclass(frozen=True)
 class CRRConfig(Checked):
-    hidden_size: int = field(default=1024, metadata=bounds(min=1, max=MAX_WIDTH))
+    hidden_size: int = field(default=1024, metadata=WIDTH)
     """Width of the residual MLPs of policy and critic."""
     num_layers: int = field(default=8, metadata=bounds(min=1, max=MAX_LAYERS))
     """Layers of each residual MLP (normalised every two)."""
-    torso_hidden: int = field(default=64, metadata=bounds(min=1, max=MAX_WIDTH))
+    torso_hidden: int = field(default=64, metadata=WIDTH)
     """Camera ResNet embedding size (as the paper's ABM and BC)."""
     mixture_components: int = field(default=5, metadata=bounds(min=1, max=1024))
     """Gaussian components of the policy head."""
@@ -87,19 +96,19 @@ class CRRConfig(Checked):
     """Cap on the 'exp' weights."""
     num_target_samples: int = field(default=1, metadata=bounds(min=1, max=10_000))
     """Target-policy actions per next state; their distributions are averaged in the target."""
-    gamma: float = field(default=0.99, metadata=bounds(min=0.0, max=1.0))
+    gamma: float = field(default=0.99, metadata=FRACTION)
     """Discount."""
-    target_update_period: int = field(default=100, metadata=bounds(min=1, max=MAX_STEPS))
+    target_update_period: int = field(default=100, metadata=STEPS)
     """Learner steps between hard copies into the target policy and critic."""
-    policy_lr: float = field(default=1e-4, metadata=bounds(gt=0.0, max=MAX_LR))
+    policy_lr: float = field(default=1e-4, metadata=LEARNING_RATE)
     """Adam learning rate of the policy."""
-    critic_lr: float = field(default=1e-4, metadata=bounds(gt=0.0, max=MAX_LR))
+    critic_lr: float = field(default=1e-4, metadata=LEARNING_RATE)
     """Adam learning rate of the critic."""
     max_grad_norm: float = field(default=40.0, metadata=bounds(min=0.0, max=1e9))
     """Global-norm clip of each network's gradient (Acme's ``clipping``); 0 switches it off."""
-    batch_size: int = field(default=256, metadata=bounds(min=1, max=MAX_BATCH))
+    batch_size: int = field(default=256, metadata=BATCH)
     """Transitions per update."""
-    num_steps: int = field(default=1_000_000, metadata=bounds(min=1, max=MAX_STEPS))
+    num_steps: int = field(default=1_000_000, metadata=STEPS)
     """Learner steps of a full run: what ``rlu train`` runs when no --steps is given. rlu's
     choice, as for the other continuous baselines."""
 

@@ -50,7 +50,16 @@ from torch import nn
 from rlu.agents import common
 from rlu.agents import networks as nets
 from rlu.agents.losses import bootstrap_values, categorical_cross_entropy, categorical_projection
-from rlu.files import MAX_BATCH, MAX_LAYERS, MAX_LR, MAX_STEPS, MAX_WIDTH, Checked, bounds
+from rlu.files import (
+    BATCH,
+    FRACTION,
+    LAYERS,
+    LEARNING_RATE,
+    STEPS,
+    WIDTH,
+    Checked,
+    bounds,
+)
 from rlu.seeds import stream_seed
 from rlu.types import BatchSpec, RluError, Transition
 
@@ -59,15 +68,15 @@ from rlu.types import BatchSpec, RluError, Transition
 class D4PGConfig(Checked):
     policy_layers: tuple[int, ...] = field(
         default=(256, 256, 256),
-        metadata=bounds(min=1, max=MAX_WIDTH, min_len=1, max_len=MAX_LAYERS),
+        metadata=LAYERS,
     )
     """Acme's policy LayerNormMLP sizes."""
     critic_layers: tuple[int, ...] = field(
         default=(512, 512, 256),
-        metadata=bounds(min=1, max=MAX_WIDTH, min_len=1, max_len=MAX_LAYERS),
+        metadata=LAYERS,
     )
     """Acme's critic LayerNormMLP sizes."""
-    torso_hidden: int = field(default=512, metadata=bounds(min=1, max=MAX_WIDTH))
+    torso_hidden: int = field(default=512, metadata=WIDTH)
     """Camera ResNet embedding size (table 5, D4PG column: 512, ReLU)."""
     num_atoms: int = field(default=51, metadata=bounds(min=2, max=10_000))
     """Atoms of the categorical critic (table 5, D4PG: 51)."""
@@ -75,16 +84,16 @@ class D4PGConfig(Checked):
     """Lowest atom (table 5, D4PG: -150)."""
     vmax: float = field(default=150.0, metadata=bounds(min=-1e9, max=1e9))
     """Highest atom (table 5, D4PG: 150)."""
-    gamma: float = field(default=0.99, metadata=bounds(min=0.0, max=1.0))
+    gamma: float = field(default=0.99, metadata=FRACTION)
     """Per-step discount; the data layer's n-step reward must be discounted with this gamma."""
     n_step: int = field(default=1, metadata=bounds(min=1, max=1000))
     """Steps of the n-step return: 1, as the RL Unplugged notebook's learner sees the release's
     windows (Acme's online agent uses 5; the release's 2-step windows hold one transition)."""
-    target_update_period: int = field(default=100, metadata=bounds(min=1, max=MAX_STEPS))
+    target_update_period: int = field(default=100, metadata=STEPS)
     """Learner steps between hard copies into the target networks (the notebook's 100)."""
-    policy_lr: float = field(default=1e-4, metadata=bounds(gt=0.0, max=MAX_LR))
+    policy_lr: float = field(default=1e-4, metadata=LEARNING_RATE)
     """Adam learning rate of the policy (the paper: 1e-4 for both, Acme's default)."""
-    critic_lr: float = field(default=1e-4, metadata=bounds(gt=0.0, max=MAX_LR))
+    critic_lr: float = field(default=1e-4, metadata=LEARNING_RATE)
     """Adam learning rate of the critic."""
     max_grad_norm: float = field(default=40.0, metadata=bounds(min=0.0, max=1e9))
     """Global-norm clip of the critic's and of the policy's gradient, each on its own (Acme's
@@ -92,9 +101,9 @@ class D4PGConfig(Checked):
     dqda_clip_norm: float = field(default=1.0, metadata=bounds(min=0.0, max=1e9))
     """Per-example norm clip of dQ/da in the policy gradient (Acme's ``losses.dpg`` with
     ``dqda_clipping=1.0, clip_norm=True``, on with ``clipping=True``); 0: none."""
-    batch_size: int = field(default=256, metadata=bounds(min=1, max=MAX_BATCH))
+    batch_size: int = field(default=256, metadata=BATCH)
     """Transitions per update."""
-    num_steps: int = field(default=1_000_000, metadata=bounds(min=1, max=MAX_STEPS))
+    num_steps: int = field(default=1_000_000, metadata=STEPS)
     """Learner steps of a full run: what ``rlu train`` runs when no --steps is given. The paper
     states no budget for the continuous baselines; 1M is rlu's choice."""
     init: Literal["acme", "torch"] = "acme"

@@ -35,7 +35,14 @@ import torch
 from torch import nn
 
 from rlu.agents import common
-from rlu.files import MAX_BATCH, MAX_STEPS, MAX_WIDTH, Checked, bounds
+from rlu.files import (
+    BATCH,
+    FRACTION,
+    STEPS,
+    WIDTH,
+    Checked,
+    bounds,
+)
 from rlu.seeds import stream_seed
 from rlu.types import ArraySpec, BatchSpec, DiscreteSpec, SpecError, Transition
 
@@ -52,26 +59,26 @@ class AtariSettings(Checked):
     """The settings every discrete baseline shares (paper appendix A.2), composed into each
     agent's config as its ``atari`` field (override as ``atari.batch_size=32``)."""
 
-    batch_size: int = field(default=256, metadata=bounds(min=1, max=MAX_BATCH))
+    batch_size: int = field(default=256, metadata=BATCH)
     """Transitions per update."""
-    gamma: float = field(default=0.99, metadata=bounds(min=0.0, max=1.0))
+    gamma: float = field(default=0.99, metadata=FRACTION)
     """Discount factor of the TD target."""
     n_step: int = field(default=1, metadata=bounds(min=1, max=1000))
     """Steps summed into each transition's reward (the paper: 1-step targets)."""
     reward_clip: float = field(default=1.0, metadata=bounds(min=0.0, max=1e9))
     """Learning sees per-step rewards clipped to [-reward_clip, reward_clip] (the data keeps raw
     game scores; evaluation reports them)."""
-    adam_eps: float = field(default=1e-7, metadata=bounds(min=0.0, max=1.0))
+    adam_eps: float = field(default=1e-7, metadata=FRACTION)
     """Adam epsilon: TF2's default, as the paper states."""
-    eval_epsilon: float = field(default=EVAL_EPSILON, metadata=bounds(min=0.0, max=1.0))
+    eval_epsilon: float = field(default=EVAL_EPSILON, metadata=FRACTION)
     """Probability of a uniform action when acting greedily (the paper's evaluation epsilon)."""
-    explore_epsilon: float = field(default=0.01, metadata=bounds(min=0.0, max=1.0))
+    explore_epsilon: float = field(default=0.01, metadata=FRACTION)
     """Probability of a uniform action when acting with greedy=False (the online agent's)."""
-    target_update_period: int = field(default=2500, metadata=bounds(min=1, max=MAX_STEPS))
+    target_update_period: int = field(default=2500, metadata=STEPS)
     """Updates between hard copies of the online network into the target network."""
     huber_delta: float = field(default=1.0, metadata=bounds(min=1e-12, max=1e9))
     """Where the Huber loss of the TD error turns linear."""
-    num_steps: int = field(default=2_000_000, metadata=bounds(min=1, max=MAX_STEPS))
+    num_steps: int = field(default=2_000_000, metadata=STEPS)
     """Learner steps of a full run (the table's 2M): what ``rlu train`` runs without --steps."""
     channels: tuple[int, ...] = field(
         default=(32, 64, 64), metadata=bounds(min=1, max=4096, min_len=1, max_len=16)
@@ -85,7 +92,7 @@ class AtariSettings(Checked):
         default=(4, 2, 1), metadata=bounds(min=1, max=84, min_len=1, max_len=16)
     )
     """Nature CNN strides."""
-    hidden_size: int = field(default=512, metadata=bounds(min=1, max=MAX_WIDTH))
+    hidden_size: int = field(default=512, metadata=WIDTH)
     """Units of the fully connected layer after the convolutions."""
 
     def batch_spec(self) -> BatchSpec:

@@ -54,7 +54,16 @@ from rlu.agents.losses import (
     gaussian_log_prob,
     mpo_e_step,
 )
-from rlu.files import MAX_BATCH, MAX_LAYERS, MAX_LR, MAX_STEPS, MAX_WIDTH, Checked, bounds
+from rlu.files import (
+    BATCH,
+    FRACTION,
+    LAYERS,
+    LEARNING_RATE,
+    STEPS,
+    WIDTH,
+    Checked,
+    bounds,
+)
 from rlu.seeds import stream_seed
 from rlu.types import BatchSpec, Transition
 
@@ -66,15 +75,15 @@ DUAL_EPS = 1e-8  # added to every softplus(dual)
 class DMPOConfig(Checked):
     policy_layers: tuple[int, ...] = field(
         default=(256, 256, 256),
-        metadata=bounds(min=1, max=MAX_WIDTH, min_len=1, max_len=MAX_LAYERS),
+        metadata=LAYERS,
     )
     """Acme's policy LayerNormMLP sizes (final activation on)."""
     critic_layers: tuple[int, ...] = field(
         default=(512, 512, 256),
-        metadata=bounds(min=1, max=MAX_WIDTH, min_len=1, max_len=MAX_LAYERS),
+        metadata=LAYERS,
     )
     """Acme's critic LayerNormMLP sizes (final activation on)."""
-    torso_hidden: int = field(default=512, metadata=bounds(min=1, max=MAX_WIDTH))
+    torso_hidden: int = field(default=512, metadata=WIDTH)
     """Camera ResNet embedding size (as D4PG's)."""
     init_scale: float = field(default=0.7, metadata=bounds(gt=0.0, max=1e3))
     """The policy's standard deviation at initialisation."""
@@ -86,7 +95,7 @@ class DMPOConfig(Checked):
     """Lowest atom."""
     vmax: float = field(default=150.0, metadata=bounds(min=-1e9, max=1e9))
     """Highest atom."""
-    gamma: float = field(default=0.99, metadata=bounds(min=0.0, max=1.0))
+    gamma: float = field(default=0.99, metadata=FRACTION)
     """Per-step discount; the data layer's n-step reward must be discounted with this gamma."""
     n_step: int = field(default=5, metadata=bounds(min=1, max=1000))
     """Steps of the n-step return."""
@@ -110,19 +119,19 @@ class DMPOConfig(Checked):
     """Initial log multiplier of the mean's KL bound."""
     init_log_alpha_stddev: float = field(default=1000.0, metadata=bounds(min=-1e4, max=1e4))
     """Initial log multiplier of the standard deviation's KL bound."""
-    target_update_period: int = field(default=100, metadata=bounds(min=1, max=MAX_STEPS))
+    target_update_period: int = field(default=100, metadata=STEPS)
     """Learner steps between hard copies into the target policy and critic."""
-    policy_lr: float = field(default=1e-4, metadata=bounds(gt=0.0, max=MAX_LR))
+    policy_lr: float = field(default=1e-4, metadata=LEARNING_RATE)
     """Adam learning rate of the policy."""
-    critic_lr: float = field(default=1e-4, metadata=bounds(gt=0.0, max=MAX_LR))
+    critic_lr: float = field(default=1e-4, metadata=LEARNING_RATE)
     """Adam learning rate of the critic."""
-    dual_lr: float = field(default=1e-2, metadata=bounds(gt=0.0, max=MAX_LR))
+    dual_lr: float = field(default=1e-2, metadata=LEARNING_RATE)
     """Adam learning rate of the temperatures and KL multipliers."""
     max_grad_norm: float = field(default=40.0, metadata=bounds(min=0.0, max=1e9))
     """Global-norm clip of the policy's and the critic's gradients (0: none)."""
-    batch_size: int = field(default=256, metadata=bounds(min=1, max=MAX_BATCH))
+    batch_size: int = field(default=256, metadata=BATCH)
     """Transitions per update."""
-    num_steps: int = field(default=1_000_000, metadata=bounds(min=1, max=MAX_STEPS))
+    num_steps: int = field(default=1_000_000, metadata=STEPS)
     """Learner steps of a full run (what ``rlu train`` runs when no --steps is given)."""
 
     def __post_init__(self) -> None:

@@ -22,7 +22,7 @@ import torch
 
 from rlu.agents import common
 from rlu.agents import discrete_common as dc
-from rlu.files import MAX_LR, Checked, bounds
+from rlu.files import LEARNING_RATE, Checked
 from rlu.types import Transition
 
 
@@ -30,7 +30,7 @@ from rlu.types import Transition
 class DQNConfig(Checked):
     atari: dc.AtariSettings = field(default_factory=dc.AtariSettings)
     """Settings shared by the Atari baselines (batch, discount, network, epsilons, budget)."""
-    learning_rate: float = field(default=3e-5, metadata=bounds(gt=0.0, max=MAX_LR))
+    learning_rate: float = field(default=3e-5, metadata=LEARNING_RATE)
     """Adam step size; the paper's online policy selection picked 3e-5 for offline DQN."""
     double_q: bool = True
     """Select the next action with the online network (double DQN), as the paper's offline DQN."""

@@ -58,7 +58,7 @@ import torch
 
 from rlu.agents import common
 from rlu.agents import discrete_common as dc
-from rlu.files import MAX_LR, Checked, bounds
+from rlu.files import FRACTION, LEARNING_RATE, Checked, bounds
 from rlu.types import Transition
 
 DOPAMINE_ATARI = dc.AtariSettings(
@@ -81,13 +81,13 @@ Nature CNN, AtariSettings' default."""
 class DopamineDQNConfig(Checked):
     atari: dc.AtariSettings = field(default_factory=lambda: DOPAMINE_ATARI)
     """Batch, discount, network, epsilons, target period (in updates), budget: Dopamine's."""
-    learning_rate: float = field(default=2.5e-4, metadata=bounds(gt=0.0, max=MAX_LR))
+    learning_rate: float = field(default=2.5e-4, metadata=LEARNING_RATE)
     """RMSProp step size (dqn.gin: tf.train.RMSPropOptimizer.learning_rate = 0.00025)."""
-    rmsprop_decay: float = field(default=0.95, metadata=bounds(min=0.0, max=1.0))
+    rmsprop_decay: float = field(default=0.95, metadata=FRACTION)
     """Decay of RMSProp's moving averages (dqn.gin: decay = 0.95)."""
     rmsprop_momentum: float = field(default=0.0, metadata=bounds(min=0.0, lt=1.0))
     """RMSProp momentum (dqn.gin: momentum = 0.0)."""
-    rmsprop_epsilon: float = field(default=1e-5, metadata=bounds(min=0.0, max=1.0))
+    rmsprop_epsilon: float = field(default=1e-5, metadata=FRACTION)
     """Added to the variance estimate *inside* the square root, as TF1 does (dqn.gin:
     epsilon = 0.00001); see the module docstring for why this is not torch's eps."""
     centered: bool = True

@@ -76,7 +76,16 @@ from torch.nn import functional as F
 from rlu.agents import common
 from rlu.agents import discrete_common as dc
 from rlu.agents import networks as nets
-from rlu.files import MAX_BATCH, MAX_LAYERS, MAX_LR, MAX_STEPS, MAX_WIDTH, Checked, bounds
+from rlu.files import (
+    BATCH,
+    LEARNING_RATE,
+    MAX_LAYERS,
+    MAX_STEPS,
+    STEPS,
+    WIDTH,
+    Checked,
+    bounds,
+)
 from rlu.seeds import stream_seed
 from rlu.types import BatchSpec, DiscreteSpec, RluError, Sequence
 
@@ -94,7 +103,7 @@ class AtariDT(Checked):
     """Transformer blocks."""
     num_heads: int = field(default=8, metadata=bounds(min=1, max=1024))
     """Attention heads per block."""
-    hidden_size: int = field(default=128, metadata=bounds(min=1, max=MAX_WIDTH))
+    hidden_size: int = field(default=128, metadata=WIDTH)
     """Width of the token embeddings and of the transformer (minGPT's n_embd)."""
     dropout: float = field(default=0.1, metadata=bounds(min=0.0, lt=1.0))
     """Dropout of the embeddings, the attention weights and both residual branches."""
@@ -110,7 +119,7 @@ class AtariDT(Checked):
         default=(4, 2, 1), metadata=bounds(min=1, max=84, min_len=1, max_len=16)
     )
     """Nature CNN strides."""
-    learning_rate: float = field(default=6e-4, metadata=bounds(gt=0.0, max=MAX_LR))
+    learning_rate: float = field(default=6e-4, metadata=LEARNING_RATE)
     """AdamW's base learning rate."""
     betas: tuple[float, float] = field(default=(0.9, 0.95), metadata=bounds(min=0.0, lt=1.0))
     """AdamW's betas."""
@@ -125,9 +134,9 @@ class AtariDT(Checked):
     final_tokens: int = field(default=90_000_000, metadata=bounds(min=1, max=10**13))
     """Tokens at which the cosine decay reaches 10 % of the base rate (the Atari code:
     2 x its 500,000 steps x 3K)."""
-    batch_size: int = field(default=128, metadata=bounds(min=1, max=MAX_BATCH))
+    batch_size: int = field(default=128, metadata=BATCH)
     """Windows per update (the Atari code: 128, Pong 512)."""
-    num_steps: int = field(default=19_530, metadata=bounds(min=1, max=MAX_STEPS))
+    num_steps: int = field(default=19_530, metadata=STEPS)
     """Learner steps of a full run: 5 epochs of 3,906 batches of 128 over the DT paper's
     500,000 steps (Pong: 4,885 of 512); ``rlu train`` runs them without --steps."""
     max_timestep: int = field(default=27_000, metadata=bounds(min=1, max=10**7))
@@ -155,15 +164,15 @@ class DTConfig(Checked):
     """Transformer blocks."""
     num_heads: int = field(default=1, metadata=bounds(min=1, max=1024))
     """Attention heads per block."""
-    hidden_size: int = field(default=128, metadata=bounds(min=1, max=MAX_WIDTH))
+    hidden_size: int = field(default=128, metadata=WIDTH)
     """Width of the token embeddings and of the transformer (the gym code's embed_dim)."""
     dropout: float = field(default=0.1, metadata=bounds(min=0.0, lt=1.0))
     """Dropout of the embeddings, the attention weights and both residual branches."""
-    torso_hidden: int = field(default=64, metadata=bounds(min=1, max=MAX_WIDTH))
+    torso_hidden: int = field(default=64, metadata=WIDTH)
     """Embedding size of each camera's ResNet torso (camera observations only)."""
     normalize_observations: bool = True
     """States normalised by the data's mean and std (the gym code's; cameras pass unchanged)."""
-    learning_rate: float = field(default=1e-4, metadata=bounds(gt=0.0, max=MAX_LR))
+    learning_rate: float = field(default=1e-4, metadata=LEARNING_RATE)
     """AdamW's learning rate after the warm-up."""
     betas: tuple[float, float] = field(default=(0.9, 0.999), metadata=bounds(min=0.0, lt=1.0))
     """AdamW's betas (PyTorch's default, as the gym code)."""
@@ -173,9 +182,9 @@ class DTConfig(Checked):
     """Global gradient norm clip."""
     warmup_steps: int = field(default=10_000, metadata=bounds(min=0, max=MAX_STEPS))
     """Updates of the linear learning-rate warm-up, ``min((step + 1) / warmup_steps, 1)``."""
-    batch_size: int = field(default=64, metadata=bounds(min=1, max=MAX_BATCH))
+    batch_size: int = field(default=64, metadata=BATCH)
     """Windows per update."""
-    num_steps: int = field(default=100_000, metadata=bounds(min=1, max=MAX_STEPS))
+    num_steps: int = field(default=100_000, metadata=STEPS)
     """Learner steps of a full run (the gym code: 10 iterations of 10,000); ``rlu train`` runs
     them without --steps."""
     timesteps: str = field(default="episode", metadata=bounds(choices=TIMESTEPS))

@@ -45,18 +45,25 @@ from torch import nn
 from rlu.agents import common
 from rlu.agents import networks as nets
 from rlu.agents.losses import gaussian_log_prob
-from rlu.files import MAX_BATCH, MAX_LAYERS, MAX_LR, MAX_STEPS, MAX_WIDTH, Checked, bounds
+from rlu.files import (
+    BATCH,
+    FRACTION,
+    LAYERS,
+    LEARNING_RATE,
+    STEPS,
+    WIDTH,
+    Checked,
+    bounds,
+)
 from rlu.seeds import stream_seed
 from rlu.types import BatchSpec, Transition
 
 
 @dataclass(frozen=True)
 class IQLConfig(Checked):
-    hidden_layers: tuple[int, ...] = field(
-        default=(256, 256), metadata=bounds(min=1, max=MAX_WIDTH, min_len=1, max_len=MAX_LAYERS)
-    )
+    hidden_layers: tuple[int, ...] = field(default=(256, 256), metadata=LAYERS)
     """Hidden sizes of the value, each critic and the policy (ReLU MLPs)."""
-    torso_hidden: int = field(default=64, metadata=bounds(min=1, max=MAX_WIDTH))
+    torso_hidden: int = field(default=64, metadata=WIDTH)
     """Camera ResNet embedding size."""
     expectile: float = field(default=0.7, metadata=bounds(gt=0.0, lt=1.0))
     """tau of the expectile value loss (MuJoCo 0.7; the paper's AntMaze 0.9)."""
@@ -68,23 +75,23 @@ class IQLConfig(Checked):
     """Lower clip of the policy's log standard deviation."""
     log_std_max: float = field(default=2.0, metadata=bounds(min=-100.0, max=100.0))
     """Upper clip of the policy's log standard deviation."""
-    gamma: float = field(default=0.99, metadata=bounds(min=0.0, max=1.0))
+    gamma: float = field(default=0.99, metadata=FRACTION)
     """Discount."""
     tau: float = field(default=0.005, metadata=bounds(gt=0.0, max=1.0))
     """Polyak rate of the target critics, every update."""
     reward_scale: float = field(default=1.0, metadata=bounds(gt=0.0, max=1e6))
     """Factor on every reward before the target (see the module docstring)."""
-    actor_lr: float = field(default=3e-4, metadata=bounds(gt=0.0, max=MAX_LR))
+    actor_lr: float = field(default=3e-4, metadata=LEARNING_RATE)
     """Adam learning rate of the policy (its start value with the cosine schedule)."""
-    critic_lr: float = field(default=3e-4, metadata=bounds(gt=0.0, max=MAX_LR))
+    critic_lr: float = field(default=3e-4, metadata=LEARNING_RATE)
     """Adam learning rate of the twin critics."""
-    value_lr: float = field(default=3e-4, metadata=bounds(gt=0.0, max=MAX_LR))
+    value_lr: float = field(default=3e-4, metadata=LEARNING_RATE)
     """Adam learning rate of the value network."""
     cosine_decay: bool = True
     """Decay the policy's learning rate to 0 along a half cosine over ``num_steps`` updates."""
-    batch_size: int = field(default=256, metadata=bounds(min=1, max=MAX_BATCH))
+    batch_size: int = field(default=256, metadata=BATCH)
     """Transitions per update."""
-    num_steps: int = field(default=1_000_000, metadata=bounds(min=1, max=MAX_STEPS))
+    num_steps: int = field(default=1_000_000, metadata=STEPS)
     """Learner steps of a full run (the original's 1M); also the cosine schedule's horizon."""
 
 

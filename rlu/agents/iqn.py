@@ -29,7 +29,7 @@ from torch import nn
 
 from rlu.agents import common
 from rlu.agents import discrete_common as dc
-from rlu.files import MAX_LR, MAX_WIDTH, Checked, bounds
+from rlu.files import LEARNING_RATE, WIDTH, Checked, bounds
 from rlu.types import Transition
 
 
@@ -37,13 +37,13 @@ from rlu.types import Transition
 class IQNConfig(Checked):
     atari: dc.AtariSettings = field(default_factory=dc.AtariSettings)
     """Settings shared by the Atari baselines (batch, discount, network, epsilons, budget)."""
-    learning_rate: float = field(default=1e-4, metadata=bounds(gt=0.0, max=MAX_LR))
+    learning_rate: float = field(default=1e-4, metadata=LEARNING_RATE)
     """Adam step size; the paper's online policy selection picked 1e-4 for IQN."""
     num_tau_samples: int = field(default=16, metadata=bounds(min=1, max=10_000))
     """Quantile fractions drawn per transition, for the online (N) and the target (N') side."""
     num_quantile_samples: int = field(default=32, metadata=bounds(min=1, max=10_000))
     """Fractions drawn per observation to estimate Q when acting (Dopamine's K)."""
-    embedding_size: int = field(default=64, metadata=bounds(min=1, max=MAX_WIDTH))
+    embedding_size: int = field(default=64, metadata=WIDTH)
     """Cosine features of tau (n in the IQN paper)."""
     kappa: float = field(default=1.0, metadata=bounds(gt=0.0, max=1e6))
     """Where the quantile Huber loss turns linear."""

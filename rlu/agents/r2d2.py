@@ -46,7 +46,7 @@ from torch import nn
 from rlu.agents import common
 from rlu.agents import discrete_common as dc
 from rlu.agents import networks as nets
-from rlu.files import MAX_LR, Checked, bounds
+from rlu.files import FRACTION, LEARNING_RATE, Checked, bounds
 from rlu.types import BatchSpec, RluError, Sequence
 
 PAPER_ATARI = dc.AtariSettings(
@@ -60,7 +60,7 @@ class R2D2Config(Checked):
     atari: dc.AtariSettings = field(default_factory=lambda: PAPER_ATARI)
     """Network, batch (windows per update), discount, n-step, Adam epsilon, target period,
     epsilons and budget (R2D2's values: batch 64, gamma 0.997, n 5, Adam epsilon 1e-3)."""
-    learning_rate: float = field(default=1e-4, metadata=bounds(gt=0.0, max=MAX_LR))
+    learning_rate: float = field(default=1e-4, metadata=LEARNING_RATE)
     """Adam step size (R2D2's 1e-4)."""
     sequence_length: int = field(default=80, metadata=bounds(min=1, max=100_000))
     """Steps of a window the loss is over (R2D2's 80)."""
@@ -68,7 +68,7 @@ class R2D2Config(Checked):
     """Steps before them that only warm up the LSTM state (R2D2's 40)."""
     lstm_size: int = field(default=512, metadata=bounds(min=1, max=16384))
     """LSTM units (R2D2's 512)."""
-    rescale_epsilon: float = field(default=1e-3, metadata=bounds(min=0.0, max=1.0))
+    rescale_epsilon: float = field(default=1e-3, metadata=FRACTION)
     """The eps of the value rescaling h; 0 turns the rescaling off (plain n-step targets)."""
 
 

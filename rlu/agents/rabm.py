@@ -39,22 +39,31 @@ from torch.nn import functional as F
 
 from rlu.agents import common, losses
 from rlu.agents import networks as nets
-from rlu.files import MAX_BATCH, MAX_LAYERS, MAX_LR, MAX_STEPS, MAX_WIDTH, Checked, bounds
+from rlu.files import (
+    BATCH,
+    FRACTION,
+    LEARNING_RATE,
+    MAX_LAYERS,
+    STEPS,
+    WIDTH,
+    Checked,
+    bounds,
+)
 from rlu.seeds import stream_seed
 from rlu.types import BatchSpec, Sequence, Transition
 
 
 @dataclass(frozen=True)
 class RABMConfig(Checked):
-    hidden_size: int = field(default=1024, metadata=bounds(min=1, max=MAX_WIDTH))
+    hidden_size: int = field(default=1024, metadata=WIDTH)
     """Width of the residual MLPs."""
     num_layers: int = field(default=8, metadata=bounds(min=1, max=MAX_LAYERS))
     """Layers of the residual MLPs."""
-    torso_hidden: int = field(default=64, metadata=bounds(min=1, max=MAX_WIDTH))
+    torso_hidden: int = field(default=64, metadata=WIDTH)
     """Camera ResNet embedding size (table 5, ABM & BC column)."""
     recurrent: bool = False
     """Two LSTM layers after each MLP; trains on sequence windows."""
-    lstm_hidden: int = field(default=1024, metadata=bounds(min=1, max=MAX_WIDTH))
+    lstm_hidden: int = field(default=1024, metadata=WIDTH)
     """Hidden size of each LSTM layer."""
     sequence_length: int = field(default=40, metadata=bounds(min=1, max=100_000))
     """Window length of recurrent batches."""
@@ -64,19 +73,19 @@ class RABMConfig(Checked):
     """Lowest atom."""
     vmax: float = field(default=100.0, metadata=bounds(min=-1e9, max=1e9))
     """Highest atom."""
-    gamma: float = field(default=0.99, metadata=bounds(min=0.0, max=1.0))
+    gamma: float = field(default=0.99, metadata=FRACTION)
     """Discount (of the n-step reward too)."""
     n_step: int = field(default=1, metadata=bounds(min=1, max=1000))
     """Steps of the return the data layer sums (transition batches only)."""
-    target_update_period: int = field(default=100, metadata=bounds(min=1, max=MAX_STEPS))
+    target_update_period: int = field(default=100, metadata=STEPS)
     """Learner steps between hard copies into the target policy and critic."""
-    prior_lr: float = field(default=1e-4, metadata=bounds(gt=0.0, max=MAX_LR))
+    prior_lr: float = field(default=1e-4, metadata=LEARNING_RATE)
     """Adam learning rate of the ABM prior."""
-    policy_lr: float = field(default=1e-4, metadata=bounds(gt=0.0, max=MAX_LR))
+    policy_lr: float = field(default=1e-4, metadata=LEARNING_RATE)
     """Adam learning rate of the policy."""
-    critic_lr: float = field(default=1e-4, metadata=bounds(gt=0.0, max=MAX_LR))
+    critic_lr: float = field(default=1e-4, metadata=LEARNING_RATE)
     """Adam learning rate of the critic."""
-    dual_lr: float = field(default=1e-2, metadata=bounds(gt=0.0, max=MAX_LR))
+    dual_lr: float = field(default=1e-2, metadata=LEARNING_RATE)
     """Adam learning rate of MPO's temperature and KL multipliers (Acme's MPO: 1e-2)."""
     num_samples: int = field(default=20, metadata=bounds(min=1, max=10_000))
     """Actions sampled per state for the E-step, the advantage baseline and the critic target."""
@@ -92,9 +101,9 @@ class RABMConfig(Checked):
     """Temperature of the 'exp' advantage weights."""
     eval_variance: float = field(default=1e-4, metadata=bounds(min=1e-12, max=1e6))
     """Variance of the policy when acting greedily (the paper's evaluation, as BC's)."""
-    batch_size: int = field(default=1024, metadata=bounds(min=1, max=MAX_BATCH))
+    batch_size: int = field(default=1024, metadata=BATCH)
     """Transitions per update; windows per update when recurrent (as BC: 1024 and 128)."""
-    num_steps: int = field(default=1_000_000, metadata=bounds(min=1, max=MAX_STEPS))
+    num_steps: int = field(default=1_000_000, metadata=STEPS)
     """Learner steps of a full run: what ``rlu train`` runs when no --steps is given. The paper
     states no budget for the continuous baselines; 1M is rlu's choice."""
 

@@ -68,7 +68,16 @@ from torch import nn
 from rlu.agents import common
 from rlu.agents import networks as nets
 from rlu.agents.losses import smoothed_target_action
-from rlu.files import MAX_BATCH, MAX_LAYERS, MAX_LR, MAX_STEPS, MAX_WIDTH, Checked, bounds
+from rlu.files import (
+    BATCH,
+    FRACTION,
+    LAYERS,
+    LEARNING_RATE,
+    STEPS,
+    WIDTH,
+    Checked,
+    bounds,
+)
 from rlu.seeds import stream_seed
 from rlu.types import BatchSpec, DataStatistics, Transition
 
@@ -77,24 +86,24 @@ from rlu.types import BatchSpec, DataStatistics, Transition
 class ReBRACConfig(Checked):
     """In the order of the original's ``Config`` (its names in the field docstrings)."""
 
-    actor_lr: float = field(default=1e-3, metadata=bounds(gt=0.0, max=MAX_LR))
+    actor_lr: float = field(default=1e-3, metadata=LEARNING_RATE)
     """``actor_learning_rate``: Adam's rate for the actor (Gym-MuJoCo; 3e-4 elsewhere)."""
-    critic_lr: float = field(default=1e-3, metadata=bounds(gt=0.0, max=MAX_LR))
+    critic_lr: float = field(default=1e-3, metadata=LEARNING_RATE)
     """``critic_learning_rate``: Adam's rate for the critics (Gym-MuJoCo; 3e-4 Adroit, 5e-5
     AntMaze)."""
     actor_layers: tuple[int, ...] = field(
         default=(256, 256, 256),
-        metadata=bounds(min=1, max=MAX_WIDTH, min_len=1, max_len=MAX_LAYERS),
+        metadata=LAYERS,
     )
     """``hidden_dim`` x ``actor_n_hiddens``: the actor's hidden sizes (ReLU, tanh output)."""
     critic_layers: tuple[int, ...] = field(
         default=(256, 256, 256),
-        metadata=bounds(min=1, max=MAX_WIDTH, min_len=1, max_len=MAX_LAYERS),
+        metadata=LAYERS,
     )
     """``hidden_dim`` x ``critic_n_hiddens``: each critic's hidden sizes (ReLU)."""
-    torso_hidden: int = field(default=64, metadata=bounds(min=1, max=MAX_WIDTH))
+    torso_hidden: int = field(default=64, metadata=WIDTH)
     """Camera ResNet embedding size (rlu's; the original has feature observations only)."""
-    gamma: float = field(default=0.99, metadata=bounds(min=0.0, max=1.0))
+    gamma: float = field(default=0.99, metadata=FRACTION)
     """``gamma``: the discount (the paper's AntMaze runs use 0.999)."""
     tau: float = field(default=0.005, metadata=bounds(gt=0.0, max=1.0))
     """``tau``: Polyak rate of the target actor and critics, on the actor's updates."""
@@ -116,9 +125,9 @@ class ReBRACConfig(Checked):
     """``policy_freq``: the actor and the targets learn on every policy_freq-th update."""
     normalize_q: bool = True
     """``normalize_q``: scale the actor's Q term by 1 / E|Q|, held fixed (TD3+BC's lambda)."""
-    batch_size: int = field(default=1024, metadata=bounds(min=1, max=MAX_BATCH))
+    batch_size: int = field(default=1024, metadata=BATCH)
     """``batch_size``: transitions per update (Gym-MuJoCo; 256 in the paper's other domains)."""
-    num_steps: int = field(default=1_000_000, metadata=bounds(min=1, max=MAX_STEPS))
+    num_steps: int = field(default=1_000_000, metadata=STEPS)
     """``num_epochs`` x ``num_updates_on_epoch`` (1000 x 1000): learner steps of a full run."""
     normalize_observations: bool = False
     """``normalize_states``: standardise observations, (s - mean) / (std + 1e-3), with the

@@ -33,7 +33,7 @@ from torch import nn
 
 from rlu.agents import common
 from rlu.agents import discrete_common as dc
-from rlu.files import MAX_LR, Checked, bounds
+from rlu.files import LEARNING_RATE, Checked, bounds
 from rlu.types import Transition
 
 
@@ -41,7 +41,7 @@ from rlu.types import Transition
 class REMConfig(Checked):
     atari: dc.AtariSettings = field(default_factory=dc.AtariSettings)
     """Settings shared by the Atari baselines (batch, discount, network, epsilons, budget)."""
-    learning_rate: float = field(default=1e-4, metadata=bounds(gt=0.0, max=MAX_LR))
+    learning_rate: float = field(default=1e-4, metadata=LEARNING_RATE)
     """Adam step size; the paper's online policy selection picked 1e-4 for REM."""
     num_heads: int = field(default=4, metadata=bounds(min=1, max=1024))
     """Q-value estimates mixed by a random convex combination (the paper's 4)."""

@@ -55,18 +55,25 @@ from torch.nn import functional as F
 from rlu.agents import common
 from rlu.agents import networks as nets
 from rlu.agents.losses import smoothed_target_action
-from rlu.files import MAX_BATCH, MAX_LAYERS, MAX_LR, MAX_STEPS, MAX_WIDTH, Checked, bounds
+from rlu.files import (
+    BATCH,
+    FRACTION,
+    LAYERS,
+    LEARNING_RATE,
+    STEPS,
+    WIDTH,
+    Checked,
+    bounds,
+)
 from rlu.seeds import stream_seed
 from rlu.types import BatchSpec, DataStatistics, Transition
 
 
 @dataclass(frozen=True)
 class TD3BCConfig(Checked):
-    hidden_layers: tuple[int, ...] = field(
-        default=(256, 256), metadata=bounds(min=1, max=MAX_WIDTH, min_len=1, max_len=MAX_LAYERS)
-    )
+    hidden_layers: tuple[int, ...] = field(default=(256, 256), metadata=LAYERS)
     """Hidden sizes of the actor and of each critic (ReLU MLPs)."""
-    torso_hidden: int = field(default=64, metadata=bounds(min=1, max=MAX_WIDTH))
+    torso_hidden: int = field(default=64, metadata=WIDTH)
     """Camera ResNet embedding size."""
     alpha: float = field(default=2.5, metadata=bounds(min=0.0, max=1e6))
     """alpha of lambda = alpha / E|Q|: the weight of the Q term against behaviour cloning."""
@@ -76,21 +83,21 @@ class TD3BCConfig(Checked):
     """The smoothing noise is clipped to [-noise_clip, noise_clip]."""
     policy_freq: int = field(default=2, metadata=bounds(min=1, max=1000))
     """The actor and the target networks learn on every policy_freq-th update."""
-    gamma: float = field(default=0.99, metadata=bounds(min=0.0, max=1.0))
+    gamma: float = field(default=0.99, metadata=FRACTION)
     """Discount."""
     tau: float = field(default=0.005, metadata=bounds(gt=0.0, max=1.0))
     """Polyak rate of the target actor and critics, on the updates that step the actor."""
-    actor_lr: float = field(default=3e-4, metadata=bounds(gt=0.0, max=MAX_LR))
+    actor_lr: float = field(default=3e-4, metadata=LEARNING_RATE)
     """Adam learning rate of the actor."""
-    critic_lr: float = field(default=3e-4, metadata=bounds(gt=0.0, max=MAX_LR))
+    critic_lr: float = field(default=3e-4, metadata=LEARNING_RATE)
     """Adam learning rate of the twin critics."""
     normalize_observations: bool = True
     """Standardise observations with the dataset's per-feature mean and std."""
     observation_eps: float = field(default=1e-3, metadata=bounds(gt=0.0, max=1e3))
     """eps of (s - mean) / (std + eps), the original's ``normalize_states(eps=1e-3)``."""
-    batch_size: int = field(default=256, metadata=bounds(min=1, max=MAX_BATCH))
+    batch_size: int = field(default=256, metadata=BATCH)
     """Transitions per update."""
-    num_steps: int = field(default=1_000_000, metadata=bounds(min=1, max=MAX_STEPS))
+    num_steps: int = field(default=1_000_000, metadata=STEPS)
     """Learner steps of a full run (the original's ``max_timesteps`` 1M)."""
 
 

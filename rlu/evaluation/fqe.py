@@ -21,7 +21,15 @@ from typing import Any
 import numpy as np
 
 from rlu.devices import resolve_device
-from rlu.files import MAX_BATCH, MAX_LAYERS, MAX_LR, MAX_STEPS, MAX_WIDTH, Checked, bounds
+from rlu.files import (
+    FRACTION,
+    LAYERS,
+    LEARNING_RATE,
+    MAX_BATCH,
+    MAX_STEPS,
+    Checked,
+    bounds,
+)
 from rlu.types import DiscreteSpec, Policy, RluError
 
 
@@ -30,13 +38,11 @@ class FQEConfig(Checked):
     """Fitted Q Evaluation's settings: discount, network, optimiser, steps and batches (``rlu report
     --fqe`` takes ``--fqe-steps``)."""
 
-    gamma: float = field(default=0.99, metadata=bounds(min=0.0, max=1.0))
+    gamma: float = field(default=0.99, metadata=FRACTION)
     """Discount of the estimated value."""
-    hidden: tuple[int, ...] = field(
-        default=(128, 128), metadata=bounds(min=1, max=MAX_WIDTH, min_len=1, max_len=MAX_LAYERS)
-    )
+    hidden: tuple[int, ...] = field(default=(128, 128), metadata=LAYERS)
     """MLP hidden layer sizes."""
-    learning_rate: float = field(default=1e-3, metadata=bounds(gt=0.0, max=MAX_LR))
+    learning_rate: float = field(default=1e-3, metadata=LEARNING_RATE)
     """Adam learning rate."""
     steps: int = field(default=2000, metadata=bounds(min=1, max=MAX_STEPS, metavar="N"))
     """FQE gradient steps."""

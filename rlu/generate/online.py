@@ -39,7 +39,7 @@ import numpy as np
 
 from rlu.data.episode import Segment
 from rlu.data.views import n_step_counts, n_step_targets, stack_frames
-from rlu.files import bounds, check_value, shape_of
+from rlu.files import FRACTION, bounds, check_value, shape_of
 from rlu.generate.common import ACTOR, AGENT, ENV, EPISODE, run_rng, run_seed
 from rlu.generate.config import GenerateConfig
 from rlu.generate.recorder import EpisodeRecorder, episode_id, schema_for
@@ -73,7 +73,7 @@ class OnlineConfig:
     """D4PG behaviour noise: standard deviation of the Gaussian added to the action. None: the
     agent's own ``act(greedy=False)`` explores (DMPO samples its Gaussian policy, as Acme's
     behaviour network); either way the action is clipped to the bounds."""
-    epsilon_end: float = field(default=0.01, metadata=bounds(min=0.0, max=1.0))
+    epsilon_end: float = field(default=0.01, metadata=FRACTION)
     """DQN: final exploration epsilon (Dopamine)."""
     epsilon_decay_steps: int = field(default=250_000, metadata=bounds(min=1))
     """DQN: env steps over which epsilon decays linearly from 1 (Dopamine: 1M frames)."""

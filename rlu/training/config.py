@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from rlu.devices import Runtime
-from rlu.files import MAX_DEPTH, MAX_STEPS, Checked, bounds
+from rlu.files import MAX_DEPTH, MAX_STEPS, STEPS, Checked, bounds
 
 EVAL_EVERY_MIN = 10_000
 """Fewest learner steps between two periodic evaluations when ``eval_every`` is left unset."""
@@ -35,7 +35,7 @@ class RunSettings(Checked):
     preset: str = "small"
     """Agent preset: small (minutes on a laptop CPU; the default for a first run) or paper (the
     paper's settings and budget, e.g. 2M steps on Atari); numbers beside the paper's need paper."""
-    steps: int | None = field(default=None, metadata=bounds(min=1, max=MAX_STEPS))
+    steps: int | None = field(default=None, metadata=STEPS)
     """Learner steps (default: the preset's num_steps)."""
     eval_every: int | None = field(default=None, metadata=bounds(min=-1, max=MAX_STEPS))
     """Learner steps between evaluations in the env (default: every max(10,000, steps / 10) and
