@@ -143,7 +143,9 @@ def presampled_rate(name, path, overrides, preset, runtime, seconds) -> float:
 
 
 def loop_rate(name, task, path, overrides, preset, runtime, k, work: Path) -> float:
-    """rlu's full loop: ``train()`` for N and N + K steps; K / (difference of wall times)."""
+    """rlu's full loop: ``train()`` for N and N + K steps; K / (difference of wall times). The
+    runs use the process's torch thread count (``train`` sets it from ``torch_threads``), so the
+    loop and the agent alone are timed on the same threads."""
     times = []
     for steps in (20, 20 + k):
         run = RunSettings(
@@ -154,6 +156,7 @@ def loop_rate(name, task, path, overrides, preset, runtime, k, work: Path) -> fl
             checkpoint_every=10**9,
             keep_checkpoints=1,
             runtime=runtime,
+            torch_threads=torch.get_num_threads(),
         )
         cfg = TrainConfig(task=task, agent=name, dataset=path, overrides=overrides, run=run)
         out = work / f"{name}_{steps}"
@@ -366,7 +369,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--control-steps", type=int, default=None, help="default 100k / 2k")
     p.add_argument("--no-loop", action="store_true", help="skip the full-loop figures")
     p.add_argument("--no-checks", action="store_true")
-    p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    p.add_argument("--threads", type=int, default=RunSettings().torch_threads,
+                   help="torch threads of every figure (default: a run's, RunSettings."
+                        "torch_threads; the agent alone and the loop use the same)")  # fmt: skip
     p.add_argument("--json", default=None, help="also write the figures here")
     p.add_argument("--stream-agents", default=",".join(STREAM_AGENTS),
                    help="agents fed by the stream sampler (empty: none)")  # fmt: skip
@@ -384,8 +389,7 @@ def main(argv: list[str] | None = None) -> int:
     device = Runtime(device=args.device).resolve().device
     dev = torch.device(device)
     cuda = dev.type == "cuda"
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    torch.set_num_threads(args.threads)
     size = args.size or ("paper" if cuda else "tiny")
     variants = (args.variants or ("fp32,tf32,bf16,compile" if cuda else "fp32,bf16")).split(",")
     seconds = args.seconds or (3.0 if cuda else 1.0)
