@@ -7,8 +7,10 @@
 A domain's module (``rlu/domains/<name>.py``) holds its task tables and builds its TaskSpecs,
 names its env factory (imported only when an env is made) and the extra that installs it, the
 TensorFlow Datasets builders that name its datasets and how their config names read, how its
-datasets are told apart (Atari runs, RWRL challenge and size), and where its paper numbers come
-from. The task registry (``rlu.tasks``), ``rlu.envs``, the release catalog, the report and the
+datasets are told apart (Atari runs, RWRL challenge and size), where its paper numbers come from,
+what the paper states of their conditions (``rlu.domains.paper``) and how the report draws and
+normalises them, and the agent ``rlu generate`` trains to record its data at each scale. The task
+registry (``rlu.tasks``), ``rlu.envs``, the release catalog, the report, generation and the
 command line read these entries instead of naming domains, so a new domain is one module plus one
 line in ``_MODULES`` below; ``tests/domains/test_domain_contract.py`` checks every entry.
 """

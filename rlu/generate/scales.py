@@ -3,11 +3,12 @@
 ``tiny`` is for tests and smoke runs (seconds); ``laptop``, the default, makes the control suite's
 behaviour runs reach the paper's behaviour level in minutes of CPU (``LAPTOP``, measured: the
 README's generation section); ``paper`` is the paper's budgets (clusters). One ``Scale`` per task
-and scale name; the RWRL recipe trains the control suite's D4PG at the same scale, except at
-``paper``, where it trains the paper's RWRL behaviour agent, distributional MPO (``dmpo``, with
-Acme's settings: ``_PAPER_DMPO``). Atari's behaviour agent is Dopamine's online DQN
-(``dopamine_dqn``) at every scale, with Dopamine's online settings at ``laptop`` and ``paper``
-(``_DOPAMINE_ONLINE``).
+and scale name: the agent a domain's runs train at each scale is its entry's ``behaviour_agents``
+(``rlu.domains``), that agent's settings at that scale are :data:`BEHAVIOUR`'s. The RWRL recipe
+trains the control suite's D4PG at the same scale, except at ``paper``, where it trains the
+paper's RWRL behaviour agent, distributional MPO (``dmpo``, with Acme's settings:
+``_PAPER_DMPO``). Atari's behaviour agent is Dopamine's online DQN (``dopamine_dqn``) at every
+scale, with Dopamine's online settings at ``laptop`` and ``paper`` (``_DOPAMINE_ONLINE``).
 """
 
 from __future__ import annotations
