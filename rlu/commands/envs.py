@@ -142,7 +142,7 @@ def _release_files(src: str, task_id: str, runs: list[str] | None) -> list[str]:
     from rlu.types import RluError
 
     task = get_task(task_id)
-    if task.domain != "atari":
+    if not DOMAINS[task.domain].normalised:  # only a normalised domain has best-behaviour scores
         raise RluError(f"{task_id} is not an Atari task; best-behaviour scores are Atari's")
     files: list[str] = []
     for run in runs or list(task.datasets):

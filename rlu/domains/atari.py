@@ -12,6 +12,7 @@ from collections.abc import Mapping
 from types import MappingProxyType
 
 from rlu.domains import Domain
+from rlu.domains.paper import EPISODES, SEEDS, PaperConditions, Statement
 from rlu.types import ArraySpec
 
 NAME = "atari"
@@ -179,6 +180,40 @@ def tfds_ref(tasks, name: str, builder: str, config: str, family: str, fix: str)
     return TaskRef(task, name, family=family, run=run)
 
 
+# Appendix A.2, table 'Atari experiments hyperparameters': "Training Steps: 2M learning steps",
+# on a fixed replay memory of 2M steps of the release.
+PAPER_STEPS = 2_000_000
+PAPER_CONDITIONS = PaperConditions(
+    MappingProxyType(
+        {
+            "preset": Statement(
+                "the Atari baselines' settings",
+                "appendix A.2 and its table 'Atari experiments hyperparameters'",
+            ),
+            "budget": Statement(
+                PAPER_STEPS,
+                "appendix A.2, table 'Atari experiments hyperparameters': 'Training Steps: 2M "
+                "learning steps'",
+            ),
+            "data": Statement(
+                PAPER_STEPS,
+                "appendix A.2, table 'Atari experiments hyperparameters': a fixed replay memory "
+                "of 2M steps (which 2M of the release's it does not say)",
+            ),
+            "episodes": EPISODES,
+            "seeds": SEEDS,
+            "selection": Statement(
+                "online policy selection per game over the grid; naive offline selection: the "
+                "configuration with the best median over the tuning games",
+                "section 2.2 and section 4 ('Naive approach for offline policy selection')",
+            ),
+        }
+    ),
+    replay_steps=PAPER_STEPS,
+    discrete_agents=True,
+)
+"""What the paper states of the conditions of its Atari numbers (appendix A.2)."""
+
 DOMAIN = Domain(
     name=NAME,
     title="Atari 2600",
@@ -204,8 +239,17 @@ DOMAIN = Domain(
     tfds_ref=tfds_ref,
     paper_table="appendix D, table 'Atari 2600 results'",
     statistic="median",
+    paper_conditions=PAPER_CONDITIONS,
+    normalised=True,
+    # the paper draws Atari normalised: the median over games (its Atari figure), the per-game
+    # improvement (appendix) and the IQN and BCQ ablations (appendix)
+    report_figures=("atari_median", "atari_per_game", "iqn_tau", "bcq_threshold"),
     stacked_frames=True,
     generation="runs",
     success="none",
     sim_packages=("ale-py",),
+    # Dopamine's online DQN at every scale (rlu.generate.scales)
+    behaviour_agents=MappingProxyType(
+        {"tiny": "dopamine_dqn", "laptop": "dopamine_dqn", "paper": "dopamine_dqn"}
+    ),
 )

@@ -104,4 +104,6 @@ DOMAIN = Domain(
     paper_table="appendix B, table 'DM Control suite results'",
     generation="runs",
     sim_packages=("dm-control", "mujoco"),
+    # Acme's D4PG, the paper's behaviour agent, at every scale (rlu.generate.scales)
+    behaviour_agents=MappingProxyType({"tiny": "d4pg", "laptop": "d4pg", "paper": "d4pg"}),
 )

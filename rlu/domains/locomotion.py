@@ -6,11 +6,13 @@ dm_control_suite.py``; episode counts, sequence lengths and selection split: the
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from types import MappingProxyType
 
 from rlu.domains import Domain
 from rlu.domains.common import CAMERA, act, config_task_ref, f32
+from rlu.domains.paper import CONTINUOUS
 
 NAME = "locomotion"
 
@@ -54,6 +56,10 @@ LOCOMOTION = {
     "rodent_bowl_escape": ("rodent", 38, 2000, 40, "offline", "rodent_bowl_escape", 2, 1000),
     "rodent_mazes": ("rodent", 38, 2000, 40, "offline", "rodent_mazes", 40, 1500),
 }
+
+RECURRENT = ("rodent_two_touch", "rodent_bowl_escape", "rodent_mazes")
+"""The paper's "tasks of the sequential nature (Rodent Two Tap, Rodent Escape and Rodent
+Mazes)", whose networks add two LSTMs (appendix A.1): rlu's ``paper_recurrent`` preset there."""
 
 
 def build_tasks():
@@ -103,6 +109,9 @@ DOMAIN = Domain(
     tfds_examples=MappingProxyType({"rlu_locomotion": "rlu_locomotion/rodent_gaps"}),
     tfds_ref=functools.partial(config_task_ref, NAME),
     paper_table="appendix C, table 'DM Locomotion results'",
+    paper_conditions=dataclasses.replace(
+        CONTINUOUS, recurrent_tasks=tuple(f"{NAME}/{name}" for name in RECURRENT)
+    ),
     camera_setting="camera",
     generation="policy",
     success="time_limit",

@@ -125,4 +125,7 @@ DOMAIN = Domain(
     tfds_ref=tfds_ref,
     generation="rwrl",
     sim_packages=("dm-control", "mujoco"),
+    # the control suite's D4PG below the paper's scale, where the paper's own RWRL behaviour
+    # agent, distributional MPO, trains (rlu.generate.scales)
+    behaviour_agents=MappingProxyType({"tiny": "d4pg", "laptop": "d4pg", "paper": "dmpo"}),
 )

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 from rlu.types import (
     ActionSpec,
@@ -15,6 +15,8 @@ from rlu.types import (
     RluError,
     observation_spec_to_json,
 )
+
+_V = TypeVar("_V", bound=str | int)
 
 Domain = str
 """A domain's name: one of ``rlu.domains.DOMAINS``."""
@@ -187,19 +189,21 @@ class TaskRef:
     ) -> tuple[str | None, str | int | None, str | None, str | None]:
         """(family, run, challenge, size): what was passed, filled in from the name; a value
         that contradicts the name is an error naming both."""
-        given = {"family": family, "run": run, "challenge": challenge, "size": size}
-        named = {"family": self.family, "run": self.run, "challenge": self.challenge}
-        named["size"] = self.size
-        out = {}
-        for key, value in given.items():
-            mine = named[key]
-            if value is not None and mine is not None and _norm(key, value) != mine:
-                raise RluError(
-                    f"{self.name} names {key} {mine!r}, which contradicts {key}={value!r}; drop "
-                    f"the {key} or use the task id {self.task.id}"
-                )
-            out[key] = value if value is not None else mine
-        return out["family"], out["run"], out["challenge"], out["size"]
+        return (
+            self._setting("family", family, self.family),
+            self._setting("run", run, self.run),
+            self._setting("challenge", challenge, self.challenge),
+            self._setting("size", size, self.size),
+        )
+
+    def _setting(self, key: str, value: _V | None, mine: str | None) -> _V | str | None:
+        """``value`` as passed, else the name's; one that contradicts the name is an error."""
+        if value is not None and mine is not None and _norm(key, value) != mine:
+            raise RluError(
+                f"{self.name} names {key} {mine!r}, which contradicts {key}={value!r}; drop "
+                f"the {key} or use the task id {self.task.id}"
+            )
+        return value if value is not None else mine
 
 
 def _norm(key: str, value: str | int) -> str:

@@ -3,17 +3,21 @@
 ``tiny`` is for tests and smoke runs (seconds); ``laptop``, the default, makes the control suite's
 behaviour runs reach the paper's behaviour level in minutes of CPU (``LAPTOP``, measured: the
 README's generation section); ``paper`` is the paper's budgets (clusters). One ``Scale`` per task
-and scale name; the RWRL recipe trains the control suite's D4PG at the same scale, except at
-``paper``, where it trains the paper's RWRL behaviour agent, distributional MPO (``dmpo``, with
-Acme's settings: ``_PAPER_DMPO``). Atari's behaviour agent is Dopamine's online DQN
-(``dopamine_dqn``) at every scale, with Dopamine's online settings at ``laptop`` and ``paper``
-(``_DOPAMINE_ONLINE``).
+and scale name: the agent a domain's runs train at each scale is its entry's ``behaviour_agents``
+(``rlu.domains``), that agent's settings at that scale are :data:`BEHAVIOUR`'s. The RWRL recipe
+trains the control suite's D4PG at the same scale, except at ``paper``, where it trains the
+paper's RWRL behaviour agent, distributional MPO (``dmpo``, with Acme's settings:
+``_PAPER_DMPO``). Atari's behaviour agent is Dopamine's online DQN (``dopamine_dqn``) at every
+scale, with Dopamine's online settings at ``laptop`` and ``paper`` (``_DOPAMINE_ONLINE``).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from types import MappingProxyType
 
+from rlu.domains import DOMAINS
 from rlu.generate.config import SCALES
 from rlu.generate.online import OnlineConfig
 from rlu.tasks import TaskSpec
@@ -113,8 +117,8 @@ def _laptop_online(task: TaskSpec) -> OnlineConfig:
 def behaviour_target(task: TaskSpec) -> float | None:
     """The return a run's best 10-episode mean should reach at the laptop scale (None: none
     set for this task)."""
-    if task.domain not in ("control_suite", "rwrl"):
-        return None
+    if DOMAINS[task.domain].behaviour_agents.get("laptop") != "d4pg":
+        return None  # the targets are D4PG's laptop runs'
     return LAPTOP.get(task.id.split("/", 1)[1], LAPTOP_DEFAULT).target
 
 
@@ -135,106 +139,126 @@ _PAPER_DMPO = OnlineConfig(
 )
 
 
-def _scales(task: TaskSpec) -> dict[str, Scale]:
-    domain = task.domain
-    if domain in ("control_suite", "rwrl"):
-        scales = {
-            # seconds: for tests and smoke runs; tiny networks, learning barely starts
-            "tiny": Scale(
-                2,
-                OnlineConfig(
-                    "d4pg",
-                    episodes=2,
-                    agent_overrides=_TINY_D4PG,
-                    replay_capacity=5_000,
-                    min_replay=500,
-                    update_every=16,
-                    checkpoint_steps=1_000,
-                    chunk_episodes=1,
-                ),
-                None,
-            ),
-            # minutes on a laptop: the paper's 3 runs, each to the paper's behaviour level
-            "laptop": Scale(3, _laptop_online(task), None),
-            # the paper's: Acme's D4PG, 3 runs of 1M steps each
-            "paper": Scale(
-                3,
-                OnlineConfig(
-                    "d4pg",
-                    episodes=1_000,
-                    preset="paper",
-                    replay_capacity=1_000_000,
-                    min_replay=10_000,
-                    update_every=8,
-                    checkpoint_steps=100_000,
-                    chunk_episodes=20,
-                ),
-                None,
-            ),
-        }
-        if domain == "rwrl":  # the paper's own RWRL behaviour agent at the paper's scale
-            scales["paper"] = Scale(3, _PAPER_DMPO, None)
-        return scales
-    if domain == "atari":
-        return {
-            # seconds: Dopamine's DQN with tiny networks, 2 episodes of 100 steps, learning at once
-            "tiny": Scale(
-                1,
-                OnlineConfig(
-                    "dopamine_dqn",
-                    episodes=2,
-                    agent_overrides=_TINY_DQN,
-                    replay_capacity=2_000,
-                    min_replay=50,
-                    update_every=4,
-                    epsilon_end=0.0,
-                    epsilon_decay_steps=1_000,
-                    checkpoint_steps=100,
-                    chunk_episodes=1,
-                    env_settings={"max_episode_steps": 100},
-                ),
-                None,
-            ),
-            # Dopamine's DQN and online settings for 2 of its 250k-step iterations per run: the
-            # epsilon decay ends at 250k, the second half acts at 0.01 (far from DQN's level,
-            # which takes millions of steps); about 1.5 h of one core per run (bench/README.md).
-            "laptop": Scale(
-                2,
-                OnlineConfig(
-                    "dopamine_dqn",
-                    episodes=10**6,
-                    env_steps=500_000,
-                    preset="paper",
-                    **_DOPAMINE_ONLINE,
-                    # a tenth of Dopamine's 1M: 0.7 GB of frames per run,
-                    # saved with each chunk
-                    replay_capacity=100_000,
-                    checkpoint_steps=50_000,
-                    chunk_episodes=20,
-                ),
-                None,
-            ),
-            # Agarwal et al.'s DQN Replay runs: 5 runs x 50M agent steps (dqn.gin's 200 iterations
-            # of 250k), Dopamine's 1M replay, a checkpoint per 1M steps as in the release
-            "paper": Scale(
-                5,
-                OnlineConfig(
-                    "dopamine_dqn",
-                    episodes=10**9,
-                    env_steps=50_000_000,
-                    preset="paper",
-                    **_DOPAMINE_ONLINE,
-                    replay_capacity=1_000_000,
-                    checkpoint_steps=1_000_000,
-                    chunk_episodes=50,
-                ),
-                None,
-            ),
-        }
-    raise RluError(
-        f"rlu generate trains behaviour agents for the control_suite, atari and rwrl domains; "
-        f"{domain!r} is not one of them (locomotion: record your own policy with --policy)"
+def _d4pg_tiny(task: TaskSpec) -> Scale:
+    # seconds: for tests and smoke runs; tiny networks, learning barely starts
+    return Scale(
+        2,
+        OnlineConfig(
+            "d4pg",
+            episodes=2,
+            agent_overrides=_TINY_D4PG,
+            replay_capacity=5_000,
+            min_replay=500,
+            update_every=16,
+            checkpoint_steps=1_000,
+            chunk_episodes=1,
+        ),
+        None,
     )
+
+
+def _d4pg_laptop(task: TaskSpec) -> Scale:
+    # minutes on a laptop: the paper's 3 runs, each to the paper's behaviour level
+    return Scale(3, _laptop_online(task), None)
+
+
+def _d4pg_paper(task: TaskSpec) -> Scale:
+    # the paper's: Acme's D4PG, 3 runs of 1M steps each
+    return Scale(
+        3,
+        OnlineConfig(
+            "d4pg",
+            episodes=1_000,
+            preset="paper",
+            replay_capacity=1_000_000,
+            min_replay=10_000,
+            update_every=8,
+            checkpoint_steps=100_000,
+            chunk_episodes=20,
+        ),
+        None,
+    )
+
+
+def _dmpo_paper(task: TaskSpec) -> Scale:
+    # the paper's own RWRL behaviour agent at the paper's scale
+    return Scale(3, _PAPER_DMPO, None)
+
+
+def _dqn_tiny(task: TaskSpec) -> Scale:
+    # seconds: Dopamine's DQN with tiny networks, 2 episodes of 100 steps, learning at once
+    return Scale(
+        1,
+        OnlineConfig(
+            "dopamine_dqn",
+            episodes=2,
+            agent_overrides=_TINY_DQN,
+            replay_capacity=2_000,
+            min_replay=50,
+            update_every=4,
+            epsilon_end=0.0,
+            epsilon_decay_steps=1_000,
+            checkpoint_steps=100,
+            chunk_episodes=1,
+            env_settings={"max_episode_steps": 100},
+        ),
+        None,
+    )
+
+
+def _dqn_laptop(task: TaskSpec) -> Scale:
+    # Dopamine's DQN and online settings for 2 of its 250k-step iterations per run: the epsilon
+    # decay ends at 250k, the second half acts at 0.01 (far from DQN's level, which takes
+    # millions of steps); about 1.5 h of one core per run (bench/README.md).
+    return Scale(
+        2,
+        OnlineConfig(
+            "dopamine_dqn",
+            episodes=10**6,
+            env_steps=500_000,
+            preset="paper",
+            **_DOPAMINE_ONLINE,
+            # a tenth of Dopamine's 1M: 0.7 GB of frames per run, saved with each chunk
+            replay_capacity=100_000,
+            checkpoint_steps=50_000,
+            chunk_episodes=20,
+        ),
+        None,
+    )
+
+
+def _dqn_paper(task: TaskSpec) -> Scale:
+    # Agarwal et al.'s DQN Replay runs: 5 runs x 50M agent steps (dqn.gin's 200 iterations of
+    # 250k), Dopamine's 1M replay, a checkpoint per 1M steps as in the release
+    return Scale(
+        5,
+        OnlineConfig(
+            "dopamine_dqn",
+            episodes=10**9,
+            env_steps=50_000_000,
+            preset="paper",
+            **_DOPAMINE_ONLINE,
+            replay_capacity=1_000_000,
+            checkpoint_steps=1_000_000,
+            chunk_episodes=50,
+        ),
+        None,
+    )
+
+
+BEHAVIOUR: Mapping[tuple[str, str], Callable[[TaskSpec], Scale]] = MappingProxyType(
+    {
+        ("d4pg", "tiny"): _d4pg_tiny,
+        ("d4pg", "laptop"): _d4pg_laptop,
+        ("d4pg", "paper"): _d4pg_paper,
+        ("dmpo", "paper"): _dmpo_paper,
+        ("dopamine_dqn", "tiny"): _dqn_tiny,
+        ("dopamine_dqn", "laptop"): _dqn_laptop,
+        ("dopamine_dqn", "paper"): _dqn_paper,
+    }
+)
+"""(behaviour agent, scale) -> the task's Scale: what a domain's ``behaviour_agents``
+(``rlu.domains``) name."""
 
 
 def check_scale(scale: str) -> None:
@@ -244,4 +268,13 @@ def check_scale(scale: str) -> None:
 
 def get_scale(task: TaskSpec, scale: str) -> Scale:
     check_scale(scale)
-    return _scales(task)[scale]
+    agents = DOMAINS[task.domain].behaviour_agents
+    if not agents:
+        trained = [d for d, e in DOMAINS.items() if e.behaviour_agents]
+        named = ", ".join(trained[:-1]) + f" and {trained[-1]}" if len(trained) > 1 else trained[0]
+        policy = ", ".join(d for d, e in DOMAINS.items() if e.generation == "policy")
+        raise RluError(
+            f"rlu generate trains behaviour agents for the {named} domains; {task.domain!r} is "
+            f"not one of them ({policy}: record your own policy with --policy)"
+        )
+    return BEHAVIOUR[(agents[scale], scale)](task)

@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from rlu import files
-from rlu.report.conditions import CONDITIONS, PAPER, PaperPreset
+from rlu.report.conditions import CONDITIONS, PaperPreset, paper_conditions
 from rlu.report.numbers import (
     DATA_SOURCES,
     PANELS,
@@ -57,7 +57,6 @@ __all__ = [
     "CONDITIONS",
     "DATA_SOURCES",
     "PANELS",
-    "PAPER",
     "Absent",
     "DomainContext",
     "PaperPreset",
@@ -66,6 +65,7 @@ __all__ = [
     "check_report_output",
     "dataset_percentile",
     "load_paper_results",
+    "paper_conditions",
     "paper_entry",
     "read_inputs",
     "run_provenance",

@@ -2,10 +2,11 @@
 each recorded by the runs and checked here.
 
 The paper (Gulcehre et al. 2020, arXiv:2006.13888) is credited only with what it states, its
-section or table cited (:data:`PAPER`). Where it states nothing (the continuous baselines'
-learner budget, the number of seeds, the evaluation episodes), rlu's own choice stands in,
-named as rlu's (``Statement.rlu``), and every heading that compares under it says "the paper
-states no ...". The conditions, in the order a cell's label names the ones it misses:
+section or table cited (each domain's ``paper_conditions``, ``rlu.domains.paper``). Where it
+states nothing (the continuous baselines' learner budget, the number of seeds, the evaluation
+episodes), rlu's own choice stands in, named as rlu's (``Statement.rlu``), and every heading
+that compares under it says "the paper states no ...". The conditions, in the order a cell's
+label names the ones it misses:
 
 - ``preset``: rlu's ``paper`` preset (the paper's appendix A settings; ``paper_recurrent`` on
   the three sequence tasks the paper gives LSTMs), changed only along the paper's grid;
@@ -30,6 +31,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from rlu.domains import DOMAINS
+from rlu.domains.paper import CONTINUOUS, PaperConditions
 from rlu.types import RluError
 
 CONDITIONS = ("preset", "budget", "data", "episodes", "seeds", "selection")
@@ -53,104 +55,21 @@ class PaperPreset:
     """The agent's paper presets (``paper_recurrent`` where it has one)."""
 
 
-@dataclass(frozen=True)
-class Statement:
-    """What the paper states of one condition (``paper`` None: nothing), where it says so, and
-    the stand-in rlu compares at where it says nothing (``rlu``, named as rlu's choice)."""
+def paper_conditions(domain: str) -> PaperConditions:
+    """What the paper states of the conditions of a domain's numbers: its entry's
+    ``paper_conditions``; a domain of the report's own (``other``), the continuous baselines'."""
+    known = DOMAINS.get(domain)
+    return known.paper_conditions if known is not None else CONTINUOUS
 
-    paper: Any
-    where: str
-    rlu: Any = None
-    rlu_where: str = ""
-
-
-_CONTINUOUS_TABLES = (
-    "appendix B, table 'DM Control suite results'; appendix C, table 'DM Locomotion results'"
-)
-_NO_RUNS = "the paper's results tables (appendices B-D) print mean ± std without the number of runs"
-
-PAPER: dict[str, dict[str, Statement]] = {
-    "continuous": {
-        "preset": Statement(
-            "the continuous baselines' settings",
-            "appendix A.1 and its table 'Continuous control experiments hyperparameters'",
-        ),
-        "budget": Statement(
-            None,
-            "appendix A.1 gives no learner steps for the continuous baselines",
-            rlu="the paper preset's num_steps",
-            rlu_where="docs/paper_settings.md: 'learner steps | not stated | rlu's choice'",
-        ),
-        "data": Statement(
-            "the task's dataset of the release",
-            "section 3 (tables 'DM Control Suite tasks', 'DM Locomotion tasks')",
-        ),
-        "episodes": Statement(
-            None,
-            "the paper states no number of evaluation episodes",
-            rlu=5,
-            rlu_where="rlu's default --eval-episodes",
-        ),
-        "seeds": Statement(None, _NO_RUNS, rlu=3, rlu_where="rlu's choice"),
-        "selection": Statement(
-            "online policy selection per task over the grid; naive offline selection: the "
-            "configuration best on average over the domain's online-selection tasks",
-            "section 2.2 and section 4 ('Naive approach for offline policy selection')",
-        ),
-    },
-    "atari": {
-        "preset": Statement(
-            "the Atari baselines' settings",
-            "appendix A.2 and its table 'Atari experiments hyperparameters'",
-        ),
-        "budget": Statement(
-            2_000_000,
-            "appendix A.2, table 'Atari experiments hyperparameters': 'Training Steps: 2M "
-            "learning steps'",
-        ),
-        "data": Statement(
-            2_000_000,
-            "appendix A.2, table 'Atari experiments hyperparameters': a fixed replay memory "
-            "of 2M steps (which 2M of the release's it does not say)",
-        ),
-        "episodes": Statement(
-            None,
-            "the paper states no number of evaluation episodes",
-            rlu=5,
-            rlu_where="rlu's default --eval-episodes",
-        ),
-        "seeds": Statement(None, _NO_RUNS, rlu=3, rlu_where="rlu's choice"),
-        "selection": Statement(
-            "online policy selection per game over the grid; naive offline selection: the "
-            "configuration with the best median over the tuning games",
-            "section 2.2 and section 4 ('Naive approach for offline policy selection')",
-        ),
-    },
-}
-"""Per family (``atari``; ``continuous``: every other domain), what the paper states of each
-condition."""
 
 PAPER_TABLES = {name: d.paper_table for name, d in DOMAINS.items() if d.paper_table}
 """Where the paper's numbers beside each domain's cells come from."""
-
-RECURRENT_TASKS = (
-    "locomotion/rodent_two_touch",
-    "locomotion/rodent_bowl_escape",
-    "locomotion/rodent_mazes",
-)
-"""The paper's "tasks of the sequential nature (Rodent Two Tap, Rodent Escape and Rodent Mazes)",
-whose networks add two LSTMs (appendix A.1): rlu's ``paper_recurrent`` preset there."""
-
-
-def family(domain: str) -> str:
-    """``atari`` or ``continuous``: whose statements apply to a domain's numbers."""
-    return "atari" if domain == "atari" else "continuous"
 
 
 def budget_of(domain: str, preset: PaperPreset | None) -> tuple[int | None, bool]:
     """(the learner steps a comparable run trains, whether the paper states them): the paper's
     on Atari, else rlu's paper preset's (None: the report was not given it)."""
-    stated = PAPER[family(domain)]["budget"].paper
+    stated = paper_conditions(domain).statements["budget"].paper
     if stated is not None:
         return int(stated), True
     return (None if preset is None else preset.steps), False
@@ -173,7 +92,7 @@ def run_conditions(
     """The run conditions (:data:`RUN_CONDITIONS`) one run meets (None) or misses (why), from
     what it recorded (``numbers.run_provenance`` and its overrides; None: not recorded)."""
     return {
-        "preset": _preset(provenance.get("preset"), overrides, task, preset),
+        "preset": _preset(provenance.get("preset"), overrides, task, domain, preset),
         "budget": _budget(provenance.get("steps"), domain, preset),
         "data": _data(provenance.get("data") or {}, domain),
         "episodes": at_least(provenance.get("eval_episodes"), "episodes", domain),
@@ -184,11 +103,13 @@ def _preset(
     name: str | None,
     overrides: Mapping[str, Any] | None,
     task: str,
+    domain: str,
     preset: PaperPreset | None,
 ) -> str | None:
     if preset is None:
         return "the report knows no paper preset of this agent"
-    recurrent = task in RECURRENT_TASKS and "paper_recurrent" in preset.presets
+    sequential = paper_conditions(domain).recurrent_tasks
+    recurrent = task in sequential and "paper_recurrent" in preset.presets
     want = "paper_recurrent" if recurrent else "paper"
     if name != want:
         return f"preset {name or 'not recorded'}, not {want}"
@@ -221,8 +142,8 @@ def _data(data: Mapping[str, Any], domain: str) -> str | None:
     source = data.get("source", "unknown")
     if source != "release":
         return f"{source} data, not the release's"
-    if family(domain) == "atari":
-        need = int(PAPER["atari"]["data"].paper)
+    need = paper_conditions(domain).replay_steps
+    if need is not None:
         steps = data.get("steps")
         if steps is None:
             return "the dataset's steps not recorded"
@@ -242,7 +163,7 @@ def _data(data: Mapping[str, Any], domain: str) -> str | None:
 def at_least(n: int | None, what: str, domain: str) -> str | None:
     """Seeds or evaluation episodes (``what``: ``seeds`` or ``episodes``) against the paper's
     number, or rlu's where the paper states none."""
-    s = PAPER[family(domain)][what]
+    s = paper_conditions(domain).statements[what]
     need = s.paper if s.paper is not None else s.rlu
     noun = "seed" if what == "seeds" else "evaluation episode"
     if n is None:
@@ -272,7 +193,7 @@ def merge(parts: Sequence[Mapping[str, str | None]]) -> dict[str, str | None]:
 def stand_ins(domain: str, preset_steps: Mapping[str, int | None]) -> list[str]:
     """What the paper states no number for in ``domain``, each with rlu's stand-in, in words
     (the report's intro and the heading of every comparison made under them)."""
-    fam = PAPER[family(domain)]
+    fam = paper_conditions(domain).statements
     out = []
     if fam["budget"].paper is None:
         steps = sorted({s for s in preset_steps.values() if s is not None})
@@ -293,7 +214,8 @@ def stand_ins(domain: str, preset_steps: Mapping[str, int | None]) -> list[str]:
 def needs(domain: str, preset_steps: Mapping[str, int | None]) -> dict[str, str]:
     """Per condition, what a comparable number of ``domain`` needs, in words: the paper's
     statement where it makes one, rlu's stand-in (named as rlu's) where it does not."""
-    fam = PAPER[family(domain)]
+    conditions = paper_conditions(domain)
+    fam = conditions.statements
     if fam["budget"].paper is not None:
         budget = f"{_steps(int(fam['budget'].paper))} learner steps (the paper's)"
     else:
@@ -302,8 +224,11 @@ def needs(domain: str, preset_steps: Mapping[str, int | None]) -> dict[str, str]
             f"rlu's paper preset's learner steps ({per or 'not given to the report'}): "
             "rlu's choice, the paper states none"
         )
-    if family(domain) == "atari":
-        data = "the release's files, at least the paper's 2M steps (which 2M is not stated)"
+    if conditions.replay_steps is not None:
+        need = _steps(conditions.replay_steps)
+        data = (
+            f"the release's files, at least the paper's {need} steps (which {need} is not stated)"
+        )
     else:
         data = "every release shard of the task's dataset (the fraction is shown otherwise)"
     return {

@@ -82,6 +82,8 @@ from typing import Any
 
 import numpy as np
 
+from rlu.domains import DOMAINS
+from rlu.domains.paper import TASK_FIGURES
 from rlu.evaluation.protocols import Selection, offline_selection_naive, online_selection
 from rlu.evaluation.reference import denominator_flags, random_spread
 from rlu.evaluation.scores import (
@@ -366,7 +368,7 @@ def offline_naive_panel(ctx: DomainContext) -> dict[str, Any] | Absent | None:
 def aggregates_panel(ctx: DomainContext) -> dict[str, Any] | Absent:
     """Per split, its protocol's aggregate over its tasks: online policy selection over the
     online-selection tasks, naive offline selection over the offline-selection tasks."""
-    if ctx.domain == "atari" and not ctx.normalised:
+    if _normalises(ctx.domain) and not ctx.normalised:
         return Absent(_NO_REFERENCE)  # Atari aggregates are over normalised scores only
     out: dict[str, Any] = {"statistic": domain_statistic(ctx.domain), "missing": {}}
     if ctx.online_tasks:
@@ -411,7 +413,7 @@ def _paths(value: str | Sequence[str]) -> list[str]:
 
 def task_bars_panel(ctx: DomainContext) -> dict[str, Any] | None:
     """The paper's control suite and locomotion figures: each task under its own protocol."""
-    if ctx.domain == "atari":
+    if not _draws(ctx.domain, "task_bars"):
         return None  # the paper draws Atari normalised: atari_median and atari_per_game
     online = _table(ctx, _online(ctx, ctx.records), ctx.online_tasks, _ONLINE)["rows"]
     naive = _naive(ctx, ctx.records)
@@ -423,15 +425,13 @@ def atari_median_panel(ctx: DomainContext) -> dict[str, Any] | Absent | None:
     """The paper's Atari figure: median normalised score, [25, 75] bootstrap interval, online
     policy selection on the tuning games (left) and naive offline selection on the held-out
     games (right); each half covers the games the sweep has."""
-    if ctx.domain != "atari":
+    if not _draws(ctx.domain, "atari_median"):
         return None
     if ctx.normalise is None:
         return Absent(_NO_REFERENCE)
-    from rlu.tasks import list_tasks
-
     out: dict[str, Any] = {"statistic": "median", "note": PAPER_FIGURE_ONLY, "missing": {}}
-    all_online = [t.id for t in list_tasks("atari", "online")]
-    all_offline = [t.id for t in list_tasks("atari", "offline")]
+    all_online = _registry(ctx.domain, "online")
+    all_offline = _registry(ctx.domain, "offline")
     if ctx.online_tasks:
         sel = online_selection(r for r in ctx.scored if r["task"] in ctx.online_tasks)
         out["online"] = _median_half(ctx, sel, ctx.online_tasks, all_online, {}, _ONLINE)
@@ -458,7 +458,7 @@ def atari_per_game_panel(ctx: DomainContext) -> dict[str, Any] | Absent | None:
     normalised score improvement over the best behaviour snapshot, ``normalised - 100`` (0: as
     good as the best snapshot of the online DQN that logged the data), each game under its own
     protocol (online selection on tuning games, naive offline selection on held-out ones)."""
-    if ctx.domain != "atari":
+    if not _draws(ctx.domain, "atari_per_game"):
         return None
     if ctx.normalise is None:
         return Absent(_NO_REFERENCE)
@@ -518,7 +518,7 @@ def _split_selections(
 def _rliable_panel(ctx: DomainContext, which: str) -> dict[str, Any] | Absent | None:
     from rlu.report import profiles
 
-    if ctx.domain == "atari" and not ctx.normalised:
+    if _normalises(ctx.domain) and not ctx.normalised:
         return Absent(_NO_REFERENCE)
     splits = _split_selections(ctx)
     tasks = {"online": ctx.online_tasks, "offline": ctx.offline_tasks}
@@ -755,7 +755,7 @@ def _sensitivity(ctx: DomainContext, name: str) -> dict[str, Any] | Absent | Non
     """Median normalised score over the sweep's tuning games per value of one hyper-parameter
     of one agent; per game and value, the best setting of the other hyper-parameters (online
     policy selection, as the paper's ablations evaluate)."""
-    if ctx.domain != "atari":
+    if not _draws(ctx.domain, name):
         return None
     paper = PAPER_SENSITIVITY[name]
     agent, fld = paper["agent"], paper["field"]
@@ -799,7 +799,7 @@ def _sensitivity(ctx: DomainContext, name: str) -> dict[str, Any] | Absent | Non
         "agent": agent,
         "field": fld,
         "games": list(ctx.online_tasks),
-        "of": len(_registry("atari", "online")),
+        "of": len(_registry(ctx.domain, "online")),
         "values": values,
         "paper": {"grid": paper["grid"], "best": paper["best"], "numbers": None},
     }
@@ -816,6 +816,21 @@ def _registry(domain: str, selection: str) -> list[str]:
     from rlu.tasks import list_tasks
 
     return [t.id for t in list_tasks(domain, selection)]
+
+
+def _normalises(domain: str) -> bool:
+    """Whether the domain's scores are compared normalised (its entry's ``normalised``; a domain
+    of the report's own, ``other``: no)."""
+    known = DOMAINS.get(domain)
+    return known is not None and known.normalised
+
+
+def _draws(domain: str, figure: str) -> bool:
+    """Whether the report draws the paper's figure ``figure`` (a panel's name) for the domain:
+    one of its entry's ``report_figures`` (a domain of the report's own, ``other``: the per-task
+    bars)."""
+    known = DOMAINS.get(domain)
+    return figure in (known.report_figures if known is not None else TASK_FIGURES)
 
 
 def build_report(
@@ -843,8 +858,8 @@ def build_report(
         agents = sorted({r["agent"] for r in recs})
         tasks = sorted({r["task"] for r in recs}, key=lambda t: (task_info(t)[1] != "online", t))
         norm = None
-        if domain == "atari":
-            norm, refs = _atari_normaliser(tasks, random_scores, best_behaviour)
+        if _normalises(domain):
+            norm, refs = _normaliser(tasks, random_scores, best_behaviour)
         # tables show raw returns (as the paper's appendix does); selection across tasks and
         # the aggregates use normalised scores for Atari
         scored = [
@@ -858,7 +873,7 @@ def build_report(
             run_source[(r["task"], r["agent"], r["config"], int(r["seed"]))] = sources.setdefault(
                 key, len(sources)
             )
-        discrete = domain == "atari"
+        discrete = cond.paper_conditions(domain).discrete_agents
         presets = {a: None if paper is None else paper(a, discrete) for a in agents}
         conditions = {
             (r["task"], r["agent"], r["config"], int(r["seed"])): cond.run_conditions(
@@ -951,7 +966,7 @@ def _preset_json(ctx: DomainContext, agent: str) -> dict[str, Any]:
 
 def _statements(ctx: DomainContext) -> dict[str, Any]:
     """What the paper states of each condition for this domain, where, and rlu's stand-in."""
-    fam = cond.PAPER[cond.family(ctx.domain)]
+    fam = cond.paper_conditions(ctx.domain).statements
     out = {
         k: {"paper": v.paper, "where": v.where, "rlu": v.rlu, "rlu_where": v.rlu_where}
         for k, v in fam.items()
@@ -963,7 +978,7 @@ def _statements(ctx: DomainContext) -> dict[str, Any]:
     return out
 
 
-def _atari_normaliser(tasks, random_scores, best_behaviour):
+def _normaliser(tasks, random_scores, best_behaviour):
     """(score normaliser, the reference scores of ``tasks``) or (None, None) where a game of
     ``tasks`` lacks one.
 

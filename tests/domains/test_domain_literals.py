@@ -26,11 +26,6 @@ LEFT = {
     "rlu/commands/quickstart.py": (1, "the quick start runs on control-suite data"),
     "rlu/report/quickstart.py": (1, "the bundled task's id"),
     "rlu/generate/recipe.py": (1, "the bundled task's id"),
-    # still to move into the domains' entries (issue 38 item 2)
-    "rlu/commands/envs.py": (1, "best-behaviour scores exist for Atari only"),
-    "rlu/report/conditions.py": (9, "the report's atari / continuous layouts"),
-    "rlu/report/numbers.py": (11, "the report's Atari-only numbers"),
-    "rlu/generate/scales.py": (6, "the generation scales per domain"),
 }
 
 
