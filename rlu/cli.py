@@ -39,7 +39,7 @@ class Parser(argparse.ArgumentParser):
     """argparse's parser that says "did you mean" for a mistyped subcommand or option: every
     parser of the ``rlu`` command is one (subcommands' parsers take their parent's class)."""
 
-    def parse_known_args(self, args=None, namespace=None):  # type: ignore[no-untyped-def]
+    def parse_known_args(self, args=None, namespace=None):
         namespace, extras = super().parse_known_args(args, namespace)
         leaf = not any(isinstance(a, argparse._SubParsersAction) for a in self._actions)
         if extras and leaf:  # the command's own parser: the options it cannot read are typos
@@ -60,7 +60,7 @@ class Parser(argparse.ArgumentParser):
                 words.append(token)
         return " ".join(words) + ("" if hinted else f"; `{self.prog} --help` lists the options")
 
-    def error(self, message: str) -> Any:  # type: ignore[override]
+    def error(self, message: str) -> Any:
         m = re.search(r"invalid choice: '([^']*)' \(choose from (.*)\)", message)
         if m:
             choices = re.findall(r"'([^']*)'", m.group(2))

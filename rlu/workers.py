@@ -222,7 +222,7 @@ def send(message: Any) -> None:
         _LOCAL_SINK(message)
 
 
-_LOCAL_SINK: Callable[[Any], None] | None = None
+_LOCAL_SINK: Callable[[Any], object] | None = None
 _RAY_CHANNEL: Any = None  # inside a Ray job: the driver's queue actor
 _RAY_NODE: str | None = None  # inside a Ray job: the id of the node it runs on
 _RAY_SENT = False  # this Ray job sent a message
@@ -262,7 +262,7 @@ def run_jobs(
     backend: Backend,
     on_result: Callable[[int, Any], None],
     on_error: Callable[[int, BaseException], None] | None = None,
-    on_message: Callable[[Any], None] | None = None,
+    on_message: Callable[[Any], object] | None = None,
     ray_check: Callable[[Any], None] | None = None,
     retries: int = 3,
     resources: Mapping[str, float] | None = None,

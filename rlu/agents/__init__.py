@@ -144,7 +144,8 @@ def _replace(config: Any, path: str, value: Any, agent: str, full: str = "") -> 
         if not dataclasses.is_dataclass(current):
             raise ConfigError(f"agent {agent!r} config field {head!r} has no sub-fields ({path!r})")
         value = _replace(current, rest, value, agent, full)
-    elif dataclasses.is_dataclass(current) and isinstance(value, Mapping):
+    elif (dataclasses.is_dataclass(current) and not isinstance(current, type)
+          and isinstance(value, Mapping)):  # fmt: skip
         value = config_from_json(type(current), {**dataclasses.asdict(current), **value})
     else:
         value = _checked(type(config), head, value, agent, full)
@@ -202,7 +203,7 @@ def config_from_json(cls: type, data: Mapping[str, Any]) -> Any:
     values = {}
     for key, value in data.items():
         kind = hints[key]
-        if dataclasses.is_dataclass(kind) and isinstance(value, Mapping):
+        if isinstance(kind, type) and dataclasses.is_dataclass(kind) and isinstance(value, Mapping):
             value = config_from_json(kind, value)
         elif isinstance(value, list):
             value = tuple(value)

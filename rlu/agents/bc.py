@@ -104,9 +104,12 @@ class BCAgent:
         seq = isinstance(batch, Sequence)
         obs = common.to_torch(batch.observation, self.device)
         action = self.scaler.to_unit(common.to_torch(batch.action, self.device))
-        weight = common.to_torch(batch.mask & ~batch.is_last, self.device).float() if seq else None
+        weight = None
+        if isinstance(batch, Sequence):
+            weight = common.to_torch(batch.mask & ~batch.is_last, self.device).float()
         h, _ = self.policy["torso"](obs, sequence=seq)
-        loss, metrics = bc_loss(*self.policy["head"](h), action, weight)
+        logits, mean, std = self.policy["head"](h)
+        loss, metrics = bc_loss(logits, mean, std, action, weight)
         self.step = common.learn(self.optimizers["policy"], loss, self.step)
         return common.metrics_to_floats(metrics)
 

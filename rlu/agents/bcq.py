@@ -41,7 +41,7 @@ from rlu.files import (
     bounds,
 )
 from rlu.seeds import stream_seed
-from rlu.types import BatchSpec, Transition
+from rlu.types import BatchSpec, RluError, Transition
 
 
 @dataclass(frozen=True)
@@ -115,6 +115,8 @@ class VAE(nn.Module):
 
     def decode(self, s, generator: torch.Generator | None = None, z=None) -> torch.Tensor:
         if z is None:
+            if generator is None:  # torch's global generator would make the draws unseeded
+                raise RluError("VAE.decode: give z or the generator that draws it (a bug in rlu)")
             z = self.prior_latent(s.shape[0], generator, s.device)
         return torch.tanh(self.decoder(torch.cat([s, z], -1)))
 
@@ -141,7 +143,7 @@ class BCQNets(nn.Module):
     def perturb(self, s: torch.Tensor, a: torch.Tensor, phi: float) -> torch.Tensor:
         return (a + phi * torch.tanh(self.actor(torch.cat([s, a], -1)))).clamp(-1.0, 1.0)
 
-    def q(self, s: torch.Tensor, a: torch.Tensor):
+    def q(self, s: torch.Tensor, a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         sa = torch.cat([s, a], -1)
         return self.q1(sa).squeeze(-1), self.q2(sa).squeeze(-1)
 

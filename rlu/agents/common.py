@@ -30,8 +30,8 @@ from __future__ import annotations
 import contextlib
 import copy
 import hashlib
-from collections.abc import Iterable, Iterator, Mapping
-from typing import Any, NamedTuple
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
 import torch
@@ -41,6 +41,7 @@ from rlu.devices import resolve_device
 from rlu.types import RluError
 
 Metrics = dict[str, torch.Tensor]
+_Module = TypeVar("_Module", bound=nn.Module)
 
 
 @contextlib.contextmanager
@@ -122,7 +123,7 @@ def adam(params: Iterable[torch.Tensor], lr: float, eps: float = 1e-8) -> torch.
 def sgd_step(
     optimizer: torch.optim.Optimizer,
     loss: torch.Tensor,
-    inputs: list[torch.Tensor] | None = None,
+    inputs: Sequence[torch.Tensor] | None = None,
     max_norm: float = 0.0,
 ) -> None:
     """One gradient step on ``loss``; ``inputs`` limits the backward pass to those parameters
@@ -186,7 +187,7 @@ def cpu_slices(device: torch.device, rows: int, total: int) -> int:
     return rows if device.type == "cpu" and rows else max(total, 1)
 
 
-def frozen_copy(module: nn.Module) -> nn.Module:
+def frozen_copy(module: _Module) -> _Module:
     """A target network: a deep copy that takes no gradients."""
     return copy.deepcopy(module).requires_grad_(False)
 
@@ -218,7 +219,7 @@ def actor_critic(
     a, c = names
     modules = {a: actor, c: critic, **(more or {}),
                f"target_{a}": target_actor, f"target_{c}": target_critic}  # fmt: skip
-    optimizers = {
+    optimizers: dict[str, torch.optim.Optimizer] = {
         a: adam(actor.parameters(), actor_lr),
         "critic": adam(critic.parameters(), critic_lr),
     }
@@ -237,7 +238,7 @@ def soft_update(target: nn.Module, source: nn.Module, tau: float) -> None:
         torch._foreach_lerp_(list(target.parameters()), list(source.parameters()), tau)
 
 
-def soft_updates(targets: Mapping[nn.Module, nn.Module], tau: float) -> None:
+def soft_updates(targets: Mapping[_Module, nn.Module], tau: float) -> None:
     """:func:`soft_update` of every ``{target: source}`` pair in one foreach call."""
     with torch.no_grad():
         torch._foreach_lerp_(
@@ -247,7 +248,7 @@ def soft_updates(targets: Mapping[nn.Module, nn.Module], tau: float) -> None:
         )
 
 
-def periodic_update(step: int, period: int, targets: Mapping[nn.Module, nn.Module]) -> None:
+def periodic_update(step: int, period: int, targets: Mapping[_Module, nn.Module]) -> None:
     """Hard-copy each source into its target every ``period`` steps (``{target: source}``)."""
     if period > 0 and step % period == 0:
         for target, source in targets.items():
@@ -257,7 +258,7 @@ def periodic_update(step: int, period: int, targets: Mapping[nn.Module, nn.Modul
 def advance(
     step: int,
     period: int = 0,
-    targets: Mapping[nn.Module, nn.Module] | None = None,
+    targets: Mapping[_Module, nn.Module] | None = None,
     tau: float = 0.0,
 ) -> int:
     """The step count after one more update, once that update's target updates are made
@@ -276,7 +277,7 @@ def learn(
     loss: torch.Tensor,
     step: int,
     period: int = 0,
-    targets: Mapping[nn.Module, nn.Module] | None = None,
+    targets: Mapping[_Module, nn.Module] | None = None,
 ) -> int:
     """One gradient step, then :func:`advance`: returns the new step count."""
     sgd_step(optimizer, loss)

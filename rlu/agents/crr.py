@@ -139,8 +139,8 @@ class Policy(nn.Module):
 
 def sample_actions(mixture, num: int, generator: torch.Generator) -> torch.Tensor:
     """(num, B, A) actions from the (B,) mixtures, clipped into the action box."""
-    rep = [x.expand(num, *x.shape) for x in mixture]
-    return nets.mixture_sample(*rep, generator=generator).clamp(-1.0, 1.0)
+    logits, mean, std = (x.expand(num, *x.shape) for x in mixture)
+    return nets.mixture_sample(logits, mean, std, generator=generator).clamp(-1.0, 1.0)
 
 
 class Critic(nn.Module):
@@ -236,7 +236,8 @@ class CRRAgent:
             q_samples = self.critic.head.mean(self.critic(obs, sampled))
             adv = advantage(self.critic.head.mean(logits), q_samples, c.baseline)
             weights = crr_weights(adv, c.advantage_weight, c.beta, c.ratio_upper_bound)
-        loss_p, m = policy_loss(mixture_log_prob(*mix, action), weights, adv)
+        logits_p, mean, std = mix
+        loss_p, m = policy_loss(mixture_log_prob(logits_p, mean, std, action), weights, adv)
         metrics.update(m)
 
         common.sgd_step(self.optimizers["critic"], loss_c, list(self.critic.parameters()),

@@ -28,7 +28,7 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import Any, NamedTuple
+from typing import Any, Generic, Literal, NamedTuple, TypeVar, overload
 
 import numpy as np
 import torch
@@ -178,20 +178,26 @@ class TorchTransition(NamedTuple):
     """A :class:`rlu.types.Transition` as tensors on the agent's device, observations as
     :func:`frames` gives them (float (B, C, H, W) in [0, 1]: the networks' input)."""
 
-    observation: torch.Tensor
+    observation: torch.Tensor | dict[str, torch.Tensor]
     action: torch.Tensor
     reward: torch.Tensor
     discount: torch.Tensor
-    next_observation: torch.Tensor
+    next_observation: torch.Tensor | dict[str, torch.Tensor]
     next_action: torch.Tensor
 
 
+@overload
+def frames(x: Mapping[str, Any], field: str = ..., channels_last: bool = ...,
+           device: torch.device | None = ...) -> dict[str, torch.Tensor]: ...  # fmt: skip
+@overload
+def frames(x: Any, field: str = ..., channels_last: bool = ...,
+           device: torch.device | None = ...) -> torch.Tensor: ...  # fmt: skip
 def frames(
     x: Any,
     field: str = "observation",
     channels_last: bool = False,
     device: torch.device | None = None,
-) -> torch.Tensor:
+) -> torch.Tensor | dict[str, torch.Tensor]:
     """uint8 (B, H, W, C) frame stacks (numpy, or a tensor the loop prepared) -> the networks'
     input on ``device``, float (B, C, H, W) / 255. The frames travel as uint8 and are scaled there.
 
@@ -201,11 +207,15 @@ def frames(
     if isinstance(x, Mapping):
         if "pixels" not in x:
             raise SpecError(f"batch.{field} is a dict without 'pixels' (keys {sorted(x)})")
-        out = {"pixels": frames(x["pixels"], f"{field}['pixels']", channels_last, device)}
+        out = {"pixels": _stacks(x["pixels"], f"{field}['pixels']", channels_last, device)}
         for k in sorted(set(x) - {"pixels"}):
             v = common.to_torch(x[k], device, "float32")
             out[k] = v.reshape(v.shape[0], -1)
         return out
+    return _stacks(x, field, channels_last, device)
+
+
+def _stacks(x: Any, field: str, channels_last: bool, device: torch.device | None) -> torch.Tensor:
     array = x if isinstance(x, torch.Tensor) else np.asarray(x)
     if array.dtype in (np.float32, torch.float32) and array.ndim == 2:  # (B, D) features
         return common.to_torch(array, device, "float32")
@@ -249,6 +259,8 @@ class NatureTorso(nn.Module):
     """Mnih et al. (2015) convolutions, flat features out. Input: :func:`frames`' float
     (B, C, H, W) in [0, 1] (what the agents pass), or uint8 (B, H, W, C) stacks, which it
     converts itself the same way."""
+
+    output_size: int  # the flat features' width
 
     def __init__(self, observation_shape: Shape, settings: AtariSettings) -> None:
         super().__init__()
@@ -352,15 +364,32 @@ class QNetwork(nn.Module):
         return out.view(-1, self.num_heads, self.num_actions)
 
 
-class DiscreteParts(NamedTuple):
+_Net = TypeVar("_Net", bound=nn.Module)
+_Target = TypeVar("_Target", bound=nn.Module | None, covariant=True)
+
+
+class DiscreteParts(NamedTuple, Generic[_Net, _Target]):
     """What :func:`build` makes for a discrete agent; the agent's file names where it keeps each."""
 
-    network: nn.Module
-    target_network: nn.Module | None
+    network: _Net
+    target_network: _Target
     optimizers: dict[str, torch.optim.Optimizer]
     generators: dict[str, torch.Generator]
 
 
+_Optimizer = Callable[[list[nn.Parameter]], torch.optim.Optimizer]
+
+
+@overload
+def build(name: str, observation_spec: Any, action_spec: Any, config: Any, seed: int,
+          device: torch.device, make: Callable[[Shape, int, AtariSettings], _Net],
+          target: Literal[True] = True, optimizer: _Optimizer | None = None,
+          ) -> DiscreteParts[_Net, _Net]: ...  # fmt: skip
+@overload
+def build(name: str, observation_spec: Any, action_spec: Any, config: Any, seed: int,
+          device: torch.device, make: Callable[[Shape, int, AtariSettings], _Net],
+          target: Literal[False], optimizer: _Optimizer | None = None,
+          ) -> DiscreteParts[_Net, None]: ...  # fmt: skip
 def build(
     name: str,
     observation_spec: Any,
@@ -368,10 +397,10 @@ def build(
     config: Any,
     seed: int,
     device: torch.device,
-    make: Callable[[Shape, int, AtariSettings], nn.Module],
+    make: Callable[[Shape, int, AtariSettings], _Net],
     target: bool = True,
-    optimizer: Callable[[list[nn.Parameter]], torch.optim.Optimizer] | None = None,
-) -> DiscreteParts:
+    optimizer: _Optimizer | None = None,
+) -> DiscreteParts[_Net, _Net | None]:
     """What every discrete agent owns, built the same way for each (specs checked first): the
     network ``make(frame shape, number of actions, config.atari)``, made on the CPU under the
     agent's initialisation seed and moved to ``device``; its frozen target copy (None with
@@ -386,6 +415,7 @@ def build(
         network = make(shape, num_actions, config.atari).to(device)
     target_network = common.frozen_copy(network) if target else None
     params = list(network.parameters())
+    opt: torch.optim.Optimizer
     if optimizer is None:
         opt = common.adam(params, config.learning_rate, config.atari.adam_eps)
     else:
@@ -461,7 +491,7 @@ def learn(
     loss: torch.Tensor,
     step: int,
     settings: AtariSettings,
-    targets: dict[nn.Module, nn.Module],
+    targets: Mapping[_Net, nn.Module],
 ) -> int:
     """A discrete agent's gradient step (``common.learn``) with the hard copies into its target
     networks (``{target: source}``) every ``settings.target_update_period`` updates."""

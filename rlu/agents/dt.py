@@ -349,6 +349,8 @@ class ContinuousDT(nn.Module):
     """The gym code's DecisionTransformer: linear embeddings of R, s and a plus a timestep
     embedding on each, a LayerNorm, the GPT, a tanh action from each state token."""
 
+    target_return: torch.Tensor  # a buffer
+
     def __init__(self, observation_spec, action_dim: int, c: DTConfig):
         super().__init__()
         h = c.hidden_size
@@ -382,6 +384,8 @@ class AtariDTModel(nn.Module):
     + tanh for a; a global embedding of the window's first timestep and a learnt position per
     token; logits from each state token."""
 
+    target_return: torch.Tensor  # a buffer
+
     def __init__(self, frame_shape, num_actions: int, c: AtariDT):
         super().__init__()
         h = c.hidden_size
@@ -393,8 +397,9 @@ class AtariDTModel(nn.Module):
         torso = dc.NatureTorso(tuple(frame_shape), c)  # type: ignore[arg-type]
         self.embed_state = nn.Sequential(torso, nn.Linear(torso.output_size, h), nn.Tanh())
         self.embed_return = nn.Sequential(nn.Linear(1, h), nn.Tanh())
-        self.embed_action = nn.Sequential(nn.Embedding(num_actions, h), nn.Tanh())
-        nn.init.normal_(self.embed_action[0].weight, 0.0, 0.02)
+        embedding = nn.Embedding(num_actions, h)
+        self.embed_action = nn.Sequential(embedding, nn.Tanh())
+        nn.init.normal_(embedding.weight, 0.0, 0.02)
         self.register_buffer("target_return", torch.zeros(()))
 
     def state_tokens(self, frames: torch.Tensor, batch_dims: int) -> torch.Tensor:
@@ -413,7 +418,8 @@ class AtariDTModel(nn.Module):
 
 def decay_groups(model: nn.Module, weight_decay: float) -> list[dict[str, Any]]:
     """minGPT's parameter groups: weight decay on linear and convolution weights only."""
-    decay, rest = [], []
+    decay: list[nn.Parameter] = []
+    rest: list[nn.Parameter] = []
     for module in model.modules():
         for name, p in module.named_parameters(recurse=False):
             matrix = name == "weight" and isinstance(module, nn.Linear | nn.Conv2d)
@@ -481,7 +487,9 @@ class DTAgent:
         else:
             self.scaler = nets.ActionScaler(action_spec)
         self.episode_timesteps = self.discrete or config.timesteps == "episode"
-        wants = ("observation",) if not self.discrete and config.normalize_observations else ()
+        wants: tuple[str, ...] = ()
+        if not self.discrete and config.normalize_observations:
+            wants = ("observation",)
         wants += ("return",) if s.target_return is None else ()
         self.batch_spec = BatchSpec(s.batch_size, "sequence", sequence_length=s.context_length,
                                     return_to_go=True, timestep=self.episode_timesteps,
@@ -490,7 +498,8 @@ class DTAgent:
         act_seed, dropout_seed = stream_seed(seed, "act"), stream_seed(seed, "dropout")
         with common.seeded(seed):
             if self.discrete:
-                model: nn.Module = AtariDTModel(frame_shape, self.num_actions, config.atari)
+                model: AtariDTModel | ContinuousDT
+                model = AtariDTModel(frame_shape, self.num_actions, config.atari)
             else:
                 model = ContinuousDT(observation_spec, self.scaler.dim, config)
             if s.target_return is not None:
@@ -516,7 +525,7 @@ class DTAgent:
         """The data's observation mean and std (continuous, when normalising) and, for the
         target rule, its best whole-episode return."""
         s = self.settings
-        if not self.discrete and self.config.normalize_observations:
+        if isinstance(self.model, ContinuousDT) and self.config.normalize_observations:
             self.model.normaliser.set(stats)
         if s.target_return is None:
             if stats.return_max is None:
@@ -558,7 +567,7 @@ class DTAgent:
         return obs, action, returns, timesteps, weight
 
     def update(self, batch: Sequence) -> dict[str, float]:
-        if not self.discrete:
+        if isinstance(self.model, ContinuousDT):  # not self.discrete
             self.model.normaliser.require("dt")
         obs, action, returns, timesteps, weight = self._batch(batch)
         self.model.train()
@@ -616,7 +625,7 @@ class DTAgent:
             timesteps = torch.arange(s.context_length, device=d).expand(n, -1)
         out = self.model(ctx.states, ctx.actions, ctx.returns, timesteps)[rows, slot]
         if self.discrete:
-            if greedy and not s.sample_actions:
+            if greedy and not self.config.atari.sample_actions:
                 action = out.argmax(-1)
             else:
                 action = torch.multinomial(out.softmax(-1), 1, generator=self.generators["act"])

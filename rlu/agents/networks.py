@@ -119,12 +119,13 @@ class Encoder(nn.Module):
         self.feature_keys = sorted(k for k, s in specs.items() if not is_image(s))
         self.image_keys = sorted(k for k, s in specs.items() if is_image(s))
         self.feature_shapes = {k: specs[k].shape for k in self.feature_keys}
-        self.torsos = nn.ModuleList(
+        torsos = [
             ResNetTorso(specs[k].shape, channels, blocks, torso_hidden, torso_norm_elu)
             for k in self.image_keys
-        )
+        ]
+        self.torsos = nn.ModuleList(torsos)
         self.output_dim = sum(specs[k].size for k in self.feature_keys) + sum(
-            t.output_dim for t in self.torsos
+            t.output_dim for t in torsos
         )
         if self.output_dim == 0:
             raise SpecError("observation spec has no entries; pass at least one ArraySpec")
@@ -154,10 +155,13 @@ class Encoder(nn.Module):
 def cat_batches(*batches: Mapping[str, torch.Tensor] | torch.Tensor):
     """Batches of one spec joined along the batch dimension, so one network pass serves them all:
     tensors (``Encoder.flatten``'s features) or dicts of tensors with the same keys."""
-    first = batches[0]
-    if isinstance(first, Mapping):
-        return {k: torch.cat([b[k] for b in batches]) for k in first}
-    return torch.cat(batches)
+    dicts = [b for b in batches if isinstance(b, Mapping)]
+    tensors = [b for b in batches if not isinstance(b, Mapping)]
+    if dicts and tensors:
+        raise RluError("cat_batches: dicts and tensors of different specs (a bug in rlu)")
+    if dicts:
+        return {k: torch.cat([b[k] for b in dicts]) for k in dicts[0]}
+    return torch.cat(tensors)
 
 
 class ResidualMLP(nn.Module):
@@ -303,6 +307,8 @@ class GaussianHead(nn.Module):
 
 class CategoricalHead(nn.Module):
     """Logits over ``num_atoms`` evenly spaced returns in [vmin, vmax] (C51 / D4PG)."""
+
+    atoms: torch.Tensor  # a buffer
 
     def __init__(self, input_dim: int, num_atoms: int, vmin: float, vmax: float):
         super().__init__()
@@ -483,7 +489,8 @@ class TanhGaussianPolicy(nn.Module):
 
     def sample(self, obs, num: int, generator: torch.Generator):
         """(num, B, A) reparameterised actions and their (num, B) log densities."""
-        return sample_tanh_gaussian(*self(obs), num, generator)
+        mean, std = self(obs)
+        return sample_tanh_gaussian(mean, std, num, generator)
 
 
 def sample_tanh_gaussian(mean, std, num: int, generator: torch.Generator):

@@ -309,7 +309,7 @@ def import_d3rlpy(
                 ):
                     obs = split_flat(seg.observation, flat_spec(schema), where)
                     seg = dataclasses.replace(seg, observation=obs)
-                if schema.frame_stack > 1:
+                if schema.frame_stack > 1 and isinstance(schema.observation, ArraySpec):
                     frame = schema.observation.shape  # one frame; the store keeps k
                     seg = _unstack_segment(seg, schema.frame_stack, f"{src}: episode {i}", frame)
                 yield seg
@@ -375,7 +375,7 @@ class _Source:
         self.folder = folder
         self._w: SourceWriter | None = None
 
-    def _stored(self, kind: str) -> list[np.dtype | None]:
+    def _stored(self, kind: str, layout: Mapping[str, Any]) -> list[np.dtype | None]:
         s = self.schema
         if kind == "terminated":
             return [None]
@@ -386,7 +386,7 @@ class _Source:
         spec = s.observation
         if isinstance(spec, Mapping):
             return [np.result_type(*[np.dtype(v.dtype) for v in spec.values()])] * len(
-                self.layout["observations"]
+                layout["observations"]
             )
         return [np.dtype(spec.dtype)]
 
@@ -398,7 +398,8 @@ class _Source:
         src = self.w
         if self.layout is not None:
             for kind, parts in self.layout.items():
-                for j, (part, stored) in enumerate(zip(parts, self._stored(kind), strict=False)):
+                stored_dtypes = self._stored(kind, self.layout)
+                for j, (part, stored) in enumerate(zip(parts, stored_dtypes, strict=False)):
                     have = np.dtype(part["dtype"])
                     if stored is not None and not np.can_cast(have, stored, "safe"):
                         part["kept"] = self._concat(f"kept/{kind}_{j}", kind, j)
@@ -480,7 +481,8 @@ def _default_layout(schema: Schema) -> dict[str, Any]:
     from rlu.data.d4rl import _flat_keys, _flat_order
 
     spec = schema.observation
-    if schema.frame_stack > 1:  # single frames, channel first: d3rlpy's Atari layout
+    if schema.frame_stack > 1 and isinstance(spec, ArraySpec):  # d3rlpy's Atari layout:
+        # single frames, channel first
         obs = [{"dtype": spec.dtype, "row_shape": [1, *spec.shape]}]
     elif isinstance(spec, Mapping):
         flat = _flat_keys(schema)
@@ -541,6 +543,7 @@ def d3rlpy_episodes(
             else:
                 obs = [np.asarray(seg.observation[key][:t]) for key in keys]
         elif k > 1:
+            assert isinstance(spec, ArraySpec) and not isinstance(seg.observation, Mapping)
             row = tuple(obs_parts[0]["row_shape"])
             if row in ((1, *spec.shape), tuple(spec.shape)):
                 obs = np.asarray(seg.observation[:t])
@@ -550,6 +553,7 @@ def d3rlpy_episodes(
                 if row[0] == k and row[-1] != k:
                     obs = np.moveaxis(obs, -1, 1)
         else:
+            assert not isinstance(seg.observation, Mapping)  # keys is None
             obs = np.asarray(seg.observation[:t])
         if not isinstance(obs, list):
             obs = [obs]
@@ -665,12 +669,13 @@ def export_d3rlpy(
                     raise RluError(f"{ds.path}: every segment is a single step; nothing to export")
                 h5.create_dataset("num_episodes", data=written)
                 h5.create_dataset("version", data=SUPPORTED_VERSIONS[-1])
-                for other in info.get("others", []):
-                    h5.create_dataset(other["name"], data=source[1].read(other["key"]))
-                for name, at in (info.get("attrs") or {}).items():
-                    h5.attrs[name] = (
-                        at["value"] if at["kind"] == "str" else source[1].read(at["key"])
-                    )
+                if source is not None:  # what the import kept
+                    for other in info.get("others", []):
+                        h5.create_dataset(other["name"], data=source[1].read(other["key"]))
+                    for name, at in (info.get("attrs") or {}).items():
+                        h5.attrs[name] = (
+                            at["value"] if at["kind"] == "str" else source[1].read(at["key"])
+                        )
                 h5.attrs["rlu_task_id"] = ds.schema.task_id or ""
                 h5.attrs["rlu_export_id"] = export_id
             finally:

@@ -97,7 +97,7 @@ def to_d4rl(ds: Dataset) -> dict[str, np.ndarray]:
     terminals = b.discount == 0
     out: dict[str, np.ndarray] = {}
     for prefix, obs in (("observations", b.observation), ("next_observations", b.next_observation)):
-        if isinstance(obs, dict):
+        if isinstance(obs, Mapping):
             out.update({f"{prefix}/{k}": v for k, v in obs.items()})
         else:
             out[prefix] = obs
@@ -120,19 +120,29 @@ def _flat_order(schema: Schema) -> list[str] | None:
     stored keys are not the task's (RWRL's extra challenge features: kept one array per key)."""
     from rlu.tasks import get_task
 
+    spec = _dict_spec(schema)
     try:
-        task_keys = list(Schema.for_task(get_task(schema.task_id or "")).observation)
+        task = Schema.for_task(get_task(schema.task_id or "")).observation
     except RluError:
-        return list(schema.observation)  # no registered task: import names one; keep ours
-    return task_keys if set(task_keys) == set(schema.observation) else None
+        return list(spec)  # no registered task: import names one; keep ours
+    if not isinstance(task, Mapping):
+        return None  # the task stores one array
+    return list(task) if set(task) == set(spec) else None
 
 
 def flat_spec(schema: Schema) -> dict[str, ArraySpec]:
     """The schema's observation keys in the order a flat array (or a tuple) holds them: the
     task's order (dm_control's ``flatten_observation``), which a schema read back from a manifest
     (keys sorted) does not keep."""
-    spec = schema.observation
+    spec = _dict_spec(schema)
     return {k: spec[k] for k in _flat_order(schema) or spec}
+
+
+def _dict_spec(schema: Schema) -> Mapping[str, ArraySpec]:
+    """The schema's dict observation spec: what the flat key orders are of."""
+    if not isinstance(schema.observation, Mapping):
+        raise RluError(f"task {schema.task_id}: one observation array has no keys (a bug in rlu)")
+    return schema.observation
 
 
 def _flat_keys(schema: Schema) -> list[str] | None:
@@ -236,6 +246,7 @@ def _default_arrays(ds: Dataset, n: int, flat: list[str] | None) -> list[_Array]
     for top in ("observations", "next_observations"):
         spec = schema.observation
         if flat is not None:
+            spec = _dict_spec(schema)
             size = sum(spec[k].size for k in flat)
             out.append(_Array(top, np.dtype(spec[flat[0]].dtype), (n, size), "rows"))
         elif isinstance(spec, Mapping):
@@ -266,7 +277,7 @@ def _rlu_arrays(ds: Dataset, flat: list[str] | None, export_id: str) -> list[_Ar
         text("export_id", export_id),
     ]
     if flat is not None:
-        spec = ds.schema.observation
+        spec = _dict_spec(ds.schema)
         out.append(text("observation_keys", flat))
         out.append(text("observation_sizes", [spec[k].size for k in flat]))
     return out
@@ -339,9 +350,9 @@ def export_d4rl(
     info = source[0] if source else None
     rows = _Rows(ds, final_rows=bool(info is not None and not info["next_observations"]))
     flat = info.get("flat_keys") if info else _flat_keys(ds.schema)
-    if info is not None:
+    if source is not None:
+        info, z = source
         arrays = _source_arrays(info, rows.n, str(ds.path))
-        z = source[1]
         flips = z.read("timeouts_flipped") if "timeouts_flipped" in z.infos else None
     else:
         arrays = _default_arrays(ds, rows.n, flat)
@@ -1191,7 +1202,9 @@ def _cast(
     if isinstance(schema.observation, ArraySpec):
         if isinstance(seg.observation, Mapping):
             raise SpecError(f"{where}: dict observations; the task stores one array")
-        obs = cast(seg.observation, schema.observation, "observations")
+        obs: np.ndarray | dict[str, np.ndarray] = cast(
+            seg.observation, schema.observation, "observations"
+        )
     else:
         spec = schema.observation
         if not isinstance(seg.observation, Mapping):

@@ -303,9 +303,8 @@ def episode_buffer(
         k = schema.frame_stack
         prefix = seg.frame_prefix
         if prefix is None:
-            prefix = np.zeros(
-                (k - 1, *np.shape(seg.observation)[1:]), np.asarray(seg.observation).dtype
-            )
+            frames = np.asarray(seg.observation)
+            prefix = np.zeros((k - 1, *frames.shape[1:]), frames.dtype)
         obs: Any = _stacked(np.concatenate([prefix, seg.observation]), k)
     elif isinstance(seg.observation, Mapping):
         obs = {k: np.asarray(v).astype(dtypes.get(k, v.dtype), copy=False)
@@ -548,6 +547,8 @@ class _SourceEpisodes:
 
     def next(self, i: int) -> dict[str, Any]:
         """Episode ``i``'s kept rewards, infos and end flags (called in episode order)."""
+        if self.ends is None:
+            raise FormatError(f"{self.z.path}: no array 'ends'; {self.z.fix}")
         e = self.info["episodes"][i] if i < len(self.info["episodes"]) else {}
         out: dict[str, Any] = {"ends": tuple(bool(x) for x in self.ends[i])}
         steps = int(e.get("steps", 0))
@@ -810,10 +811,14 @@ def _check_space(d: Any, field: str, depth: int = 0) -> None:
             _check_space(v, f"{field}.{k}", depth + 1)
     elif kind == "Box":
         shape = d.get("shape")
-        ok = isinstance(shape, list) and all(
-            isinstance(x, int) and not isinstance(x, bool) and 0 <= x <= 1 << 28 for x in shape
-        )
-        if not ok or len(shape) > 8 or int(np.prod(shape, dtype=np.float64)) > 1 << 28:
+        if (
+            not isinstance(shape, list)
+            or not all(
+                isinstance(x, int) and not isinstance(x, bool) and 0 <= x <= 1 << 28 for x in shape
+            )
+            or len(shape) > 8
+            or int(np.prod(shape, dtype=np.float64)) > 1 << 28
+        ):
             raise ValueError(f"{field}.shape is {shape!r}; a list of at most 8 sizes, 2^28 values")
 
 

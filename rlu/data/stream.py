@@ -49,9 +49,9 @@ import os
 import stat
 from collections import deque
 from collections.abc import Iterator, Mapping, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, TypedDict
 
 import numpy as np
 
@@ -80,7 +80,7 @@ class SampleSource(NamedTuple):
     task: np.ndarray
     """Index of its dataset's task in ``StreamSampler.tasks`` (int64): the game id of a
     multi-game agent."""
-    index: np.ndarray
+    index: np.ndarray  # type: ignore[assignment]  # shadows tuple.index: the public field name
     """Its index in its dataset's ``TransitionView`` / ``SequenceView`` (int64)."""
     epoch: np.ndarray
     """The pass over its dataset it was drawn in (int64)."""
@@ -193,10 +193,39 @@ class _Instance:
 
     __slots__ = ("index", "source", "chunk", "epoch", "pos", "n", "row", "rows", "slot",
                  "order", "times", "future", "snapshot")  # fmt: skip
+    index: int
+    source: int
+    chunk: int
+    epoch: int
+    pos: int
+    n: int
+    row: int
+    rows: int
+    slot: int
+    order: np.ndarray
+    times: np.ndarray
+    future: Future[None]
+    snapshot: _Plan
 
     def __init__(self, **kw: Any):
         for k, v in kw.items():
             setattr(self, k, v)
+
+
+class _Plan(TypedDict):
+    """Where the planning of the stream stands: the next chunk's instance number and stream
+    position, and per dataset its pass, its next chunk in that pass's order and its supply."""
+
+    instance: int
+    pos: int
+    epoch: list[int]
+    k: list[int]
+    supplied: list[int]
+
+
+def _copy_plan(p: Mapping[str, Any]) -> _Plan:
+    return _Plan(instance=int(p["instance"]), pos=int(p["pos"]), epoch=list(p["epoch"]),
+                 k=list(p["k"]), supplied=list(p["supplied"]))  # fmt: skip
 
 
 class _Ring:
@@ -323,9 +352,10 @@ class StreamSampler:
         nums = [s.schema.action.num_values for s in self.sources
                 if isinstance(s.schema.action, DiscreteSpec)]  # fmt: skip
         self.action_spec = first.action
-        if nums and max(nums) != first.action.num_values:
-            self.action_spec = next(s.schema.action for s in self.sources
-                                    if s.schema.action.num_values == max(nums))  # fmt: skip
+        # with nums, every action is discrete (same_action above)
+        if nums and isinstance(first.action, DiscreteSpec) and max(nums) != first.action.num_values:
+            self.action_spec = next(a for s in self.sources if isinstance(a := s.schema.action,
+                                    DiscreteSpec) and a.num_values == max(nums))  # fmt: skip
 
     def _ring_columns(self) -> tuple[dict[str, tuple], dict[str, str]]:
         """The ring's columns per row (name: (shape, dtype)) and the slots' (name: dtype)."""
@@ -377,15 +407,15 @@ class StreamSampler:
         self.per_row = per_row
 
     # -- state ---------------------------------------------------------------------------------
-    def _start_snapshot(self) -> dict[str, Any]:
+    def _start_snapshot(self) -> _Plan:
         d = len(self.sources)
-        return {"instance": 0, "pos": 0, "epoch": [0] * d, "k": [0] * d, "supplied": [0] * d}
+        return _Plan(instance=0, pos=0, epoch=[0] * d, k=[0] * d, supplied=[0] * d)
 
     def _reset(self, snapshot: Mapping[str, Any], bucket: int, offset: int) -> None:
         """Empty the buffer; plan chunks from ``snapshot`` on; draw from bucket ``bucket``,
         offset ``offset`` of its draws."""
         self._drain()
-        self._plan = {k: (list(v) if isinstance(v, list) else int(v)) for k, v in snapshot.items()}
+        self._plan = _copy_plan(snapshot)
         self._orders: dict[tuple[int, int], np.ndarray] = {}
         self._live: deque[_Instance] = deque()
         self._rows = _Ring(self.capacity)
@@ -406,8 +436,7 @@ class StreamSampler:
     def get_state(self) -> dict:
         """Where the stream stands (plain integers: a checkpoint's ``sampler`` entry)."""
         tail = self._live[0].snapshot if self._live else self._plan
-        return {"stream": 1, "tail": {k: (list(v) if isinstance(v, list) else int(v))
-                                      for k, v in tail.items()},
+        return {"stream": 1, "tail": dict(_copy_plan(tail)),
                 "bucket": int(self._bucket), "offset": int(self._offset)}  # fmt: skip
 
     def set_state(self, state: Mapping[str, Any]) -> None:
@@ -452,7 +481,7 @@ class StreamSampler:
         if slot is None:
             self._rows.live.pop()
             return None
-        snapshot = {k: (list(v) if isinstance(v, list) else v) for k, v in p.items()}
+        snapshot = _copy_plan(p)
         inst = _Instance(index=p["instance"], source=d, chunk=c, epoch=p["epoch"][d], pos=p["pos"],
                          n=n, row=row, rows=rows, slot=slot, snapshot=snapshot)  # fmt: skip
         self._draw_times(inst)
@@ -510,6 +539,7 @@ class StreamSampler:
                     self._ring[name][r0 + local] = values
             data[name] = values
         if self.spec.return_to_go:
+            assert src.cum_reward is not None  # built when spec.return_to_go
             c0 = src.cum_reward[inst.chunk]
             cum = np.cumsum(np.concatenate([[c0], data["reward"].astype(np.float64)]))[:-1]
             end = src.cum_end[gseg]
@@ -634,7 +664,7 @@ class StreamSampler:
         if k > 1:
             frames = np.take(ring["observation"], steps[..., None] - (k - 1) + np.arange(k),
                              axis=0)  # fmt: skip
-            obs: Any = padded(np.moveaxis(frames, -3, -1))
+            obs = padded(np.moveaxis(frames, -3, -1))
         else:
             obs = self._obs(steps)
             obs = (
@@ -730,6 +760,7 @@ def _read(col: _Column, row: int, n: int, out: np.ndarray) -> None:
     flags = os.O_RDONLY | os.O_CLOEXEC | getattr(os, "O_NOFOLLOW", 0)
     if col.zlib:
         offsets = np.empty(n + 1, "<i8")
+        assert col.offsets is not None  # a zlib column's
         _pread_into(col.offsets, flags, row * 8, offsets, None)
         sizes = np.diff(offsets)
         if offsets[0] < 0 or offsets[-1] > col.size or (sizes < 8).any():
@@ -761,7 +792,7 @@ def _pread_into(path: Path, flags: int, at: int, out: np.ndarray, size: int | No
         if not stat.S_ISREG(st.st_mode) or (size is not None and st.st_size != size):
             raise FormatError(f"{path}: changed since the dataset was opened; {_RECREATE}")
         want = out.nbytes
-        got = os.preadv(fd, [memoryview(out).cast("B")], at) if want else 0
+        got = os.preadv(fd, [out.data.cast("B")], at) if want else 0
         if got != want:
             raise FormatError(f"{path}: {want} bytes at offset {at} hold {got}; {_RECREATE}")
     finally:

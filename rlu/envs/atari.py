@@ -59,6 +59,7 @@ class AtariEnv(gym.Env):
     """One Atari game with Dopamine's preprocessing; see the module docstring."""
 
     metadata = {"render_modes": list(RENDER_MODES), "render_fps": ALE_FPS / FRAME_SKIP}
+    action_space: spaces.Discrete
 
     def __init__(
         self,
@@ -81,9 +82,10 @@ class AtariEnv(gym.Env):
         self.game = game
         self.render_mode = render_mode
         self.metadata = {**self.metadata, "render_fps": ALE_FPS / frame_skip}
-        self._rom = ale_py.roms.get_rom_path(rom_id(game))
-        if self._rom is None:
+        rom = ale_py.roms.get_rom_path(rom_id(game))
+        if rom is None:
             raise RluError(f"atari/{game}: ale-py has no ROM {rom_id(game)!r}")
+        self._rom = rom
         self.ale = ale_py.ALEInterface()
         self.ale.setLoggerMode(ale_py.LoggerMode.Error)
         self.ale.setFloat("repeat_action_probability", float(sticky_action_prob))
@@ -105,7 +107,7 @@ class AtariEnv(gym.Env):
     def _seed_ale(self, seed: int | None) -> None:
         ss = np.random.SeedSequence(seed)
         _, ale_seed = ss.generate_state(n_words=2)
-        self.ale.setInt("random_seed", np.int32(ale_seed))
+        self.ale.setInt("random_seed", int(np.int32(ale_seed)))
         self.ale.loadROM(self._rom)
 
     def _pool_and_resize(self) -> np.ndarray:
@@ -185,6 +187,6 @@ def make(
             f"{task.id}: ALE's minimal action set has {env.action_space.n} actions, the TaskSpec "
             f"says {task.action_dim}; rlu/tasks.py ATARI_NUM_ACTIONS needs updating"
         )
-    if env.observation_space != observation_space(task.observation_spec):  # type: ignore[arg-type]
+    if env.observation_space != observation_space(task.observation_spec):
         raise RluError(f"{task.id}: the env's observation space differs from the TaskSpec")
     return env

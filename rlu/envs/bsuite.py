@@ -25,16 +25,17 @@ class BsuiteEnv(gym.Env):
     """A bsuite environment as a Gymnasium env (see the module docstring)."""
 
     metadata = {"render_modes": []}
+    action_space: spaces.Discrete
 
     def __init__(self, task: TaskSpec, seed: int | None, random_prob: float) -> None:
         module, cls = task.env["bsuite_class"].split(".")
         self._cls = getattr(importlib.import_module(f"bsuite.environments.{module}"), cls)
         self.task = task
         self.random_prob = float(random_prob)
-        self.observation_space = observation_space(task.observation_spec)  # type: ignore[arg-type]
+        self.observation_space = observation_space(task.observation_spec)
         self.action_space = spaces.Discrete(task.action_spec.num_values)  # type: ignore[union-attr]
         self._seed = seed
-        self._env = None
+        self._env: Any = None  # a bsuite (dm_env, untyped) environment once reset
 
     def _obs(self, ts: Any) -> np.ndarray:
         obs = np.asarray(ts.observation, np.float32).reshape(-1)

@@ -36,7 +36,7 @@ def make(
 
     return DmControlEnv(
         env,
-        task.observation_spec,  # type: ignore[arg-type]
+        task.observation_spec,  # type: ignore[arg-type]  # dm_control observes a dict
         reseed,
         physics=lambda: env.physics,
         control_timestep=env.control_timestep(),

@@ -306,7 +306,7 @@ def make(
             f"{task.id}: unknown env settings {sorted(settings)}; locomotion has `camera`"
         )
     env = _Seeded(BUILDERS[task.env["builder"]], seed, camera)
-    spec = dict(task.observation_spec)  # type: ignore[arg-type]
+    spec = dict(task.observation_spec)  # type: ignore[arg-type]  # dm_control observes a dict
     if not camera:
         del spec[CAMERA_KEY]
     return DmControlEnv(

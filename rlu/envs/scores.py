@@ -190,7 +190,7 @@ def measure(
     ]
     if not todo:
         return doc
-    run = {
+    run: dict[str, Any] = {
         "date": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
         "code_version": code_version(),
         "episodes": episodes,

@@ -30,7 +30,7 @@ its next ``step`` ignores the action and returns the first observation of a new 
 from __future__ import annotations
 
 import functools
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -82,7 +82,7 @@ def make_vector_env(
     ]
     if backend == "sync":
         return gym.vector.SyncVectorEnv(fns)
-    context = "forkserver" if _AUTO[task.domain] != "ale" else None
+    context: Literal["forkserver"] | None = "forkserver" if _AUTO[task.domain] != "ale" else None
     if backend == "process":
         return ProcessVectorEnv(fns, num_workers=num_workers, context=context)
     if backend == "async":
@@ -122,7 +122,11 @@ def _worker(conn, fns) -> None:
                     else:
                         o, r, te, tr, i = e.step(a)
                     done[j] = te or tr
-                    obs.append(o), rew.append(r), term.append(te), trunc.append(tr), infos.append(i)
+                    obs.append(o)
+                    rew.append(r)
+                    term.append(te)
+                    trunc.append(tr)
+                    infos.append(i)
                 conn.send((_stack(obs), np.array(rew), np.array(term), np.array(trunc), infos))
             elif cmd == "close":
                 break
@@ -143,7 +147,12 @@ class ProcessVectorEnv(gym.vector.VectorEnv):
     seed; autoreset is Gymnasium's next-step mode.
     """
 
-    def __init__(self, env_fns: list, num_workers: int | None = None, context: str | None = None):
+    def __init__(
+        self,
+        env_fns: list,
+        num_workers: int | None = None,
+        context: Literal["spawn", "fork", "forkserver"] | None = None,
+    ):
         import multiprocessing as mp
 
         self.num_envs = len(env_fns)
@@ -260,7 +269,9 @@ class AleVectorEnv(gym.vector.VectorEnv):
         self.num_envs = num_envs
         self._seed = seed
         self.clip_rewards = clip_rewards
-        n_actions = self._env.single_action_space.n
+        space = self._env.single_action_space
+        assert isinstance(space, spaces.Discrete)  # ALE's minimal action set
+        n_actions = space.n
         self.single_observation_space = spaces.Box(0, 255, (SCREEN_SIZE, SCREEN_SIZE, 4), np.uint8)
         self.single_action_space = spaces.Discrete(n_actions)
         self.observation_space = gym.vector.utils.batch_space(

@@ -112,9 +112,9 @@ def offline_selection_naive(
     results = {}
     for task in offline:
         for agent, config in chosen.items():
-            by_seed = groups.get((task, agent, config))
-            if by_seed:
-                results[(task, agent)] = _selection(task, agent, config, by_seed)
+            seeds = groups.get((task, agent, config))
+            if seeds:
+                results[(task, agent)] = _selection(task, agent, config, seeds)
     return chosen, results
 
 

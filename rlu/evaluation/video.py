@@ -368,8 +368,9 @@ def _ffmpeg(exe: str, path: Path, shape: tuple, fps: float) -> _Writer:
         raise RluError(
             f"ffmpeg {exe} cannot be started ({e.strerror}); {install_hint('video')}"
         ) from None
-    assert proc.stdin is not None
-    fd = proc.stdin.fileno()
+    stdin = proc.stdin
+    assert stdin is not None
+    fd = stdin.fileno()
     os.set_blocking(fd, False)
 
     def said() -> str:
@@ -382,7 +383,7 @@ def _ffmpeg(exe: str, path: Path, shape: tuple, fps: float) -> _Writer:
             proc.kill()
             proc.wait()
         with contextlib.suppress(OSError):
-            proc.stdin.close()
+            stdin.close()
         log.close()
 
     def failed(why: str) -> RluError:
@@ -393,7 +394,7 @@ def _ffmpeg(exe: str, path: Path, shape: tuple, fps: float) -> _Writer:
     def add(frame: np.ndarray | None) -> None:
         if frame is None:
             with contextlib.suppress(OSError):
-                proc.stdin.close()
+                stdin.close()
             try:
                 code = proc.wait(timeout=ENCODER_TIMEOUT)
             except subprocess.TimeoutExpired:
@@ -406,7 +407,7 @@ def _ffmpeg(exe: str, path: Path, shape: tuple, fps: float) -> _Writer:
         if frame.shape != shape:
             why = f"got a frame of size {frame.shape} after {shape}"
             raise failed(f"{why} (the env's frames changed size mid-episode)")
-        data = memoryview(np.ascontiguousarray(frame)).cast("B")
+        data = np.ascontiguousarray(frame).data.cast("B")
         deadline = time.monotonic() + ENCODER_TIMEOUT
         while len(data):
             left = deadline - time.monotonic()

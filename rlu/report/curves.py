@@ -37,7 +37,7 @@ def curves(
                 continue
             config, protocol = chosen[(task, agent)]
             runs = sorted((k[3], r) for k, r in by_key.items() if k[:3] == (task, agent, config))
-            seeds = [
+            seeds: list[dict[str, Any]] = [
                 {
                     "seed": s,
                     "steps": [e["step"] for e in r["curve"]],

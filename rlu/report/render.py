@@ -887,7 +887,10 @@ def improvement_figure(dom: Mapping[str, Any], plt: Any) -> Any:
 
 
 def quickstart_figure(
-    policies: Sequence[Mapping[str, Any]], dataset_returns: Sequence[float], title: str, plt: Any
+    policies: Sequence[Mapping[str, Any]],
+    dataset_returns: Sequence[float] | np.ndarray,
+    title: str,
+    plt: Any,
 ) -> Any:
     """Each policy's mean return (± std over its episodes, its episodes as dots) beside the
     dataset's episode-return distribution, on one shared return axis."""
@@ -1297,12 +1300,12 @@ def render_atari_per_game(
             b = by[a].get(task)
             beside = b is not None and b["paper_improvement"] is not None
             ours = "" if b is None else f"{b['improvement']:+.1f}" + _tags(dom, b["provenance"])
-            paper = f"{b['paper_improvement']:+.1f}" if beside else ""
+            paper = f"{b['paper_improvement']:+.1f}" if b is not None and beside else ""
             cells += [
                 Cell(
                     ours,
                     bold=bool(b and b["improvement"] >= 0),
-                    note=comparable_label(b) if beside else "",
+                    note=comparable_label(b) if b is not None and beside else "",
                 ),
                 Cell(paper),
             ]

@@ -115,7 +115,7 @@ def _optional_shape(cls: type) -> Any:
     hints = typing.get_type_hints(cls)
     for f in dataclasses.fields(cls):
         hint, _ = scalar_hint(hints[f.name])
-        if dataclasses.is_dataclass(hint):
+        if isinstance(hint, type) and dataclasses.is_dataclass(hint):
             fields[f.name] = _optional_shape(hint)
     return Record({}, fields, extra=False)
 
@@ -224,7 +224,7 @@ def _build(cls: type, data: dict[str, Any]) -> Any:
             continue
         value = data[f.name]
         hint, _ = scalar_hint(hints[f.name])
-        if dataclasses.is_dataclass(hint) and isinstance(value, dict):
+        if isinstance(hint, type) and dataclasses.is_dataclass(hint) and isinstance(value, dict):
             value = _build(hint, value)
         elif typing.get_origin(hint) is tuple and isinstance(value, list):
             value = tuple(value)

@@ -330,7 +330,11 @@ class WandbLogger:
         self.run.finish()
 
 
-_CLASSES = {"csv": CsvLogger, "tensorboard": TensorBoardLogger, "wandb": WandbLogger}
+_CLASSES: dict[str, type[CsvLogger | TensorBoardLogger | WandbLogger]] = {
+    "csv": CsvLogger,
+    "tensorboard": TensorBoardLogger,
+    "wandb": WandbLogger,
+}
 
 
 def check_loggers(names: Sequence[str], run: Path, start: int) -> None:

@@ -119,6 +119,7 @@ def run_loop(p: Prepared, b: Built, loggers: Sequence[Any], progress: bool | Any
     from rlu.evaluation.rollout import evaluate
 
     settings, runtime, agent = p.settings, p.runtime, b.agent
+    assert runtime.prefetch is not None  # Runtime.resolve decided it (prepare)
     if runtime.compile:
         compile_modules(agent.modules)
     policy = greedy_policy(agent)
@@ -174,7 +175,9 @@ def _log(log: Any, loggers: Sequence[Any], kind: str, record: Mapping[str, Any])
 def _checkpoint_state(step: int, agent: Any, batches: Any) -> dict[str, Any]:
     import torch
 
-    alg, keys, pos, has_gauss, cached = np.random.get_state()
+    numpy_state = np.random.get_state()
+    assert isinstance(numpy_state, tuple)  # legacy=True: MT19937's five fields
+    alg, keys, pos, has_gauss, cached = numpy_state
     return {
         "step": step,
         "agent": agent.state_dict(),

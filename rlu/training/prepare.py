@@ -59,7 +59,7 @@ class Prepared:
     """What config.json records."""
     checkpoints: tuple[Path, ...]
     """The run folder's checkpoints, oldest first (resume continues from the last)."""
-    finished: Mapping[str, Any] | None
+    finished: dict[str, Any] | None
     """result.json of a run that had finished (resumed: nothing to do), else None."""
 
     @property

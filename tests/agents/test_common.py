@@ -179,3 +179,22 @@ def test_encoder_flatten_once_gives_the_features_of_every_dict_pass():
     with_images = nets.Encoder(frames)
     batch = {"pixels": torch.zeros(5, 8, 8, 3, dtype=torch.uint8), "b": obs["b"]}
     assert with_images.flatten(batch) is batch  # the torso needs the frames: nothing to fold
+
+
+def test_batches_of_one_kind_are_joined_and_mixed_kinds_refused():
+    from rlu.agents.networks import cat_batches
+
+    a, b = torch.zeros(2, 3), torch.ones(1, 3)
+    assert cat_batches(a, b).tolist() == [[0.0] * 3, [0.0] * 3, [1.0] * 3]
+    joined = cat_batches({"x": a}, {"x": b})
+    assert set(joined) == {"x"} and joined["x"].shape == (3, 3)
+    with pytest.raises(RluError, match="dicts and tensors"):
+        cat_batches({"x": a}, b)
+
+
+def test_bcq_decoding_without_latents_needs_the_agents_generator():
+    vae = bcq.VAE(3, 2, (8,))
+    s, g = torch.zeros(4, 3), torch.Generator().manual_seed(0)
+    assert vae.decode(s, g).shape == (4, 2)
+    with pytest.raises(RluError, match="give z or the generator"):
+        vae.decode(s)  # torch's global generator would draw the latents

@@ -477,3 +477,18 @@ def test_export_spec_carries_the_recorded_settings(tmp_path, minari_root):
     obs, _ = env.reset(seed=0)
     assert set(obs) == set(schema.observation) and mds.observation_space.contains(obs)
     env.close()
+
+
+def test_kept_source_without_ends_names_the_file(tmp_path):
+    # an import always keeps "ends"; a sidecar archive without it is refused, naming the file
+    # (it was a TypeError on None)
+    from rlu.data.foreign import NpzFile
+    from rlu.data.minari import _SourceEpisodes
+    from rlu.types import FormatError
+
+    path = tmp_path / "minari.npz"
+    np.savez(path, rewards=np.zeros(3, np.float32))
+    with NpzFile(path, "re-import the file") as z:
+        extras = _SourceEpisodes({"episodes": [{"steps": 3}]}, ({}, z))
+        with pytest.raises(FormatError, match=r"minari\.npz: no array 'ends'; re-import"):
+            extras.next(0)
