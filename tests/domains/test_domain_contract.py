@@ -129,10 +129,7 @@ def test_generation_fields_resolve(name):
 # Domains without a release shard among the fixtures, which the convert-train-evaluate-report
 # test below therefore never runs, each with why; a new domain adds a shard (tests/fixtures/
 # release, written by TensorFlow: scripts/fixtures) or a line here.
-NO_FIXTURE = {
-    "locomotion": "no TensorFlow-written dm_locomotion shard among the fixtures yet",
-    "rwrl": "no TensorFlow-written rwrl shard among the fixtures yet",
-}
+NO_FIXTURE: dict[str, str] = {}
 
 
 def _installed(domain: Domain) -> str | None:
