@@ -185,7 +185,7 @@ def merge(parts: Sequence[Mapping[str, str | None]]) -> dict[str, str | None]:
     """The conditions of a number made of several: each the first reason any part gives."""
     out: dict[str, str | None] = {}
     for c in CONDITIONS:
-        reasons = list(dict.fromkeys(p[c] for p in parts if p.get(c)))
+        reasons = list(dict.fromkeys(r for p in parts if (r := p.get(c))))
         out[c] = "; ".join(reasons) if reasons else None
     return out
 

@@ -506,7 +506,7 @@ def _split_selections(
 ) -> dict[str, tuple[dict[tuple[str, str], Selection], Protocol]]:
     """Per split, its protocol's selections on the scores the aggregates use, and how each
     agent's configuration was chosen."""
-    out = {}
+    out: dict[str, tuple[dict[tuple[str, str], Selection], Protocol]] = {}
     if ctx.online_tasks:
         out["online"] = (_online(ctx, ctx.scored), _ONLINE)
     naive = _naive(ctx, ctx.scored)
@@ -710,9 +710,10 @@ def _paper_normalised(ctx: DomainContext, task: str, agent: str) -> float | None
 
 def _paper_median(ctx: DomainContext, agent: str, tasks: Sequence[str]) -> float | None:
     values = [_paper_normalised(ctx, t, agent) for t in tasks]
-    if not values or any(v is None for v in values):
+    known = [v for v in values if v is not None]
+    if not values or len(known) < len(values):
         return None
-    return float(np.median(values))
+    return float(np.median(known))
 
 
 def _median_half(
@@ -857,7 +858,8 @@ def build_report(
     for domain, recs in sorted(by_domain.items()):
         agents = sorted({r["agent"] for r in recs})
         tasks = sorted({r["task"] for r in recs}, key=lambda t: (task_info(t)[1] != "online", t))
-        norm = None
+        norm: Normaliser | None = None
+        refs: dict[str, Any] | None = None
         if _normalises(domain):
             norm, refs = _normaliser(tasks, random_scores, best_behaviour)
         # tables show raw returns (as the paper's appendix does); selection across tasks and
@@ -905,7 +907,7 @@ def build_report(
         dom["provenance"] = _provenance_entries(ctx)
         dom["paper_presets"] = {a: _preset_json(ctx, a) for a in agents}
         dom["paper_states"] = _statements(ctx)
-        if norm is not None:
+        if refs is not None:  # set with norm
             dom["reference_scores"] = refs
             dom["reference_flags"] = denominator_flags(refs, random_spread())
         dom["panels"] = []
@@ -967,7 +969,7 @@ def _preset_json(ctx: DomainContext, agent: str) -> dict[str, Any]:
 def _statements(ctx: DomainContext) -> dict[str, Any]:
     """What the paper states of each condition for this domain, where, and rlu's stand-in."""
     fam = cond.paper_conditions(ctx.domain).statements
-    out = {
+    out: dict[str, Any] = {
         k: {"paper": v.paper, "where": v.where, "rlu": v.rlu, "rlu_where": v.rlu_where}
         for k, v in fam.items()
     }
@@ -978,7 +980,11 @@ def _statements(ctx: DomainContext) -> dict[str, Any]:
     return out
 
 
-def _normaliser(tasks, random_scores, best_behaviour):
+def _normaliser(
+    tasks: Sequence[str],
+    random_scores: Mapping[str, float] | None,
+    best_behaviour: Mapping[str, float] | None,
+) -> tuple[Normaliser, dict[str, Any]] | tuple[None, None]:
     """(score normaliser, the reference scores of ``tasks``) or (None, None) where a game of
     ``tasks`` lacks one.
 
@@ -1043,9 +1049,10 @@ def _table(
             }
         # the paper's bold: the best mean, and every cell whose mean ± std overlaps the best's
         # (a cell of one seed has no spread: its mean alone)
-        best = max(cells.values(), key=lambda c: c["mean"], default=None)
-        for c in cells.values():
-            c["bold"] = c["mean"] + (c["std"] or 0.0) >= best["mean"] - (best["std"] or 0.0)
+        if cells:
+            best = max(cells.values(), key=lambda c: c["mean"])
+            for c in cells.values():
+                c["bold"] = c["mean"] + (c["std"] or 0.0) >= best["mean"] - (best["std"] or 0.0)
         # the paper's number of every agent it has one for, rlu's cell or not (a sweep still
         # running, or an agent not run on this task, leaves the paper's column filled)
         beside = {a: paper_entry(task, a, ctx.paper) for a in ctx.agents}

@@ -71,7 +71,7 @@ def write_quickstart_report(
     task_id: str,
     dataset: str | Path,
     command: str,
-    dataset_returns: Sequence[float],
+    dataset_returns: Sequence[float] | np.ndarray,
     rows: Sequence[Mapping[str, Any]],
     seconds: float,
 ) -> str:
