@@ -88,7 +88,7 @@ def check_video_options(args: argparse.Namespace) -> None:
             "folder: give the folder itself, or a new one"
         )
     run, _ = runs.find_run(args.run)
-    inputs = [run]
+    inputs: list[str | Path] = [run]
     dataset = _recorded_dataset(run)
     if dataset is not None:
         inputs.append(dataset)

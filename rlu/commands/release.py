@@ -3,9 +3,13 @@
 from __future__ import annotations
 
 import argparse
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from rlu.domains import DOMAINS
+
+if TYPE_CHECKING:  # pragma: no cover
+    from rlu.data.release.catalog import ReleaseSelection
+    from rlu.domains.spec import TaskRef
 
 
 def _dataset_args(p: argparse.ArgumentParser) -> None:
@@ -232,7 +236,9 @@ def _convert(args: argparse.Namespace) -> int:
     return _convert_local(args, tasks[0])
 
 
-def _selection(args: argparse.Namespace, task: str) -> tuple[Any, Any, str | None]:
+def _selection(
+    args: argparse.Namespace, task: str
+) -> tuple[TaskRef, ReleaseSelection, str | int | None]:
     """(task ref, catalog selection, run) of one --task with the dataset flags."""
     from rlu.data.release import catalog
     from rlu.tasks import resolve_task
@@ -256,6 +262,7 @@ def _convert_local(args: argparse.Namespace, task: str) -> int:
     family, run, challenge, size = ref.dataset_settings(
         args.family, args.run, args.challenge, args.size
     )
+    assert family is not None  # convert's --family is required
     files = list(args.files)
     if args.src:
         sel = catalog.select(ref.task.id, family, run, challenge, size)

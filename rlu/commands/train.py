@@ -419,7 +419,7 @@ def _datasets(items: list[str]) -> dict[str, str]:
         key, sep, value = item.partition("=")
         if not sep:
             value = item
-            key = load_dataset(item).schema.task_id
+            key = load_dataset(item).schema.task_id or ""
             if not key:
                 raise RluError(f"--dataset {item}: its manifest names no task; write TASK={item}")
         elif not key or not value:
