@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import os
+from typing import Any
 
 from rlu.commands._options import checked
 from rlu.domains import DOMAINS
@@ -183,6 +184,7 @@ def _best_behaviour(args: argparse.Namespace) -> int:
         if not args.task or len(args.task) != 1:
             raise RluError("with FILE... say which game they are: one --task atari/GAME")
         jobs = [(args.task[0], list(args.files))]
+    scores: dict[str, Any] = {}
     doc = {
         "format": reference.FORMAT,
         "provenance": {
@@ -191,12 +193,12 @@ def _best_behaviour(args: argparse.Namespace) -> int:
             "averaged over the runs found",
             "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         },
-        "scores": {},
+        "scores": scores,
     }
     for task_id, files in jobs:
         entry = reference.best_behaviour_from_release(files, verify=not args.no_verify)
         entry["files"] = len(files)
-        doc["scores"][task_id] = entry
+        scores[task_id] = entry
         runs = ", ".join(f"run {r}: ckpt {v['checkpoint']} {v['mean']:.2f}"
                          for r, v in entry["runs"].items())  # fmt: skip
         print(f"{task_id}: {entry['mean']:.2f} ({runs})", flush=True)

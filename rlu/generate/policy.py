@@ -90,6 +90,7 @@ def play_policy_run(config: GenerateConfig, scale: PolicyScale, run: int, work: 
     task = get_task(config.task)
     seed, schema = config.seed, schema_for(task)
     episodes, chunk_episodes = scale.episodes, scale.chunk_episodes
+    assert config.policy is not None  # generate() comes here only with a policy
     factory = load_factory(config.policy)
     env = None
     for c in range(-(-episodes // chunk_episodes)):
@@ -122,6 +123,7 @@ def generate_with_policy(config: GenerateConfig, task: TaskSpec, out: Path, work
     returns the dataset's path."""
     sc = policy_scale(task, config.scale)
     runs = sc.runs if config.runs is None else config.runs
+    assert config.policy is not None  # generate() comes here only with a policy
     load_factory(config.policy)  # a typo fails here, before any run
     target = paper_count(task)
     settings = json.loads(

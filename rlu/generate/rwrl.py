@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -85,7 +86,8 @@ def _damaged(path: Path, what: str, run_dir: Path) -> FormatError:
 def _load_history(path: Path, run_dir: Path) -> dict[int, Any]:
     from rlu.training.checkpoints import load_state
 
-    history = load_state(path, fix=f"remove {run_dir} to train this run again")
+    # the keys are the file's, of any type, until each is checked a chunk index below
+    history: dict[Any, Any] = load_state(path, fix=f"remove {run_dir} to train this run again")
     for chunk, entry in history.items():
         if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 0:
             raise _damaged(path, f"key {chunk!r} is not a chunk index", run_dir)
@@ -201,6 +203,7 @@ def generate_rwrl(config: GenerateConfig, task: TaskSpec, out: Path, work: Path)
                 rng = stream_rng(
                     seed, ROLLOUT, 2, CHALLENGES.index(challenge), list(RWRL_SIZES).index(size)
                 )
+                assert isinstance(task.observation_spec, Mapping)  # RWRL observes a dict
                 keys = list(task.observation_spec)
                 prov = {
                     "generator": "rlu generate (rwrl snapshots)",

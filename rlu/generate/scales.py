@@ -16,6 +16,7 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
+from typing import Any
 
 from rlu.domains import DOMAINS
 from rlu.generate.config import SCALES
@@ -30,7 +31,7 @@ _TINY_DQN = {"atari.channels": (8, 16, 16), "atari.hidden_size": 32, "atari.batc
 # agent's presets, with their sources; Agarwal et al. 2020 generated the DQN Replay data with it).
 # The online loop's settings below come from Dopamine's ``dqn.gin`` (google/dopamine,
 # dopamine/agents/dqn/configs/dqn.gin), in agent steps:
-_DOPAMINE_ONLINE = dict(
+_DOPAMINE_ONLINE: dict[str, Any] = dict(
     min_replay=20_000,  # DQNAgent.min_replay_history = 20000
     update_every=4,  # DQNAgent.update_period = 4
     epsilon_decay_steps=250_000,  # DQNAgent.epsilon_decay_period = 250000
