@@ -394,6 +394,45 @@ def _train_cli(tmp_path, *extra: str) -> tuple[int, str]:
     return code, err.getvalue()
 
 
+def test_a_boolean_override_reads_the_words_a_yaml_config_reads(tmp_path):
+    """``recurrent=true`` on the command line (refused: "a string ('true'); expected true or
+    false") is a boolean, as ``recurrent: true`` in a YAML config is; junk is still refused."""
+    from rlu.training.train import YAML_BOOLEANS, parse_overrides
+
+    for word, value in YAML_BOOLEANS.items():
+        assert parse_overrides([f"recurrent={word}"]) == {"recurrent": value}
+    for junk in ("maybe", "tRUE", "y", "1", "0", "'true'", ""):
+        assert not isinstance(parse_overrides([f"recurrent={junk}"])["recurrent"], bool), junk
+    yaml = pytest.importorskip("yaml")
+    for word, value in YAML_BOOLEANS.items():  # the reader's own spellings, no more
+        assert yaml.safe_load(f"x: {word}") == {"x": value}, word
+    words = ("true", "false", "yes", "no", "on", "off", "y", "n", "t", "f")
+    for word in {v for w in words for v in (w, w.title(), w.upper(), w.swapcase().title())}:
+        read = yaml.safe_load(f"x: {word}")["x"]
+        assert (word in YAML_BOOLEANS) == isinstance(read, bool), word  # every one, no more
+
+    import contextlib
+    import io
+
+    from rlu.cli import main
+
+    argv = ["--agent", "bc", "--task", "control_suite/cartpole_swingup"]
+    for word in ("true", "false", "yes", "OFF"):
+        err = io.StringIO()
+        with contextlib.redirect_stderr(err):
+            code = main(["train", *argv, "--dataset", str(tmp_path / "no-data"),
+                         "--out", str(tmp_path / "run"), f"recurrent={word}"])  # fmt: skip
+        # taken: the run goes on to open its data (missing here)
+        assert code == 2 and "recurrent" not in err.getvalue(), err.getvalue()
+        assert "no-data" in err.getvalue(), err.getvalue()
+    code, err = _train_cli(tmp_path, *argv, "recurrent=maybe")
+    assert code == 2
+    assert "agent 'bc' config field 'recurrent' is a string ('maybe'); expected true or " \
+           "false (override recurrent='maybe')" in err  # fmt: skip
+    code, err = _train_cli(tmp_path, *argv, "recurrent=1")
+    assert code == 2 and "field 'recurrent' is an integer (1); expected true or false" in err
+
+
 def test_rlu_train_refuses_a_bad_override_before_any_folder_exists(tmp_path):
     code, err = _train_cli(tmp_path, "gamma=1.5")
     assert code == 2
