@@ -409,7 +409,10 @@ def convert_release(
 ) -> JobReport:
     """Make every dataset of ``datasets`` on ``backend``: one job per shard, then one assembly
     job per dataset (see the module docstring). The first error stops the job (the parts
-    finished so far stay, for the next run) and is raised."""
+    finished so far stay, for the next run) and is raised. A Ray backend at a HOST:PORT that
+    does not answer is refused in seconds, before a shard is read or a folder made
+    (``rlu.workers.Backend.reach``)."""
+    backend.reach()
     t0 = time.monotonic()
     report = JobReport([DatasetReport(d.out, d.task, d.family, d.dataset, len(d.shards))
                         for d in datasets])  # fmt: skip
