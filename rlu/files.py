@@ -7,13 +7,15 @@ is checked first (:func:`check_target`: not a symbolic link, not a file with ano
 no symlinked folder between the folder the command was given and the file), a temporary with an
 unpredictable name is created exclusively (``O_EXCL | O_NOFOLLOW``) beside it, synced, renamed
 over the target, the folder synced. A kill leaves the old file or the new one, never half of
-one. A folder rlu hands to a library that owns it (TensorBoard, W&B) is made by
-:func:`make_folder`. A file rlu opens again and again (a lock, a log it appends to, a cache entry,
-a partial download) goes through :func:`open_private`: never a symbolic link, a hard link or a
-non-file. ``tests/hostile/test_writers_walk.py`` walks the package's syntax trees and fails on
-a write site outside this module (``open`` in a write mode, ``savefig``, ``torch.save``,
-``os.replace``, ...) that neither writes what these functions produced nor is listed there
-with its reason.
+one. A temporary or staging folder written some other way is renamed into place by
+:func:`move_into_place`, which checks the target the same way. A folder rlu hands to a library
+that owns it (TensorBoard, W&B) is made by :func:`make_folder`. A file rlu opens again and
+again (a lock, a log it appends to, a cache entry, a partial download) goes through
+:func:`open_private`: never a symbolic link, a hard link or a non-file.
+``tests/hostile/test_writers_walk.py`` walks the package's syntax trees and fails on a write
+site outside this module (``open`` in a write mode, ``savefig``, ``torch.save``, ...) that
+neither writes what these functions produced nor is listed there with its reason, and on any
+rename outside this module (``os.replace``, ``os.rename``, ``Path.rename``, ``Path.replace``).
 
 Reading. A JSON file rlu reads is checked at the boundary, once, against a *shape* of its own
 (:class:`Shape`: types, ranges, sizes, nesting depth) before any value is used; a shape is written
@@ -154,6 +156,13 @@ def check_target(path: str | os.PathLike, root: str | os.PathLike | None = None)
             raise _refuse(path, "exists and is not a plain file (a folder, FIFO or device)")
         if st.st_nlink > 1:
             raise _refuse(path, "has another hard link (writing it would change that file too)")
+    _check_folders(path, root)
+    return path
+
+
+def _check_folders(path: Path, root: str | os.PathLike | None) -> None:
+    """Refuse ``path`` when it lies outside ``root`` or a folder between ``root`` (itself
+    included; default: ``path``'s own folder) and ``path`` is a symbolic link."""
     parent = Path(os.path.abspath(path.parent))
     top = parent if root is None else Path(os.path.abspath(root))
     if not _inside(parent, top):
@@ -165,7 +174,37 @@ def check_target(path: str | os.PathLike, root: str | os.PathLike | None = None)
         if folder == top:
             break
         folder = folder.parent
-    return path
+
+
+def move_into_place(
+    source: str | os.PathLike, target: str | os.PathLike, root: str | os.PathLike | None = None
+) -> Path:
+    """Rename ``source`` (a temporary file or staging folder rlu wrote) onto ``target``, then
+    sync ``target``'s folder: the one rename into place outside :func:`atomic_path`. The target
+    is checked first: a file's as :func:`check_target` does (with ``root``); a folder's must not
+    be a symbolic link or a non-folder, and no folder between ``root`` and it may be a link. A
+    planted link at ``source`` is refused too. An existing non-empty target folder makes the
+    rename fail (``OSError`` ENOTEMPTY or EEXIST, for the caller: another writer finished
+    first). Returns ``target``."""
+    source, target = Path(source), Path(target)
+    st = os.lstat(source)
+    if stat.S_ISLNK(st.st_mode):
+        raise _refuse(source, "is a symbolic link, not the temporary rlu wrote")
+    if stat.S_ISDIR(st.st_mode):
+        try:
+            mode = os.lstat(target).st_mode
+        except FileNotFoundError:
+            mode = None
+        if mode is not None and stat.S_ISLNK(mode):
+            raise _refuse(target, "is a symbolic link")
+        if mode is not None and not stat.S_ISDIR(mode):
+            raise _refuse(target, "exists and is not a folder")
+        _check_folders(target, root)
+    else:
+        check_target(target, root)
+    os.replace(source, target)
+    _fsync_dir(target.parent)
+    return target
 
 
 def check_targets(folder: str | os.PathLike, patterns: Sequence[str]) -> None:

@@ -23,6 +23,8 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
+from rlu.files import Checked, bounds
+
 __all__ = [
     "RAY_ADDRESS_FORMS",
     "RAY_CONNECT_TIMEOUT",
@@ -150,34 +152,38 @@ def reach_ray_address(address: str, timeout: float = RAY_CONNECT_TIMEOUT) -> Non
 
 
 # --- the runner -----------------------------------------------------------------------------
+MAX_WORKERS = 1 << 16
+"""Jobs running at once, at most."""
+MAX_GPUS_PER_JOB = 1024.0
+"""GPUs one job may ask Ray for, at most."""
+
+
 @dataclasses.dataclass(frozen=True)
-class Backend:
+class Backend(Checked):
     """Where a fan-out of independent jobs runs (sweeps, generation runs, the quick start,
-    conversion shards)."""
+    conversion shards); every field is checked when it is made (``rlu.files.Checked``)."""
 
     kind: str = dataclasses.field(
-        default="local", metadata={"choices": ("local", "ray"), "flag": "--backend"}
+        default="local", metadata=bounds(choices=("local", "ray"), flag="--backend")
     )
     """local (this machine: in this process when workers is 1, else a pool of spawned
     processes) or ray (a Ray cluster)."""
-    workers: int = dataclasses.field(default=1, metadata={"min": 1, "metavar": "N"})
+    workers: int = dataclasses.field(
+        default=1, metadata=bounds(min=1, max=MAX_WORKERS, metavar="N")
+    )
     """Local: processes at once (the results do not depend on it)."""
     address: str | None = dataclasses.field(default=None, metadata={"flag": "--ray-address"})
     """Ray: the cluster's address: auto, local, HOST:PORT or ray://HOST:PORT (default: start a
     local instance, stopped at the end)."""
     gpus_per_job: float = dataclasses.field(
-        default=0.0, metadata={"min": 0.0, "flag": "--gpus-per-run"}
+        default=0.0, metadata=bounds(min=0.0, max=MAX_GPUS_PER_JOB, flag="--gpus-per-run")
     )
     """Ray: GPUs each job asks for; a fraction shares one (0.25: four per GPU)."""
 
     def __post_init__(self) -> None:
-        from rlu.types import RluError
-
-        if self.kind not in ("local", "ray"):
-            raise RluError(f"backend {self.kind!r}; use 'local' or 'ray'")
-        if isinstance(self.workers, bool) or not isinstance(self.workers, int) or self.workers < 1:
-            raise RluError(f"--workers {self.workers!r}: give at least 1 process")
+        super().__post_init__()  # every field's type and bounds (kind, workers, gpus_per_job)
         from rlu.devices import check_gpus_per_run
+        from rlu.types import RluError
 
         check_gpus_per_run(self.gpus_per_job)
         if self.address is not None:

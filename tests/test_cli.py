@@ -243,3 +243,37 @@ def test_a_run_that_never_evaluates_says_so(tmp_path, capsys):
         f"with `rlu evaluate {tmp_path / 'run'}`"
     )
     assert "final evaluation return not evaluated" not in out
+
+
+def test_an_option_of_a_field_with_a_strict_upper_bound_refuses_the_bound(capsys):
+    """``lt`` (strictly below, as rlu.files.bounds writes it) is the parser's too: a field
+    bounded by it gets an option that refuses the bound itself and what lies above."""
+    import argparse
+    import dataclasses
+
+    from rlu.commands._options import add_options, checked
+    from rlu.files import bounds
+
+    parse = checked(float, bounds(gt=0.0, lt=1.0), "--rate")
+    assert parse("0.5") == 0.5 and parse("0.999") == 0.999
+    for bad in ("1.0", "1.5", "0.0", "nan"):
+        with pytest.raises(argparse.ArgumentTypeError, match="out of range; give a finite "
+                           "value > 0.0 and < 1.0"):  # fmt: skip
+            parse(bad)
+    with pytest.raises(argparse.ArgumentTypeError, match="give a value >= 0 and < 10"):
+        checked(int, bounds(min=0, lt=10), "--n")("10")
+    assert checked(int, bounds(min=0, lt=10), "--n")("9") == 9
+
+    @dataclasses.dataclass(frozen=True)
+    class Settings:
+        rate: float = dataclasses.field(default=0.5, metadata=bounds(min=0.0, lt=1.0))
+        """A rate."""
+
+    parser = argparse.ArgumentParser(prog="x")
+    add_options(parser, Settings)
+    assert parser.parse_args(["--rate", "0.0"]).rate == 0.0
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--rate", "1.0"])
+    assert "--rate: 1.0 is out of range; give a finite value >= 0.0 and < 1.0" in (
+        capsys.readouterr().err
+    )

@@ -27,14 +27,19 @@ def _agent_modules() -> list[tuple[str, bool, typing.Any]]:
 
 def _config_classes() -> list[type]:
     """Every agent config class, the dataclasses composed in them, TrainConfig, SweepConfig,
-    FQEConfig, RunSettings and its Runtime."""
+    FQEConfig, RunSettings and its Runtime, GenerateConfig and its Backend, OnlineConfig,
+    RwrlSettings and its Challenge."""
+    from rlu.envs.rwrl import RwrlSettings
     from rlu.evaluation.fqe import FQEConfig
+    from rlu.generate.config import GenerateConfig
+    from rlu.generate.online import OnlineConfig
     from rlu.training.config import RunSettings
     from rlu.training.sweep import SweepConfig
     from rlu.training.train import TrainConfig
 
     todo = [m.Config for _, _, m in _agent_modules()]
     todo += [RunSettings, TrainConfig, SweepConfig, FQEConfig]
+    todo += [GenerateConfig, OnlineConfig, RwrlSettings]
     out: list[type] = []
     while todo:
         cls = todo.pop()
@@ -73,6 +78,8 @@ IDS = [f"{c.__name__}.{n}" for c, n, _, _ in NUMERIC]
 
 def test_every_number_of_every_config_has_a_lower_and_an_upper_bound():
     assert len(NUMERIC) > 200  # every agent's, AtariSettings', RunSettings', TrainConfig's
+    classes = {c.__name__ for c, _, _, _ in NUMERIC}
+    assert {"GenerateConfig", "Backend", "OnlineConfig", "RwrlSettings", "Challenge"} <= classes
     unbounded = [
         f"{cls.__module__}.{cls.__name__}.{name}"
         for cls, name, s, _ in NUMERIC
@@ -115,13 +122,23 @@ def _instances(cls: type) -> list[typing.Any]:
     """Valid instances of ``cls`` to replace one field of: an agent's presets (or its
     composed settings'), a default RunSettings, a small TrainConfig or SweepConfig."""
     from rlu.devices import Runtime
+    from rlu.envs.rwrl import Challenge, RwrlSettings
     from rlu.evaluation.fqe import FQEConfig
+    from rlu.generate.config import GenerateConfig
+    from rlu.generate.online import OnlineConfig
     from rlu.training.config import RunSettings
     from rlu.training.sweep import SweepConfig
     from rlu.training.train import TrainConfig
+    from rlu.workers import Backend
 
-    if cls in (RunSettings, Runtime, FQEConfig):
+    if cls in (RunSettings, Runtime, FQEConfig, Backend, Challenge):
         return [cls()]
+    if cls is GenerateConfig:
+        return [GenerateConfig("control_suite/cartpole_swingup", runs=2)]
+    if cls is OnlineConfig:
+        return [OnlineConfig("d4pg", episodes=2, env_steps=100)]
+    if cls is RwrlSettings:
+        return [RwrlSettings(Challenge())]
     if cls is SweepConfig:
         return [SweepConfig(tasks=("t",), agents=("bc",), seeds=(0, 1), max_configs=2)]
     if cls is TrainConfig:
@@ -164,19 +181,38 @@ def test_a_value_just_outside_a_bound_is_refused_from_python(cls, name, shape, t
 
 @pytest.mark.parametrize(("cls", "name", "shape", "tup"), NUMERIC, ids=IDS)
 def test_a_value_just_outside_a_bound_is_refused_as_an_override_or_in_a_file(
-    cls, name, shape, tup, tmp_path
+    cls, name, shape, tup, tmp_path, monkeypatch
 ):
     import json
 
     from rlu.agents import make_config
     from rlu.devices import Runtime
+    from rlu.envs.rwrl import Challenge, RwrlSettings
     from rlu.evaluation.fqe import FQEConfig
+    from rlu.generate.config import GenerateConfig
+    from rlu.generate.online import OnlineConfig
     from rlu.training.config import RunSettings, read_config_file
     from rlu.training.sweep import SweepConfig
     from rlu.training.train import TrainConfig
+    from rlu.workers import Backend
 
     if cls is FQEConfig:
         pytest.skip("no file holds FQE's settings (rlu report --fqe-steps: the parser's range)")
+    if cls is OnlineConfig:
+        pytest.skip("no file or flag sets a behaviour run's settings (rlu.generate.scales)")
+    if cls in (RwrlSettings, Challenge):  # rlu.make_env's settings: the task named too
+        import rlu
+
+        for bad in _outside(shape):
+            with pytest.raises(ConfigError) as e:
+                rlu.make_env("rwrl/cartpole_swingup", challenge="easy", **{name: bad})
+            message = str(e.value)
+            assert message.startswith("rwrl/cartpole_swingup: ") and f"field '{name}'" in message
+            assert str(bad) in message, message
+        return
+    if cls in (GenerateConfig, Backend):  # rlu generate's options: the flag, value and bound
+        _refused_by_rlu_generate(cls, name, shape, tmp_path, monkeypatch)
+        return
     keys = {TrainConfig: name, RunSettings: f"run.{name}", Runtime: f"run.runtime.{name}",
             SweepConfig: name}  # fmt: skip
     if cls in keys:  # in a run or sweep config file: the file and the key named
@@ -213,6 +249,40 @@ def test_a_value_just_outside_a_bound_is_refused_as_an_override_or_in_a_file(
         with pytest.raises(ConfigError, match=f"field '{name}") as e:
             make_config(agent, discrete, "small", **{path: value})
         assert f"(override {path}=" in str(e.value)
+
+
+def _refused_by_rlu_generate(cls: type, name: str, shape: Int | Float, tmp_path, monkeypatch):
+    import contextlib
+    import io
+
+    import rlu.generate
+    from rlu.cli import main
+
+    def generated(*args, **kw):  # a value not refused would start the generation
+        raise AssertionError(f"rlu generate took {name} out of its bounds")
+
+    monkeypatch.setattr(rlu.generate, "generate", generated)
+
+    flag = dict(next(f for f in dataclasses.fields(cls) if f.name == name).metadata).get(
+        "flag", "--" + name.replace("_", "-")
+    )
+    extra = ["--backend", "ray"] if name == "gpus_per_job" else []  # local runs ask for none
+    for bad in _outside(shape):
+        err = io.StringIO()
+        argv = ["generate", "control_suite/cartpole_swingup", "--out", str(tmp_path / "out"),
+                *extra, f"{flag}={bad}"]  # fmt: skip
+        with contextlib.redirect_stderr(err):
+            try:
+                code = main(argv)  # the library's ConfigError
+            except SystemExit as stop:  # the parser's range
+                code = int(stop.code)
+        message = err.getvalue()
+        assert code == 2, message
+        assert str(bad) in message and (flag in message or f"field '{name}'" in message), message
+        bounds = [b for b in (shape.min, shape.max, getattr(shape, "gt", None),
+                              getattr(shape, "lt", None)) if b is not None]  # fmt: skip
+        assert any(str(b) in message for b in bounds), message
+        assert not (tmp_path / "out").exists()
 
 
 def test_a_tuple_of_the_wrong_length_is_refused():
@@ -324,6 +394,45 @@ def _train_cli(tmp_path, *extra: str) -> tuple[int, str]:
     return code, err.getvalue()
 
 
+def test_a_boolean_override_reads_the_words_a_yaml_config_reads(tmp_path):
+    """``recurrent=true`` on the command line (refused: "a string ('true'); expected true or
+    false") is a boolean, as ``recurrent: true`` in a YAML config is; junk is still refused."""
+    from rlu.training.train import YAML_BOOLEANS, parse_overrides
+
+    for word, value in YAML_BOOLEANS.items():
+        assert parse_overrides([f"recurrent={word}"]) == {"recurrent": value}
+    for junk in ("maybe", "tRUE", "y", "1", "0", "'true'", ""):
+        assert not isinstance(parse_overrides([f"recurrent={junk}"])["recurrent"], bool), junk
+    yaml = pytest.importorskip("yaml")
+    for word, value in YAML_BOOLEANS.items():  # the reader's own spellings, no more
+        assert yaml.safe_load(f"x: {word}") == {"x": value}, word
+    words = ("true", "false", "yes", "no", "on", "off", "y", "n", "t", "f")
+    for word in {v for w in words for v in (w, w.title(), w.upper(), w.swapcase().title())}:
+        read = yaml.safe_load(f"x: {word}")["x"]
+        assert (word in YAML_BOOLEANS) == isinstance(read, bool), word  # every one, no more
+
+    import contextlib
+    import io
+
+    from rlu.cli import main
+
+    argv = ["--agent", "bc", "--task", "control_suite/cartpole_swingup"]
+    for word in ("true", "false", "yes", "OFF"):
+        err = io.StringIO()
+        with contextlib.redirect_stderr(err):
+            code = main(["train", *argv, "--dataset", str(tmp_path / "no-data"),
+                         "--out", str(tmp_path / "run"), f"recurrent={word}"])  # fmt: skip
+        # taken: the run goes on to open its data (missing here)
+        assert code == 2 and "recurrent" not in err.getvalue(), err.getvalue()
+        assert "no-data" in err.getvalue(), err.getvalue()
+    code, err = _train_cli(tmp_path, *argv, "recurrent=maybe")
+    assert code == 2
+    assert "agent 'bc' config field 'recurrent' is a string ('maybe'); expected true or " \
+           "false (override recurrent='maybe')" in err  # fmt: skip
+    code, err = _train_cli(tmp_path, *argv, "recurrent=1")
+    assert code == 2 and "field 'recurrent' is an integer (1); expected true or false" in err
+
+
 def test_rlu_train_refuses_a_bad_override_before_any_folder_exists(tmp_path):
     code, err = _train_cli(tmp_path, "gamma=1.5")
     assert code == 2
@@ -398,3 +507,22 @@ def test_train_config_from_file_names_the_file_and_key_of_a_bad_override(tmp_pat
         TrainConfig.from_file(path)
     ok = TrainConfig.from_file(path, overrides={"num_layers": 4})
     assert ok.overrides == {"num_layers": 4}
+
+
+def test_every_scale_of_every_generated_task_lies_inside_the_bounds():
+    """Each task's behaviour runs at each scale (rlu.generate.scales) are OnlineConfigs inside
+    their bounds, and their run counts inside GenerateConfig's."""
+    from rlu.generate.config import MAX_RUNS, SCALES
+    from rlu.generate.scales import get_scale
+    from rlu.tasks import TASKS
+
+    built = 0
+    for task in TASKS.values():
+        if task.domain not in ("control_suite", "rwrl", "atari"):
+            continue  # locomotion records a policy (--policy), DMLab ships data only
+        for scale in SCALES:
+            s = get_scale(task, scale)
+            check_fields(s.online)
+            assert 1 <= s.runs <= MAX_RUNS
+            built += 1
+    assert built > 30

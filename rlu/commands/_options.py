@@ -4,9 +4,10 @@ options (:func:`from_args`), and what the user typed (:func:`typed_dests`, :func
 for a config file's values under the same names). Only the commands use these; the configs
 themselves (``rlu.training.config.RunSettings``, the agents' configs) live below them.
 
-A field's metadata may hold ``min`` / ``max`` / ``gt`` / ``choices`` (checked by the parser and in
-files), ``flag`` (the option's name when it is not ``--field-name``), ``cli_default`` (the command
-line's default where it differs on purpose from the library's: ``--device auto``), ``metavar``.
+A field's metadata may hold ``min`` / ``max`` / ``gt`` / ``lt`` / ``choices`` (checked by the
+parser and in files), ``flag`` (the option's name when it is not ``--field-name``),
+``cli_default`` (the command line's default where it differs on purpose from the library's:
+``--device auto``), ``metavar``.
 Help text is the field's docstring (the string literal under it), read from the source once.
 
 Standard library only.
@@ -53,10 +54,10 @@ def field_docs(cls: type) -> dict[str, str]:
 
 def checked(kind: Any, meta: dict[str, Any], flag: str) -> Any:
     """An argparse ``type`` parsing ``kind`` (int or float) within ``meta``'s bounds (``min`` /
-    ``max`` / ``gt``, as :func:`rlu.files.bounds` writes them)."""
+    ``max`` / ``gt`` / ``lt``, as :func:`rlu.files.bounds` writes them)."""
     import math
 
-    lo, hi, gt = meta.get("min"), meta.get("max"), meta.get("gt")
+    lo, hi, gt, lt = meta.get("min"), meta.get("max"), meta.get("gt"), meta.get("lt")
 
     def parse(text: str) -> Any:
         try:
@@ -69,12 +70,14 @@ def checked(kind: Any, meta: dict[str, Any], flag: str) -> Any:
             or (lo is not None and value < lo)
             or (hi is not None and value > hi)
             or (gt is not None and value <= gt)
+            or (lt is not None and value >= lt)
         ):
             want = " and ".join(
                 s
                 for s in (
                     f"> {gt}" if gt is not None else "",
                     f">= {lo}" if lo is not None else "",
+                    f"< {lt}" if lt is not None else "",
                     f"<= {hi}" if hi is not None else "",
                 )
                 if s

@@ -130,7 +130,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "overrides",
         nargs="*",
         metavar="FIELD=VALUE",
-        help="agent config overrides, e.g. learning_rate=3e-4 or atari.batch_size=64",
+        help="agent config overrides, e.g. learning_rate=3e-4, atari.batch_size=64 or "
+        "recurrent=true (a boolean: true or false, as in a YAML config)",
     )
     p.set_defaults(func=_train, parser=p)
 

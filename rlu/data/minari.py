@@ -467,11 +467,13 @@ def _read_own_json(path: Path) -> dict[str, Any]:
 
 def _move_into_place(staging: Path, path: Path, base: Path) -> None:
     """Rename the staged dataset (or the first namespace folder ``base`` lacks) into ``base``."""
+    from rlu.files import move_into_place
+
     rel = path.relative_to(staging)
     for i in range(1, len(rel.parts) + 1):
         part = Path(*rel.parts[:i])
         if not os.path.lexists(base / part):
-            os.rename(staging / part, base / part)
+            move_into_place(staging / part, base / part, base)
             return
         if (base / part).is_symlink() or not (base / part).is_dir():
             raise RluError(f"{base / part}: not a folder; Minari's namespace folders must be")

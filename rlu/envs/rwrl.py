@@ -45,46 +45,59 @@ from typing import Any
 import numpy as np
 
 from rlu.envs.core import DmControlEnv, Render
+from rlu.files import FRACTION, Checked, bounds
 from rlu.tasks import TaskSpec, _f32, rwrl_observation_spec
-from rlu.types import ArraySpec, RluError
+from rlu.types import ArraySpec, ConfigError, RluError
 
 # --- combined challenges: rwrl/realworld_env.py get_combined_challenge ------------------------
+SCHEDULERS = (
+    "constant", "random_walk", "drift_pos", "drift_neg", "cyclic_pos", "cyclic_neg", "uniform",
+    "saw_wave",
+)  # fmt: skip
+LEVELS = ("easy", "medium", "hard")
+"""The perturbation levels of every domain (PERTURBATIONS)."""
+MAX_DELAY = 10_000
+"""Steps of a delay, a drop, a stuck value or a repetition, at most (an episode: 1000 steps)."""
+_DELAY = bounds(min=0, max=MAX_DELAY)
+_SPAN = bounds(min=1, max=MAX_DELAY)
+_STD = bounds(min=0.0, max=100.0)
 
 
 @dataclass(frozen=True)
-class Challenge:
-    """The numbers of one challenge setting (all zero/off = no challenge)."""
+class Challenge(Checked):
+    """The numbers of one challenge setting (all zero/off = no challenge); every field is
+    checked when it is made (``rlu.files.Checked``)."""
 
-    action_delay: int = 0
+    action_delay: int = field(default=0, metadata=_DELAY)
     """Steps between passing an action and its effect (delay_spec['actions'])."""
-    observation_delay: int = 0
+    observation_delay: int = field(default=0, metadata=_DELAY)
     """Staleness of returned observations in steps (delay_spec['observations'])."""
-    reward_delay: int = 0
+    reward_delay: int = field(default=0, metadata=_DELAY)
     """Staleness of returned rewards in steps (delay_spec['rewards'])."""
-    action_noise_std: float = 0.0
+    action_noise_std: float = field(default=0.0, metadata=_STD)
     """Std of white Gaussian noise added to actions before clipping (noise gaussian.actions)."""
-    observation_noise_std: float = 0.0
+    observation_noise_std: float = field(default=0.0, metadata=_STD)
     """Std of white Gaussian noise added to every observation element."""
-    observation_drop_prob: float = 0.0
+    observation_drop_prob: float = field(default=0.0, metadata=FRACTION)
     """Per-element probability that an observation value starts being dropped (set to 0)."""
-    observation_drop_steps: int = 1
-    observation_stuck_prob: float = 0.0
+    observation_drop_steps: int = field(default=1, metadata=_SPAN)
+    observation_stuck_prob: float = field(default=0.0, metadata=FRACTION)
     """Per-element probability that an observation value starts being stuck."""
-    observation_stuck_steps: int = 1
-    action_drop_prob: float = 0.0
-    action_drop_steps: int = 1
-    action_stuck_prob: float = 0.0
-    action_stuck_steps: int = 1
-    action_repeat_prob: float = 0.0
+    observation_stuck_steps: int = field(default=1, metadata=_SPAN)
+    action_drop_prob: float = field(default=0.0, metadata=FRACTION)
+    action_drop_steps: int = field(default=1, metadata=_SPAN)
+    action_stuck_prob: float = field(default=0.0, metadata=FRACTION)
+    action_stuck_steps: int = field(default=1, metadata=_SPAN)
+    action_repeat_prob: float = field(default=0.0, metadata=FRACTION)
     """Probability that a fresh action is held (repetition.actions_prob)."""
-    action_repeat_steps: int = 1
+    action_repeat_steps: int = field(default=1, metadata=_SPAN)
     """Steps a held action lasts, the first included (1 = no repetition)."""
-    perturb: str | None = None
+    perturb: str | None = field(default=None, metadata=bounds(choices=LEVELS))
     """Level of the per-domain perturbation (PERTURBATIONS), None = off."""
-    perturb_period: int = 1
+    perturb_period: int = field(default=1, metadata=bounds(min=1, max=10**6))
     """Episodes between new parameter values."""
-    perturb_scheduler: str = "uniform"
-    num_dummy: int = 0
+    perturb_scheduler: str = field(default="uniform", metadata=bounds(choices=SCHEDULERS))
+    num_dummy: int = field(default=0, metadata=_DELAY)
     """Extra N(0, 1) observations dummy-0..dummy-{N-1} (dimensionality_spec)."""
 
 
@@ -177,10 +190,6 @@ PERTURBATIONS: dict[str, Perturbation] = {
         {"easy": (0.6, 0.8, 0.02), "medium": (0.5, 0.9, 0.04), "hard": (0.4, 1.0, 0.06)},
     ),
 }
-SCHEDULERS = (
-    "constant", "random_walk", "drift_pos", "drift_neg", "cyclic_pos", "cyclic_neg", "uniform",
-    "saw_wave",
-)  # fmt: skip
 
 # Episode timing: rwrl/<domain>.py _DEFAULT_TIME_LIMIT (s) and _CONTROL_TIMESTEP (s); cartpole
 # steps at the physics timestep 0.01. All give 1000 steps, as the suite tasks do.
@@ -507,16 +516,21 @@ class _RwrlTask:
 
 
 @dataclass(frozen=True)
-class RwrlSettings:
+class RwrlSettings(Checked):
+    """An RWRL env's challenge and settings; every field is checked when it is made
+    (``rlu.files.Checked``)."""
+
     challenge: Challenge
-    challenge_name: str = "none"
+    challenge_name: str = field(default="none", metadata=bounds(choices=(*CHALLENGES, "custom")))
+    """The challenge's name in CHALLENGES, or 'custom' (a Challenge of the caller's)."""
     safety: bool = False
     """Add the boolean ``constraints`` observation (safety_spec enable, observations=True)."""
-    safety_coeff: float = 1.0
+    safety_coeff: float = field(default=1.0, metadata=FRACTION)
     """Scales every constraint limit, in [0, 1] (1 = the original's base limits)."""
     multiobj_reward: bool = False
     """Reward = (1 - multiobj_coeff) * reward + multiobj_coeff * safety score (needs safety)."""
-    multiobj_coeff: float = 0.0
+    multiobj_coeff: float = field(default=0.0, metadata=FRACTION)
+    """The safety score's weight in the multi-objective reward, in [0, 1]."""
     multiobj_observed: bool = False
     """Add ``multiobj`` = [base reward, safety score] to the observations (needs safety)."""
 
@@ -623,18 +637,16 @@ def make(
             "(the release has 'none' and 'easy') or an rlu.envs.rwrl.Challenge"
         )
     overrides = {k: settings.pop(k) for k in list(settings) if k in Challenge.__annotations__}
-    if overrides:
-        ch, name = replace(ch, **overrides), "custom"
     try:
+        if overrides:
+            ch, name = replace(ch, **overrides), "custom"
         s = RwrlSettings(ch, name, **settings)
     except TypeError as e:
         raise RluError(f"{task.id}: bad RWRL setting ({e}); see rlu.envs.rwrl.RwrlSettings") from e
-    if not 0.0 <= s.safety_coeff <= 1.0:
-        raise RluError(f"{task.id}: safety_coeff must be in [0, 1], got {s.safety_coeff}")
+    except ConfigError as e:  # a setting out of its bounds: the task, the field, value, bound
+        raise ConfigError(f"{task.id}: {e}") from None
     if (s.multiobj_reward or s.multiobj_observed) and not s.safety:
         raise RluError(f"{task.id}: the multi-objective settings need safety=True")
-    if ch.perturb_scheduler not in SCHEDULERS:
-        raise RluError(f"{task.id}: unknown perturbation scheduler {ch.perturb_scheduler!r}")
     domain = task.env["suite_domain"]
     env = _make_environment(domain, task.env["suite_task"], s, seed)
     return DmControlEnv(

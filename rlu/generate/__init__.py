@@ -91,7 +91,9 @@ def generate(
     folder of its ``{challenge}_{size}`` datasets). Re-running an interrupted generation with
     the same config resumes it to the same bytes. One generation per ``out`` at a time: a
     second one fails at once with "in use by PID N". ``on_chunk(run, chunk)`` is called after
-    every saved chunk of the D4PG / DQN recipe, in this process (tests interrupt there)."""
+    every saved chunk of the D4PG / DQN recipe, in this process (tests interrupt there). A Ray
+    backend at a HOST:PORT that does not answer is refused in seconds, before anything is
+    written (``rlu.workers.Backend.reach``)."""
     if not isinstance(config, GenerateConfig):
         raise RluError(
             f"generate takes a rlu.generate.GenerateConfig, got {type(config).__name__}; build "
@@ -103,6 +105,7 @@ def generate(
         raise RluError("on_chunk is called by the D4PG / DQN recipe only")
     out = Path(out)
     _check_out(out, kind)
+    config.backend.reach()  # before the work folder's lock: a dead cluster leaves nothing
     with claim_work(out) as work:
         _check_out(out, kind)  # one that finished between the check and the claim
         if kind == "policy":

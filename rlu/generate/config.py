@@ -9,19 +9,23 @@ whose arithmetic the bytes follow. Standard library only.
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass, field
 
-from rlu.files import bounds, check_value, shape_of
+from rlu.files import Checked, bounds
 from rlu.workers import Backend
 
 SCALES = ("tiny", "laptop", "paper")
 """The recipe's scales (``rlu.generate.scales``)."""
 
 
+MAX_RUNS = 1000
+"""Independent runs of one generation, at most (the paper's: 3 or 5)."""
+
+
 @dataclass(frozen=True)
-class GenerateConfig:
-    """One ``rlu generate`` (see the module docstring)."""
+class GenerateConfig(Checked):
+    """One ``rlu generate`` (see the module docstring); every field is checked when it is made
+    (``rlu.files.Checked``: a ConfigError names the field, the value and the bound)."""
 
     task: str
     """Task id, e.g. control_suite/cartpole_swingup, atari/Pong or rwrl/cartpole_swingup (rwrl
@@ -29,9 +33,11 @@ class GenerateConfig:
     scale: str = field(default="laptop", metadata=bounds(choices=SCALES))
     """laptop: behaviour runs that learn in minutes of CPU; tiny: seconds, for tests; paper: the
     paper's budgets (clusters)."""
-    runs: int | None = field(default=None, metadata=bounds(min=1, flag="--seeds", metavar="N"))
+    runs: int | None = field(
+        default=None, metadata=bounds(min=1, max=MAX_RUNS, flag="--seeds", metavar="N")
+    )
     """Independent runs (default: the scale's; the paper: 3 for the control suite, 5 for Atari)."""
-    seed: int = field(default=0, metadata=bounds(min=0))
+    seed: int = field(default=0, metadata=bounds(min=0, max=2**63 - 1))
     """Base seed of every run; the same seed gives the same bytes."""
     policy: str | None = field(default=None, metadata=bounds(metavar="MODULE:FACTORY"))
     """Record this policy instead of training D4PG / DQN (required for locomotion):
@@ -47,10 +53,6 @@ class GenerateConfig:
     progress: bool = True
     """A progress bar on stderr."""
 
-    def __post_init__(self) -> None:
-        fix = "give every field a value of its type and range (rlu generate --help lists them)"
-        check_value(shape_of(GenerateConfig), dataclasses.asdict(self), "GenerateConfig", fix)
-
     def command(self, runs: int) -> str:
         """The command recorded in the manifest (``--out`` left out: it does not change the
         data; nor do the device and the backend, or only as arithmetic does)."""
@@ -58,4 +60,4 @@ class GenerateConfig:
         return line if self.policy is None else f"{line} --policy {self.policy}"
 
 
-__all__ = ["SCALES", "GenerateConfig"]
+__all__ = ["MAX_RUNS", "SCALES", "GenerateConfig"]

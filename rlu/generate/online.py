@@ -39,47 +39,51 @@ import numpy as np
 
 from rlu.data.episode import Segment
 from rlu.data.views import n_step_counts, n_step_targets, stack_frames
-from rlu.files import FRACTION, bounds, check_value, shape_of
+from rlu.files import FRACTION, MAX_STEPS, STEPS, Checked, bounds
 from rlu.generate.common import ACTOR, AGENT, ENV, EPISODE, run_rng, run_seed
 from rlu.generate.config import GenerateConfig
 from rlu.generate.recorder import EpisodeRecorder, episode_id, schema_for
 from rlu.tasks import TaskSpec, get_task
 from rlu.types import ArraySpec, BatchSpec, FormatError, RluError, Transition
 
+MAX_EPISODES = MAX_STEPS
+"""Episodes of one run, at most: no more than its steps (Atari's runs end at their env_steps)."""
+
 
 @dataclass(frozen=True)
-class OnlineConfig:
-    """One behaviour agent's run (see the module docstring)."""
+class OnlineConfig(Checked):
+    """One behaviour agent's run (see the module docstring); every field is checked when it is
+    made (``rlu.files.Checked``)."""
 
     agent: str
     """The behaviour agent: 'd4pg' (continuous control) or 'dopamine_dqn' (Atari); any registered
     agent whose batch spec samples transitions can play."""
-    episodes: int = field(metadata=bounds(min=1))
+    episodes: int = field(metadata=bounds(min=1, max=MAX_EPISODES))
     """Episodes played (and recorded) per run, at most."""
-    env_steps: int | None = field(default=None, metadata=bounds(min=1))
+    env_steps: int | None = field(default=None, metadata=STEPS)
     """If set, a run also ends with the first episode that reaches this many env steps (Atari's
     budget is in steps: 50M per run in the paper)."""
     preset: str = "small"
     """The agent's preset (rlu.agents); ``agent_overrides`` are applied on top."""
     agent_overrides: Mapping[str, Any] = field(default_factory=dict)
     """Config fields replacing the preset's (e.g. smaller networks at tiny scale)."""
-    replay_capacity: int = field(default=100_000, metadata=bounds(min=1))
+    replay_capacity: int = field(default=100_000, metadata=STEPS)
     """Steps the replay holds (oldest whole episodes are dropped first)."""
-    min_replay: int = field(default=1_000, metadata=bounds(min=0))
+    min_replay: int = field(default=1_000, metadata=bounds(min=0, max=MAX_STEPS))
     """Stored steps before the first update."""
-    update_every: int = field(default=8, metadata=bounds(min=1))
+    update_every: int = field(default=8, metadata=STEPS)
     """Env steps per learner update (Acme's D4PG: samples_per_insert 32 at batch 256)."""
-    sigma: float | None = field(default=0.3, metadata=bounds(min=0.0))
+    sigma: float | None = field(default=0.3, metadata=bounds(min=0.0, max=100.0))
     """D4PG behaviour noise: standard deviation of the Gaussian added to the action. None: the
     agent's own ``act(greedy=False)`` explores (DMPO samples its Gaussian policy, as Acme's
     behaviour network); either way the action is clipped to the bounds."""
     epsilon_end: float = field(default=0.01, metadata=FRACTION)
     """DQN: final exploration epsilon (Dopamine)."""
-    epsilon_decay_steps: int = field(default=250_000, metadata=bounds(min=1))
+    epsilon_decay_steps: int = field(default=250_000, metadata=STEPS)
     """DQN: env steps over which epsilon decays linearly from 1 (Dopamine: 1M frames)."""
-    checkpoint_steps: int = field(default=10_000, metadata=bounds(min=1))
+    checkpoint_steps: int = field(default=10_000, metadata=STEPS)
     """Env steps per checkpoint index (the ``checkpoint`` metadata; Atari's release: 1M)."""
-    chunk_episodes: int = field(default=5, metadata=bounds(min=1))
+    chunk_episodes: int = field(default=5, metadata=bounds(min=1, max=MAX_EPISODES))
     """Episodes per saved part; a crashed run resumes from its last complete chunk."""
     env_settings: Mapping[str, Any] = field(default_factory=dict)
     """Keyword settings of ``rlu.make_env`` (e.g. Atari ``max_episode_steps`` at tiny scale)."""
@@ -87,10 +91,6 @@ class OnlineConfig:
     """How the behaviour policies kept at each checkpoint store their weights
     (``rlu.generate.policies``): float16 halves them (the bundled cartpole dataset's 18 D4PG
     policies: 2.5 MB, not 4.9 MB, inside its 5 MB budget); 'float32' keeps them exact."""
-
-    def __post_init__(self) -> None:
-        fix = "give every field a value of its type and range (rlu.generate.online.OnlineConfig)"
-        check_value(shape_of(OnlineConfig), self.to_json(), "OnlineConfig", fix)
 
     def to_json(self) -> dict[str, Any]:
         return {k: (dict(v) if isinstance(v, Mapping) else v) for k, v in asdict(self).items()}

@@ -9,11 +9,20 @@ unpickler, which refuses any other Python object instead of running the code a p
 Its refusal message suggests ``weights_only=False``, which would run that code; rlu never passes
 that advice on. An empty, truncated or foreign file, or one holding Python objects, raises a
 :class:`~rlu.types.FormatError` naming the file and the fix. torch is imported on first use.
+
+The bytes of a state file are a function of its values: pickle writes a second reference to one
+Python object as a back-reference, so the same state pickled from objects shared differently
+gave other bytes (a resumed run's optimiser state holds the key ``'step'`` as a string read from
+its checkpoint, an uninterrupted run's the very string of the top-level key, and its checkpoints
+differed byte for byte from the uninterrupted run's). :func:`save_state` saves a copy of the
+containers with every string interned and no container shared (:func:`canonical`).
 """
 
 from __future__ import annotations
 
 import os
+import sys
+from collections import OrderedDict
 from pathlib import Path
 from typing import Any
 
@@ -28,11 +37,31 @@ def save_state(path: str | os.PathLike, state: Any) -> Path:
     disk: the temporary file is removed)."""
     import torch
 
+    state = canonical(state)
     with atomic_path(path) as tmp:
         fd = os.open(tmp, os.O_WRONLY | os.O_TRUNC | os.O_NOFOLLOW | os.O_CLOEXEC)
         with os.fdopen(fd, "wb") as fh:
             torch.save(state, fh)
     return Path(path)
+
+
+def canonical(state: Any) -> Any:
+    """``state`` with its dicts, lists and tuples copied and its strings interned: equal strings
+    are one object and no container is reached twice, so its pickle depends on the values only.
+    An ``OrderedDict`` stays one, with its attributes (a module state dict's ``_metadata``);
+    tensors and other leaves are kept as they are (storages shared between tensors stay shared:
+    torch writes a storage once by identity, as the state shares it)."""
+    kind = type(state)
+    if kind is str:
+        return sys.intern(state)
+    if kind is dict or kind is OrderedDict:
+        out = kind((canonical(k), canonical(v)) for k, v in state.items())
+        for name, value in vars(state).items() if kind is OrderedDict else ():
+            setattr(out, name, canonical(value))
+        return out
+    if kind is list or kind is tuple:
+        return kind(canonical(v) for v in state)
+    return state
 
 
 def load_state(

@@ -161,18 +161,32 @@ def check_agent_config(config: TrainConfig, origins: Mapping[str, str] | None = 
     make_config(config.agent, discrete, preset, **config.overrides)
 
 
+YAML_BOOLEANS = {
+    **dict.fromkeys(("true", "True", "TRUE", "yes", "Yes", "YES", "on", "On", "ON"), True),
+    **dict.fromkeys(("false", "False", "FALSE", "no", "No", "NO", "off", "Off", "OFF"), False),
+}
+"""The words a YAML config file's reader (PyYAML's safe loader, YAML 1.1) reads as booleans; an
+override on the command line reads them the same way (``recurrent=true``)."""
+
+
 def parse_overrides(items: list[str] | None) -> dict[str, Any]:
-    """``["learning_rate=3e-4", "hidden=(256, 256)", "atari.batch_size=64"]`` -> typed values
-    (Python literals; bare words stay strings; the agent config checks each against its field)."""
+    """``["learning_rate=3e-4", "hidden=(256, 256)", "atari.batch_size=64", "recurrent=true"]``
+    -> typed values: Python literals, YAML's booleans (:data:`YAML_BOOLEANS`, as a config file
+    reads them); other bare words stay strings. The agent config checks each against its field
+    (``recurrent=maybe`` or ``recurrent=1``: refused, "expected true or false")."""
     out: dict[str, Any] = {}
     for item in items or []:
         key, sep, text = item.partition("=")
         if not sep or not key:
             raise RluError(f"override {item!r}; write it as field=value, e.g. learning_rate=3e-4")
+        text = text.strip()
+        if text in YAML_BOOLEANS:
+            out[key.strip()] = YAML_BOOLEANS[text]
+            continue
         try:
-            out[key.strip()] = ast.literal_eval(text.strip())
+            out[key.strip()] = ast.literal_eval(text)
         except (ValueError, SyntaxError, MemoryError, RecursionError):
-            out[key.strip()] = text.strip()
+            out[key.strip()] = text
     return out
 
 

@@ -111,3 +111,38 @@ def test_workers_and_resume_by_episode_count(tmp_path, capsys):
     assert stop.value.code == 2 and "--workers: 0 is out of range" in capsys.readouterr().err
     with pytest.raises(RluError, match="workers=0"):
         scores.measure(jobs, 1, workers=0)
+
+
+def test_random_scores_skip_the_data_only_domains(tmp_path, capsys, monkeypatch):
+    """Without --task, every task with an env is measured and DMLab's (data only: no env) are
+    left out, also with --domain dmlab; a data-only task named with --task gets its domain's
+    refusal."""
+    from rlu.domains import DOMAINS
+    from rlu.tasks import list_tasks
+
+    data_only = {t.id for t in list_tasks() if DOMAINS[t.domain].data_only}
+    playable = {t.id for t in list_tasks()} - data_only
+    assert any(t.startswith("dmlab/") for t in data_only) and playable
+    asked: list[str] = []
+    real = scores.measure
+
+    def measure(jobs, *args, **kw):  # records the tasks instead of playing them
+        if not jobs:
+            return real(jobs, *args, **kw)
+        asked.extend(task for task, _, _ in jobs)
+        return kw["existing"]
+
+    monkeypatch.setattr(scores, "measure", measure)
+    out = str(tmp_path / "rs.json")
+    argv = ["envs", "random-scores", "--episodes", "1", "--out", out]
+    assert main(argv) == 0
+    assert set(asked) == playable
+    asked.clear()
+    assert main([*argv, "--domain", "dmlab"]) == 0
+    assert asked == [] and "wrote 0 tasks" in capsys.readouterr().out
+    dmlab = sorted(data_only)[0]
+    assert main([*argv, "--task", dmlab]) == 0 and asked == [dmlab]  # named: not skipped
+    monkeypatch.undo()
+    capsys.readouterr()
+    assert main([*argv, "--task", dmlab]) == 2
+    assert "data only" in capsys.readouterr().err

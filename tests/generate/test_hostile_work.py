@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from rlu.types import FormatError, RluError
+from rlu.types import ConfigError, FormatError, RluError
 
 ROOT = Path(__file__).resolve().parents[2]
 TASK = "control_suite/cartpole_swingup"
@@ -182,16 +182,16 @@ def test_settings_out_of_range_are_refused_before_anything_runs(tmp_path, capsys
     from rlu.generate.online import OnlineConfig
 
     with pytest.raises(
-        FormatError, match="field 'checkpoint_steps' is 0; expected an integer >= 1"
+        ConfigError, match="field 'checkpoint_steps' is 0; expected an integer from 1 to"
     ):
         OnlineConfig("d4pg", episodes=2, checkpoint_steps=0)
-    with pytest.raises(FormatError, match="field 'chunk_episodes'"):
+    with pytest.raises(ConfigError, match="field 'chunk_episodes'"):
         OnlineConfig("d4pg", episodes=2, chunk_episodes=0)
-    with pytest.raises(FormatError, match="field 'runs' is 0"):
+    with pytest.raises(ConfigError, match="field 'runs' is 0"):
         GenerateConfig(TASK, runs=0)
-    with pytest.raises(FormatError, match="field 'seed' is -1"):
+    with pytest.raises(ConfigError, match="field 'seed' is -1"):
         GenerateConfig(TASK, seed=-1)
-    with pytest.raises(FormatError, match="field 'scale'"):
+    with pytest.raises(ConfigError, match="field 'scale'"):
         GenerateConfig(TASK, scale="huge")
     for flags in (["--seeds", "0"], ["--seed", "-1"], ["--workers", "0"], ["--scale", "huge"]):
         with pytest.raises(SystemExit) as exit_:

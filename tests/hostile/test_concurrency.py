@@ -231,6 +231,61 @@ def test_two_trains_into_one_out(pendulum, tmp_path):
     assert (out / "result.json").exists() and not lock_path(out).exists()
 
 
+def _files(folder: Path) -> dict[str, tuple[int, int, bytes]]:
+    """Every file under ``folder``: (inode, mtime in ns, bytes), by relative path."""
+    out = {}
+    for path in sorted(folder.rglob("*")):
+        if path.is_file():
+            st = path.stat()
+            out[str(path.relative_to(folder))] = (st.st_ino, st.st_mtime_ns, path.read_bytes())
+    return out
+
+
+def test_a_refused_resume_leaves_the_winner_an_uninterrupted_run(pendulum, tmp_path):
+    """A run killed at its 5th update, then two ``--resume`` into its folder: the second, started
+    while the first is held in its first update (folder written, logs cut back), is refused and
+    touches no file; the winner's folder is then the uninterrupted run's, every file byte for
+    byte (config.json, metrics/eval .jsonl and .csv, result.json, checkpoints: no field of them
+    differs, none holds a wall-clock time)."""
+
+    def args(out: Path) -> list[str]:
+        return [*_train_args(pendulum, out), "--eval-every", "3", "--eval-episodes", "1",
+                "--eval-envs", "1", "--eval-max-steps", "10", "--log-to", "csv"]  # fmt: skip
+
+    reference, out = tmp_path / "reference", tmp_path / "run"
+    assert _cli(args(reference)).returncode == 0
+    killed = subprocess.run(
+        [sys.executable, "-m", "rlu", *args(out)],
+        cwd=ROOT,
+        env={**os.environ, "RLU_TEST_SIGKILL_AT_UPDATE": "5"},
+        capture_output=True,
+    )
+    assert killed.returncode == -signal.SIGKILL, killed.stderr
+    first = subprocess.Popen(
+        [sys.executable, "-c", HELD_TRAIN, *args(out), "--resume"],
+        cwd=ROOT,
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert first.stdout.readline().strip() == "held", first.stderr.read()
+        before = _files(out)
+        second = _cli([*args(out), "--resume"])
+        assert second.returncode == 2 and f"in use by PID {first.pid}" in second.stderr
+        assert "Traceback" not in second.stderr
+        assert _files(out) == before, "the refused run touched the winner's folder"
+    finally:
+        first.stdin.write("\n")
+        first.stdin.close()
+    assert first.wait(timeout=300) == 0, first.stderr.read()
+    won, ref = _files(out), _files(reference)
+    assert sorted(won) == sorted(ref) and "checkpoints/step_00000006.pt" in won
+    differ = [name for name in ref if won[name][2] != ref[name][2]]
+    assert not differ, f"{differ} differ from the uninterrupted run's"
+
+
 def test_a_train_failing_before_its_first_step_blocks_no_rerun(pendulum, tmp_path):
     out = tmp_path / "run"
     bad = _train_args(pendulum, out, task="control_suite/no_such_task")

@@ -3,6 +3,7 @@ temporaries unpredictable and exclusive, nothing left behind on failure."""
 
 from __future__ import annotations
 
+import errno
 import os
 
 import pytest
@@ -12,6 +13,7 @@ from rlu.files import (
     check_target,
     clear_temporaries,
     make_folder,
+    move_into_place,
     write_atomic,
     write_json,
 )
@@ -145,3 +147,45 @@ def test_output_file_rules(tmp_path):
         check_output_file(other, overwrite=True, ours=lambda p: False)
     assert check_output_file(other, overwrite=True, ours=lambda p: True) == other
     assert check_output_file(tmp_path / "new.npz") == tmp_path / "new.npz"
+
+
+def test_move_into_place_checks_the_target_as_every_write_does(tmp_path):
+    """The rename of a temporary or a staging folder into place (the dataset writer, a
+    conversion's parts, a download, a record file, a Minari export) refuses a planted link at
+    the target, a linked folder on the way and a planted source, and writes through none."""
+    victim = tmp_path / "victim"
+    victim.mkdir()
+    (victim / "keep").write_text("keep")
+    tmp = tmp_path / ".f.tmp"
+    tmp.write_text("new")
+    (tmp_path / "f").symlink_to(victim / "keep")
+    with pytest.raises(RluError, match="is a symbolic link"):
+        move_into_place(tmp, tmp_path / "f")
+    staged = tmp_path / ".ds.partial"
+    staged.mkdir()
+    (staged / "data").write_text("rows")
+    (tmp_path / "ds").symlink_to(victim, target_is_directory=True)
+    with pytest.raises(RluError, match="is a symbolic link"):
+        move_into_place(staged, tmp_path / "ds")
+    with pytest.raises(RluError, match="is a symbolic link"):  # a linked folder below root
+        move_into_place(staged, tmp_path / "ds" / "inner", tmp_path)
+    (tmp_path / "plain").write_text("a file")
+    with pytest.raises(RluError, match="not a folder"):
+        move_into_place(staged, tmp_path / "plain")
+    (tmp_path / ".planted").symlink_to(victim)
+    with pytest.raises(RluError, match="not the temporary"):
+        move_into_place(tmp_path / ".planted", tmp_path / "elsewhere")
+    assert sorted(p.name for p in victim.iterdir()) == ["keep"]
+    assert (victim / "keep").read_text() == "keep" and (tmp_path / "f").is_symlink()
+    # into place: a file over a plain file, a folder onto a free name; a non-empty folder there
+    # is the caller's (another writer finished first)
+    (tmp_path / "f").unlink()
+    (tmp_path / "f").write_text("old")
+    assert move_into_place(tmp, tmp_path / "f").read_text() == "new" and not tmp.exists()
+    assert (move_into_place(staged, tmp_path / "ds2") / "data").read_text() == "rows"
+    again = tmp_path / ".again"
+    again.mkdir()
+    (again / "data").write_text("rows")
+    with pytest.raises(OSError) as e:
+        move_into_place(again, tmp_path / "ds2")
+    assert e.value.errno in (errno.ENOTEMPTY, errno.EEXIST)

@@ -184,6 +184,28 @@ def test_an_unreachable_cluster_is_one_line_before_any_folder(tmp_path, capsys, 
     assert not _ray_started()
 
 
+def test_the_library_entry_points_reach_the_cluster_before_any_output(tmp_path):
+    """rlu.generate.generate and convert_release, called as a library (no command reached the
+    address first), refuse a HOST:PORT nothing listens on with rlu's error before they write
+    anything or read a shard (on main: only in the runner, after the work folder was made)."""
+    from rlu.data.release.jobs import DatasetJob, convert_release
+    from rlu.generate import GenerateConfig, generate
+
+    address = f"127.0.0.1:{_free_port()}"
+    backend = Backend("ray", address=address)
+    config = GenerateConfig("control_suite/cartpole_swingup", scale="tiny", runs=1,
+                            backend=backend, progress=False)  # fmt: skip
+    with pytest.raises(RluError) as e:
+        generate(config, tmp_path / "out")
+    assert f"--ray-address {address}" in str(e.value) and "refused the connection" in str(e.value)
+    job = DatasetJob("control_suite/cartpole_swingup", "dm_control_suite", str(tmp_path / "ds"),
+                     (str(tmp_path / "no-such-shard"),))  # fmt: skip
+    with pytest.raises(RluError, match="refused the connection"):  # not the missing shard
+        convert_release([job], backend)
+    assert list(tmp_path.iterdir()) == []  # no output folder, no work folder, no lock
+    assert not _ray_started()
+
+
 # --- W&B --------------------------------------------------------------------------------------
 BAD_MODES = ["bogus", "Offline", "OFFLINE", "", "offline ", "off"]
 

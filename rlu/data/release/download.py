@@ -66,7 +66,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 from rlu.data.release.catalog import object_url, shard_limit
-from rlu.files import open_private, write_atomic
+from rlu.files import move_into_place, open_private, write_atomic
 from rlu.locks import OutputLock
 from rlu.progress import Progress
 from rlu.types import RluError
@@ -560,7 +560,7 @@ class Downloader:
                 continue
             digest = sha256_file(part)
             size = os.path.getsize(part)
-            os.replace(part, path)
+            move_into_place(part, path)
             meta = _read_json(meta_path)
             _remove(meta_path)
             entry = {"size": size, "sha256": digest, "url": url}

@@ -35,7 +35,7 @@ from typing import BinaryIO
 
 import numpy as np
 
-from rlu.files import open_private
+from rlu.files import move_into_place, open_private
 from rlu.types import FormatError
 
 GZIP_MAGIC = b"\x1f\x8b"
@@ -773,7 +773,7 @@ class RecordWriter:
         if self._f is not self._raw:
             self._f.close()
         self._raw.close()
-        os.replace(self._tmp, self.path)
+        move_into_place(self._tmp, self.path)
 
     def abort(self) -> None:
         try:

@@ -56,7 +56,7 @@ from rlu.data.release.convert import (
 )
 from rlu.data.release.download import Downloader, Fetched, release_dir
 from rlu.data.store import MANIFEST, DatasetWriter, Schema, read_manifest, verify_checksums
-from rlu.files import check_output
+from rlu.files import check_output, move_into_place
 from rlu.progress import Progress, format_duration, format_size
 from rlu.types import FormatError, RluError
 from rlu.workers import Backend, node_name, run_jobs, send
@@ -346,7 +346,7 @@ def _write_part(
     steps.flush()
     size = sum(f.stat().st_size for f in tmp.rglob("*") if f.is_file() and f.name != MANIFEST)
     try:
-        os.rename(tmp, part)
+        move_into_place(tmp, part)
     except OSError as e:
         if e.errno not in (errno.ENOTEMPTY, errno.EEXIST):
             raise
@@ -409,7 +409,10 @@ def convert_release(
 ) -> JobReport:
     """Make every dataset of ``datasets`` on ``backend``: one job per shard, then one assembly
     job per dataset (see the module docstring). The first error stops the job (the parts
-    finished so far stay, for the next run) and is raised."""
+    finished so far stay, for the next run) and is raised. A Ray backend at a HOST:PORT that
+    does not answer is refused in seconds, before a shard is read or a folder made
+    (``rlu.workers.Backend.reach``)."""
+    backend.reach()
     t0 = time.monotonic()
     report = JobReport([DatasetReport(d.out, d.task, d.family, d.dataset, len(d.shards))
                         for d in datasets])  # fmt: skip

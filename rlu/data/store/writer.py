@@ -35,7 +35,7 @@ from rlu.data.store.schema import (
     partial_dir,
     segment_columns,
 )
-from rlu.files import open_new, write_atomic
+from rlu.files import move_into_place, open_new, write_atomic
 from rlu.locks import OutputLock
 from rlu.system import available_cores
 from rlu.types import ArraySpec, RluError, SpecError
@@ -488,8 +488,7 @@ class DatasetWriter:
             _fsync_dir(d)
         if self.dest.exists() and self.overwrite:
             shutil.rmtree(self.dest)
-        os.rename(self.tmp, self.dest)
-        _fsync_dir(self.dest.parent)
+        move_into_place(self.tmp, self.dest)
         return self.dest
 
     def abort(self) -> None:
