@@ -20,6 +20,7 @@ import os
 import pkgutil
 import re
 import sys
+from collections.abc import Sequence
 from typing import Any
 
 from rlu.data.formats import extras_of_packages
@@ -39,7 +40,9 @@ class Parser(argparse.ArgumentParser):
     """argparse's parser that says "did you mean" for a mistyped subcommand or option: every
     parser of the ``rlu`` command is one (subcommands' parsers take their parent's class)."""
 
-    def parse_known_args(self, args=None, namespace=None):
+    def parse_known_args(  # type: ignore[override]  # one signature for argparse's overloads
+        self, args: Sequence[str] | None = None, namespace: Any = None
+    ) -> tuple[Any, list[str]]:
         namespace, extras = super().parse_known_args(args, namespace)
         leaf = not any(isinstance(a, argparse._SubParsersAction) for a in self._actions)
         if extras and leaf:  # the command's own parser: the options it cannot read are typos

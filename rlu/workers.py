@@ -299,7 +299,14 @@ def run_jobs(
         _run_ray(fn, jobs, backend, on_result, on_error, on_message, ray_check, retries, resources)
 
 
-def _run_pool(fn, jobs, workers, on_result, on_error, on_message) -> None:
+def _run_pool(
+    fn: Callable[..., Any],
+    jobs: Sequence[tuple[Any, ...]],
+    workers: int,
+    on_result: Callable[[int, Any], None],
+    on_error: Callable[[int, BaseException], None] | None,
+    on_message: Callable[[Any], object] | None,
+) -> None:
     import multiprocessing as mp
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
@@ -315,7 +322,7 @@ def _run_pool(fn, jobs, workers, on_result, on_error, on_message) -> None:
     )
 
     def drain() -> None:
-        while channel is not None and not channel.empty():
+        while channel is not None and on_message is not None and not channel.empty():
             on_message(channel.get())
 
     try:
@@ -335,7 +342,15 @@ def _run_pool(fn, jobs, workers, on_result, on_error, on_message) -> None:
 
 
 def _run_ray(
-    fn, jobs, backend: Backend, on_result, on_error, on_message, ray_check, retries, resources
+    fn: Callable[..., Any],
+    jobs: Sequence[tuple[Any, ...]],
+    backend: Backend,
+    on_result: Callable[[int, Any], None],
+    on_error: Callable[[int, BaseException], None] | None,
+    on_message: Callable[[Any], object] | None,
+    ray_check: Callable[[Any], None] | None,
+    retries: int,
+    resources: Mapping[str, float] | None,
 ) -> None:
     from rlu.system import install_hint
     from rlu.types import RluError
@@ -363,13 +378,13 @@ def _run_ray(
         if on_message is not None:
             channel = _ray_channel(ray)
         paths = tuple(p for p in sys.path if p and os.path.isdir(p))
-        options = {**ray_options(backend.gpus_per_job), **(resources or {})}
+        options: dict[str, Any] = {**ray_options(backend.gpus_per_job), **(resources or {})}
         remote = ray.remote(max_retries=retries, **options)(_ray_job)
         pending = {remote.remote(paths, channel, fn, *job): i for i, job in enumerate(jobs)}
 
         def drain() -> None:
             nonlocal channel
-            if channel is None:
+            if channel is None or on_message is None:  # a channel only with on_message
                 return
             try:
                 messages = ray.get(channel.take.remote())

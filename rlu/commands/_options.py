@@ -111,7 +111,7 @@ def add_options(
         if (only is not None and f.name not in only) or f.name in skip:
             continue
         hint, _ = scalar_hint(hints[f.name])
-        if dataclasses.is_dataclass(hint):
+        if isinstance(hint, type) and dataclasses.is_dataclass(hint):
             add_options(parser, hint, dest_prefix=f"{dest_prefix}{f.name}.")
             continue
         meta = dict(f.metadata)
@@ -162,7 +162,7 @@ def from_args(cls: type, args: argparse.Namespace, dest_prefix: str = "", **give
             values[f.name] = given[f.name]
             continue
         hint, _ = scalar_hint(hints[f.name])
-        if dataclasses.is_dataclass(hint):
+        if isinstance(hint, type) and dataclasses.is_dataclass(hint):
             if any(k.startswith(f"{dest_prefix}{f.name}.") for k in ns):
                 values[f.name] = from_args(hint, args, f"{dest_prefix}{f.name}.")
             continue
@@ -190,7 +190,7 @@ def flat_values(cls: type, data: dict[str, Any], dest_prefix: str = "") -> dict[
         if f.name not in data:
             continue
         hint, _ = scalar_hint(hints[f.name])
-        if dataclasses.is_dataclass(hint):
+        if isinstance(hint, type) and dataclasses.is_dataclass(hint):
             out.update(flat_values(hint, data[f.name], f"{dest_prefix}{f.name}."))
         else:
             value = data[f.name]

@@ -15,6 +15,7 @@ never one holding the dataset, and only after every argument has been checked.
 from __future__ import annotations
 
 import argparse
+from typing import Any
 
 from rlu.commands.train import add_backend_options, add_device_option
 
@@ -149,7 +150,8 @@ def _run(args: argparse.Namespace) -> int:
     action_shape = ds.schema.action.shape
     rng = np.random.default_rng(args.seed)
 
-    def random_policy(obs, is_first, reward):
+    def random_policy(observation: Any, is_first: np.ndarray, reward: np.ndarray) -> np.ndarray:
+        obs = observation
         n = len(next(iter(obs.values()))) if isinstance(obs, dict) else len(obs)
         return rng.uniform(-1.0, 1.0, (n, *action_shape)).astype(np.float32)
 

@@ -6,8 +6,12 @@ import argparse
 import json
 import os
 import re
+from typing import TYPE_CHECKING
 
 from rlu.types import RluError
+
+if TYPE_CHECKING:
+    from rlu.tasks import TaskRef
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -129,7 +133,7 @@ def _info(args: argparse.Namespace) -> int:
     return 0
 
 
-def _readable_task(info: dict, ref) -> dict:
+def _readable_task(info: dict, ref: TaskRef) -> dict:
     """The task's JSON for reading: a task with one dataset has its counts without the ``""``
     key that stands for it in JSON (``episodes: 40``, not ``episodes: {"": 40}``); a TFDS name
     says what it names."""

@@ -342,15 +342,16 @@ class _Corrupt:
         self.prev: np.ndarray | None = None
 
     def __call__(self, x: np.ndarray, rng: np.random.RandomState) -> np.ndarray:
-        if self.count is None:
-            self.count = np.zeros(x.shape)
-            self.prev = x.copy()
+        count, prev = self.count, self.prev
+        if count is None or prev is None:
+            count = self.count = np.zeros(x.shape)
+            prev = self.prev = x.copy()
         start = rng.binomial(1, self.prob, size=x.shape) == 1
-        self.count[(self.count == 0) & start] = self.steps
-        on = self.count > 0
+        count[(count == 0) & start] = self.steps
+        on = count > 0
         x = x.copy()
-        x[on] = self.prev[on] if self.stuck else 0.0
-        self.count[on] -= 1
+        x[on] = prev[on] if self.stuck else 0.0
+        count[on] -= 1
         if self.stuck:
             self.prev = x.copy()
         return x
@@ -576,9 +577,11 @@ def _make_environment(domain: str, task_name: str, settings: RwrlSettings, seed:
 
         def _next_value(self) -> float:
             # rwrl/realworld_env.py Base._generate_parameter.
+            cur, sched = self.perturb_value, ch.perturb_scheduler
+            # reset() calls it only under a perturbation, whose value starts at pert.start
+            assert pert is not None and ch.perturb is not None and cur is not None
             lo, hi, std = pert.levels[ch.perturb]
             rng = task.state.rng
-            cur, sched = self.perturb_value, ch.perturb_scheduler
             if sched == "uniform":
                 return float(rng.uniform(lo, hi))
             delta = rng.normal(scale=std)

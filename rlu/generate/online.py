@@ -272,7 +272,9 @@ class Replay:
 
 
 # --------------------------------------------------------------------------------- a run
-def make_behaviour_agent(task: TaskSpec, cfg: OnlineConfig, seed: int, device: Any = "cpu"):
+def make_behaviour_agent(
+    task: TaskSpec, cfg: OnlineConfig, seed: int, device: Any = "cpu"
+) -> Any:  # an agent of rlu.agents
     from rlu.agents import make_agent
 
     return make_agent(

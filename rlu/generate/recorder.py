@@ -27,7 +27,7 @@ from rlu.data import Schema
 from rlu.data.episode import Segment, make_episode
 from rlu.domains import DOMAINS
 from rlu.tasks import TaskSpec
-from rlu.types import ArraySpec, RluError
+from rlu.types import ArraySpec, ObservationSpec, RluError
 
 
 def episode_id(run: int, episode_index: int) -> int:
@@ -41,7 +41,12 @@ def schema_for(task: TaskSpec) -> Schema:
 
 
 class EpisodeRecorder:
-    def __init__(self, task: TaskSpec, max_steps: int | None = None, observation_spec=None):
+    def __init__(
+        self,
+        task: TaskSpec,
+        max_steps: int | None = None,
+        observation_spec: ObservationSpec | None = None,
+    ):
         """``observation_spec``: what the env returns when it differs from the TaskSpec (RWRL's
         easy challenge adds dummy keys)."""
         self.task = task
@@ -116,7 +121,13 @@ class EpisodeRecorder:
         )
 
 
-def record_policy(env: Any, policy: Any, recorder: EpisodeRecorder, seed: int, metadata=None):
+def record_policy(
+    env: Any,
+    policy: Any,
+    recorder: EpisodeRecorder,
+    seed: int,
+    metadata: Mapping[str, Any] | None = None,
+) -> Segment:
     """One episode of ``policy(observation) -> action`` in ``env`` (reset with ``seed``)."""
     obs, _ = env.reset(seed=int(seed))
     recorder.begin(obs)
