@@ -6,7 +6,9 @@ process (``kill -9``) is simply taken over by the next writer, whatever the file
 live holder makes the next writer fail at once with "in use by PID N" instead of writing over its
 partial output. A lock file planted as a symbolic or hard link is refused, never written through
 (:func:`rlu.files.open_private`). Forked children (conversion's reader processes) close their copy
-of the lock at fork, so a lock lives exactly as long as the process that took it.
+of the lock at fork, so a lock lives exactly as long as the process that took it. The folders
+a lock had to create for its file are removed with it when they are still empty (a run that
+failed before writing anything leaves no folder behind).
 
 Standard library only (``fcntl``: POSIX).
 """
@@ -36,6 +38,17 @@ def _close_in_child() -> None:
 os.register_at_fork(after_in_child=_close_in_child)
 
 
+def _make_folders(folder: Path) -> list[Path]:
+    """``folder`` and its missing parents created; the ones created, outermost first."""
+    missing = []
+    p = folder
+    while not os.path.lexists(p) and p != p.parent:
+        missing.append(p)
+        p = p.parent
+    folder.mkdir(parents=True, exist_ok=True)
+    return missing[::-1]
+
+
 class LockBusy(RluError):
     """Another live process is writing the same output."""
 
@@ -53,6 +66,7 @@ class OutputLock:
         self.path = lock_path(self.target)
         self.what = what
         self.fd: int | None = None
+        self.made: list[Path] = []  # folders acquire() created, outermost first
 
     def acquire(self, wait: float = 0.0) -> OutputLock:
         """Take the lock; a live holder makes it fail at once, or after ``wait`` seconds of
@@ -60,7 +74,7 @@ class OutputLock:
         still hold the lock until the kernel or the file server drops it)."""
         if self.fd is not None:
             return self
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.made = _make_folders(self.path.parent)
         deadline = time.monotonic() + wait
         pause = 0.02
         while True:
@@ -96,8 +110,13 @@ class OutputLock:
     def _open(self) -> int:
         """The lock file, created if missing; a planted symlink (or hard link) is refused, never
         followed: the lock's PID would be written into whatever it points at."""
+        what = f"lock file of {self.target}"
         try:
-            return open_private(self.path, os.O_RDWR | os.O_CREAT, f"lock file of {self.target}")
+            try:
+                return open_private(self.path, os.O_RDWR | os.O_CREAT, what)
+            except FileNotFoundError:  # another lock's release removed the empty folder
+                self.path.parent.mkdir(parents=True, exist_ok=True)
+                return open_private(self.path, os.O_RDWR | os.O_CREAT, what)
         except OSError as e:
             raise RluError(f"{self.path}: the lock file cannot be opened ({e.strerror})") from None
 
@@ -113,6 +132,12 @@ class OutputLock:
         finally:
             _HELD.discard(fd)
             os.close(fd)
+        made, self.made = self.made, []
+        for folder in reversed(made):  # innermost first; one that holds anything is kept
+            try:
+                os.rmdir(folder)
+            except OSError:
+                break
 
     @property
     def held(self) -> bool:

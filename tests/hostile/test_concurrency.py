@@ -166,6 +166,31 @@ def test_lock_in_process(tmp_path):
         pass
 
 
+def test_the_folders_a_lock_made_go_with_it_while_empty(tmp_path):
+    """A lock creates the folders its file needs; released, it removes those still empty (and
+    never one that was there before or that holds anything)."""
+    (tmp_path / "kept").mkdir()
+    with OutputLock(tmp_path / "kept" / "a" / "b" / "out"):
+        assert (tmp_path / "kept" / "a" / "b").is_dir()
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["kept"]
+    with OutputLock(tmp_path / "kept" / "a" / "b" / "out"):
+        (tmp_path / "kept" / "a" / "b" / "out").mkdir()  # what the locked writer made
+    assert (tmp_path / "kept" / "a" / "b" / "out").is_dir()
+    with OutputLock(tmp_path / "kept" / "c" / "out"):
+        (tmp_path / "kept" / "c" / "note").write_text("x")  # the inner folder holds a file
+    assert (tmp_path / "kept" / "c" / "note").exists()
+
+
+def test_a_train_refused_before_its_data_leaves_no_folder(tmp_path):
+    """``rlu train`` whose dataset is missing: a clear error, and the run's parent folders
+    that its lock made are gone again."""
+    out = tmp_path / "runs" / "deep" / "run"
+    failed = _cli(_train_args(str(tmp_path / "no_such_dataset"), out))
+    assert failed.returncode == 2, failed.stderr
+    assert "Traceback" not in failed.stderr and "no_such_dataset" in failed.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_a_stale_lock_file_of_a_dead_pid_is_taken_over(tmp_path):
     target = tmp_path / "out"
     lock_path(target).write_text("999999999\n")  # a pid that cannot be alive; nobody holds it
