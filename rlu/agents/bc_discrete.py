@@ -32,7 +32,7 @@ from rlu.agents import common
 from rlu.agents import discrete_common as dc
 from rlu.agents import networks as nets
 from rlu.files import LEARNING_RATE, Checked, bounds
-from rlu.types import BatchSpec, Sequence, Transition
+from rlu.types import ActionSpec, BatchSpec, Observation, ObservationSpec, Sequence, Transition
 
 
 @dataclass(frozen=True)
@@ -88,7 +88,12 @@ class RecurrentPolicy(nn.Module):
 
 class BCAgent:
     def __init__(
-        self, observation_spec, action_spec, config: BCConfig, seed: int = 0, device="cpu"
+        self,
+        observation_spec: ObservationSpec,
+        action_spec: ActionSpec,
+        config: BCConfig,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
     ) -> None:
         self.config, self.device, self.step = config, common.device(device), 0
         self.batch_spec, self.num_steps = config.atari.batch_spec(), config.atari.num_steps
@@ -139,7 +144,13 @@ class BCAgent:
         return logits[:, 0]
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
+    def act(
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
+    ) -> np.ndarray:
         """The max action of the logits, epsilon-greedy with ``atari.eval_epsilon`` (greedy), or
         a sample of the softmax policy (``greedy=False``)."""
         logits = self._logits(observation, is_first)

@@ -41,7 +41,7 @@ from rlu.files import (
     bounds,
 )
 from rlu.seeds import stream_seed
-from rlu.types import BatchSpec, RluError, Transition
+from rlu.types import ActionSpec, BatchSpec, Observation, ObservationSpec, RluError, Transition
 
 
 @dataclass(frozen=True)
@@ -129,7 +129,7 @@ class VAE(nn.Module):
 class BCQNets(nn.Module):
     """Encoders plus the three networks; one module so targets copy it whole."""
 
-    def __init__(self, observation_spec, action_dim: int, c: BCQConfig):
+    def __init__(self, observation_spec: ObservationSpec, action_dim: int, c: BCQConfig):
         super().__init__()
         self.actor_enc = nets.Encoder(observation_spec, c.torso_hidden)
         self.critic_enc = nets.Encoder(observation_spec, c.torso_hidden)
@@ -170,8 +170,13 @@ def critic_loss(q1, q2, target):
 
 class BCQAgent:
     def __init__(
-        self, observation_spec, action_spec, config: BCQConfig, seed: int = 0, device="cpu"
-    ):
+        self,
+        observation_spec: ObservationSpec,
+        action_spec: ActionSpec,
+        config: BCQConfig,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
+    ) -> None:
         self.config, self.device, self.step = config, common.device(device), 0
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, gamma=config.gamma)
@@ -243,7 +248,13 @@ class BCQAgent:
         return torch.cat(values)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
+    def act(
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
+    ) -> np.ndarray:
         """Scores ``num_samples`` perturbed VAE actions with Q1 and returns the best (the
         original's ``select_action``); latents from a generator seeded with 0 when greedy."""
         n, reps = self.nets, self.config.num_samples

@@ -52,7 +52,7 @@ from rlu.files import (
     bounds,
 )
 from rlu.seeds import stream_seed
-from rlu.types import BatchSpec, Transition
+from rlu.types import ActionSpec, BatchSpec, Observation, ObservationSpec, Transition
 
 
 @dataclass(frozen=True)
@@ -129,8 +129,13 @@ def actor_loss(q_min, kl, alpha: float):
 
 class BRACAgent:
     def __init__(
-        self, observation_spec, action_spec, config: BRACConfig, seed: int = 0, device="cpu"
-    ):
+        self,
+        observation_spec: ObservationSpec,
+        action_spec: ActionSpec,
+        config: BRACConfig,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
+    ) -> None:
         self.config, self.device, self.step = config, common.device(device), 0
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, gamma=config.gamma)
@@ -196,7 +201,13 @@ class BRACAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
+    def act(
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
+    ) -> np.ndarray:
         """tanh(mean) of the tanh-Gaussian policy with ``greedy=True`` (the original's
         ``DeterministicSoftPolicy``); with ``greedy=False`` one of its samples."""
         obs = common.to_torch(observation, self.device)

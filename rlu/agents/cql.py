@@ -64,7 +64,7 @@ from rlu.files import (
     bounds,
 )
 from rlu.seeds import stream_seed
-from rlu.types import BatchSpec, Transition
+from rlu.types import ActionSpec, BatchSpec, Observation, ObservationSpec, Transition
 
 LOG_STD_RANGE = (-20.0, 2.0)  # rlkit's TanhGaussianPolicy
 CLIP = 1.0 - 1e-4
@@ -188,8 +188,13 @@ def bc_policy_loss(alpha: torch.Tensor, log_pi: torch.Tensor, log_prob_data: tor
 
 class CQLAgent:
     def __init__(
-        self, observation_spec, action_spec, config: CQLConfig, seed: int = 0, device="cpu"
-    ):
+        self,
+        observation_spec: ObservationSpec,
+        action_spec: ActionSpec,
+        config: CQLConfig,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
+    ) -> None:
         self.config, self.device, self.step = config, common.device(device), 0
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, gamma=config.gamma)
@@ -275,7 +280,13 @@ class CQLAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
+    def act(
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
+    ) -> np.ndarray:
         """tanh(mean), the original's deterministic evaluation policy, with ``greedy=True``;
         with ``greedy=False`` a sample of the tanh-Gaussian from the agent's generator."""
         mean, std = self.policy(common.to_torch(observation, self.device))

@@ -62,7 +62,7 @@ from rlu.files import (
     bounds,
 )
 from rlu.seeds import stream_seed
-from rlu.types import BatchSpec, RluError, Transition
+from rlu.types import ActionSpec, BatchSpec, Observation, ObservationSpec, RluError, Transition
 
 WEIGHTS = ("exp", "binary")
 BASELINES = ("mean", "max")
@@ -126,7 +126,7 @@ GRID: dict[str, list] = {}  # the paper compares named variants (the presets), n
 class Policy(nn.Module):
     """Encoder -> residual MLP -> Gaussian mixture over the unit-scaled action."""
 
-    def __init__(self, observation_spec, action_dim: int, c: CRRConfig):
+    def __init__(self, observation_spec: ObservationSpec, action_dim: int, c: CRRConfig):
         super().__init__()
         self.torso = nets.Torso(
             observation_spec, c.hidden_size, c.num_layers, torso_hidden=c.torso_hidden
@@ -146,7 +146,7 @@ def sample_actions(mixture, num: int, generator: torch.Generator) -> torch.Tenso
 class Critic(nn.Module):
     """[Encoder(s), a] -> residual MLP -> logits over returns."""
 
-    def __init__(self, observation_spec, action_dim: int, c: CRRConfig):
+    def __init__(self, observation_spec: ObservationSpec, action_dim: int, c: CRRConfig):
         super().__init__()
         self.encoder = nets.Encoder(observation_spec, c.torso_hidden)
         self.mlp = nets.ResidualMLP(self.encoder.output_dim + action_dim, c.hidden_size,
@@ -193,8 +193,13 @@ def policy_loss(log_prob: torch.Tensor, weights: torch.Tensor, adv: torch.Tensor
 
 class CRRAgent:
     def __init__(
-        self, observation_spec, action_spec, config: CRRConfig, seed: int = 0, device="cpu"
-    ):
+        self,
+        observation_spec: ObservationSpec,
+        action_spec: ActionSpec,
+        config: CRRConfig,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
+    ) -> None:
         if config.advantage_weight not in WEIGHTS:
             raise RluError(f"CRRConfig.advantage_weight={config.advantage_weight!r}; "
                            f"use one of {', '.join(WEIGHTS)}")  # fmt: skip
@@ -248,7 +253,13 @@ class CRRAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
+    def act(
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
+    ) -> np.ndarray:
         """The mean of the mixture's most probable component with ``greedy=True``; with
         ``greedy=False`` a sample of the Gaussian mixture from the agent's generator."""
         logits, mean, std = self.policy(common.to_torch(observation, self.device))

@@ -61,7 +61,7 @@ from rlu.files import (
     bounds,
 )
 from rlu.seeds import stream_seed
-from rlu.types import BatchSpec, RluError, Transition
+from rlu.types import ActionSpec, BatchSpec, Observation, ObservationSpec, RluError, Transition
 
 
 @dataclass(frozen=True)
@@ -140,7 +140,7 @@ def acme_layer_norm_mlp_init_(mlp: nn.Sequential) -> None:
 
 
 class Policy(nn.Module):
-    def __init__(self, observation_spec, action_dim: int, config: D4PGConfig):
+    def __init__(self, observation_spec: ObservationSpec, action_dim: int, config: D4PGConfig):
         super().__init__()
         self.encoder = nets.Encoder(observation_spec, config.torso_hidden, torso_norm_elu=False)
         self.mlp = nets.layer_norm_mlp(self.encoder.output_dim, config.policy_layers)
@@ -158,7 +158,7 @@ class Policy(nn.Module):
 
 
 class Critic(nn.Module):
-    def __init__(self, observation_spec, action_dim: int, config: D4PGConfig):
+    def __init__(self, observation_spec: ObservationSpec, action_dim: int, config: D4PGConfig):
         super().__init__()
         self.encoder = nets.Encoder(observation_spec, config.torso_hidden, torso_norm_elu=False)
         self.mlp = nets.layer_norm_mlp(self.encoder.output_dim + action_dim, config.critic_layers)
@@ -204,8 +204,13 @@ def policy_loss(q_logits, atoms, action=None, dqda_clip_norm: float = 0.0):
 
 class D4PGAgent:
     def __init__(
-        self, observation_spec, action_spec, config: D4PGConfig, seed: int = 0, device="cpu"
-    ):
+        self,
+        observation_spec: ObservationSpec,
+        action_spec: ActionSpec,
+        config: D4PGConfig,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
+    ) -> None:
         if config.init not in ("acme", "torch"):
             raise RluError(f"D4PGConfig.init={config.init!r}; choose 'acme' or 'torch'")
         self.config, self.device, self.step = config, common.device(device), 0
@@ -248,7 +253,13 @@ class D4PGAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
+    def act(
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
+    ) -> np.ndarray:
         """pi(s), greedy or not: the policy is deterministic and, offline, acts without the
         online agent's exploration noise."""
         return self.scaler.from_unit(self.policy(common.to_torch(observation, self.device)))

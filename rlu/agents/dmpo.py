@@ -65,7 +65,7 @@ from rlu.files import (
     bounds,
 )
 from rlu.seeds import stream_seed
-from rlu.types import BatchSpec, Transition
+from rlu.types import ActionSpec, BatchSpec, Observation, ObservationSpec, Transition
 
 MIN_LOG_DUAL = -18.0  # Acme's projection of every log dual
 DUAL_EPS = 1e-8  # added to every softplus(dual)
@@ -154,7 +154,7 @@ GRID: dict[str, list] = {}  # a behaviour agent: the paper reports no sweep
 class GaussianPolicy(nn.Module):
     """Acme's MultivariateNormalDiagHead on a LayerNormMLP: (mean, std) per action dimension."""
 
-    def __init__(self, observation_spec, action_dim: int, c: DMPOConfig):
+    def __init__(self, observation_spec: ObservationSpec, action_dim: int, c: DMPOConfig):
         super().__init__()
         self.encoder = nets.Encoder(observation_spec, c.torso_hidden, torso_norm_elu=False)
         self.mlp = nets.layer_norm_mlp(self.encoder.output_dim, c.policy_layers)
@@ -173,7 +173,7 @@ class GaussianPolicy(nn.Module):
 
 
 class Critic(nn.Module):
-    def __init__(self, observation_spec, action_dim: int, c: DMPOConfig):
+    def __init__(self, observation_spec: ObservationSpec, action_dim: int, c: DMPOConfig):
         super().__init__()
         self.encoder = nets.Encoder(observation_spec, c.torso_hidden, torso_norm_elu=False)
         self.mlp = nets.layer_norm_mlp(self.encoder.output_dim + action_dim, c.critic_layers)
@@ -252,8 +252,13 @@ def _kl_per_dim(mean_p, std_p, mean_q, std_q) -> torch.Tensor:
 
 class DMPOAgent:
     def __init__(
-        self, observation_spec, action_spec, config: DMPOConfig, seed: int = 0, device="cpu"
-    ):
+        self,
+        observation_spec: ObservationSpec,
+        action_spec: ActionSpec,
+        config: DMPOConfig,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
+    ) -> None:
         self.config, self.device, self.step = config, common.device(device), 0
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, n_step=config.n_step, gamma=config.gamma)
@@ -324,7 +329,13 @@ class DMPOAgent:
         return torch.cat([critic.logits(s, a) for a in sampled.split(per)])
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
+    def act(
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
+    ) -> np.ndarray:
         """The Gaussian's mean with ``greedy=True``; with ``greedy=False`` a sample (Acme's
         behaviour network), both clipped to the action bounds."""
         mean, std = self.policy(common.to_torch(observation, self.device))

@@ -87,7 +87,15 @@ from rlu.files import (
     bounds,
 )
 from rlu.seeds import stream_seed
-from rlu.types import BatchSpec, DiscreteSpec, RluError, Sequence
+from rlu.types import (
+    ActionSpec,
+    BatchSpec,
+    DiscreteSpec,
+    Observation,
+    ObservationSpec,
+    RluError,
+    Sequence,
+)
 
 TIMESTEPS = ("episode", "context")
 
@@ -351,7 +359,7 @@ class ContinuousDT(nn.Module):
 
     target_return: torch.Tensor  # a buffer
 
-    def __init__(self, observation_spec, action_dim: int, c: DTConfig):
+    def __init__(self, observation_spec: ObservationSpec, action_dim: int, c: DTConfig):
         super().__init__()
         h = c.hidden_size
         self.normaliser = nets.ObservationNormaliser(observation_spec, 1e-6,
@@ -476,8 +484,14 @@ def push(ctx: Context, state, ret, timestep, first) -> tuple[Context, torch.Tens
 
 
 class DTAgent:
-    def __init__(self, observation_spec, action_spec, config: DTConfig, seed: int = 0,
-                 device="cpu"):  # fmt: skip
+    def __init__(
+        self,
+        observation_spec: ObservationSpec,
+        action_spec: ActionSpec,
+        config: DTConfig,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
+    ) -> None:
         self.config, self.device, self.step = config, common.device(device), 0
         self.discrete = isinstance(action_spec, DiscreteSpec)
         s = self.settings = config.atari if self.discrete else config
@@ -586,7 +600,13 @@ class DTAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
+    def act(
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
+    ) -> np.ndarray:
         """The action each row's context predicts (the continuous action; for Atari a softmax
         sample, or the argmax with ``atari.sample_actions=False`` when greedy); ``reward`` (what
         each row's previous action earned) lowers its return to go, so a row that goes on

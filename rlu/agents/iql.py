@@ -56,7 +56,7 @@ from rlu.files import (
     bounds,
 )
 from rlu.seeds import stream_seed
-from rlu.types import BatchSpec, Transition
+from rlu.types import ActionSpec, BatchSpec, Observation, ObservationSpec, Transition
 
 
 @dataclass(frozen=True)
@@ -141,7 +141,7 @@ def cosine_lr(base: float, step: int, horizon: int) -> float:
 
 
 class ValueNet(nn.Module):
-    def __init__(self, observation_spec, c: IQLConfig):
+    def __init__(self, observation_spec: ObservationSpec, c: IQLConfig):
         super().__init__()
         self.encoder = nets.Encoder(observation_spec, c.torso_hidden)
         self.net = nets.mlp(self.encoder.output_dim, c.hidden_layers, 1)
@@ -153,7 +153,7 @@ class ValueNet(nn.Module):
 class GaussianPolicy(nn.Module):
     """N(tanh(MLP(s)), exp(log_std)) with a state-independent, clipped log std."""
 
-    def __init__(self, observation_spec, action_dim: int, c: IQLConfig):
+    def __init__(self, observation_spec: ObservationSpec, action_dim: int, c: IQLConfig):
         super().__init__()
         self.encoder = nets.Encoder(observation_spec, c.torso_hidden)
         self.net = nets.mlp(self.encoder.output_dim, c.hidden_layers, action_dim)
@@ -168,8 +168,13 @@ class GaussianPolicy(nn.Module):
 
 class IQLAgent:
     def __init__(
-        self, observation_spec, action_spec, config: IQLConfig, seed: int = 0, device="cpu"
-    ):
+        self,
+        observation_spec: ObservationSpec,
+        action_spec: ActionSpec,
+        config: IQLConfig,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
+    ) -> None:
         self.config, self.device, self.step = config, common.device(device), 0
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, gamma=config.gamma)
@@ -227,7 +232,13 @@ class IQLAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
+    def act(
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
+    ) -> np.ndarray:
         """The Gaussian's mean (the original evaluates at temperature 0) with ``greedy=True``;
         with ``greedy=False`` a sample of N(mean, exp(log_std)) from the agent's generator."""
         mean, std = self.policy(common.to_torch(observation, self.device))

@@ -30,7 +30,7 @@ from torch import nn
 from rlu.agents import common
 from rlu.agents import discrete_common as dc
 from rlu.files import LEARNING_RATE, WIDTH, Checked, bounds
-from rlu.types import Transition
+from rlu.types import ActionSpec, Observation, ObservationSpec, Transition
 
 
 @dataclass(frozen=True)
@@ -141,7 +141,12 @@ def iqn_loss(network, target_network, batch: dc.TorchTransition, gamma: float,
 
 class IQNAgent:
     def __init__(
-        self, observation_spec, action_spec, config: IQNConfig, seed: int = 0, device="cpu"
+        self,
+        observation_spec: ObservationSpec,
+        action_spec: ActionSpec,
+        config: IQNConfig,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
     ) -> None:
         self.config, self.device, self.step = config, common.device(device), 0
         self.batch_spec, self.num_steps = config.atari.batch_spec(), config.atari.num_steps
@@ -164,7 +169,13 @@ class IQNAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
+    def act(
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
+    ) -> np.ndarray:
         """argmax_a of the mean of ``num_quantile_samples`` quantiles at fractions drawn from the
         acting generator, epsilon-greedy (``atari.eval_epsilon`` when greedy)."""
         frames, generator = dc.frames(observation, device=self.device), self.generators["act"]

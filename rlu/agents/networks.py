@@ -39,7 +39,7 @@ from torch.nn import functional as F
 
 from rlu.agents.common import TensorObservation
 from rlu.agents.losses import tanh_gaussian_log_prob
-from rlu.types import ArraySpec, BoundedSpec, ObservationSpec, RluError, SpecError
+from rlu.types import ActionSpec, ArraySpec, BoundedSpec, ObservationSpec, RluError, SpecError
 
 
 LSTMState = tuple[torch.Tensor, ...]
@@ -548,7 +548,7 @@ def mixture_mode(logits: torch.Tensor, mean: torch.Tensor) -> torch.Tensor:
 class ActionScaler:
     """Maps the spec's [minimum, maximum] box to [-1, 1] and back; agents learn in [-1, 1]."""
 
-    def __init__(self, spec: BoundedSpec) -> None:
+    def __init__(self, spec: ActionSpec) -> None:
         if not isinstance(spec, BoundedSpec):
             raise SpecError(f"continuous agents need a BoundedSpec action spec, got {spec!r}")
         self.lo, self.hi, self.dim = float(spec.minimum), float(spec.maximum), spec.size

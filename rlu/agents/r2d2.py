@@ -47,7 +47,7 @@ from rlu.agents import common
 from rlu.agents import discrete_common as dc
 from rlu.agents import networks as nets
 from rlu.files import FRACTION, LEARNING_RATE, Checked, bounds
-from rlu.types import BatchSpec, RluError, Sequence
+from rlu.types import ActionSpec, BatchSpec, Observation, ObservationSpec, RluError, Sequence
 
 PAPER_ATARI = dc.AtariSettings(
     batch_size=64, gamma=0.997, n_step=5, adam_eps=1e-3, target_update_period=2500
@@ -210,7 +210,12 @@ def r2d2_loss(network: R2D2Network, target_network: R2D2Network, batch: Sequence
 
 class R2D2Agent:
     def __init__(
-        self, observation_spec, action_spec, config: R2D2Config, seed: int = 0, device="cpu"
+        self,
+        observation_spec: ObservationSpec,
+        action_spec: ActionSpec,
+        config: R2D2Config,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
     ) -> None:
         self.config, self.device, self.step = config, common.device(device), 0
         s = config.atari
@@ -238,7 +243,13 @@ class R2D2Agent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
+    def act(
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
+    ) -> np.ndarray:
         """One step of every row's LSTM (reset where ``is_first``), epsilon-greedy on its Q."""
         x = dc.frames(observation, device=self.device)
         n = (x["pixels"] if isinstance(x, dict) else x).shape[0]

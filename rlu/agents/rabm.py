@@ -50,7 +50,7 @@ from rlu.files import (
     bounds,
 )
 from rlu.seeds import stream_seed
-from rlu.types import BatchSpec, Sequence, Transition
+from rlu.types import ActionSpec, BatchSpec, Observation, ObservationSpec, Sequence, Transition
 
 
 @dataclass(frozen=True)
@@ -123,7 +123,7 @@ GRID: dict[str, list] = {}  # the paper reports no sweep for RABM
 
 
 class GaussianPolicy(nn.Module):
-    def __init__(self, observation_spec, action_dim: int, c: RABMConfig):
+    def __init__(self, observation_spec: ObservationSpec, action_dim: int, c: RABMConfig):
         super().__init__()
         lstm = c.lstm_hidden if c.recurrent else 0
         self.torso = nets.Torso(
@@ -133,7 +133,7 @@ class GaussianPolicy(nn.Module):
 
 
 class Critic(nn.Module):
-    def __init__(self, observation_spec, action_dim: int, c: RABMConfig):
+    def __init__(self, observation_spec: ObservationSpec, action_dim: int, c: RABMConfig):
         super().__init__()
         lstm = c.lstm_hidden if c.recurrent else 0
         self.torso = nets.Torso(
@@ -176,8 +176,13 @@ def mpo_m_step(weights, samples, mean, std, target_mean, target_std, duals, c: R
 
 class RABMAgent:
     def __init__(
-        self, observation_spec, action_spec, config: RABMConfig, seed: int = 0, device="cpu"
-    ):
+        self,
+        observation_spec: ObservationSpec,
+        action_spec: ActionSpec,
+        config: RABMConfig,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
+    ) -> None:
         self.config, self.device, self.step = config, common.device(device), 0
         self.scaler = nets.ActionScaler(action_spec)
         self.num_steps, self.pretrain_steps = config.num_steps, 0
@@ -285,7 +290,13 @@ class RABMAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
+    def act(
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
+    ) -> np.ndarray:
         """The Gaussian's mean plus noise of variance ``eval_variance`` (the paper's evaluation)
         with ``greedy=True``; with ``greedy=False`` a sample of the learnt Gaussian."""
         obs = common.to_torch(observation, self.device)

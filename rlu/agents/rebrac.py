@@ -79,7 +79,14 @@ from rlu.files import (
     bounds,
 )
 from rlu.seeds import stream_seed
-from rlu.types import BatchSpec, DataStatistics, Transition
+from rlu.types import (
+    ActionSpec,
+    BatchSpec,
+    DataStatistics,
+    Observation,
+    ObservationSpec,
+    Transition,
+)
 
 
 @dataclass(frozen=True)
@@ -200,8 +207,13 @@ def actor_loss(q, policy_action, action, beta: float, normalize_q: bool):
 
 class ReBRACAgent:
     def __init__(
-        self, observation_spec, action_spec, config: ReBRACConfig, seed: int = 0, device="cpu"
-    ):
+        self,
+        observation_spec: ObservationSpec,
+        action_spec: ActionSpec,
+        config: ReBRACConfig,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
+    ) -> None:
         self.config, self.device, self.step = config, common.device(device), 0
         self.scaler = nets.ActionScaler(action_spec)
         normalize = config.normalize_observations  # the original's compute_mean_std(eps=1e-3)
@@ -264,7 +276,13 @@ class ReBRACAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
+    def act(
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
+    ) -> np.ndarray:
         """pi(s), greedy or not: the policy is deterministic and, offline, acts without TD3's
         exploration noise (observations normalised first with ``normalize_observations``)."""
         obs = self.normaliser(common.to_torch(observation, self.device))

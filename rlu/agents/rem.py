@@ -34,7 +34,7 @@ from torch import nn
 from rlu.agents import common
 from rlu.agents import discrete_common as dc
 from rlu.files import LEARNING_RATE, Checked, bounds
-from rlu.types import Transition
+from rlu.types import ActionSpec, Observation, ObservationSpec, Transition
 
 
 @dataclass(frozen=True)
@@ -103,7 +103,12 @@ def rem_loss(network, target_network, batch: dc.TorchTransition, gamma: float,
 
 class REMAgent:
     def __init__(
-        self, observation_spec, action_spec, config: REMConfig, seed: int = 0, device="cpu"
+        self,
+        observation_spec: ObservationSpec,
+        action_spec: ActionSpec,
+        config: REMConfig,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
     ) -> None:
         self.config, self.device, self.step = config, common.device(device), 0
         self.batch_spec, self.num_steps = config.atari.batch_spec(), config.atari.num_steps
@@ -126,7 +131,13 @@ class REMAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
+    def act(
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
+    ) -> np.ndarray:
         """argmax_a of the mean of the heads' Q (Agarwal et al.'s evaluation), replaced by a
         uniform action with probability ``atari.eval_epsilon`` (greedy) or ``explore_epsilon``."""
         q = self.network(dc.frames(observation, device=self.device)).mean(1)

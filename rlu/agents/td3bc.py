@@ -66,7 +66,14 @@ from rlu.files import (
     bounds,
 )
 from rlu.seeds import stream_seed
-from rlu.types import BatchSpec, DataStatistics, Transition
+from rlu.types import (
+    ActionSpec,
+    BatchSpec,
+    DataStatistics,
+    Observation,
+    ObservationSpec,
+    Transition,
+)
 
 
 @dataclass(frozen=True)
@@ -132,8 +139,13 @@ def actor_loss(q: torch.Tensor, policy_action: torch.Tensor, action: torch.Tenso
 
 class TD3BCAgent:
     def __init__(
-        self, observation_spec, action_spec, config: TD3BCConfig, seed: int = 0, device="cpu"
-    ):
+        self,
+        observation_spec: ObservationSpec,
+        action_spec: ActionSpec,
+        config: TD3BCConfig,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
+    ) -> None:
         self.config, self.device, self.step = config, common.device(device), 0
         self.scaler = nets.ActionScaler(action_spec)
         self.normaliser = nets.ObservationNormaliser(
@@ -191,7 +203,13 @@ class TD3BCAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
+    def act(
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
+    ) -> np.ndarray:
         """pi(s) of the normalised observation, greedy or not: the policy is deterministic and,
         offline, acts without TD3's exploration noise."""
         obs = self.normaliser(common.to_torch(observation, self.device))
