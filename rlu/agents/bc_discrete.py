@@ -60,7 +60,9 @@ PRESETS: dict[str, BCConfig] = {
 GRID: dict[str, list[Any]] = {"learning_rate": list(dc.LEARNING_RATE_GRID)}
 
 
-def bc_loss(logits: torch.Tensor, action: torch.Tensor, weight: torch.Tensor | None = None):
+def bc_loss(
+    logits: torch.Tensor, action: torch.Tensor, weight: torch.Tensor | None = None
+) -> tuple[torch.Tensor, common.Metrics]:
     """Cross-entropy of the policy logits on the logged actions (``weight``: a step mask)."""
     if weight is None:
         loss = F.cross_entropy(logits, action)
@@ -81,7 +83,9 @@ class RecurrentPolicy(nn.Module):
         self.core = dc.RecurrentCore(shape, settings, lstm_size)
         self.logits = nn.Linear(lstm_size, num_actions)
 
-    def forward(self, frames, batch: int, steps: int, state=None):
+    def forward(
+        self, frames: Any, batch: int, steps: int, state: common.LSTMState | None = None
+    ) -> tuple[torch.Tensor, common.LSTMState]:
         out, state = self.core(frames, batch, steps, state)
         return self.logits(out), state
 
@@ -102,7 +106,9 @@ class BCAgent:
                                         sequence_length=config.sequence_length)  # fmt: skip
         self.pretrain_steps = 0
 
-        def recurrent(shape, num_actions, settings):
+        def recurrent(
+            shape: dc.Shape, num_actions: int, settings: dc.AtariSettings
+        ) -> RecurrentPolicy:
             return RecurrentPolicy(shape, num_actions, settings, config.lstm_size)
 
         self.network, self.target_network, self.optimizers, self.generators = dc.build(
@@ -116,7 +122,7 @@ class BCAgent:
             target=False,
         )
         self.modules = {"network": self.network}
-        self._state = None  # acting's LSTM state (recurrent)
+        self._state: common.LSTMState | None = None  # acting's LSTM state (recurrent)
 
     def update(self, batch: Transition | Sequence) -> dict[str, float]:
         action = common.to_torch(batch.action, self.device, "int64")
@@ -134,7 +140,7 @@ class BCAgent:
         self.step = common.learn(self.optimizers["network"], loss, self.step)
         return common.metrics_to_floats(metrics)
 
-    def _logits(self, observation, is_first) -> torch.Tensor:
+    def _logits(self, observation: Observation, is_first: np.ndarray | None) -> torch.Tensor:
         x = dc.frames(observation, device=self.device)
         if not self.config.recurrent:
             return self.network(x)

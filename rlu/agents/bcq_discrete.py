@@ -61,7 +61,7 @@ GRID: dict[str, list[Any]] = {
 class QAndPolicyNetwork(nn.Module):
     """Shared Nature torso, a Q head and an imitation logits head."""
 
-    def __init__(self, shape, num_actions: int, settings: dc.AtariSettings) -> None:
+    def __init__(self, shape: dc.Shape, num_actions: int, settings: dc.AtariSettings) -> None:
         super().__init__()
         self.torso = dc.NatureTorso(shape, settings)
         self.q_head = dc.mlp_head(self.torso.output_size, settings.hidden_size, num_actions)
@@ -85,14 +85,14 @@ def bcq_action_mask(logits: torch.Tensor, threshold: float) -> torch.Tensor:
 
 
 def bcq_loss(
-    network,
-    target_network,
+    network: QAndPolicyNetwork,
+    target_network: QAndPolicyNetwork,
     batch: dc.TorchTransition,
     gamma: float,
     threshold: float = 0.5,
     huber_delta: float = 1.0,
     logit_penalty: float = 1e-2,
-):
+) -> tuple[torch.Tensor, common.Metrics]:
     """Double-Q target restricted to the allowed actions, plus the imitation head's
     cross-entropy and ``logit_penalty`` times its mean squared logit."""
     q, logits = network(batch.observation)

@@ -41,6 +41,8 @@ from rlu.devices import resolve_device
 from rlu.types import RluError
 
 Metrics = dict[str, torch.Tensor]
+LSTMState = tuple[torch.Tensor, ...]
+"""An ``nn.LSTM``'s (h, c) state, (layers, B, H) each."""
 TensorObservation = torch.Tensor | Mapping[str, torch.Tensor]
 """An observation batch as tensors: one tensor, or a dict of them (``to_torch`` of an
 ``rlu.types.Observation``)."""

@@ -44,6 +44,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from torch import nn
 
 from rlu.agents import common
 from rlu.agents import discrete_common as dc
@@ -81,8 +82,9 @@ def conservative_penalty(q: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
     return (torch.logsumexp(q, -1) - dc.taken(q, action)).mean()
 
 
-def cql_loss(network, target_network, batch: dc.TorchTransition, gamma: float, alpha: float,
-             huber_delta: float = 1.0, double_q: bool = True):  # fmt: skip
+def cql_loss(network: nn.Module, target_network: nn.Module, batch: dc.TorchTransition,
+             gamma: float, alpha: float, huber_delta: float = 1.0,
+             double_q: bool = True) -> tuple[torch.Tensor, common.Metrics]:  # fmt: skip
     """Huber TD loss to the (double-)Q target plus ``alpha`` x :func:`conservative_penalty`;
     ``gamma`` bootstraps (gamma^n)."""
     q = network(batch.observation)

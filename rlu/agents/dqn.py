@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from torch import nn
 
 from rlu.agents import common
 from rlu.agents import discrete_common as dc
@@ -46,8 +47,9 @@ PRESETS: dict[str, DQNConfig] = {
 GRID: dict[str, list[Any]] = {"learning_rate": list(dc.LEARNING_RATE_GRID)}
 
 
-def dqn_loss(network, target_network, batch: dc.TorchTransition, gamma: float,
-             huber_delta: float = 1.0, double_q: bool = True):  # fmt: skip
+def dqn_loss(network: nn.Module, target_network: nn.Module, batch: dc.TorchTransition,
+             gamma: float, huber_delta: float = 1.0,
+             double_q: bool = True) -> tuple[torch.Tensor, common.Metrics]:  # fmt: skip
     """Huber loss between Q(s, a) and the (double-)Q target; ``gamma`` bootstraps (gamma^n)."""
     q_taken = dc.taken(network(batch.observation), batch.action)
     target = dc.dqn_target(network, target_network, batch, gamma, double_q)

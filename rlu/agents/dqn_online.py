@@ -55,6 +55,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from torch import nn
 
 from rlu.agents import common
 from rlu.agents import discrete_common as dc
@@ -157,8 +158,9 @@ class TFRMSProp(torch.optim.Optimizer):
         return loss
 
 
-def dopamine_dqn_loss(network, target_network, batch: dc.TorchTransition, gamma: float,
-                      huber_delta: float = 1.0):  # fmt: skip
+def dopamine_dqn_loss(network: nn.Module, target_network: nn.Module,
+                      batch: dc.TorchTransition, gamma: float,
+                      huber_delta: float = 1.0) -> tuple[torch.Tensor, common.Metrics]:  # fmt: skip
     """Dopamine's DQN loss: the batch mean of Huber(r + gamma d max_a Q_target(s', a) - Q(s, a));
     ``gamma`` bootstraps (gamma^n for n-step batches)."""
     q_taken = dc.taken(network(batch.observation), batch.action)

@@ -80,7 +80,9 @@ def cosine_tau_embedding(taus: torch.Tensor, embedding_size: int) -> torch.Tenso
 class ImplicitQuantileNetwork(nn.Module):
     """Z(s, tau) = f(psi(s) * phi(tau)); (B, ...) frames and (B, N) fractions -> (B, N, A)."""
 
-    def __init__(self, shape, num_actions: int, settings: dc.AtariSettings, embedding_size: int):
+    def __init__(
+        self, shape: dc.Shape, num_actions: int, settings: dc.AtariSettings, embedding_size: int
+    ) -> None:
         super().__init__()
         self.torso = dc.NatureTorso(shape, settings)
         self.embedding_size = embedding_size
@@ -115,9 +117,11 @@ def _taken_quantiles(quantiles: torch.Tensor, action: torch.Tensor) -> torch.Ten
     return quantiles.gather(-1, index).squeeze(-1)
 
 
-def iqn_loss(network, target_network, batch: dc.TorchTransition, gamma: float,
+def iqn_loss(network: ImplicitQuantileNetwork, target_network: ImplicitQuantileNetwork,
+             batch: dc.TorchTransition, gamma: float,
              generator: torch.Generator, num_taus: int, num_taus_next: int,
-             kappa: float = 1.0, double_q: bool = False):  # fmt: skip
+             kappa: float = 1.0,
+             double_q: bool = False) -> tuple[torch.Tensor, common.Metrics]:  # fmt: skip
     """Quantile Huber loss between N online quantiles and N' target quantiles. The next action
     is the argmax of the mean of the target quantiles (Acme's IQN learner); with ``double_q`` it
     is the online network's on the same N' fractions."""

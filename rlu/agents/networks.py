@@ -37,13 +37,9 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from rlu.agents.common import TensorObservation
+from rlu.agents.common import LSTMState, TensorObservation
 from rlu.agents.losses import tanh_gaussian_log_prob
 from rlu.types import ActionSpec, ArraySpec, BoundedSpec, ObservationSpec, RluError, SpecError
-
-
-LSTMState = tuple[torch.Tensor, ...]
-"""An ``nn.LSTM``'s (h, c) state, (layers, B, H) each."""
 
 
 def is_image(spec: ArraySpec) -> bool:
