@@ -67,7 +67,13 @@ PRESETS = {
 GRID: dict[str, list] = {}  # the paper reports no sweep for BC
 
 
-def bc_loss(logits, mean, std, action, weight=None):
+def bc_loss(
+    logits: torch.Tensor,
+    mean: torch.Tensor,
+    std: torch.Tensor,
+    action: torch.Tensor,
+    weight: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, common.Metrics]:
     """Negative log-likelihood of the data's actions under the mixture (``weight``: step mask)."""
     log_prob = mixture_log_prob(logits, mean, std, action)
     if weight is None:

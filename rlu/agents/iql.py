@@ -109,13 +109,15 @@ def expectile_loss(diff: torch.Tensor, expectile: float) -> torch.Tensor:
     return (weight * diff.pow(2)).mean()
 
 
-def value_loss(q_min: torch.Tensor, v: torch.Tensor, expectile: float):
+def value_loss(
+    q_min: torch.Tensor, v: torch.Tensor, expectile: float
+) -> tuple[torch.Tensor, common.Metrics]:
     """L_V with the target critics' min Q(s, a) held fixed."""
     loss = expectile_loss(q_min.detach() - v, expectile)
     return loss, {"value/loss": loss, "value/v_mean": v.mean()}
 
 
-def critic_loss(q: torch.Tensor, target: torch.Tensor):
+def critic_loss(q: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, common.Metrics]:
     """Sum over the twin critics (2, B) of the mean squared error to the target (B,)."""
     loss = (q - target.detach()).pow(2).mean(1).sum()
     return loss, {"critic/loss": loss, "critic/q_mean": q.mean()}
@@ -126,7 +128,9 @@ def awr_weights(adv: torch.Tensor, beta: float, max_weight: float) -> torch.Tens
     return torch.exp(beta * adv).clamp(max=max_weight)
 
 
-def actor_loss(log_prob: torch.Tensor, adv: torch.Tensor, beta: float, max_weight: float):
+def actor_loss(
+    log_prob: torch.Tensor, adv: torch.Tensor, beta: float, max_weight: float
+) -> tuple[torch.Tensor, common.Metrics]:
     """AWR: -mean_b w_b log pi(a_b | s_b), weights from the fixed advantage."""
     w = awr_weights(adv.detach(), beta, max_weight)
     loss = -(w * log_prob).mean()
@@ -146,7 +150,7 @@ class ValueNet(nn.Module):
         self.encoder = nets.Encoder(observation_spec, c.torso_hidden)
         self.net = nets.mlp(self.encoder.output_dim, c.hidden_layers, 1)
 
-    def forward(self, obs) -> torch.Tensor:
+    def forward(self, obs: common.TensorObservation) -> torch.Tensor:
         return self.net(self.encoder(obs)).squeeze(-1)
 
 
@@ -160,7 +164,7 @@ class GaussianPolicy(nn.Module):
         self.log_std = nn.Parameter(torch.zeros(action_dim))
         self.log_std_range = (c.log_std_min, c.log_std_max)
 
-    def forward(self, obs):
+    def forward(self, obs: common.TensorObservation) -> tuple[torch.Tensor, torch.Tensor]:
         mean = torch.tanh(self.net(self.encoder(obs)))
         std = self.log_std.clamp(*self.log_std_range).exp().expand_as(mean)
         return mean, std

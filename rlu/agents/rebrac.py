@@ -166,7 +166,9 @@ def edac_init(net: nn.Sequential, last_bound: float) -> nn.Sequential:
     return net
 
 
-def build_networks(observation_spec, action_dim: int, c: ReBRACConfig):
+def build_networks(
+    observation_spec: ObservationSpec, action_dim: int, c: ReBRACConfig
+) -> tuple[nets.DeterministicPolicy, nets.TwinCritic]:
     """The actor and the twin critics, initialised as the original's (``edac_init``)."""
     actor = nets.DeterministicPolicy(
         observation_spec, action_dim, c.actor_layers, c.torso_hidden, c.actor_layer_norm
@@ -180,7 +182,15 @@ def build_networks(observation_spec, action_dim: int, c: ReBRACConfig):
     return actor, critics
 
 
-def critic_target(reward, discount, bootstrap_gamma: float, next_q, next_action, data_action, beta):
+def critic_target(
+    reward: torch.Tensor,
+    discount: torch.Tensor,
+    bootstrap_gamma: float,
+    next_q: torch.Tensor,
+    next_action: torch.Tensor,
+    data_action: torch.Tensor,
+    beta: float,
+) -> tuple[torch.Tensor, common.Metrics]:
     """r + gamma^n d (min_j Q'_j(s', a') - beta ||a' - a'_D||^2): target critics' (2, B) values,
     the smoothed next actions and the data's (B, A). Returns the target and its metrics."""
     penalty = (next_action - data_action).pow(2).sum(-1)
@@ -188,13 +198,19 @@ def critic_target(reward, discount, bootstrap_gamma: float, next_q, next_action,
     return target, {"critic/bc_penalty": penalty.mean()}
 
 
-def critic_loss(q: torch.Tensor, target: torch.Tensor):
+def critic_loss(q: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, common.Metrics]:
     """Sum over the twin critics (2, B) of the mean squared error to the fixed target (B,)."""
     loss = (q - target.detach()).pow(2).mean(1).sum()
     return loss, {"critic/loss": loss, "critic/q_min": q.amin(0).mean()}
 
 
-def actor_loss(q, policy_action, action, beta: float, normalize_q: bool):
+def actor_loss(
+    q: torch.Tensor,
+    policy_action: torch.Tensor,
+    action: torch.Tensor,
+    beta: float,
+    normalize_q: bool,
+) -> tuple[torch.Tensor, common.Metrics]:
     """mean(beta ||pi(s) - a||^2 - lambda min_j Q_j(s, pi(s))), lambda = 1 / mean |min_j Q_j|
     held fixed (1 without ``normalize_q``); ``q`` (B,) is the critics' min at the policy's
     actions (B, A), ``action`` the data's."""

@@ -116,18 +116,22 @@ PRESETS = {
 GRID: dict[str, list] = {}  # one alpha for every dataset is the paper's point (docstring)
 
 
-def critic_target(reward, discount, bootstrap_gamma: float, next_q: torch.Tensor):
+def critic_target(
+    reward: torch.Tensor, discount: torch.Tensor, bootstrap_gamma: float, next_q: torch.Tensor
+) -> torch.Tensor:
     """r + gamma^n d min_j Q'_j(s', a') from the target critics' (2, B) values."""
     return reward + bootstrap_gamma * discount * next_q.amin(0)
 
 
-def critic_loss(q: torch.Tensor, target: torch.Tensor):
+def critic_loss(q: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, common.Metrics]:
     """Sum over the twin critics (2, B) of the mean squared error to the fixed target (B,)."""
     loss = (q - target.detach()).pow(2).mean(1).sum()
     return loss, {"critic/loss": loss, "critic/q_mean": q.mean()}
 
 
-def actor_loss(q: torch.Tensor, policy_action: torch.Tensor, action: torch.Tensor, alpha: float):
+def actor_loss(
+    q: torch.Tensor, policy_action: torch.Tensor, action: torch.Tensor, alpha: float
+) -> tuple[torch.Tensor, common.Metrics]:
     """-lambda mean Q_1(s, pi(s)) + mean (pi(s) - a)^2 with lambda = alpha / mean |Q_1|, the
     scale held fixed; ``q`` (B,) is Q_1 at the policy's actions (B, A), ``action`` the data's."""
     lmbda = alpha / q.abs().mean().detach()
