@@ -153,7 +153,7 @@ class Policy(nn.Module):
                 self.out.weight.mul_(1e-4)
             self.out.bias.zero_()
 
-    def forward(self, obs) -> torch.Tensor:
+    def forward(self, obs: common.TensorObservation) -> torch.Tensor:
         return torch.tanh(self.out(self.mlp(self.encoder(obs))))
 
 
@@ -172,11 +172,18 @@ class Critic(nn.Module):
                 nets.truncated_normal_(linear.weight, linear.in_features**-0.5)
                 linear.bias.zero_()
 
-    def forward(self, obs, action: torch.Tensor) -> torch.Tensor:
+    def forward(self, obs: common.TensorObservation, action: torch.Tensor) -> torch.Tensor:
         return self.head(self.mlp(torch.cat([self.encoder(obs), action], -1)))
 
 
-def critic_loss(logits, target_logits, reward, discount, atoms, bootstrap_gamma: float):
+def critic_loss(
+    logits: torch.Tensor,
+    target_logits: torch.Tensor,
+    reward: torch.Tensor,
+    discount: torch.Tensor,
+    atoms: torch.Tensor,
+    bootstrap_gamma: float,
+) -> tuple[torch.Tensor, common.Metrics]:
     """Cross-entropy to the projected n-step distributional target (``bootstrap_gamma`` is
     gamma^n: the batch's reward is already the n-step sum)."""
     values = bootstrap_values(reward, discount, bootstrap_gamma, atoms.expand(reward.shape[0], -1))
@@ -186,7 +193,12 @@ def critic_loss(logits, target_logits, reward, discount, atoms, bootstrap_gamma:
     return loss, {"critic/loss": loss, "critic/q_mean": q}
 
 
-def policy_loss(q_logits, atoms, action=None, dqda_clip_norm: float = 0.0):
+def policy_loss(
+    q_logits: torch.Tensor,
+    atoms: torch.Tensor,
+    action: torch.Tensor | None = None,
+    dqda_clip_norm: float = 0.0,
+) -> tuple[torch.Tensor, common.Metrics]:
     """Deterministic policy gradient through the critic's mean Q = E[Z(s, pi(s))]: the loss's
     gradient is -E[dQ/da da/dw]. With ``dqda_clip_norm`` > 0 each example's dQ/da (taken at
     ``action``, the policy's output) is first clipped to that norm, as Acme's ``losses.dpg``
@@ -195,6 +207,8 @@ def policy_loss(q_logits, atoms, action=None, dqda_clip_norm: float = 0.0):
     if dqda_clip_norm <= 0:
         loss = -q.mean()
         return loss, {"actor/loss": loss}
+    if action is None:  # the clipped gradient is taken at the policy's action
+        raise RluError("d4pg policy_loss: dqda_clip_norm > 0 needs the action (a bug in rlu)")
     dqda = torch.autograd.grad(q.sum(), action)[0]
     norm = torch.linalg.vector_norm(dqda, dim=-1, keepdim=True)
     clipped = dqda * (dqda_clip_norm / norm.clamp(min=dqda_clip_norm))  # tf.clip_by_norm

@@ -167,7 +167,7 @@ class GaussianPolicy(nn.Module):
         self.scale_factor = c.init_scale / math.log(2.0)  # softplus(0) = log 2
         self.min_scale = c.min_scale
 
-    def forward(self, obs) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, obs: common.TensorObservation) -> tuple[torch.Tensor, torch.Tensor]:
         h = self.mlp(self.encoder(obs))
         return self.mean(h), F.softplus(self.scale(h)) * self.scale_factor + self.min_scale
 
@@ -179,7 +179,7 @@ class Critic(nn.Module):
         self.mlp = nets.layer_norm_mlp(self.encoder.output_dim + action_dim, c.critic_layers)
         self.head = nets.CategoricalHead(c.critic_layers[-1], c.num_atoms, c.vmin, c.vmax)
 
-    def forward(self, obs, action: torch.Tensor) -> torch.Tensor:
+    def forward(self, obs: common.TensorObservation, action: torch.Tensor) -> torch.Tensor:
         """Logits of (B, A) or (N, B, A) actions at (B, ...) states; actions clipped to
         [-1, 1] first (Acme's ClipToSpec)."""
         return self.logits(self.encoder(obs), action)
@@ -190,7 +190,14 @@ class Critic(nn.Module):
         return self.head(self.mlp(sa))
 
 
-def critic_loss(logits, sampled_target_logits, reward, discount, atoms, bootstrap_gamma: float):
+def critic_loss(
+    logits: torch.Tensor,
+    sampled_target_logits: torch.Tensor,
+    reward: torch.Tensor,
+    discount: torch.Tensor,
+    atoms: torch.Tensor,
+    bootstrap_gamma: float,
+) -> tuple[torch.Tensor, common.Metrics]:
     """Cross-entropy to the projected n-step target whose next-state distribution is the mean
     over the N sampled actions' target distributions: logits (B, K), sampled (N, B, K)."""
     probs = torch.softmax(sampled_target_logits, -1).mean(0)
@@ -201,7 +208,16 @@ def critic_loss(logits, sampled_target_logits, reward, discount, atoms, bootstra
     return loss, {"critic/loss": loss, "critic/q_mean": q}
 
 
-def mpo_loss(mean, std, target_mean, target_std, actions, q_values, duals, c: DMPOConfig):
+def mpo_loss(
+    mean: torch.Tensor,
+    std: torch.Tensor,
+    target_mean: torch.Tensor,
+    target_std: torch.Tensor,
+    actions: torch.Tensor,
+    q_values: torch.Tensor,
+    duals: nn.ParameterDict,
+    c: DMPOConfig,
+) -> tuple[torch.Tensor, common.Metrics]:
     """Acme's decoupled MPO loss with per-dimension KL bounds and the action penalty.
 
     mean, std, target_mean, target_std (B, A): the online and the target policy at the states;
@@ -245,7 +261,9 @@ def mpo_loss(mean, std, target_mean, target_std, actions, q_values, duals, c: DM
     return loss, metrics
 
 
-def _kl_per_dim(mean_p, std_p, mean_q, std_q) -> torch.Tensor:
+def _kl_per_dim(
+    mean_p: torch.Tensor, std_p: torch.Tensor, mean_q: torch.Tensor, std_q: torch.Tensor
+) -> torch.Tensor:
     """KL(N(mean_p, std_p) || N(mean_q, std_q)) per dimension: (B, A)."""
     return gaussian_kl(mean_p[..., None], std_p[..., None], mean_q[..., None], std_q[..., None])
 
@@ -320,7 +338,9 @@ class DMPOAgent:
         self.step = common.advance(self.step, c.target_update_period, self.targets)
         return common.metrics_to_floats(metrics)
 
-    def sampled_logits(self, next_obs, sampled: torch.Tensor) -> torch.Tensor:
+    def sampled_logits(
+        self, next_obs: common.TensorObservation, sampled: torch.Tensor
+    ) -> torch.Tensor:
         """The target critic's logits (N, B, K) of the (N, B, A) sampled actions: the states
         encoded once, then on a CPU whole samples at a time, about ``cpu_slice_rows`` rows."""
         critic, (n, b) = self.target_critic, sampled.shape[:2]
