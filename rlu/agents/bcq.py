@@ -101,7 +101,7 @@ GRID: dict[str, list] = {}  # the paper reports no sweep for continuous BCQ
 
 
 class VAE(nn.Module):
-    def __init__(self, feature_dim: int, action_dim: int, layers: tuple[int, ...]):
+    def __init__(self, feature_dim: int, action_dim: int, layers: tuple[int, ...]) -> None:
         super().__init__()
         self.latent_dim = 2 * action_dim
         self.encoder = nets.mlp(feature_dim + action_dim, layers, 2 * self.latent_dim)
@@ -138,7 +138,7 @@ class VAE(nn.Module):
 class BCQNets(nn.Module):
     """Encoders plus the three networks; one module so targets copy it whole."""
 
-    def __init__(self, observation_spec: ObservationSpec, action_dim: int, c: BCQConfig):
+    def __init__(self, observation_spec: ObservationSpec, action_dim: int, c: BCQConfig) -> None:
         super().__init__()
         self.actor_enc = nets.Encoder(observation_spec, c.torso_hidden)
         self.critic_enc = nets.Encoder(observation_spec, c.torso_hidden)

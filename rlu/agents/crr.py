@@ -130,7 +130,7 @@ Mixture = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
 class Policy(nn.Module):
     """Encoder -> residual MLP -> Gaussian mixture over the unit-scaled action."""
 
-    def __init__(self, observation_spec: ObservationSpec, action_dim: int, c: CRRConfig):
+    def __init__(self, observation_spec: ObservationSpec, action_dim: int, c: CRRConfig) -> None:
         super().__init__()
         self.torso = nets.Torso(
             observation_spec, c.hidden_size, c.num_layers, torso_hidden=c.torso_hidden
@@ -150,7 +150,7 @@ def sample_actions(mixture: Mixture, num: int, generator: torch.Generator) -> to
 class Critic(nn.Module):
     """[Encoder(s), a] -> residual MLP -> logits over returns."""
 
-    def __init__(self, observation_spec: ObservationSpec, action_dim: int, c: CRRConfig):
+    def __init__(self, observation_spec: ObservationSpec, action_dim: int, c: CRRConfig) -> None:
         super().__init__()
         self.encoder = nets.Encoder(observation_spec, c.torso_hidden)
         self.mlp = nets.ResidualMLP(self.encoder.output_dim + action_dim, c.hidden_size,

@@ -140,7 +140,9 @@ def acme_layer_norm_mlp_init_(mlp: nn.Sequential) -> None:
 
 
 class Policy(nn.Module):
-    def __init__(self, observation_spec: ObservationSpec, action_dim: int, config: D4PGConfig):
+    def __init__(
+        self, observation_spec: ObservationSpec, action_dim: int, config: D4PGConfig
+    ) -> None:
         super().__init__()
         self.encoder = nets.Encoder(observation_spec, config.torso_hidden, torso_norm_elu=False)
         self.mlp = nets.layer_norm_mlp(self.encoder.output_dim, config.policy_layers)
@@ -158,7 +160,9 @@ class Policy(nn.Module):
 
 
 class Critic(nn.Module):
-    def __init__(self, observation_spec: ObservationSpec, action_dim: int, config: D4PGConfig):
+    def __init__(
+        self, observation_spec: ObservationSpec, action_dim: int, config: D4PGConfig
+    ) -> None:
         super().__init__()
         self.encoder = nets.Encoder(observation_spec, config.torso_hidden, torso_norm_elu=False)
         self.mlp = nets.layer_norm_mlp(self.encoder.output_dim + action_dim, config.critic_layers)

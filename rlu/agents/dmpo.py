@@ -154,7 +154,7 @@ GRID: dict[str, list] = {}  # a behaviour agent: the paper reports no sweep
 class GaussianPolicy(nn.Module):
     """Acme's MultivariateNormalDiagHead on a LayerNormMLP: (mean, std) per action dimension."""
 
-    def __init__(self, observation_spec: ObservationSpec, action_dim: int, c: DMPOConfig):
+    def __init__(self, observation_spec: ObservationSpec, action_dim: int, c: DMPOConfig) -> None:
         super().__init__()
         self.encoder = nets.Encoder(observation_spec, c.torso_hidden, torso_norm_elu=False)
         self.mlp = nets.layer_norm_mlp(self.encoder.output_dim, c.policy_layers)
@@ -173,7 +173,7 @@ class GaussianPolicy(nn.Module):
 
 
 class Critic(nn.Module):
-    def __init__(self, observation_spec: ObservationSpec, action_dim: int, c: DMPOConfig):
+    def __init__(self, observation_spec: ObservationSpec, action_dim: int, c: DMPOConfig) -> None:
         super().__init__()
         self.encoder = nets.Encoder(observation_spec, c.torso_hidden, torso_norm_elu=False)
         self.mlp = nets.layer_norm_mlp(self.encoder.output_dim + action_dim, c.critic_layers)

@@ -145,7 +145,7 @@ def cosine_lr(base: float, step: int, horizon: int) -> float:
 
 
 class ValueNet(nn.Module):
-    def __init__(self, observation_spec: ObservationSpec, c: IQLConfig):
+    def __init__(self, observation_spec: ObservationSpec, c: IQLConfig) -> None:
         super().__init__()
         self.encoder = nets.Encoder(observation_spec, c.torso_hidden)
         self.net = nets.mlp(self.encoder.output_dim, c.hidden_layers, 1)
@@ -157,7 +157,7 @@ class ValueNet(nn.Module):
 class GaussianPolicy(nn.Module):
     """N(tanh(MLP(s)), exp(log_std)) with a state-independent, clipped log std."""
 
-    def __init__(self, observation_spec: ObservationSpec, action_dim: int, c: IQLConfig):
+    def __init__(self, observation_spec: ObservationSpec, action_dim: int, c: IQLConfig) -> None:
         super().__init__()
         self.encoder = nets.Encoder(observation_spec, c.torso_hidden)
         self.net = nets.mlp(self.encoder.output_dim, c.hidden_layers, action_dim)

@@ -123,7 +123,7 @@ GRID: dict[str, list] = {}  # the paper reports no sweep for RABM
 
 
 class GaussianPolicy(nn.Module):
-    def __init__(self, observation_spec: ObservationSpec, action_dim: int, c: RABMConfig):
+    def __init__(self, observation_spec: ObservationSpec, action_dim: int, c: RABMConfig) -> None:
         super().__init__()
         lstm = c.lstm_hidden if c.recurrent else 0
         self.torso = nets.Torso(
@@ -133,7 +133,7 @@ class GaussianPolicy(nn.Module):
 
 
 class Critic(nn.Module):
-    def __init__(self, observation_spec: ObservationSpec, action_dim: int, c: RABMConfig):
+    def __init__(self, observation_spec: ObservationSpec, action_dim: int, c: RABMConfig) -> None:
         super().__init__()
         lstm = c.lstm_hidden if c.recurrent else 0
         self.torso = nets.Torso(
