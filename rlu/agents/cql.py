@@ -143,10 +143,14 @@ def cql_regulariser(q_rand: torch.Tensor, q_curr: torch.Tensor, q_next: torch.Te
     return lse - q_data.mean(-1)
 
 
-def critic_loss(q_data: torch.Tensor, target: torch.Tensor, regulariser: torch.Tensor,
-                cql_weight: float, alpha_prime: torch.Tensor | None = None,
-                threshold: float | None = None,
-                ) -> tuple[torch.Tensor, torch.Tensor | None, common.Metrics]:  # fmt: skip
+def critic_loss(
+    q_data: torch.Tensor,
+    target: torch.Tensor,
+    regulariser: torch.Tensor,
+    cql_weight: float,
+    alpha_prime: torch.Tensor | None = None,
+    threshold: float | None = None,
+) -> tuple[torch.Tensor, torch.Tensor | None, common.Metrics]:
     """Twin critics' TD error plus the weighted regulariser; with a ``threshold``, the
     Lagrangian alpha' (w R_i - threshold) and alpha''s own loss -mean_i alpha' (w R_i - thr).
 
