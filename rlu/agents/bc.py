@@ -27,7 +27,7 @@ from rlu.agents import networks as nets
 from rlu.agents.losses import mixture_log_prob
 from rlu.files import LEARNING_RATE, STEPS, Checked, bounds
 from rlu.seeds import stream_seed
-from rlu.types import BatchSpec, Sequence, Transition
+from rlu.types import ActionSpec, BatchSpec, Observation, ObservationSpec, Sequence, Transition
 
 
 @dataclass(frozen=True)
@@ -67,7 +67,13 @@ PRESETS = {
 GRID: dict[str, list] = {}  # the paper reports no sweep for BC
 
 
-def bc_loss(logits, mean, std, action, weight=None):
+def bc_loss(
+    logits: torch.Tensor,
+    mean: torch.Tensor,
+    std: torch.Tensor,
+    action: torch.Tensor,
+    weight: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, common.Metrics]:
     """Negative log-likelihood of the data's actions under the mixture (``weight``: step mask)."""
     log_prob = mixture_log_prob(logits, mean, std, action)
     if weight is None:
@@ -79,8 +85,13 @@ def bc_loss(logits, mean, std, action, weight=None):
 
 class BCAgent:
     def __init__(
-        self, observation_spec, action_spec, config: BCConfig, seed: int = 0, device="cpu"
-    ):
+        self,
+        observation_spec: ObservationSpec,
+        action_spec: ActionSpec,
+        config: BCConfig,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
+    ) -> None:
         self.config, self.device, self.step = config, common.device(device), 0
         self.scaler = nets.ActionScaler(action_spec)
         kind = "sequence" if config.recurrent else "transition"
@@ -114,7 +125,13 @@ class BCAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
+    def act(
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
+    ) -> np.ndarray:
         """A sample of the mixture with every component's variance ``eval_variance`` (the
         paper's evaluation) with ``greedy=True``; the learnt mixture as is with ``greedy=False``."""
         obs = common.to_torch(observation, self.device)

@@ -32,7 +32,7 @@ from rlu.agents import common
 from rlu.agents import discrete_common as dc
 from rlu.agents import networks as nets
 from rlu.files import LEARNING_RATE, Checked, bounds
-from rlu.types import BatchSpec, Sequence, Transition
+from rlu.types import ActionSpec, BatchSpec, Observation, ObservationSpec, Sequence, Transition
 
 
 @dataclass(frozen=True)
@@ -60,7 +60,9 @@ PRESETS: dict[str, BCConfig] = {
 GRID: dict[str, list[Any]] = {"learning_rate": list(dc.LEARNING_RATE_GRID)}
 
 
-def bc_loss(logits: torch.Tensor, action: torch.Tensor, weight: torch.Tensor | None = None):
+def bc_loss(
+    logits: torch.Tensor, action: torch.Tensor, weight: torch.Tensor | None = None
+) -> tuple[torch.Tensor, common.Metrics]:
     """Cross-entropy of the policy logits on the logged actions (``weight``: a step mask)."""
     if weight is None:
         loss = F.cross_entropy(logits, action)
@@ -81,14 +83,21 @@ class RecurrentPolicy(nn.Module):
         self.core = dc.RecurrentCore(shape, settings, lstm_size)
         self.logits = nn.Linear(lstm_size, num_actions)
 
-    def forward(self, frames, batch: int, steps: int, state=None):
+    def forward(
+        self, frames: Any, batch: int, steps: int, state: common.LSTMState | None = None
+    ) -> tuple[torch.Tensor, common.LSTMState]:
         out, state = self.core(frames, batch, steps, state)
         return self.logits(out), state
 
 
 class BCAgent:
     def __init__(
-        self, observation_spec, action_spec, config: BCConfig, seed: int = 0, device="cpu"
+        self,
+        observation_spec: ObservationSpec,
+        action_spec: ActionSpec,
+        config: BCConfig,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
     ) -> None:
         self.config, self.device, self.step = config, common.device(device), 0
         self.batch_spec, self.num_steps = config.atari.batch_spec(), config.atari.num_steps
@@ -97,7 +106,9 @@ class BCAgent:
                                         sequence_length=config.sequence_length)  # fmt: skip
         self.pretrain_steps = 0
 
-        def recurrent(shape, num_actions, settings):
+        def recurrent(
+            shape: dc.Shape, num_actions: int, settings: dc.AtariSettings
+        ) -> RecurrentPolicy:
             return RecurrentPolicy(shape, num_actions, settings, config.lstm_size)
 
         self.network, self.target_network, self.optimizers, self.generators = dc.build(
@@ -111,7 +122,7 @@ class BCAgent:
             target=False,
         )
         self.modules = {"network": self.network}
-        self._state = None  # acting's LSTM state (recurrent)
+        self._state: common.LSTMState | None = None  # acting's LSTM state (recurrent)
 
     def update(self, batch: Transition | Sequence) -> dict[str, float]:
         action = common.to_torch(batch.action, self.device, "int64")
@@ -129,7 +140,7 @@ class BCAgent:
         self.step = common.learn(self.optimizers["network"], loss, self.step)
         return common.metrics_to_floats(metrics)
 
-    def _logits(self, observation, is_first) -> torch.Tensor:
+    def _logits(self, observation: Observation, is_first: np.ndarray | None) -> torch.Tensor:
         x = dc.frames(observation, device=self.device)
         if not self.config.recurrent:
             return self.network(x)
@@ -139,7 +150,13 @@ class BCAgent:
         return logits[:, 0]
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
+    def act(
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
+    ) -> np.ndarray:
         """The max action of the logits, epsilon-greedy with ``atari.eval_epsilon`` (greedy), or
         a sample of the softmax policy (``greedy=False``)."""
         logits = self._logits(observation, is_first)

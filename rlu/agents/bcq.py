@@ -41,7 +41,7 @@ from rlu.files import (
     bounds,
 )
 from rlu.seeds import stream_seed
-from rlu.types import BatchSpec, RluError, Transition
+from rlu.types import ActionSpec, BatchSpec, Observation, ObservationSpec, RluError, Transition
 
 
 @dataclass(frozen=True)
@@ -101,26 +101,35 @@ GRID: dict[str, list] = {}  # the paper reports no sweep for continuous BCQ
 
 
 class VAE(nn.Module):
-    def __init__(self, feature_dim: int, action_dim: int, layers: tuple[int, ...]):
+    def __init__(self, feature_dim: int, action_dim: int, layers: tuple[int, ...]) -> None:
         super().__init__()
         self.latent_dim = 2 * action_dim
         self.encoder = nets.mlp(feature_dim + action_dim, layers, 2 * self.latent_dim)
         self.decoder = nets.mlp(feature_dim + self.latent_dim, layers, action_dim)
 
-    def forward(self, s: torch.Tensor, a: torch.Tensor, generator: torch.Generator):
+    def forward(
+        self, s: torch.Tensor, a: torch.Tensor, generator: torch.Generator
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         mean, log_std = self.encoder(torch.cat([s, a], -1)).chunk(2, -1)
         std = log_std.clamp(-4, 15).exp()
         z = mean + std * torch.randn(std.shape, generator=generator, device=std.device)
         return self.decode(s, z=z), mean, std
 
-    def decode(self, s, generator: torch.Generator | None = None, z=None) -> torch.Tensor:
+    def decode(
+        self,
+        s: torch.Tensor,
+        generator: torch.Generator | None = None,
+        z: torch.Tensor | None = None,
+    ) -> torch.Tensor:
         if z is None:
             if generator is None:  # torch's global generator would make the draws unseeded
                 raise RluError("VAE.decode: give z or the generator that draws it (a bug in rlu)")
             z = self.prior_latent(s.shape[0], generator, s.device)
         return torch.tanh(self.decoder(torch.cat([s, z], -1)))
 
-    def prior_latent(self, rows: int, generator: torch.Generator, device) -> torch.Tensor:
+    def prior_latent(
+        self, rows: int, generator: torch.Generator, device: torch.device
+    ) -> torch.Tensor:
         """Latents for decoding without an action: N(0, 1) clipped to [-0.5, 0.5] (BCQ's)."""
         z = torch.randn((rows, self.latent_dim), generator=generator, device=device)
         return z.clamp(-0.5, 0.5)
@@ -129,7 +138,7 @@ class VAE(nn.Module):
 class BCQNets(nn.Module):
     """Encoders plus the three networks; one module so targets copy it whole."""
 
-    def __init__(self, observation_spec, action_dim: int, c: BCQConfig):
+    def __init__(self, observation_spec: ObservationSpec, action_dim: int, c: BCQConfig) -> None:
         super().__init__()
         self.actor_enc = nets.Encoder(observation_spec, c.torso_hidden)
         self.critic_enc = nets.Encoder(observation_spec, c.torso_hidden)
@@ -163,15 +172,22 @@ def clipped_double_q(q1: torch.Tensor, q2: torch.Tensor, lmbda: float) -> torch.
     return lmbda * torch.minimum(q1, q2) + (1.0 - lmbda) * torch.maximum(q1, q2)
 
 
-def critic_loss(q1, q2, target):
+def critic_loss(
+    q1: torch.Tensor, q2: torch.Tensor, target: torch.Tensor
+) -> tuple[torch.Tensor, common.Metrics]:
     loss = (q1 - target).pow(2).mean() + (q2 - target).pow(2).mean()
     return loss, {"critic/loss": loss, "critic/q_mean": q1.mean()}
 
 
 class BCQAgent:
     def __init__(
-        self, observation_spec, action_spec, config: BCQConfig, seed: int = 0, device="cpu"
-    ):
+        self,
+        observation_spec: ObservationSpec,
+        action_spec: ActionSpec,
+        config: BCQConfig,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
+    ) -> None:
         self.config, self.device, self.step = config, common.device(device), 0
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, gamma=config.gamma)
@@ -224,7 +240,7 @@ class BCQAgent:
         self.step = common.advance(self.step, c.target_update_period, self.targets, c.tau)
         return common.metrics_to_floats(metrics)
 
-    def next_value(self, next_obs) -> torch.Tensor:
+    def next_value(self, next_obs: common.TensorObservation) -> torch.Tensor:
         """Soft clipped double-Q of ``num_samples`` perturbed VAE actions per next state, as
         (batch * num_samples,) rows; on a CPU in slices of ``cpu_slice_rows`` rows. The latents
         are drawn for all rows at once, so slicing leaves the random stream as it is."""
@@ -243,7 +259,13 @@ class BCQAgent:
         return torch.cat(values)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
+    def act(
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
+    ) -> np.ndarray:
         """Scores ``num_samples`` perturbed VAE actions with Q1 and returns the best (the
         original's ``select_action``); latents from a generator seeded with 0 when greedy."""
         n, reps = self.nets, self.config.num_samples

@@ -30,7 +30,7 @@ from torch import nn
 from rlu.agents import common
 from rlu.agents import discrete_common as dc
 from rlu.files import FRACTION, LEARNING_RATE, Checked, bounds
-from rlu.types import Transition
+from rlu.types import ActionSpec, Observation, ObservationSpec, Transition
 
 
 @dataclass(frozen=True)
@@ -61,7 +61,7 @@ GRID: dict[str, list[Any]] = {
 class QAndPolicyNetwork(nn.Module):
     """Shared Nature torso, a Q head and an imitation logits head."""
 
-    def __init__(self, shape, num_actions: int, settings: dc.AtariSettings) -> None:
+    def __init__(self, shape: dc.Shape, num_actions: int, settings: dc.AtariSettings) -> None:
         super().__init__()
         self.torso = dc.NatureTorso(shape, settings)
         self.q_head = dc.mlp_head(self.torso.output_size, settings.hidden_size, num_actions)
@@ -85,14 +85,14 @@ def bcq_action_mask(logits: torch.Tensor, threshold: float) -> torch.Tensor:
 
 
 def bcq_loss(
-    network,
-    target_network,
+    network: QAndPolicyNetwork,
+    target_network: QAndPolicyNetwork,
     batch: dc.TorchTransition,
     gamma: float,
     threshold: float = 0.5,
     huber_delta: float = 1.0,
     logit_penalty: float = 1e-2,
-):
+) -> tuple[torch.Tensor, common.Metrics]:
     """Double-Q target restricted to the allowed actions, plus the imitation head's
     cross-entropy and ``logit_penalty`` times its mean squared logit."""
     q, logits = network(batch.observation)
@@ -114,7 +114,12 @@ def bcq_loss(
 
 class BCQAgent:
     def __init__(
-        self, observation_spec, action_spec, config: BCQConfig, seed: int = 0, device="cpu"
+        self,
+        observation_spec: ObservationSpec,
+        action_spec: ActionSpec,
+        config: BCQConfig,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
     ) -> None:
         self.config, self.device, self.step = config, common.device(device), 0
         self.batch_spec, self.num_steps = config.atari.batch_spec(), config.atari.num_steps
@@ -135,7 +140,13 @@ class BCQAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
+    def act(
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
+    ) -> np.ndarray:
         """argmax_a Q(s, a) over the actions the imitation head allows on the same observation,
         epsilon-greedy; the uniform draw ignores the mask, as in the authors' code."""
         q, logits = self.network(dc.frames(observation, device=self.device))

@@ -52,7 +52,7 @@ from rlu.files import (
     bounds,
 )
 from rlu.seeds import stream_seed
-from rlu.types import BatchSpec, Transition
+from rlu.types import ActionSpec, BatchSpec, Observation, ObservationSpec, Transition
 
 
 @dataclass(frozen=True)
@@ -110,18 +110,20 @@ CLIP = 1.0 - 1e-3
 LOG_STD_RANGE = (-5.0, 0.0)  # the original's LOG_STD_MIN, LOG_STD_MAX (networks.py)
 
 
-def behaviour_loss(log_prob):
+def behaviour_loss(log_prob: torch.Tensor) -> tuple[torch.Tensor, common.Metrics]:
     loss = -log_prob.mean()
     return loss, {"behaviour/loss": loss}
 
 
-def critic_loss(q, target):
+def critic_loss(q: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, common.Metrics]:
     """q: (2, B) critics' values; target (B,)."""
     loss = (q - target).pow(2).mean(1).sum()
     return loss, {"critic/loss": loss, "critic/q_mean": q.mean()}
 
 
-def actor_loss(q_min, kl, alpha: float):
+def actor_loss(
+    q_min: torch.Tensor, kl: torch.Tensor, alpha: float
+) -> tuple[torch.Tensor, common.Metrics]:
     """Value penalty actor loss: alpha KL(s) - Q(s, a), a ~ pi (``q_min`` 0 in the warm start)."""
     loss = (alpha * kl - q_min).mean()
     return loss, {"actor/loss": loss, "actor/kl": kl.mean()}
@@ -129,8 +131,13 @@ def actor_loss(q_min, kl, alpha: float):
 
 class BRACAgent:
     def __init__(
-        self, observation_spec, action_spec, config: BRACConfig, seed: int = 0, device="cpu"
-    ):
+        self,
+        observation_spec: ObservationSpec,
+        action_spec: ActionSpec,
+        config: BRACConfig,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
+    ) -> None:
         self.config, self.device, self.step = config, common.device(device), 0
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, gamma=config.gamma)
@@ -157,7 +164,9 @@ class BRACAgent:
             "critics": self.critics, "target_critics": self.target_critics,
         }  # fmt: skip
 
-    def _kl(self, obs, samples, log_pi):
+    def _kl(
+        self, obs: common.TensorObservation, samples: torch.Tensor, log_pi: torch.Tensor
+    ) -> torch.Tensor:
         """KL(pi || b)(s) from (S, B, A) samples a ~ pi and their log pi (b is frozen here)."""
         return sample_kl(log_pi, self.behaviour.log_prob(obs, samples, CLIP))
 
@@ -196,7 +205,13 @@ class BRACAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
+    def act(
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
+    ) -> np.ndarray:
         """tanh(mean) of the tanh-Gaussian policy with ``greedy=True`` (the original's
         ``DeterministicSoftPolicy``); with ``greedy=False`` one of its samples."""
         obs = common.to_torch(observation, self.device)

@@ -41,6 +41,11 @@ from rlu.devices import resolve_device
 from rlu.types import RluError
 
 Metrics = dict[str, torch.Tensor]
+LSTMState = tuple[torch.Tensor, ...]
+"""An ``nn.LSTM``'s (h, c) state, (layers, B, H) each."""
+TensorObservation = torch.Tensor | Mapping[str, torch.Tensor]
+"""An observation batch as tensors: one tensor, or a dict of them (``to_torch`` of an
+``rlu.types.Observation``)."""
 _Module = TypeVar("_Module", bound=nn.Module)
 
 
@@ -140,7 +145,12 @@ def sgd_step(
     _backward_step(optimizer, loss, inputs, max_norm)
 
 
-def _backward_step(optimizer, loss, inputs, max_norm: float) -> None:
+def _backward_step(
+    optimizer: torch.optim.Optimizer,
+    loss: torch.Tensor,
+    inputs: Sequence[torch.Tensor] | None,
+    max_norm: float,
+) -> None:
     loss.backward(inputs=inputs)
     if max_norm > 0:
         params = inputs or [p for group in optimizer.param_groups for p in group["params"]]

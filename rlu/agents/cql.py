@@ -64,7 +64,7 @@ from rlu.files import (
     bounds,
 )
 from rlu.seeds import stream_seed
-from rlu.types import BatchSpec, Transition
+from rlu.types import ActionSpec, BatchSpec, Observation, ObservationSpec, RluError, Transition
 
 LOG_STD_RANGE = (-20.0, 2.0)  # rlkit's TanhGaussianPolicy
 CLIP = 1.0 - 1e-4
@@ -127,8 +127,9 @@ PRESETS = {
 GRID: dict[str, list] = {"cql_weight": [5.0, 10.0], "policy_lr": [1e-4, 3e-4]}
 
 
-def cql_regulariser(q_rand, q_curr, q_next, log_pi_curr, log_pi_next, q_data,
-                    action_dim: int, temperature: float):  # fmt: skip
+def cql_regulariser(q_rand: torch.Tensor, q_curr: torch.Tensor, q_next: torch.Tensor,
+                    log_pi_curr: torch.Tensor, log_pi_next: torch.Tensor, q_data: torch.Tensor,
+                    action_dim: int, temperature: float) -> torch.Tensor:  # fmt: skip
     """CQL(H)'s importance-sampled regulariser R_i of each critic, before its weight.
 
     q_rand, q_curr, q_next (C, N, B): C critics at N uniform, pi(s) and pi(s') proposals;
@@ -142,8 +143,14 @@ def cql_regulariser(q_rand, q_curr, q_next, log_pi_curr, log_pi_next, q_data,
     return lse - q_data.mean(-1)
 
 
-def critic_loss(q_data, target, regulariser, cql_weight: float, alpha_prime=None,
-                threshold: float | None = None):  # fmt: skip
+def critic_loss(
+    q_data: torch.Tensor,
+    target: torch.Tensor,
+    regulariser: torch.Tensor,
+    cql_weight: float,
+    alpha_prime: torch.Tensor | None = None,
+    threshold: float | None = None,
+) -> tuple[torch.Tensor, torch.Tensor | None, common.Metrics]:
     """Twin critics' TD error plus the weighted regulariser; with a ``threshold``, the
     Lagrangian alpha' (w R_i - threshold) and alpha''s own loss -mean_i alpha' (w R_i - thr).
 
@@ -154,6 +161,8 @@ def critic_loss(q_data, target, regulariser, cql_weight: float, alpha_prime=None
     penalty = cql_weight * regulariser
     prime_loss = None
     if threshold is not None:
+        if alpha_prime is None:  # the Lagrangian's multiplier comes with its threshold
+            raise RluError("cql critic_loss: a threshold needs alpha_prime (a bug in rlu)")
         prime_loss = -(alpha_prime * (penalty.detach() - threshold)).mean()
         penalty = alpha_prime.detach() * (penalty - threshold)
     loss = (td + penalty).sum()
@@ -168,19 +177,25 @@ def critic_loss(q_data, target, regulariser, cql_weight: float, alpha_prime=None
     return loss, prime_loss, metrics
 
 
-def alpha_loss(log_alpha: torch.Tensor, log_pi: torch.Tensor, target_entropy: float):
+def alpha_loss(
+    log_alpha: torch.Tensor, log_pi: torch.Tensor, target_entropy: float
+) -> tuple[torch.Tensor, common.Metrics]:
     """SAC's entropy tuning: -log_alpha (log pi + target entropy), log pi held fixed."""
     loss = -(log_alpha * (log_pi.detach() + target_entropy)).mean()
     return loss, {"alpha/loss": loss, "alpha/value": log_alpha.detach().exp()}
 
 
-def policy_loss(alpha: torch.Tensor, log_pi: torch.Tensor, q_pi: torch.Tensor):
+def policy_loss(
+    alpha: torch.Tensor, log_pi: torch.Tensor, q_pi: torch.Tensor
+) -> tuple[torch.Tensor, common.Metrics]:
     """SAC's policy loss alpha log pi(a|s) - min_i Q_i(s, a), a ~ pi(s) reparameterised."""
     loss = (alpha * log_pi - q_pi).mean()
     return loss, {"actor/loss": loss, "actor/entropy": -log_pi.mean()}
 
 
-def bc_policy_loss(alpha: torch.Tensor, log_pi: torch.Tensor, log_prob_data: torch.Tensor):
+def bc_policy_loss(
+    alpha: torch.Tensor, log_pi: torch.Tensor, log_prob_data: torch.Tensor
+) -> tuple[torch.Tensor, common.Metrics]:
     """The cloning phase: alpha log pi(a|s) - log pi(a_data|s)."""
     loss = (alpha * log_pi - log_prob_data).mean()
     return loss, {"actor/loss": loss, "actor/entropy": -log_pi.mean()}
@@ -188,8 +203,13 @@ def bc_policy_loss(alpha: torch.Tensor, log_pi: torch.Tensor, log_prob_data: tor
 
 class CQLAgent:
     def __init__(
-        self, observation_spec, action_spec, config: CQLConfig, seed: int = 0, device="cpu"
-    ):
+        self,
+        observation_spec: ObservationSpec,
+        action_spec: ActionSpec,
+        config: CQLConfig,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
+    ) -> None:
         self.config, self.device, self.step = config, common.device(device), 0
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, gamma=config.gamma)
@@ -275,7 +295,13 @@ class CQLAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
+    def act(
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
+    ) -> np.ndarray:
         """tanh(mean), the original's deterministic evaluation policy, with ``greedy=True``;
         with ``greedy=False`` a sample of the tanh-Gaussian from the agent's generator."""
         mean, std = self.policy(common.to_torch(observation, self.device))

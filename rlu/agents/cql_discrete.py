@@ -44,11 +44,12 @@ from typing import Any
 
 import numpy as np
 import torch
+from torch import nn
 
 from rlu.agents import common
 from rlu.agents import discrete_common as dc
 from rlu.files import LEARNING_RATE, Checked, bounds
-from rlu.types import Transition
+from rlu.types import ActionSpec, Observation, ObservationSpec, Transition
 
 
 @dataclass(frozen=True)
@@ -81,8 +82,9 @@ def conservative_penalty(q: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
     return (torch.logsumexp(q, -1) - dc.taken(q, action)).mean()
 
 
-def cql_loss(network, target_network, batch: dc.TorchTransition, gamma: float, alpha: float,
-             huber_delta: float = 1.0, double_q: bool = True):  # fmt: skip
+def cql_loss(network: nn.Module, target_network: nn.Module, batch: dc.TorchTransition,
+             gamma: float, alpha: float, huber_delta: float = 1.0,
+             double_q: bool = True) -> tuple[torch.Tensor, common.Metrics]:  # fmt: skip
     """Huber TD loss to the (double-)Q target plus ``alpha`` x :func:`conservative_penalty`;
     ``gamma`` bootstraps (gamma^n)."""
     q = network(batch.observation)
@@ -102,7 +104,12 @@ def cql_loss(network, target_network, batch: dc.TorchTransition, gamma: float, a
 
 class DiscreteCQLAgent:
     def __init__(
-        self, observation_spec, action_spec, config: DiscreteCQLConfig, seed: int = 0, device="cpu"
+        self,
+        observation_spec: ObservationSpec,
+        action_spec: ActionSpec,
+        config: DiscreteCQLConfig,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
     ) -> None:
         self.config, self.device, self.step = config, common.device(device), 0
         self.batch_spec, self.num_steps = config.atari.batch_spec(), config.atari.num_steps
@@ -123,7 +130,13 @@ class DiscreteCQLAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
+    def act(
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
+    ) -> np.ndarray:
         """Epsilon-greedy on the conservative Q, as ``dqn`` acts: argmax_a Q(s, a), or a uniform
         action with probability ``atari.eval_epsilon`` (greedy) or ``atari.explore_epsilon``."""
         return dc.act(self.network, observation, self.config.atari, greedy, self.generators["act"])

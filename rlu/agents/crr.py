@@ -62,7 +62,7 @@ from rlu.files import (
     bounds,
 )
 from rlu.seeds import stream_seed
-from rlu.types import BatchSpec, RluError, Transition
+from rlu.types import ActionSpec, BatchSpec, Observation, ObservationSpec, RluError, Transition
 
 WEIGHTS = ("exp", "binary")
 BASELINES = ("mean", "max")
@@ -123,21 +123,25 @@ PRESETS = {
 GRID: dict[str, list] = {}  # the paper compares named variants (the presets), not a grid
 
 
+Mixture = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
+"""A ``MixtureHead``'s (logits, mean, std)."""
+
+
 class Policy(nn.Module):
     """Encoder -> residual MLP -> Gaussian mixture over the unit-scaled action."""
 
-    def __init__(self, observation_spec, action_dim: int, c: CRRConfig):
+    def __init__(self, observation_spec: ObservationSpec, action_dim: int, c: CRRConfig) -> None:
         super().__init__()
         self.torso = nets.Torso(
             observation_spec, c.hidden_size, c.num_layers, torso_hidden=c.torso_hidden
         )
         self.head = nets.MixtureHead(self.torso.output_dim, action_dim, c.mixture_components)
 
-    def forward(self, obs):
+    def forward(self, obs: common.TensorObservation) -> Mixture:
         return self.head(self.torso(obs)[0])
 
 
-def sample_actions(mixture, num: int, generator: torch.Generator) -> torch.Tensor:
+def sample_actions(mixture: Mixture, num: int, generator: torch.Generator) -> torch.Tensor:
     """(num, B, A) actions from the (B,) mixtures, clipped into the action box."""
     logits, mean, std = (x.expand(num, *x.shape) for x in mixture)
     return nets.mixture_sample(logits, mean, std, generator=generator).clamp(-1.0, 1.0)
@@ -146,14 +150,14 @@ def sample_actions(mixture, num: int, generator: torch.Generator) -> torch.Tenso
 class Critic(nn.Module):
     """[Encoder(s), a] -> residual MLP -> logits over returns."""
 
-    def __init__(self, observation_spec, action_dim: int, c: CRRConfig):
+    def __init__(self, observation_spec: ObservationSpec, action_dim: int, c: CRRConfig) -> None:
         super().__init__()
         self.encoder = nets.Encoder(observation_spec, c.torso_hidden)
         self.mlp = nets.ResidualMLP(self.encoder.output_dim + action_dim, c.hidden_size,
                                     c.num_layers)  # fmt: skip
         self.head = nets.CategoricalHead(c.hidden_size, c.num_atoms, c.vmin, c.vmax)
 
-    def forward(self, obs, action: torch.Tensor) -> torch.Tensor:
+    def forward(self, obs: common.TensorObservation, action: torch.Tensor) -> torch.Tensor:
         """Logits for (B, A) actions, or (N, B, A): N actions per state, one encoder pass."""
         s = self.encoder(obs)
         s = s.expand(*action.shape[:-1], s.shape[-1])
@@ -166,14 +170,23 @@ def advantage(q: torch.Tensor, q_samples: torch.Tensor, baseline: str) -> torch.
     return q - v
 
 
-def crr_weights(adv: torch.Tensor, kind: str, beta: float, ratio_upper_bound: float):
+def crr_weights(
+    adv: torch.Tensor, kind: str, beta: float, ratio_upper_bound: float
+) -> torch.Tensor:
     """f(A): min(exp(A / beta), ratio_upper_bound) for 'exp', 1[A > 0] for 'binary'."""
     if kind == "exp":
         return torch.exp(adv / beta).clamp(max=ratio_upper_bound)
     return (adv > 0).to(adv.dtype)
 
 
-def critic_loss(logits, target_probs, reward, discount, atoms, bootstrap_gamma: float):
+def critic_loss(
+    logits: torch.Tensor,
+    target_probs: torch.Tensor,
+    reward: torch.Tensor,
+    discount: torch.Tensor,
+    atoms: torch.Tensor,
+    bootstrap_gamma: float,
+) -> tuple[torch.Tensor, common.Metrics]:
     """Cross-entropy to the target distribution (``target_probs`` at s', over ``atoms``)
     shifted by r + gamma^n d and projected back onto the atoms."""
     values = bootstrap_values(reward, discount, bootstrap_gamma, atoms.expand(reward.shape[0], -1))
@@ -183,7 +196,9 @@ def critic_loss(logits, target_probs, reward, discount, atoms, bootstrap_gamma: 
     return loss, {"critic/loss": loss, "critic/q_mean": q.mean()}
 
 
-def policy_loss(log_prob: torch.Tensor, weights: torch.Tensor, adv: torch.Tensor):
+def policy_loss(
+    log_prob: torch.Tensor, weights: torch.Tensor, adv: torch.Tensor
+) -> tuple[torch.Tensor, common.Metrics]:
     """Critic-weighted regression: -mean_b f(A_b) log pi(a_b | s_b), weights held fixed."""
     w = weights.detach()
     loss = -(w * log_prob).mean()
@@ -193,8 +208,13 @@ def policy_loss(log_prob: torch.Tensor, weights: torch.Tensor, adv: torch.Tensor
 
 class CRRAgent:
     def __init__(
-        self, observation_spec, action_spec, config: CRRConfig, seed: int = 0, device="cpu"
-    ):
+        self,
+        observation_spec: ObservationSpec,
+        action_spec: ActionSpec,
+        config: CRRConfig,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
+    ) -> None:
         if config.advantage_weight not in WEIGHTS:
             raise RluError(f"CRRConfig.advantage_weight={config.advantage_weight!r}; "
                            f"use one of {', '.join(WEIGHTS)}")  # fmt: skip
@@ -248,7 +268,13 @@ class CRRAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
+    def act(
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
+    ) -> np.ndarray:
         """The mean of the mixture's most probable component with ``greedy=True``; with
         ``greedy=False`` a sample of the Gaussian mixture from the agent's generator."""
         logits, mean, std = self.policy(common.to_torch(observation, self.device))

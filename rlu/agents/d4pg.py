@@ -61,7 +61,7 @@ from rlu.files import (
     bounds,
 )
 from rlu.seeds import stream_seed
-from rlu.types import BatchSpec, RluError, Transition
+from rlu.types import ActionSpec, BatchSpec, Observation, ObservationSpec, RluError, Transition
 
 
 @dataclass(frozen=True)
@@ -140,7 +140,9 @@ def acme_layer_norm_mlp_init_(mlp: nn.Sequential) -> None:
 
 
 class Policy(nn.Module):
-    def __init__(self, observation_spec, action_dim: int, config: D4PGConfig):
+    def __init__(
+        self, observation_spec: ObservationSpec, action_dim: int, config: D4PGConfig
+    ) -> None:
         super().__init__()
         self.encoder = nets.Encoder(observation_spec, config.torso_hidden, torso_norm_elu=False)
         self.mlp = nets.layer_norm_mlp(self.encoder.output_dim, config.policy_layers)
@@ -153,12 +155,14 @@ class Policy(nn.Module):
                 self.out.weight.mul_(1e-4)
             self.out.bias.zero_()
 
-    def forward(self, obs) -> torch.Tensor:
+    def forward(self, obs: common.TensorObservation) -> torch.Tensor:
         return torch.tanh(self.out(self.mlp(self.encoder(obs))))
 
 
 class Critic(nn.Module):
-    def __init__(self, observation_spec, action_dim: int, config: D4PGConfig):
+    def __init__(
+        self, observation_spec: ObservationSpec, action_dim: int, config: D4PGConfig
+    ) -> None:
         super().__init__()
         self.encoder = nets.Encoder(observation_spec, config.torso_hidden, torso_norm_elu=False)
         self.mlp = nets.layer_norm_mlp(self.encoder.output_dim + action_dim, config.critic_layers)
@@ -172,11 +176,18 @@ class Critic(nn.Module):
                 nets.truncated_normal_(linear.weight, linear.in_features**-0.5)
                 linear.bias.zero_()
 
-    def forward(self, obs, action: torch.Tensor) -> torch.Tensor:
+    def forward(self, obs: common.TensorObservation, action: torch.Tensor) -> torch.Tensor:
         return self.head(self.mlp(torch.cat([self.encoder(obs), action], -1)))
 
 
-def critic_loss(logits, target_logits, reward, discount, atoms, bootstrap_gamma: float):
+def critic_loss(
+    logits: torch.Tensor,
+    target_logits: torch.Tensor,
+    reward: torch.Tensor,
+    discount: torch.Tensor,
+    atoms: torch.Tensor,
+    bootstrap_gamma: float,
+) -> tuple[torch.Tensor, common.Metrics]:
     """Cross-entropy to the projected n-step distributional target (``bootstrap_gamma`` is
     gamma^n: the batch's reward is already the n-step sum)."""
     values = bootstrap_values(reward, discount, bootstrap_gamma, atoms.expand(reward.shape[0], -1))
@@ -186,7 +197,12 @@ def critic_loss(logits, target_logits, reward, discount, atoms, bootstrap_gamma:
     return loss, {"critic/loss": loss, "critic/q_mean": q}
 
 
-def policy_loss(q_logits, atoms, action=None, dqda_clip_norm: float = 0.0):
+def policy_loss(
+    q_logits: torch.Tensor,
+    atoms: torch.Tensor,
+    action: torch.Tensor | None = None,
+    dqda_clip_norm: float = 0.0,
+) -> tuple[torch.Tensor, common.Metrics]:
     """Deterministic policy gradient through the critic's mean Q = E[Z(s, pi(s))]: the loss's
     gradient is -E[dQ/da da/dw]. With ``dqda_clip_norm`` > 0 each example's dQ/da (taken at
     ``action``, the policy's output) is first clipped to that norm, as Acme's ``losses.dpg``
@@ -195,6 +211,8 @@ def policy_loss(q_logits, atoms, action=None, dqda_clip_norm: float = 0.0):
     if dqda_clip_norm <= 0:
         loss = -q.mean()
         return loss, {"actor/loss": loss}
+    if action is None:  # the clipped gradient is taken at the policy's action
+        raise RluError("d4pg policy_loss: dqda_clip_norm > 0 needs the action (a bug in rlu)")
     dqda = torch.autograd.grad(q.sum(), action)[0]
     norm = torch.linalg.vector_norm(dqda, dim=-1, keepdim=True)
     clipped = dqda * (dqda_clip_norm / norm.clamp(min=dqda_clip_norm))  # tf.clip_by_norm
@@ -204,8 +222,13 @@ def policy_loss(q_logits, atoms, action=None, dqda_clip_norm: float = 0.0):
 
 class D4PGAgent:
     def __init__(
-        self, observation_spec, action_spec, config: D4PGConfig, seed: int = 0, device="cpu"
-    ):
+        self,
+        observation_spec: ObservationSpec,
+        action_spec: ActionSpec,
+        config: D4PGConfig,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
+    ) -> None:
         if config.init not in ("acme", "torch"):
             raise RluError(f"D4PGConfig.init={config.init!r}; choose 'acme' or 'torch'")
         self.config, self.device, self.step = config, common.device(device), 0
@@ -248,7 +271,13 @@ class D4PGAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
+    def act(
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
+    ) -> np.ndarray:
         """pi(s), greedy or not: the policy is deterministic and, offline, acts without the
         online agent's exploration noise."""
         return self.scaler.from_unit(self.policy(common.to_torch(observation, self.device)))

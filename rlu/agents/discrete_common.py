@@ -325,7 +325,9 @@ class RecurrentCore(nn.Module):
         self.lstm = nn.LSTM(settings.hidden_size, lstm_size, batch_first=True)
         self.output_size = lstm_size
 
-    def forward(self, frames: Any, batch: int, steps: int, state: Any = None):
+    def forward(
+        self, frames: Any, batch: int, steps: int, state: common.LSTMState | None = None
+    ) -> tuple[torch.Tensor, common.LSTMState]:
         x = self.embed(self.torso(frames)).reshape(batch, steps, -1)
         return self.lstm(x, state)
 

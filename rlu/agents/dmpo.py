@@ -65,7 +65,7 @@ from rlu.files import (
     bounds,
 )
 from rlu.seeds import stream_seed
-from rlu.types import BatchSpec, Transition
+from rlu.types import ActionSpec, BatchSpec, Observation, ObservationSpec, Transition
 
 MIN_LOG_DUAL = -18.0  # Acme's projection of every log dual
 DUAL_EPS = 1e-8  # added to every softplus(dual)
@@ -154,7 +154,7 @@ GRID: dict[str, list] = {}  # a behaviour agent: the paper reports no sweep
 class GaussianPolicy(nn.Module):
     """Acme's MultivariateNormalDiagHead on a LayerNormMLP: (mean, std) per action dimension."""
 
-    def __init__(self, observation_spec, action_dim: int, c: DMPOConfig):
+    def __init__(self, observation_spec: ObservationSpec, action_dim: int, c: DMPOConfig) -> None:
         super().__init__()
         self.encoder = nets.Encoder(observation_spec, c.torso_hidden, torso_norm_elu=False)
         self.mlp = nets.layer_norm_mlp(self.encoder.output_dim, c.policy_layers)
@@ -167,19 +167,19 @@ class GaussianPolicy(nn.Module):
         self.scale_factor = c.init_scale / math.log(2.0)  # softplus(0) = log 2
         self.min_scale = c.min_scale
 
-    def forward(self, obs) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, obs: common.TensorObservation) -> tuple[torch.Tensor, torch.Tensor]:
         h = self.mlp(self.encoder(obs))
         return self.mean(h), F.softplus(self.scale(h)) * self.scale_factor + self.min_scale
 
 
 class Critic(nn.Module):
-    def __init__(self, observation_spec, action_dim: int, c: DMPOConfig):
+    def __init__(self, observation_spec: ObservationSpec, action_dim: int, c: DMPOConfig) -> None:
         super().__init__()
         self.encoder = nets.Encoder(observation_spec, c.torso_hidden, torso_norm_elu=False)
         self.mlp = nets.layer_norm_mlp(self.encoder.output_dim + action_dim, c.critic_layers)
         self.head = nets.CategoricalHead(c.critic_layers[-1], c.num_atoms, c.vmin, c.vmax)
 
-    def forward(self, obs, action: torch.Tensor) -> torch.Tensor:
+    def forward(self, obs: common.TensorObservation, action: torch.Tensor) -> torch.Tensor:
         """Logits of (B, A) or (N, B, A) actions at (B, ...) states; actions clipped to
         [-1, 1] first (Acme's ClipToSpec)."""
         return self.logits(self.encoder(obs), action)
@@ -190,7 +190,14 @@ class Critic(nn.Module):
         return self.head(self.mlp(sa))
 
 
-def critic_loss(logits, sampled_target_logits, reward, discount, atoms, bootstrap_gamma: float):
+def critic_loss(
+    logits: torch.Tensor,
+    sampled_target_logits: torch.Tensor,
+    reward: torch.Tensor,
+    discount: torch.Tensor,
+    atoms: torch.Tensor,
+    bootstrap_gamma: float,
+) -> tuple[torch.Tensor, common.Metrics]:
     """Cross-entropy to the projected n-step target whose next-state distribution is the mean
     over the N sampled actions' target distributions: logits (B, K), sampled (N, B, K)."""
     probs = torch.softmax(sampled_target_logits, -1).mean(0)
@@ -201,7 +208,16 @@ def critic_loss(logits, sampled_target_logits, reward, discount, atoms, bootstra
     return loss, {"critic/loss": loss, "critic/q_mean": q}
 
 
-def mpo_loss(mean, std, target_mean, target_std, actions, q_values, duals, c: DMPOConfig):
+def mpo_loss(
+    mean: torch.Tensor,
+    std: torch.Tensor,
+    target_mean: torch.Tensor,
+    target_std: torch.Tensor,
+    actions: torch.Tensor,
+    q_values: torch.Tensor,
+    duals: nn.ParameterDict,
+    c: DMPOConfig,
+) -> tuple[torch.Tensor, common.Metrics]:
     """Acme's decoupled MPO loss with per-dimension KL bounds and the action penalty.
 
     mean, std, target_mean, target_std (B, A): the online and the target policy at the states;
@@ -245,15 +261,22 @@ def mpo_loss(mean, std, target_mean, target_std, actions, q_values, duals, c: DM
     return loss, metrics
 
 
-def _kl_per_dim(mean_p, std_p, mean_q, std_q) -> torch.Tensor:
+def _kl_per_dim(
+    mean_p: torch.Tensor, std_p: torch.Tensor, mean_q: torch.Tensor, std_q: torch.Tensor
+) -> torch.Tensor:
     """KL(N(mean_p, std_p) || N(mean_q, std_q)) per dimension: (B, A)."""
     return gaussian_kl(mean_p[..., None], std_p[..., None], mean_q[..., None], std_q[..., None])
 
 
 class DMPOAgent:
     def __init__(
-        self, observation_spec, action_spec, config: DMPOConfig, seed: int = 0, device="cpu"
-    ):
+        self,
+        observation_spec: ObservationSpec,
+        action_spec: ActionSpec,
+        config: DMPOConfig,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
+    ) -> None:
         self.config, self.device, self.step = config, common.device(device), 0
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, n_step=config.n_step, gamma=config.gamma)
@@ -315,7 +338,9 @@ class DMPOAgent:
         self.step = common.advance(self.step, c.target_update_period, self.targets)
         return common.metrics_to_floats(metrics)
 
-    def sampled_logits(self, next_obs, sampled: torch.Tensor) -> torch.Tensor:
+    def sampled_logits(
+        self, next_obs: common.TensorObservation, sampled: torch.Tensor
+    ) -> torch.Tensor:
         """The target critic's logits (N, B, K) of the (N, B, A) sampled actions: the states
         encoded once, then on a CPU whole samples at a time, about ``cpu_slice_rows`` rows."""
         critic, (n, b) = self.target_critic, sampled.shape[:2]
@@ -324,7 +349,13 @@ class DMPOAgent:
         return torch.cat([critic.logits(s, a) for a in sampled.split(per)])
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
+    def act(
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
+    ) -> np.ndarray:
         """The Gaussian's mean with ``greedy=True``; with ``greedy=False`` a sample (Acme's
         behaviour network), both clipped to the action bounds."""
         mean, std = self.policy(common.to_torch(observation, self.device))

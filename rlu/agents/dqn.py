@@ -19,11 +19,12 @@ from typing import Any
 
 import numpy as np
 import torch
+from torch import nn
 
 from rlu.agents import common
 from rlu.agents import discrete_common as dc
 from rlu.files import LEARNING_RATE, Checked
-from rlu.types import Transition
+from rlu.types import ActionSpec, Observation, ObservationSpec, Transition
 
 
 @dataclass(frozen=True)
@@ -46,8 +47,9 @@ PRESETS: dict[str, DQNConfig] = {
 GRID: dict[str, list[Any]] = {"learning_rate": list(dc.LEARNING_RATE_GRID)}
 
 
-def dqn_loss(network, target_network, batch: dc.TorchTransition, gamma: float,
-             huber_delta: float = 1.0, double_q: bool = True):  # fmt: skip
+def dqn_loss(network: nn.Module, target_network: nn.Module, batch: dc.TorchTransition,
+             gamma: float, huber_delta: float = 1.0,
+             double_q: bool = True) -> tuple[torch.Tensor, common.Metrics]:  # fmt: skip
     """Huber loss between Q(s, a) and the (double-)Q target; ``gamma`` bootstraps (gamma^n)."""
     q_taken = dc.taken(network(batch.observation), batch.action)
     target = dc.dqn_target(network, target_network, batch, gamma, double_q)
@@ -57,7 +59,12 @@ def dqn_loss(network, target_network, batch: dc.TorchTransition, gamma: float,
 
 class DQNAgent:
     def __init__(
-        self, observation_spec, action_spec, config: DQNConfig, seed: int = 0, device="cpu"
+        self,
+        observation_spec: ObservationSpec,
+        action_spec: ActionSpec,
+        config: DQNConfig,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
     ) -> None:
         self.config, self.device, self.step = config, common.device(device), 0
         self.batch_spec, self.num_steps = config.atari.batch_spec(), config.atari.num_steps
@@ -78,7 +85,13 @@ class DQNAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
+    def act(
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
+    ) -> np.ndarray:
         """Epsilon-greedy on Q: argmax_a Q(s, a), replaced by a uniform action with probability
         ``atari.eval_epsilon`` (greedy) or ``atari.explore_epsilon`` (module docstring)."""
         return dc.act(self.network, observation, self.config.atari, greedy, self.generators["act"])

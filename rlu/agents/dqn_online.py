@@ -55,11 +55,12 @@ from typing import Any
 
 import numpy as np
 import torch
+from torch import nn
 
 from rlu.agents import common
 from rlu.agents import discrete_common as dc
 from rlu.files import FRACTION, LEARNING_RATE, Checked, bounds
-from rlu.types import Transition
+from rlu.types import ActionSpec, Observation, ObservationSpec, Transition
 
 DOPAMINE_ATARI = dc.AtariSettings(
     batch_size=32,  # dqn.gin: WrappedReplayBuffer.batch_size = 32
@@ -157,8 +158,9 @@ class TFRMSProp(torch.optim.Optimizer):
         return loss
 
 
-def dopamine_dqn_loss(network, target_network, batch: dc.TorchTransition, gamma: float,
-                      huber_delta: float = 1.0):  # fmt: skip
+def dopamine_dqn_loss(network: nn.Module, target_network: nn.Module,
+                      batch: dc.TorchTransition, gamma: float,
+                      huber_delta: float = 1.0) -> tuple[torch.Tensor, common.Metrics]:  # fmt: skip
     """Dopamine's DQN loss: the batch mean of Huber(r + gamma d max_a Q_target(s', a) - Q(s, a));
     ``gamma`` bootstraps (gamma^n for n-step batches)."""
     q_taken = dc.taken(network(batch.observation), batch.action)
@@ -169,9 +171,13 @@ def dopamine_dqn_loss(network, target_network, batch: dc.TorchTransition, gamma:
 
 class DopamineDQNAgent:
     def __init__(
-        self, observation_spec, action_spec, config: DopamineDQNConfig, seed: int = 0,
-        device="cpu",
-    ) -> None:  # fmt: skip
+        self,
+        observation_spec: ObservationSpec,
+        action_spec: ActionSpec,
+        config: DopamineDQNConfig,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
+    ) -> None:
         self.config, self.device, self.step = config, common.device(device), 0
         self.batch_spec, self.num_steps = config.atari.batch_spec(), config.atari.num_steps
         self.pretrain_steps = 0
@@ -196,7 +202,13 @@ class DopamineDQNAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
+    def act(
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
+    ) -> np.ndarray:
         """Epsilon-greedy on Q: ``atari.eval_epsilon`` (Dopamine's 0.001) with ``greedy=True``,
         ``atari.explore_epsilon`` (its training epsilon, 0.01) with ``greedy=False``."""
         return dc.act(self.network, observation, self.config.atari, greedy, self.generators["act"])

@@ -87,7 +87,16 @@ from rlu.files import (
     bounds,
 )
 from rlu.seeds import stream_seed
-from rlu.types import BatchSpec, DiscreteSpec, RluError, Sequence
+from rlu.types import (
+    ActionSpec,
+    BatchSpec,
+    DataStatistics,
+    DiscreteSpec,
+    Observation,
+    ObservationSpec,
+    RluError,
+    Sequence,
+)
 
 TIMESTEPS = ("episode", "context")
 
@@ -238,7 +247,9 @@ GRID: dict[str, list] = {}  # the DT paper reports no sweep
 # ------------------------------------------------------------------------------ the maths
 
 
-def continuous_action_loss(predicted, action, weight):
+def continuous_action_loss(
+    predicted: torch.Tensor, action: torch.Tensor, weight: torch.Tensor
+) -> tuple[torch.Tensor, common.Metrics]:
     """Mean squared error of the predicted actions over the weighted steps and the action
     dimensions (the gym code's ``mean((a_hat - a) ** 2)`` over its unpadded steps)."""
     error = ((predicted - action) ** 2).mean(-1)
@@ -246,7 +257,9 @@ def continuous_action_loss(predicted, action, weight):
     return loss, {"actor/loss": loss}
 
 
-def discrete_action_loss(logits, action, weight):
+def discrete_action_loss(
+    logits: torch.Tensor, action: torch.Tensor, weight: torch.Tensor
+) -> tuple[torch.Tensor, common.Metrics]:
     """Cross-entropy of the logits on the data's actions over the weighted steps."""
     nll = F.cross_entropy(
         logits.reshape(-1, logits.shape[-1]), action.reshape(-1), reduction="none"
@@ -277,14 +290,20 @@ def learning_rate_multiplier(step: int, settings: DTConfig | AtariDT) -> float:
     return max(0.1, 0.5 * (1.0 + math.cos(math.pi * progress)))  # again past final_tokens
 
 
-def next_return_to_go(previous, reward, first, target, scale: float):
+def next_return_to_go(
+    previous: torch.Tensor,
+    reward: torch.Tensor,
+    first: torch.Tensor,
+    target: float | torch.Tensor,
+    scale: float,
+) -> torch.Tensor:
     """The return to go a step conditions on: the target (a number or a 0-d tensor) where its
     episode starts, else the previous step's less the reward just earned (both over ``scale``)."""
     target = torch.as_tensor(target, dtype=previous.dtype, device=previous.device)
     return torch.where(first, target / scale, previous - reward / scale)
 
 
-def interleave(returns, states, actions):
+def interleave(returns: torch.Tensor, states: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
     """(B, T, H) token embeddings of R, s, a -> (B, 3T, H) in the order R_1, s_1, a_1, R_2, ..."""
     b, t, h = states.shape
     return torch.stack((returns, states, actions), dim=2).reshape(b, 3 * t, h)
@@ -296,7 +315,7 @@ def interleave(returns, states, actions):
 class Block(nn.Module):
     """A GPT-2 block: x + attention(LayerNorm(x)), then x + MLP(LayerNorm(x)), causal."""
 
-    def __init__(self, width: int, heads: int, dropout: float, activation: type[nn.Module]):
+    def __init__(self, width: int, heads: int, dropout: float, activation: type[nn.Module]) -> None:
         super().__init__()
         self.heads, self.dropout = heads, dropout
         self.ln_1, self.ln_2 = nn.LayerNorm(width), nn.LayerNorm(width)
@@ -321,7 +340,9 @@ class GPT(nn.Module):
     """Dropout on the input tokens, the blocks, a final LayerNorm (both DT codes' GPT, without
     GPT-2's own position embeddings: DT adds its own)."""
 
-    def __init__(self, width, layers, heads, dropout, activation: type[nn.Module]):
+    def __init__(
+        self, width: int, layers: int, heads: int, dropout: float, activation: type[nn.Module]
+    ) -> None:
         super().__init__()
         if width % heads:
             raise RluError(f"dt: hidden_size {width} is not a multiple of num_heads {heads}")
@@ -351,7 +372,7 @@ class ContinuousDT(nn.Module):
 
     target_return: torch.Tensor  # a buffer
 
-    def __init__(self, observation_spec, action_dim: int, c: DTConfig):
+    def __init__(self, observation_spec: ObservationSpec, action_dim: int, c: DTConfig) -> None:
         super().__init__()
         h = c.hidden_size
         self.normaliser = nets.ObservationNormaliser(observation_spec, 1e-6,
@@ -366,10 +387,16 @@ class ContinuousDT(nn.Module):
         self.predict_action = nn.Linear(h, action_dim)
         self.register_buffer("target_return", torch.zeros(()))
 
-    def state_tokens(self, observation, batch_dims: int) -> torch.Tensor:
+    def state_tokens(self, observation: common.TensorObservation, batch_dims: int) -> torch.Tensor:
         return self.embed_state(self.encoder(self.normaliser(observation), batch_dims))
 
-    def forward(self, states, actions, returns, timesteps) -> torch.Tensor:
+    def forward(
+        self,
+        states: torch.Tensor,
+        actions: torch.Tensor,
+        returns: torch.Tensor,
+        timesteps: torch.Tensor,
+    ) -> torch.Tensor:
         """(B, T, H) state tokens, (B, T, A) actions in [-1, 1], (B, T) returns to go (scaled),
         (B, T) timesteps -> (B, T, A) predicted actions."""
         time = self.embed_timestep(timesteps)
@@ -386,7 +413,7 @@ class AtariDTModel(nn.Module):
 
     target_return: torch.Tensor  # a buffer
 
-    def __init__(self, frame_shape, num_actions: int, c: AtariDT):
+    def __init__(self, frame_shape: dc.Shape, num_actions: int, c: AtariDT) -> None:
         super().__init__()
         h = c.hidden_size
         self.transformer = GPT(h, c.num_layers, c.num_heads, c.dropout, nn.GELU)
@@ -406,7 +433,13 @@ class AtariDTModel(nn.Module):
         lead = frames.shape[:batch_dims]
         return self.embed_state(frames.reshape(-1, *frames.shape[batch_dims:])).view(*lead, -1)
 
-    def forward(self, states, actions, returns, timesteps) -> torch.Tensor:
+    def forward(
+        self,
+        states: torch.Tensor,
+        actions: torch.Tensor,
+        returns: torch.Tensor,
+        timesteps: torch.Tensor,
+    ) -> torch.Tensor:
         """(B, T, H) state tokens, (B, T) actions, (B, T) returns to go (scaled), (B, T)
         timesteps -> (B, T, num_actions) logits."""
         t = states.shape[1]
@@ -451,13 +484,19 @@ class Context(NamedTuple):
     length: torch.Tensor  # (N,)
 
 
-def push(ctx: Context, state, ret, timestep, first) -> tuple[Context, torch.Tensor]:
+def push(
+    ctx: Context,
+    state: torch.Tensor,
+    ret: torch.Tensor,
+    timestep: torch.Tensor,
+    first: torch.Tensor,
+) -> tuple[Context, torch.Tensor]:
     """The context with one more step per row (rows where ``first`` restart empty, full rows
     drop their oldest step) and the slot that step is in."""
     length = torch.where(first, torch.zeros_like(ctx.length), ctx.length)
     full = length == ctx.states.shape[1]
 
-    def shifted(buf):
+    def shifted(buf: torch.Tensor) -> torch.Tensor:
         keep = full.view(-1, *([1] * (buf.dim() - 1)))
         return torch.where(keep, buf.roll(-1, dims=1), buf)
 
@@ -476,8 +515,14 @@ def push(ctx: Context, state, ret, timestep, first) -> tuple[Context, torch.Tens
 
 
 class DTAgent:
-    def __init__(self, observation_spec, action_spec, config: DTConfig, seed: int = 0,
-                 device="cpu"):  # fmt: skip
+    def __init__(
+        self,
+        observation_spec: ObservationSpec,
+        action_spec: ActionSpec,
+        config: DTConfig,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
+    ) -> None:
         self.config, self.device, self.step = config, common.device(device), 0
         self.discrete = isinstance(action_spec, DiscreteSpec)
         s = self.settings = config.atari if self.discrete else config
@@ -521,7 +566,7 @@ class DTAgent:
         self._target_ready = s.target_return is not None
         self._context: Context | None = None
 
-    def set_statistics(self, stats) -> None:
+    def set_statistics(self, stats: DataStatistics) -> None:
         """The data's observation mean and std (continuous, when normalising) and, for the
         target rule, its best whole-episode return."""
         s = self.settings
@@ -544,7 +589,10 @@ class DTAgent:
         self.model.target_return.fill_(float(value))
         self._target_ready = True
 
-    def _batch(self, batch: Sequence):
+    def _batch(
+        self, batch: Sequence
+    ) -> tuple[Any, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        # the observation is to_torch's: a tensor (frames, flat states) or a dict of tensors
         if batch.return_to_go is None or (self.episode_timesteps and batch.timestep is None):
             raise RluError(
                 "dt learns from sequence batches with return_to_go (and timestep, unless "
@@ -586,7 +634,13 @@ class DTAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
+    def act(
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
+    ) -> np.ndarray:
         """The action each row's context predicts (the continuous action; for Atari a softmax
         sample, or the argmax with ``atari.sample_actions=False`` when greedy); ``reward`` (what
         each row's previous action earned) lowers its return to go, so a row that goes on

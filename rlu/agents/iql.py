@@ -56,7 +56,7 @@ from rlu.files import (
     bounds,
 )
 from rlu.seeds import stream_seed
-from rlu.types import BatchSpec, Transition
+from rlu.types import ActionSpec, BatchSpec, Observation, ObservationSpec, Transition
 
 
 @dataclass(frozen=True)
@@ -109,13 +109,15 @@ def expectile_loss(diff: torch.Tensor, expectile: float) -> torch.Tensor:
     return (weight * diff.pow(2)).mean()
 
 
-def value_loss(q_min: torch.Tensor, v: torch.Tensor, expectile: float):
+def value_loss(
+    q_min: torch.Tensor, v: torch.Tensor, expectile: float
+) -> tuple[torch.Tensor, common.Metrics]:
     """L_V with the target critics' min Q(s, a) held fixed."""
     loss = expectile_loss(q_min.detach() - v, expectile)
     return loss, {"value/loss": loss, "value/v_mean": v.mean()}
 
 
-def critic_loss(q: torch.Tensor, target: torch.Tensor):
+def critic_loss(q: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, common.Metrics]:
     """Sum over the twin critics (2, B) of the mean squared error to the target (B,)."""
     loss = (q - target.detach()).pow(2).mean(1).sum()
     return loss, {"critic/loss": loss, "critic/q_mean": q.mean()}
@@ -126,7 +128,9 @@ def awr_weights(adv: torch.Tensor, beta: float, max_weight: float) -> torch.Tens
     return torch.exp(beta * adv).clamp(max=max_weight)
 
 
-def actor_loss(log_prob: torch.Tensor, adv: torch.Tensor, beta: float, max_weight: float):
+def actor_loss(
+    log_prob: torch.Tensor, adv: torch.Tensor, beta: float, max_weight: float
+) -> tuple[torch.Tensor, common.Metrics]:
     """AWR: -mean_b w_b log pi(a_b | s_b), weights from the fixed advantage."""
     w = awr_weights(adv.detach(), beta, max_weight)
     loss = -(w * log_prob).mean()
@@ -141,26 +145,26 @@ def cosine_lr(base: float, step: int, horizon: int) -> float:
 
 
 class ValueNet(nn.Module):
-    def __init__(self, observation_spec, c: IQLConfig):
+    def __init__(self, observation_spec: ObservationSpec, c: IQLConfig) -> None:
         super().__init__()
         self.encoder = nets.Encoder(observation_spec, c.torso_hidden)
         self.net = nets.mlp(self.encoder.output_dim, c.hidden_layers, 1)
 
-    def forward(self, obs) -> torch.Tensor:
+    def forward(self, obs: common.TensorObservation) -> torch.Tensor:
         return self.net(self.encoder(obs)).squeeze(-1)
 
 
 class GaussianPolicy(nn.Module):
     """N(tanh(MLP(s)), exp(log_std)) with a state-independent, clipped log std."""
 
-    def __init__(self, observation_spec, action_dim: int, c: IQLConfig):
+    def __init__(self, observation_spec: ObservationSpec, action_dim: int, c: IQLConfig) -> None:
         super().__init__()
         self.encoder = nets.Encoder(observation_spec, c.torso_hidden)
         self.net = nets.mlp(self.encoder.output_dim, c.hidden_layers, action_dim)
         self.log_std = nn.Parameter(torch.zeros(action_dim))
         self.log_std_range = (c.log_std_min, c.log_std_max)
 
-    def forward(self, obs):
+    def forward(self, obs: common.TensorObservation) -> tuple[torch.Tensor, torch.Tensor]:
         mean = torch.tanh(self.net(self.encoder(obs)))
         std = self.log_std.clamp(*self.log_std_range).exp().expand_as(mean)
         return mean, std
@@ -168,8 +172,13 @@ class GaussianPolicy(nn.Module):
 
 class IQLAgent:
     def __init__(
-        self, observation_spec, action_spec, config: IQLConfig, seed: int = 0, device="cpu"
-    ):
+        self,
+        observation_spec: ObservationSpec,
+        action_spec: ActionSpec,
+        config: IQLConfig,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
+    ) -> None:
         self.config, self.device, self.step = config, common.device(device), 0
         self.scaler = nets.ActionScaler(action_spec)
         self.batch_spec = BatchSpec(config.batch_size, gamma=config.gamma)
@@ -227,7 +236,13 @@ class IQLAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
+    def act(
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
+    ) -> np.ndarray:
         """The Gaussian's mean (the original evaluates at temperature 0) with ``greedy=True``;
         with ``greedy=False`` a sample of N(mean, exp(log_std)) from the agent's generator."""
         mean, std = self.policy(common.to_torch(observation, self.device))

@@ -30,7 +30,7 @@ from torch import nn
 from rlu.agents import common
 from rlu.agents import discrete_common as dc
 from rlu.files import LEARNING_RATE, WIDTH, Checked, bounds
-from rlu.types import Transition
+from rlu.types import ActionSpec, Observation, ObservationSpec, Transition
 
 
 @dataclass(frozen=True)
@@ -80,7 +80,9 @@ def cosine_tau_embedding(taus: torch.Tensor, embedding_size: int) -> torch.Tenso
 class ImplicitQuantileNetwork(nn.Module):
     """Z(s, tau) = f(psi(s) * phi(tau)); (B, ...) frames and (B, N) fractions -> (B, N, A)."""
 
-    def __init__(self, shape, num_actions: int, settings: dc.AtariSettings, embedding_size: int):
+    def __init__(
+        self, shape: dc.Shape, num_actions: int, settings: dc.AtariSettings, embedding_size: int
+    ) -> None:
         super().__init__()
         self.torso = dc.NatureTorso(shape, settings)
         self.embedding_size = embedding_size
@@ -115,9 +117,11 @@ def _taken_quantiles(quantiles: torch.Tensor, action: torch.Tensor) -> torch.Ten
     return quantiles.gather(-1, index).squeeze(-1)
 
 
-def iqn_loss(network, target_network, batch: dc.TorchTransition, gamma: float,
+def iqn_loss(network: ImplicitQuantileNetwork, target_network: ImplicitQuantileNetwork,
+             batch: dc.TorchTransition, gamma: float,
              generator: torch.Generator, num_taus: int, num_taus_next: int,
-             kappa: float = 1.0, double_q: bool = False):  # fmt: skip
+             kappa: float = 1.0,
+             double_q: bool = False) -> tuple[torch.Tensor, common.Metrics]:  # fmt: skip
     """Quantile Huber loss between N online quantiles and N' target quantiles. The next action
     is the argmax of the mean of the target quantiles (Acme's IQN learner); with ``double_q`` it
     is the online network's on the same N' fractions."""
@@ -141,7 +145,12 @@ def iqn_loss(network, target_network, batch: dc.TorchTransition, gamma: float,
 
 class IQNAgent:
     def __init__(
-        self, observation_spec, action_spec, config: IQNConfig, seed: int = 0, device="cpu"
+        self,
+        observation_spec: ObservationSpec,
+        action_spec: ActionSpec,
+        config: IQNConfig,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
     ) -> None:
         self.config, self.device, self.step = config, common.device(device), 0
         self.batch_spec, self.num_steps = config.atari.batch_spec(), config.atari.num_steps
@@ -164,7 +173,13 @@ class IQNAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
+    def act(
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
+    ) -> np.ndarray:
         """argmax_a of the mean of ``num_quantile_samples`` quantiles at fractions drawn from the
         acting generator, epsilon-greedy (``atari.eval_epsilon`` when greedy)."""
         frames, generator = dc.frames(observation, device=self.device), self.generators["act"]

@@ -12,13 +12,20 @@ import torch
 from torch.nn import functional as F
 
 
-def bootstrap_values(reward, discount, bootstrap_gamma: float, next_values):
+def bootstrap_values(
+    reward: torch.Tensor,
+    discount: torch.Tensor,
+    bootstrap_gamma: float,
+    next_values: torch.Tensor,
+) -> torch.Tensor:
     """r + gamma^n d v for every value v (atom or sample) of the next state: (B, N) -> (B, N);
     ``bootstrap_gamma`` is gamma^n (``BatchSpec.bootstrap_gamma``)."""
     return reward[:, None] + bootstrap_gamma * discount[:, None] * next_values
 
 
-def smoothed_target_action(next_action, sigma: float, clip: float, generator: torch.Generator):
+def smoothed_target_action(
+    next_action: torch.Tensor, sigma: float, clip: float, generator: torch.Generator
+) -> torch.Tensor:
     """TD3's target policy smoothing (TD3+BC, ReBRAC): clip(a' + clip(sigma eps, -clip, clip),
     -1, 1) with eps ~ N(0, I) drawn from ``generator`` on the actions' device; (B, A) ->
     (B, A)."""
@@ -26,7 +33,9 @@ def smoothed_target_action(next_action, sigma: float, clip: float, generator: to
     return (next_action + (sigma * eps).clamp(-clip, clip)).clamp(-1.0, 1.0)
 
 
-def categorical_projection(values: torch.Tensor, probs: torch.Tensor, atoms: torch.Tensor):
+def categorical_projection(
+    values: torch.Tensor, probs: torch.Tensor, atoms: torch.Tensor
+) -> torch.Tensor:
     """Project a distribution with mass ``probs`` at ``values`` (B, N) onto ``atoms`` (M,).
 
     Mass at a value between two atoms is split between them linearly (C51's projection, Acme's
@@ -46,13 +55,15 @@ def categorical_cross_entropy(logits: torch.Tensor, target_probs: torch.Tensor) 
     return -(target_probs * F.log_softmax(logits, -1)).sum(-1)
 
 
-def gaussian_log_prob(mean, std, x):
+def gaussian_log_prob(mean: torch.Tensor, std: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     """log N(x; mean, diag(std^2)) summed over the last axis."""
     z = (x - mean) / std
     return (-0.5 * z * z - torch.log(std) - 0.5 * math.log(2 * math.pi)).sum(-1)
 
 
-def mixture_log_prob(logits, mean, std, action):
+def mixture_log_prob(
+    logits: torch.Tensor, mean: torch.Tensor, std: torch.Tensor, action: torch.Tensor
+) -> torch.Tensor:
     """log sum_k softmax(logits)_k N(action; mean_k, std_k).
 
     Shapes (B, K), (B, K, A), (B, K, A), (B, A) -> (B,).
@@ -61,7 +72,13 @@ def mixture_log_prob(logits, mean, std, action):
     return torch.logsumexp(F.log_softmax(logits, -1) + comp, -1)
 
 
-def vae_loss(recon, action, mean, std, kl_weight: float = 0.5):
+def vae_loss(
+    recon: torch.Tensor,
+    action: torch.Tensor,
+    mean: torch.Tensor,
+    std: torch.Tensor,
+    kl_weight: float = 0.5,
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """BCQ's VAE loss (Fujimoto et al. 2019): MSE + 0.5 KL(N(mean, std) || N(0, 1))."""
     recon_loss = F.mse_loss(recon, action)
     kl = -0.5 * (1 + torch.log(std.pow(2)) - mean.pow(2) - std.pow(2)).mean()
@@ -76,13 +93,17 @@ def sample_kl(policy_log_prob: torch.Tensor, behaviour_log_prob: torch.Tensor) -
     return (policy_log_prob - behaviour_log_prob).mean(0)
 
 
-def tanh_gaussian_log_prob(mean, std, pre_tanh):
+def tanh_gaussian_log_prob(
+    mean: torch.Tensor, std: torch.Tensor, pre_tanh: torch.Tensor
+) -> torch.Tensor:
     """log density of tanh(u), u ~ N(mean, std), at u = ``pre_tanh`` (change of variables)."""
     log_det = 2.0 * (math.log(2.0) - pre_tanh - F.softplus(-2.0 * pre_tanh))
     return gaussian_log_prob(mean, std, pre_tanh) - log_det.sum(-1)
 
 
-def abm_weights(advantage: torch.Tensor, kind: str = "binary", temperature: float = 1.0):
+def abm_weights(
+    advantage: torch.Tensor, kind: str = "binary", temperature: float = 1.0
+) -> torch.Tensor:
     """ABM's prior weights f(A) (Siegel et al. 2020): the step 1[A >= 0] or exp(A / temperature).
 
     The exponential variant is normalised to mean 1 over the batch (AWR-style) so the learning
@@ -96,7 +117,9 @@ def abm_weights(advantage: torch.Tensor, kind: str = "binary", temperature: floa
     raise ValueError(f"abm weight kind must be 'binary' or 'exp', got {kind!r}")
 
 
-def mpo_e_step(q_values: torch.Tensor, temperature: torch.Tensor, epsilon: float):
+def mpo_e_step(
+    q_values: torch.Tensor, temperature: torch.Tensor, epsilon: float
+) -> tuple[torch.Tensor, torch.Tensor]:
     """MPO's non-parametric E-step over N sampled actions per state: q_values (N, B).
 
     Returns the weights softmax_n(Q / eta) (N, B), detached, and the temperature dual
@@ -112,7 +135,9 @@ def mpo_e_step(q_values: torch.Tensor, temperature: torch.Tensor, epsilon: float
     return weights, dual
 
 
-def gaussian_kl(mean_p, std_p, mean_q, std_q):
+def gaussian_kl(
+    mean_p: torch.Tensor, std_p: torch.Tensor, mean_q: torch.Tensor, std_q: torch.Tensor
+) -> torch.Tensor:
     """KL(N(mean_p, std_p) || N(mean_q, std_q)) of diagonal Gaussians, summed over the last axis."""
     var_p, var_q = std_p.pow(2), std_q.pow(2)
     kl = torch.log(std_q / std_p) + (var_p + (mean_p - mean_q).pow(2)) / (2 * var_q) - 0.5

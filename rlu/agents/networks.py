@@ -37,8 +37,9 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from rlu.agents.common import LSTMState, TensorObservation
 from rlu.agents.losses import tanh_gaussian_log_prob
-from rlu.types import ArraySpec, BoundedSpec, ObservationSpec, RluError, SpecError
+from rlu.types import ActionSpec, ArraySpec, BoundedSpec, ObservationSpec, RluError, SpecError
 
 
 def is_image(spec: ArraySpec) -> bool:
@@ -61,7 +62,7 @@ class ResNetTorso(nn.Module):
         blocks: tuple[int, ...] = (2, 2, 2),
         hidden: int = 64,
         norm_elu: bool = True,
-    ):
+    ) -> None:
         super().__init__()
         h, w, c = image_shape
         act: type[nn.Module] = nn.ELU if norm_elu else nn.ReLU
@@ -84,7 +85,7 @@ class ResNetTorso(nn.Module):
 
 
 class _ResBlock(nn.Module):
-    def __init__(self, channels: int, act: type[nn.Module]):
+    def __init__(self, channels: int, act: type[nn.Module]) -> None:
         super().__init__()
         self.net = nn.Sequential(
             act(), nn.Conv2d(channels, channels, 3, padding=1),
@@ -113,7 +114,7 @@ class Encoder(nn.Module):
         torso_norm_elu: bool = True,
         channels: tuple[int, ...] = (16, 32, 32),
         blocks: tuple[int, ...] = (2, 2, 2),
-    ):
+    ) -> None:
         super().__init__()
         specs = _as_dict(observation_spec)
         self.feature_keys = sorted(k for k, s in specs.items() if not is_image(s))
@@ -130,15 +131,13 @@ class Encoder(nn.Module):
         if self.output_dim == 0:
             raise SpecError("observation spec has no entries; pass at least one ArraySpec")
 
-    def flatten(
-        self, obs: Mapping[str, torch.Tensor], batch_dims: int = 1
-    ) -> Mapping[str, torch.Tensor] | torch.Tensor:
+    def flatten(self, obs: TensorObservation, batch_dims: int = 1) -> TensorObservation:
         """The feature vector ``forward`` would build, for an encoder without image keys (other
         encoders get ``obs`` back): an update that feeds one batch to several networks of the
         same observation spec concatenates its keys once and passes the tensor on."""
         return obs if self.image_keys else self(obs, batch_dims)
 
-    def forward(self, obs: Mapping[str, torch.Tensor] | torch.Tensor, batch_dims: int = 1):
+    def forward(self, obs: TensorObservation, batch_dims: int = 1) -> torch.Tensor:
         if not isinstance(obs, Mapping):
             if not self.image_keys:  # already the features: a flat spec, or flatten()
                 return _flat_float(obs, batch_dims, obs.shape[:batch_dims])
@@ -152,7 +151,7 @@ class Encoder(nn.Module):
         return parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1)
 
 
-def cat_batches(*batches: Mapping[str, torch.Tensor] | torch.Tensor):
+def cat_batches(*batches: TensorObservation) -> TensorObservation:
     """Batches of one spec joined along the batch dimension, so one network pass serves them all:
     tensors (``Encoder.flatten``'s features) or dicts of tensors with the same keys."""
     dicts = [b for b in batches if isinstance(b, Mapping)]
@@ -167,7 +166,7 @@ def cat_batches(*batches: Mapping[str, torch.Tensor] | torch.Tensor):
 class ResidualMLP(nn.Module):
     """Linear projection, then ``num_layers // 2`` blocks h <- norm(h + W2 act(W1 act(h)))."""
 
-    def __init__(self, input_dim: int, hidden: int = 1024, num_layers: int = 8):
+    def __init__(self, input_dim: int, hidden: int = 1024, num_layers: int = 8) -> None:
         super().__init__()
         if num_layers < 2 or num_layers % 2:
             raise ValueError(f"ResidualMLP num_layers must be even and >= 2, got {num_layers}")
@@ -216,7 +215,9 @@ def variance_scaling_(
     raise ValueError(f"variance_scaling_: unknown distribution {distribution!r}")
 
 
-def layer_norm_mlp(input_dim: int, sizes: tuple[int, ...], activate_final: bool = True):
+def layer_norm_mlp(
+    input_dim: int, sizes: tuple[int, ...], activate_final: bool = True
+) -> nn.Sequential:
     """Acme's LayerNormMLP: Linear -> LayerNorm -> tanh, then Linear -> ELU layers."""
     layers: list[nn.Module] = [nn.Linear(input_dim, sizes[0]), nn.LayerNorm(sizes[0]), nn.Tanh()]
     for i, size in enumerate(sizes[1:]):
@@ -253,7 +254,7 @@ class Torso(nn.Module):
         extra_dim: int = 0,
         torso_hidden: int = 64,
         torso_norm_elu: bool = True,
-    ):
+    ) -> None:
         super().__init__()
         self.encoder = Encoder(observation_spec, torso_hidden, torso_norm_elu)
         self.mlp = ResidualMLP(self.encoder.output_dim + extra_dim, hidden, num_layers)
@@ -262,7 +263,13 @@ class Torso(nn.Module):
         )
         self.output_dim = lstm_hidden or hidden
 
-    def forward(self, obs, extra: torch.Tensor | None = None, state=None, sequence: bool = False):
+    def forward(
+        self,
+        obs: TensorObservation,
+        extra: torch.Tensor | None = None,
+        state: LSTMState | None = None,
+        sequence: bool = False,
+    ) -> tuple[torch.Tensor, LSTMState | None]:
         """(B, ...) -> (B, H), or with ``sequence`` (B, T, ...) -> (B, T, H) and the LSTM state."""
         h = self.encoder(obs, batch_dims=2 if sequence else 1)
         if extra is not None:
@@ -279,12 +286,14 @@ class Torso(nn.Module):
 class MixtureHead(nn.Module):
     """Mixture of ``components`` diagonal Gaussians over the unit-scaled action."""
 
-    def __init__(self, input_dim: int, action_dim: int, components: int = 5, min_std=1e-3):
+    def __init__(
+        self, input_dim: int, action_dim: int, components: int = 5, min_std: float = 1e-3
+    ) -> None:
         super().__init__()
         self.k, self.a, self.min_std = components, action_dim, min_std
         self.linear = nn.Linear(input_dim, components * (1 + 2 * action_dim))
 
-    def forward(self, h: torch.Tensor):
+    def forward(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         out = self.linear(h)
         logits = out[..., : self.k]
         rest = out[..., self.k :].reshape(*out.shape[:-1], self.k, 2, self.a)
@@ -295,12 +304,12 @@ class MixtureHead(nn.Module):
 class GaussianHead(nn.Module):
     """One diagonal Gaussian (RABM's prior and policy: MPO's update is built for Gaussians)."""
 
-    def __init__(self, input_dim: int, action_dim: int, min_std: float = 1e-3):
+    def __init__(self, input_dim: int, action_dim: int, min_std: float = 1e-3) -> None:
         super().__init__()
         self.linear = nn.Linear(input_dim, 2 * action_dim)
         self.min_std = min_std
 
-    def forward(self, h: torch.Tensor):
+    def forward(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         mean, raw = self.linear(h).chunk(2, dim=-1)
         return mean, F.softplus(raw) + self.min_std
 
@@ -310,7 +319,7 @@ class CategoricalHead(nn.Module):
 
     atoms: torch.Tensor  # a buffer
 
-    def __init__(self, input_dim: int, num_atoms: int, vmin: float, vmax: float):
+    def __init__(self, input_dim: int, num_atoms: int, vmin: float, vmax: float) -> None:
         super().__init__()
         self.linear = nn.Linear(input_dim, num_atoms)
         self.register_buffer("atoms", torch.linspace(vmin, vmax, num_atoms))
@@ -330,24 +339,24 @@ class TwinCritic(nn.Module):
         self,
         observation_spec: ObservationSpec,
         action_dim: int,
-        layers,
+        layers: tuple[int, ...],
         torso_hidden: int,
         layer_norm: bool = False,
-    ):
+    ) -> None:
         super().__init__()
         self.encoder = Encoder(observation_spec, torso_hidden)
         f = self.encoder.output_dim + action_dim
         self.q1 = mlp(f, layers, 1, layer_norm)
         self.q2 = mlp(f, layers, 1, layer_norm)
 
-    def forward(self, obs, action: torch.Tensor) -> torch.Tensor:
+    def forward(self, obs: TensorObservation, action: torch.Tensor) -> torch.Tensor:
         """(2, ...) values of (B, A) actions, or (N, B, A): N actions per state, one encoder
         pass."""
         s = self.encoder(obs)
         sa = torch.cat([s.expand(*action.shape[:-1], s.shape[-1]), action], -1)
         return torch.stack([self.q1(sa).squeeze(-1), self.q2(sa).squeeze(-1)])
 
-    def first(self, obs, action: torch.Tensor) -> torch.Tensor:
+    def first(self, obs: TensorObservation, action: torch.Tensor) -> torch.Tensor:
         """Q_1(s, a) alone, (B,): TD3's actor loss reads the first critic only, and a pass
         through both would also send its backward pass through the second."""
         return self.q1(torch.cat([self.encoder(obs), action], -1)).squeeze(-1)
@@ -360,15 +369,15 @@ class DeterministicPolicy(nn.Module):
         self,
         observation_spec: ObservationSpec,
         action_dim: int,
-        layers,
+        layers: tuple[int, ...],
         torso_hidden: int,
         layer_norm: bool = False,
-    ):
+    ) -> None:
         super().__init__()
         self.encoder = Encoder(observation_spec, torso_hidden)
         self.net = mlp(self.encoder.output_dim, layers, action_dim, layer_norm)
 
-    def forward(self, obs) -> torch.Tensor:
+    def forward(self, obs: TensorObservation) -> torch.Tensor:
         return torch.tanh(self.net(self.encoder(obs)))
 
 
@@ -385,7 +394,7 @@ class ObservationNormaliser(nn.Module):
     :meth:`require` refuses an update before that: normalising with the initial mean 0 and
     std 1 would silently be another algorithm."""
 
-    def __init__(self, observation_spec: ObservationSpec, eps: float, enabled: bool = True):
+    def __init__(self, observation_spec: ObservationSpec, eps: float, enabled: bool = True) -> None:
         super().__init__()
         specs = _as_dict(observation_spec)
         self.keys = sorted(k for k, s in specs.items() if np.dtype(s.dtype) != np.uint8)
@@ -433,7 +442,7 @@ class ObservationNormaliser(nn.Module):
                 self.get_buffer(f"{kind}_{i}").copy_(torch.from_numpy(value))
         self.ready = True
 
-    def forward(self, obs: Mapping[str, torch.Tensor] | torch.Tensor):
+    def forward(self, obs: TensorObservation) -> TensorObservation:
         if not self.enabled:
             return obs
         if not isinstance(obs, Mapping):
@@ -458,17 +467,17 @@ class TanhGaussianPolicy(nn.Module):
         self,
         observation_spec: ObservationSpec,
         action_dim: int,
-        layers,
+        layers: tuple[int, ...],
         torso_hidden: int,
         log_std_range: tuple[float, float],
         squash_log_std: bool = False,
-    ):
+    ) -> None:
         super().__init__()
         self.encoder = Encoder(observation_spec, torso_hidden)
         self.net = mlp(self.encoder.output_dim, layers, 2 * action_dim)
         self.log_std_range, self.squash_log_std = log_std_range, squash_log_std
 
-    def forward(self, obs) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, obs: TensorObservation) -> tuple[torch.Tensor, torch.Tensor]:
         """(mean, std) of the pre-tanh Gaussian."""
         return self.dist(self.encoder(obs))
 
@@ -481,25 +490,41 @@ class TanhGaussianPolicy(nn.Module):
             log_std = log_std.clamp(lo, hi)
         return mean, log_std.exp()
 
-    def log_prob(self, obs, action: torch.Tensor, clip: float, features=None) -> torch.Tensor:
+    def log_prob(
+        self,
+        obs: TensorObservation,
+        action: torch.Tensor,
+        clip: float,
+        features: torch.Tensor | None = None,
+    ) -> torch.Tensor:
         """log pi(action | s) of (B, A) or (S, B, A) actions at (B, ...) states, the actions
         clipped to +-``clip`` first (atanh of exactly +-1 is infinite)."""
         mean, std = self.dist(self.encoder(obs) if features is None else features)
         return tanh_gaussian_log_prob(mean, std, torch.atanh(action.clamp(-clip, clip)))
 
-    def sample(self, obs, num: int, generator: torch.Generator):
+    def sample(
+        self, obs: TensorObservation, num: int, generator: torch.Generator
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """(num, B, A) reparameterised actions and their (num, B) log densities."""
         mean, std = self(obs)
         return sample_tanh_gaussian(mean, std, num, generator)
 
 
-def sample_tanh_gaussian(mean, std, num: int, generator: torch.Generator):
+def sample_tanh_gaussian(
+    mean: torch.Tensor, std: torch.Tensor, num: int, generator: torch.Generator
+) -> tuple[torch.Tensor, torch.Tensor]:
     """(num, B, A) reparameterised actions tanh(mean + std eps) and their (num, B) log densities."""
     u = mean + std * torch.randn((num, *mean.shape), generator=generator, device=mean.device)
     return torch.tanh(u), tanh_gaussian_log_prob(mean, std, u)
 
 
-def mixture_sample(logits, mean, std, generator: torch.Generator, std_override=None):
+def mixture_sample(
+    logits: torch.Tensor,
+    mean: torch.Tensor,
+    std: torch.Tensor,
+    generator: torch.Generator,
+    std_override: float | None = None,
+) -> torch.Tensor:
     """One action per row: a component drawn by weight, then Gaussian noise."""
     flat = torch.softmax(logits, -1).reshape(-1, logits.shape[-1])
     idx = torch.multinomial(flat, 1, generator=generator).reshape(*logits.shape[:-1], 1, 1)
@@ -510,7 +535,7 @@ def mixture_sample(logits, mean, std, generator: torch.Generator, std_override=N
     return mu + sd * torch.randn(mu.shape, generator=generator, device=mu.device)
 
 
-def mixture_mode(logits, mean):
+def mixture_mode(logits: torch.Tensor, mean: torch.Tensor) -> torch.Tensor:
     """The mean of the most probable component (a mixture's deterministic action)."""
     idx = logits.argmax(-1)[..., None, None].expand(*mean.shape[:-2], 1, mean.shape[-1])
     return mean.gather(-2, idx).squeeze(-2)
@@ -519,7 +544,7 @@ def mixture_mode(logits, mean):
 class ActionScaler:
     """Maps the spec's [minimum, maximum] box to [-1, 1] and back; agents learn in [-1, 1]."""
 
-    def __init__(self, spec: BoundedSpec):
+    def __init__(self, spec: ActionSpec) -> None:
         if not isinstance(spec, BoundedSpec):
             raise SpecError(f"continuous agents need a BoundedSpec action spec, got {spec!r}")
         self.lo, self.hi, self.dim = float(spec.minimum), float(spec.maximum), spec.size
@@ -537,7 +562,9 @@ class ActionScaler:
         return a.reshape(*a.shape[:-1], *self.shape).cpu().numpy().astype(self.dtype)
 
 
-def carried_state(state: Any, is_first: Any, obs: Mapping[str, torch.Tensor] | torch.Tensor):
+def carried_state(
+    state: LSTMState | None, is_first: np.ndarray | None, obs: TensorObservation
+) -> LSTMState | None:
     """The LSTM state an acting step on ``obs`` continues from: None (zeros) where there is none
     or the batch changed size, and zeros in the rows whose episode starts now (``is_first``)."""
     batch = (next(iter(obs.values())) if isinstance(obs, Mapping) else obs).shape[0]

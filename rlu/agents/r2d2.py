@@ -47,7 +47,7 @@ from rlu.agents import common
 from rlu.agents import discrete_common as dc
 from rlu.agents import networks as nets
 from rlu.files import FRACTION, LEARNING_RATE, Checked, bounds
-from rlu.types import BatchSpec, RluError, Sequence
+from rlu.types import ActionSpec, BatchSpec, Observation, ObservationSpec, RluError, Sequence
 
 PAPER_ATARI = dc.AtariSettings(
     batch_size=64, gamma=0.997, n_step=5, adam_eps=1e-3, target_update_period=2500
@@ -129,7 +129,9 @@ class R2D2Network(nn.Module):
         self.value = nn.Linear(lstm_size, 1)
         self.advantage = nn.Linear(lstm_size, num_actions)
 
-    def forward(self, frames: Any, batch: int, steps: int, state=None):
+    def forward(
+        self, frames: Any, batch: int, steps: int, state: common.LSTMState | None = None
+    ) -> tuple[torch.Tensor, common.LSTMState]:
         out, state = self.core(frames, batch, steps, state)
         adv = self.advantage(out)
         return self.value(out) + adv - adv.mean(-1, keepdim=True), state
@@ -139,7 +141,8 @@ class R2D2Network(nn.Module):
 
 
 def n_step_targets(reward: torch.Tensor, discount: torch.Tensor, valid: torch.Tensor,
-                   end: torch.Tensor, q_boot: torch.Tensor, gamma: float, n: int):  # fmt: skip
+                   end: torch.Tensor, q_boot: torch.Tensor, gamma: float,
+                   n: int) -> torch.Tensor:  # fmt: skip
     """The n-step target of each step t of (B, T), before rescaling: sum_{i<k} gamma^i
     (prod_{j<i} d_{t+j}) r_{t+i} + gamma^k (prod_{j<k} d_{t+j}) q_boot[t + k], with
     k = min(n, end - t) (``end`` (B,): the index of each row's last real step) and ``q_boot``
@@ -160,7 +163,8 @@ def n_step_targets(reward: torch.Tensor, discount: torch.Tensor, valid: torch.Te
 
 
 def r2d2_loss(network: R2D2Network, target_network: R2D2Network, batch: Sequence,
-              config: R2D2Config, device: torch.device):  # fmt: skip
+              config: R2D2Config,
+              device: torch.device) -> tuple[torch.Tensor, common.Metrics]:  # fmt: skip
     """Half the squared TD error (in rescaled units) over the real transitions of the learning
     steps (module docstring)."""
     s, burn = config.atari, config.burn_in
@@ -210,7 +214,12 @@ def r2d2_loss(network: R2D2Network, target_network: R2D2Network, batch: Sequence
 
 class R2D2Agent:
     def __init__(
-        self, observation_spec, action_spec, config: R2D2Config, seed: int = 0, device="cpu"
+        self,
+        observation_spec: ObservationSpec,
+        action_spec: ActionSpec,
+        config: R2D2Config,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
     ) -> None:
         self.config, self.device, self.step = config, common.device(device), 0
         s = config.atari
@@ -220,7 +229,7 @@ class R2D2Agent:
         )  # fmt: skip
         self.num_steps, self.pretrain_steps = s.num_steps, 0
 
-        def make(shape, num_actions, settings):
+        def make(shape: dc.Shape, num_actions: int, settings: dc.AtariSettings) -> R2D2Network:
             return R2D2Network(shape, num_actions, settings, config.lstm_size)
 
         self.network, self.target_network, self.optimizers, self.generators = dc.build(
@@ -228,7 +237,7 @@ class R2D2Agent:
         )
         self.modules = {"network": self.network, "target_network": self.target_network}
         self.targets = {self.target_network: self.network}
-        self._state: tuple[torch.Tensor, torch.Tensor] | None = None  # acting's LSTM state
+        self._state: common.LSTMState | None = None  # acting's LSTM state
 
     def update(self, batch: Sequence) -> dict[str, float]:
         loss, metrics = r2d2_loss(self.network, self.target_network, batch, self.config,
@@ -238,7 +247,13 @@ class R2D2Agent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
+    def act(
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
+    ) -> np.ndarray:
         """One step of every row's LSTM (reset where ``is_first``), epsilon-greedy on its Q."""
         x = dc.frames(observation, device=self.device)
         n = (x["pixels"] if isinstance(x, dict) else x).shape[0]

@@ -50,7 +50,7 @@ from rlu.files import (
     bounds,
 )
 from rlu.seeds import stream_seed
-from rlu.types import BatchSpec, Sequence, Transition
+from rlu.types import ActionSpec, BatchSpec, Observation, ObservationSpec, Sequence, Transition
 
 
 @dataclass(frozen=True)
@@ -123,7 +123,7 @@ GRID: dict[str, list] = {}  # the paper reports no sweep for RABM
 
 
 class GaussianPolicy(nn.Module):
-    def __init__(self, observation_spec, action_dim: int, c: RABMConfig):
+    def __init__(self, observation_spec: ObservationSpec, action_dim: int, c: RABMConfig) -> None:
         super().__init__()
         lstm = c.lstm_hidden if c.recurrent else 0
         self.torso = nets.Torso(
@@ -133,7 +133,7 @@ class GaussianPolicy(nn.Module):
 
 
 class Critic(nn.Module):
-    def __init__(self, observation_spec, action_dim: int, c: RABMConfig):
+    def __init__(self, observation_spec: ObservationSpec, action_dim: int, c: RABMConfig) -> None:
         super().__init__()
         lstm = c.lstm_hidden if c.recurrent else 0
         self.torso = nets.Torso(
@@ -149,14 +149,25 @@ class Critic(nn.Module):
         return self.head(F.elu(self.joint(torch.cat([f, action], -1))))
 
 
-def prior_loss(log_prob, advantage, kind: str, temperature: float):
+def prior_loss(
+    log_prob: torch.Tensor, advantage: torch.Tensor, kind: str, temperature: float
+) -> tuple[torch.Tensor, common.Metrics]:
     """ABM: advantage-weighted log-likelihood of the data's actions under the prior."""
     w = losses.abm_weights(advantage.detach(), kind, temperature)
     loss = -(w * log_prob).mean()
     return loss, {"prior/loss": loss, "prior/weight_mean": w.mean()}
 
 
-def mpo_m_step(weights, samples, mean, std, target_mean, target_std, duals, c: RABMConfig):
+def mpo_m_step(
+    weights: torch.Tensor,
+    samples: torch.Tensor,
+    mean: torch.Tensor,
+    std: torch.Tensor,
+    target_mean: torch.Tensor,
+    target_std: torch.Tensor,
+    duals: nn.ParameterDict,
+    c: RABMConfig,
+) -> tuple[torch.Tensor, common.Metrics]:
     """Decoupled MPO M-step: weighted ML of the prior's samples plus KL trust regions."""
     logp_mean = losses.gaussian_log_prob(mean, target_std, samples)  # (N, M): mean moves, std fixed
     logp_std = losses.gaussian_log_prob(target_mean, std, samples)
@@ -176,8 +187,13 @@ def mpo_m_step(weights, samples, mean, std, target_mean, target_std, duals, c: R
 
 class RABMAgent:
     def __init__(
-        self, observation_spec, action_spec, config: RABMConfig, seed: int = 0, device="cpu"
-    ):
+        self,
+        observation_spec: ObservationSpec,
+        action_spec: ActionSpec,
+        config: RABMConfig,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
+    ) -> None:
         self.config, self.device, self.step = config, common.device(device), 0
         self.scaler = nets.ActionScaler(action_spec)
         self.num_steps, self.pretrain_steps = config.num_steps, 0
@@ -215,9 +231,16 @@ class RABMAgent:
         }  # fmt: skip
         # copied into their targets every target_update_period updates
         self.targets = {self.target_policy: self.policy, self.target_critic: self.critic}
-        self._rollout_state = None
+        self._rollout_state: common.LSTMState | None = None
 
-    def _features(self, torso, batch, seq: bool, valid, which: str) -> torch.Tensor:
+    def _features(
+        self,
+        torso: nets.Torso,
+        batch: _Prepared,
+        seq: bool,
+        valid: torch.Tensor | None,
+        which: str,
+    ) -> torch.Tensor:
         """Torso output at s ('cur') or s' ('next') of every valid transition: (M, H)."""
         if seq:
             h, _ = torso(batch.obs, sequence=True)
@@ -228,12 +251,12 @@ class RABMAgent:
     def update(self, batch: Transition | Sequence) -> dict[str, float]:
         c, g = self.config, self.generator
         seq = isinstance(batch, Sequence)
-        b = _Prepared(batch, self.scaler, seq, self.device)
+        b = _Prepared(batch, self.scaler, self.device)
         valid = b.valid
         atoms = self.critic.head.atoms
         n = c.num_samples
 
-        def feats(module, which):
+        def feats(module: GaussianPolicy | Critic, which: str) -> torch.Tensor:
             return self._features(module.torso, b, seq, valid, which)
 
         pol_h, prior_h = feats(self.policy, "cur"), feats(self.prior, "cur")
@@ -285,7 +308,13 @@ class RABMAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
+    def act(
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
+    ) -> np.ndarray:
         """The Gaussian's mean plus noise of variance ``eval_variance`` (the paper's evaluation)
         with ``greedy=True``; with ``greedy=False`` a sample of the learnt Gaussian."""
         obs = common.to_torch(observation, self.device)
@@ -308,12 +337,15 @@ class RABMAgent:
 class _Prepared:
     """A batch as tensors, flattened to its valid transitions (all of them for Transitions)."""
 
-    def __init__(self, batch, scaler: nets.ActionScaler, seq: bool, device: torch.device):
+    def __init__(
+        self, batch: Transition | Sequence, scaler: nets.ActionScaler, device: torch.device
+    ) -> None:
         self.obs = common.to_torch(batch.observation, device)
         action = scaler.to_unit(common.to_torch(batch.action, device))
         reward = common.to_torch(batch.reward, device)
         discount = common.to_torch(batch.discount, device)
-        if seq:
+        self.valid: torch.Tensor | None
+        if isinstance(batch, Sequence):
             m = common.to_torch(batch.mask, device)
             last = common.to_torch(batch.is_last, device)
             self.valid = (m[:, :-1] & m[:, 1:] & ~last[:, :-1]).reshape(-1)

@@ -79,7 +79,14 @@ from rlu.files import (
     bounds,
 )
 from rlu.seeds import stream_seed
-from rlu.types import BatchSpec, DataStatistics, Transition
+from rlu.types import (
+    ActionSpec,
+    BatchSpec,
+    DataStatistics,
+    Observation,
+    ObservationSpec,
+    Transition,
+)
 
 
 @dataclass(frozen=True)
@@ -159,7 +166,9 @@ def edac_init(net: nn.Sequential, last_bound: float) -> nn.Sequential:
     return net
 
 
-def build_networks(observation_spec, action_dim: int, c: ReBRACConfig):
+def build_networks(
+    observation_spec: ObservationSpec, action_dim: int, c: ReBRACConfig
+) -> tuple[nets.DeterministicPolicy, nets.TwinCritic]:
     """The actor and the twin critics, initialised as the original's (``edac_init``)."""
     actor = nets.DeterministicPolicy(
         observation_spec, action_dim, c.actor_layers, c.torso_hidden, c.actor_layer_norm
@@ -173,7 +182,15 @@ def build_networks(observation_spec, action_dim: int, c: ReBRACConfig):
     return actor, critics
 
 
-def critic_target(reward, discount, bootstrap_gamma: float, next_q, next_action, data_action, beta):
+def critic_target(
+    reward: torch.Tensor,
+    discount: torch.Tensor,
+    bootstrap_gamma: float,
+    next_q: torch.Tensor,
+    next_action: torch.Tensor,
+    data_action: torch.Tensor,
+    beta: float,
+) -> tuple[torch.Tensor, common.Metrics]:
     """r + gamma^n d (min_j Q'_j(s', a') - beta ||a' - a'_D||^2): target critics' (2, B) values,
     the smoothed next actions and the data's (B, A). Returns the target and its metrics."""
     penalty = (next_action - data_action).pow(2).sum(-1)
@@ -181,13 +198,19 @@ def critic_target(reward, discount, bootstrap_gamma: float, next_q, next_action,
     return target, {"critic/bc_penalty": penalty.mean()}
 
 
-def critic_loss(q: torch.Tensor, target: torch.Tensor):
+def critic_loss(q: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, common.Metrics]:
     """Sum over the twin critics (2, B) of the mean squared error to the fixed target (B,)."""
     loss = (q - target.detach()).pow(2).mean(1).sum()
     return loss, {"critic/loss": loss, "critic/q_min": q.amin(0).mean()}
 
 
-def actor_loss(q, policy_action, action, beta: float, normalize_q: bool):
+def actor_loss(
+    q: torch.Tensor,
+    policy_action: torch.Tensor,
+    action: torch.Tensor,
+    beta: float,
+    normalize_q: bool,
+) -> tuple[torch.Tensor, common.Metrics]:
     """mean(beta ||pi(s) - a||^2 - lambda min_j Q_j(s, pi(s))), lambda = 1 / mean |min_j Q_j|
     held fixed (1 without ``normalize_q``); ``q`` (B,) is the critics' min at the policy's
     actions (B, A), ``action`` the data's."""
@@ -200,8 +223,13 @@ def actor_loss(q, policy_action, action, beta: float, normalize_q: bool):
 
 class ReBRACAgent:
     def __init__(
-        self, observation_spec, action_spec, config: ReBRACConfig, seed: int = 0, device="cpu"
-    ):
+        self,
+        observation_spec: ObservationSpec,
+        action_spec: ActionSpec,
+        config: ReBRACConfig,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
+    ) -> None:
         self.config, self.device, self.step = config, common.device(device), 0
         self.scaler = nets.ActionScaler(action_spec)
         normalize = config.normalize_observations  # the original's compute_mean_std(eps=1e-3)
@@ -264,7 +292,13 @@ class ReBRACAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
+    def act(
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
+    ) -> np.ndarray:
         """pi(s), greedy or not: the policy is deterministic and, offline, acts without TD3's
         exploration noise (observations normalised first with ``normalize_observations``)."""
         obs = self.normaliser(common.to_torch(observation, self.device))

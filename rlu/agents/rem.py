@@ -34,7 +34,7 @@ from torch import nn
 from rlu.agents import common
 from rlu.agents import discrete_common as dc
 from rlu.files import LEARNING_RATE, Checked, bounds
-from rlu.types import Transition
+from rlu.types import ActionSpec, Observation, ObservationSpec, Transition
 
 
 @dataclass(frozen=True)
@@ -64,7 +64,9 @@ GRID: dict[str, list[Any]] = {"learning_rate": list(dc.LEARNING_RATE_GRID)}
 class QEnsemble(nn.Module):
     """``num`` separate Q-networks (``discrete_common.QNetwork`` each): (B, num, A) out."""
 
-    def __init__(self, shape, num_actions: int, settings: dc.AtariSettings, num: int) -> None:
+    def __init__(
+        self, shape: dc.Shape, num_actions: int, settings: dc.AtariSettings, num: int
+    ) -> None:
         super().__init__()
         self.networks = nn.ModuleList(dc.QNetwork(shape, num_actions, settings) for _ in range(num))
 
@@ -72,7 +74,9 @@ class QEnsemble(nn.Module):
         return torch.stack([network(frames) for network in self.networks], 1)
 
 
-def q_estimates(shape, num_actions: int, settings: dc.AtariSettings, config: REMConfig):
+def q_estimates(
+    shape: dc.Shape, num_actions: int, settings: dc.AtariSettings, config: REMConfig
+) -> QEnsemble | dc.QNetwork:
     """REM's network: the ensemble of separate networks, or the multi-head network."""
     if config.separate_networks:
         return QEnsemble(shape, num_actions, settings, config.num_heads)
@@ -88,8 +92,9 @@ def random_convex_weights(
     return weights / weights.sum()
 
 
-def rem_loss(network, target_network, batch: dc.TorchTransition, gamma: float,
-             alpha: torch.Tensor, huber_delta: float = 1.0):  # fmt: skip
+def rem_loss(network: nn.Module, target_network: nn.Module, batch: dc.TorchTransition,
+             gamma: float, alpha: torch.Tensor,
+             huber_delta: float = 1.0) -> tuple[torch.Tensor, common.Metrics]:  # fmt: skip
     """Huber loss on one convex combination ``alpha`` of the heads, with the Q-learning (max)
     target of the same combination of the target heads."""
     q = torch.einsum("bka,k->ba", network(batch.observation), alpha)
@@ -103,7 +108,12 @@ def rem_loss(network, target_network, batch: dc.TorchTransition, gamma: float,
 
 class REMAgent:
     def __init__(
-        self, observation_spec, action_spec, config: REMConfig, seed: int = 0, device="cpu"
+        self,
+        observation_spec: ObservationSpec,
+        action_spec: ActionSpec,
+        config: REMConfig,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
     ) -> None:
         self.config, self.device, self.step = config, common.device(device), 0
         self.batch_spec, self.num_steps = config.atari.batch_spec(), config.atari.num_steps
@@ -126,7 +136,13 @@ class REMAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
+    def act(
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
+    ) -> np.ndarray:
         """argmax_a of the mean of the heads' Q (Agarwal et al.'s evaluation), replaced by a
         uniform action with probability ``atari.eval_epsilon`` (greedy) or ``explore_epsilon``."""
         q = self.network(dc.frames(observation, device=self.device)).mean(1)

@@ -66,7 +66,14 @@ from rlu.files import (
     bounds,
 )
 from rlu.seeds import stream_seed
-from rlu.types import BatchSpec, DataStatistics, Transition
+from rlu.types import (
+    ActionSpec,
+    BatchSpec,
+    DataStatistics,
+    Observation,
+    ObservationSpec,
+    Transition,
+)
 
 
 @dataclass(frozen=True)
@@ -109,18 +116,22 @@ PRESETS = {
 GRID: dict[str, list] = {}  # one alpha for every dataset is the paper's point (docstring)
 
 
-def critic_target(reward, discount, bootstrap_gamma: float, next_q: torch.Tensor):
+def critic_target(
+    reward: torch.Tensor, discount: torch.Tensor, bootstrap_gamma: float, next_q: torch.Tensor
+) -> torch.Tensor:
     """r + gamma^n d min_j Q'_j(s', a') from the target critics' (2, B) values."""
     return reward + bootstrap_gamma * discount * next_q.amin(0)
 
 
-def critic_loss(q: torch.Tensor, target: torch.Tensor):
+def critic_loss(q: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, common.Metrics]:
     """Sum over the twin critics (2, B) of the mean squared error to the fixed target (B,)."""
     loss = (q - target.detach()).pow(2).mean(1).sum()
     return loss, {"critic/loss": loss, "critic/q_mean": q.mean()}
 
 
-def actor_loss(q: torch.Tensor, policy_action: torch.Tensor, action: torch.Tensor, alpha: float):
+def actor_loss(
+    q: torch.Tensor, policy_action: torch.Tensor, action: torch.Tensor, alpha: float
+) -> tuple[torch.Tensor, common.Metrics]:
     """-lambda mean Q_1(s, pi(s)) + mean (pi(s) - a)^2 with lambda = alpha / mean |Q_1|, the
     scale held fixed; ``q`` (B,) is Q_1 at the policy's actions (B, A), ``action`` the data's."""
     lmbda = alpha / q.abs().mean().detach()
@@ -132,8 +143,13 @@ def actor_loss(q: torch.Tensor, policy_action: torch.Tensor, action: torch.Tenso
 
 class TD3BCAgent:
     def __init__(
-        self, observation_spec, action_spec, config: TD3BCConfig, seed: int = 0, device="cpu"
-    ):
+        self,
+        observation_spec: ObservationSpec,
+        action_spec: ActionSpec,
+        config: TD3BCConfig,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
+    ) -> None:
         self.config, self.device, self.step = config, common.device(device), 0
         self.scaler = nets.ActionScaler(action_spec)
         self.normaliser = nets.ObservationNormaliser(
@@ -191,7 +207,13 @@ class TD3BCAgent:
         return common.metrics_to_floats(metrics)
 
     @torch.inference_mode()
-    def act(self, observation, greedy: bool = True, is_first=None, reward=None) -> np.ndarray:
+    def act(
+        self,
+        observation: Observation,
+        greedy: bool = True,
+        is_first: np.ndarray | None = None,
+        reward: np.ndarray | None = None,
+    ) -> np.ndarray:
         """pi(s) of the normalised observation, greedy or not: the policy is deterministic and,
         offline, acts without TD3's exploration noise."""
         obs = self.normaliser(common.to_torch(observation, self.device))
