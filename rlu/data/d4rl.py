@@ -1015,7 +1015,9 @@ class _Source:
         self.folder = folder
         self._w: SourceWriter | None = None
 
-    def on_block(self, a: int, terminals: np.ndarray, timeouts: np.ndarray, ends: np.ndarray):
+    def on_block(
+        self, a: int, terminals: np.ndarray, timeouts: np.ndarray, ends: np.ndarray
+    ) -> None:
         derived = ends & ~terminals
         bad = np.flatnonzero(derived != timeouts)
         if bad.size:

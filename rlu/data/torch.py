@@ -73,7 +73,7 @@ class TorchSampler(torch.utils.data.IterableDataset):
         sampler.set_state({"bit_generator": stream.bit_generator.state})
         return sampler
 
-    def __iter__(self):
+    def __iter__(self) -> Iterator[Any]:
         sampler = self._sampler()
         while True:
             yield to_torch(sampler.sample())

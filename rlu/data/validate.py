@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -170,7 +171,7 @@ def _check_task(ds: Dataset, report: Report) -> None:
     report.checked.append(f"schema matches task {task_id}")
 
 
-def _norm(x):
+def _norm(x: Any) -> Any:
     if isinstance(x, dict):
         return {k: _norm(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):

@@ -30,10 +30,10 @@ from collections.abc import Iterator
 import numpy as np
 
 from rlu.data.store import Dataset, ZlibColumn, open_dataset
-from rlu.types import ArraySpec, BatchSpec, RluError, Sequence, Transition
+from rlu.types import ArraySpec, BatchSpec, Observation, RluError, Sequence, Transition
 
 
-def _take(col, rows: np.ndarray) -> np.ndarray:
+def _take(col: np.ndarray | ZlibColumn, rows: np.ndarray) -> np.ndarray:
     """``col[rows]`` along the first axis (``rows`` of any shape). ``np.take`` gathers the same
     rows as fancy indexing, faster on every batch kind but stacked frames, where the copy
     dominates (bench/sampling.py; the figures: bench/README.md, "Design choices")."""
@@ -93,7 +93,7 @@ def n_step_targets(
     return out_reward, np.prod(d, axis=1).astype(np.float32), np.minimum(t + n, last)
 
 
-def stack_frames(frames, first: np.ndarray, k: int) -> np.ndarray:
+def stack_frames(frames: np.ndarray | ZlibColumn, first: np.ndarray, k: int) -> np.ndarray:
     """Frame stacks from frames stored once: the stack whose oldest frame is row ``first`` (any
     shape of indices) holds rows ``first .. first + k - 1`` on a new last axis, newest last. An
     episode's frames are stored after ``k - 1`` frames of zeros, so a stack never mixes two."""
@@ -144,7 +144,7 @@ class DatasetView:
         self.last = self.start + self.length - 1
         self.frame_start = np.asarray(ds.frame_start, np.int64)
 
-    def observation(self, seg: np.ndarray, steps: np.ndarray):
+    def observation(self, seg: np.ndarray, steps: np.ndarray) -> np.ndarray | dict[str, np.ndarray]:
         """Observations at global ``steps`` (any shape) lying in segments ``seg`` (same shape)."""
         if self.schema.frame_stack > 1:
             first = self.frame_start[seg] + (steps - self.start[seg])  # frame row of step - k + 1
@@ -219,6 +219,8 @@ class TransitionView(DatasetView):
             self.gamma,
             self.reward_clip,
         )
+        observation: Observation
+        next_observation: Observation
         if self.schema.frame_stack > 1:
             observation, next_observation = self.stacked_pair(seg, t, nxt)
         else:
@@ -309,7 +311,7 @@ class Sampler:
         self.view, self.batch_size = view, int(batch_size)
         self.rng = np.random.default_rng(seed)
 
-    def sample(self):
+    def sample(self) -> Transition | Sequence:
         """One batch of ``batch_size`` items drawn uniformly with replacement from the view."""
         return self.view.batch(self.rng.integers(0, len(self.view), size=self.batch_size))
 

@@ -10,10 +10,14 @@ from __future__ import annotations
 import re
 from collections.abc import Mapping
 from types import MappingProxyType
+from typing import TYPE_CHECKING
 
 from rlu.domains import Domain
 from rlu.domains.paper import EPISODES, SEEDS, PaperConditions, Statement
 from rlu.types import ArraySpec
+
+if TYPE_CHECKING:  # pragma: no cover
+    from rlu.domains.spec import TaskRef, TaskSpec
 
 NAME = "atari"
 
@@ -132,7 +136,7 @@ ATARI_NUM_ACTIONS: Mapping[str, int] = MappingProxyType(
 _TFDS_ATARI = re.compile(r"^(?P<game>[A-Za-z]+)_run_(?P<run>\d+)$")
 
 
-def build_tasks():
+def build_tasks() -> list[TaskSpec]:
     """The Atari TaskSpecs."""
     from rlu.domains.spec import ReleaseDataset, TaskSpec
     from rlu.types import DiscreteSpec
@@ -166,7 +170,9 @@ def build_tasks():
     return tasks
 
 
-def tfds_ref(tasks, name: str, builder: str, config: str, family: str, fix: str):
+def tfds_ref(
+    tasks: Mapping[str, TaskSpec], name: str, builder: str, config: str, family: str, fix: str
+) -> TaskRef:
     """``rlu_atari/<Game>_run_<N>``: the game's task and run."""
     from rlu.domains.spec import TaskRef
     from rlu.types import RluError

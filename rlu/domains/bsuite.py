@@ -15,9 +15,13 @@ Episode lengths are bsuite 0.3.6's defaults (catch: rows - 1 = 9; cartpole and m
 from __future__ import annotations
 
 from types import MappingProxyType
+from typing import TYPE_CHECKING
 
 from rlu.domains import Domain
 from rlu.domains.common import f32
+
+if TYPE_CHECKING:  # pragma: no cover
+    from rlu.domains.spec import TaskSpec
 
 NAME = "bsuite"
 NOISE_LEVELS = ("0.0", "0.1", "0.2", "0.3", "0.4", "0.5")
@@ -32,7 +36,7 @@ BSUITE = {
 }
 
 
-def build_tasks():
+def build_tasks() -> list[TaskSpec]:
     """The bsuite TaskSpecs."""
     from rlu.domains.spec import ReleaseDataset, TaskSpec
     from rlu.types import DiscreteSpec

@@ -4,8 +4,12 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from types import MappingProxyType
+from typing import TYPE_CHECKING
 
 from rlu.types import ArraySpec, BoundedSpec
+
+if TYPE_CHECKING:  # pragma: no cover
+    from rlu.domains.spec import TaskRef, TaskSpec
 
 
 def f32(*shape: int) -> ArraySpec:
@@ -27,8 +31,14 @@ CAMERA = ArraySpec((64, 64, 3), "uint8")
 
 
 def config_task_ref(
-    domain: str, tasks: Mapping, name: str, builder: str, config: str, family: str, fix: str
-):
+    domain: str,
+    tasks: Mapping[str, TaskSpec],
+    name: str,
+    builder: str,
+    config: str,
+    family: str,
+    fix: str,
+) -> TaskRef:
     """A TFDS name whose config is a task's name (``rlu_control_suite/cartpole_swingup``): that
     task of ``domain``; a domain's ``tfds_ref`` is ``functools.partial(config_task_ref, NAME)``."""
     from rlu.domains.spec import TaskRef

@@ -9,13 +9,17 @@ from __future__ import annotations
 
 import functools
 from types import MappingProxyType
+from typing import TYPE_CHECKING, Literal
 
 from rlu.domains import Domain
 from rlu.domains.common import act, config_task_ref, obs
 
+if TYPE_CHECKING:  # pragma: no cover
+    from rlu.domains.spec import TaskSpec
+
 NAME = "control_suite"
 
-CONTROL = {
+CONTROL: dict[str, tuple[dict[str, int], int, int, Literal["online", "offline"]]] = {
     # name: (obs dims in the release's key order, action dim, episodes, selection)
     "cartpole_swingup": (dict(position=3, velocity=2), 1, 40, "online"),
     "cheetah_run": (dict(position=8, velocity=9), 6, 300, "online"),
@@ -56,7 +60,7 @@ CONTROL = {
 }
 
 
-def build_tasks():
+def build_tasks() -> list[TaskSpec]:
     """The control suite's TaskSpecs."""
     from rlu.domains.spec import ReleaseDataset, TaskSpec
 

@@ -29,10 +29,16 @@ from source (:data:`ENV_INSTALL`).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from types import MappingProxyType
+from typing import TYPE_CHECKING
 
 from rlu.domains import Domain
 from rlu.domains.common import f32
+from rlu.types import ArraySpec
+
+if TYPE_CHECKING:  # pragma: no cover
+    from rlu.domains.spec import TaskRef, TaskSpec
 
 NAME = "dmlab"
 SHARDS = 500
@@ -73,11 +79,9 @@ DATA_ONLY = (
 """Why rlu makes no DeepMind Lab env (``rlu list`` prints it; ``rlu.envs.dmlab`` refuses)."""
 
 
-def observation_spec():
+def observation_spec() -> Mapping[str, ArraySpec]:
     """The dict observation of every level: ``pixels`` RGB, ``last_action`` one-hot,
     ``last_reward``."""
-    from rlu.types import ArraySpec
-
     return MappingProxyType(
         {
             "pixels": ArraySpec(FRAME, "uint8"),
@@ -87,7 +91,7 @@ def observation_spec():
     )
 
 
-def build_tasks():
+def build_tasks() -> list[TaskSpec]:
     """The DMLab TaskSpecs."""
     from rlu.domains.spec import ReleaseDataset, TaskSpec
     from rlu.types import DiscreteSpec
@@ -119,7 +123,9 @@ def build_tasks():
 _BUILDERS = {builder: level for level, (_, _, builder) in LEVELS.items()}
 
 
-def tfds_ref(tasks, name: str, builder: str, config: str, family: str, fix: str):
+def tfds_ref(
+    tasks: Mapping[str, TaskSpec], name: str, builder: str, config: str, family: str, fix: str
+) -> TaskRef:
     """``rlu_dmlab_<level>/<run>`` (``rlu_dmlab_seekavoid_arena01/training_0``): the level's task
     and run."""
     from rlu.domains.spec import TaskRef

@@ -9,10 +9,14 @@ from __future__ import annotations
 import dataclasses
 import functools
 from types import MappingProxyType
+from typing import TYPE_CHECKING, Literal
 
 from rlu.domains import Domain
 from rlu.domains.common import CAMERA, act, config_task_ref, f32
 from rlu.domains.paper import CONTINUOUS
+
+if TYPE_CHECKING:  # pragma: no cover
+    from rlu.domains.spec import TaskSpec
 
 NAME = "locomotion"
 
@@ -38,7 +42,7 @@ RODENT_OBS = dict(
     sensors_gyro=3,
     sensors_touch=4,
 )
-LOCOMOTION = {
+LOCOMOTION: dict[str, tuple[str, int, int, int, Literal["online", "offline"], str, int, int]] = {
     # name: (walker, action dim, episodes, paper seq length, selection, release dir, release seq,
     #        episode files name, episode length)
     # The paper lists rodent_bowl_escape with seq 40, but the original loader reads
@@ -62,7 +66,7 @@ RECURRENT = ("rodent_two_touch", "rodent_bowl_escape", "rodent_mazes")
 Mazes)", whose networks add two LSTMs (appendix A.1): rlu's ``paper_recurrent`` preset there."""
 
 
-def build_tasks():
+def build_tasks() -> list[TaskSpec]:
     """The locomotion TaskSpecs."""
     from rlu.domains.spec import ReleaseDataset, TaskSpec
 

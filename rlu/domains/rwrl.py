@@ -7,10 +7,16 @@ the original ``rl_unplugged/rwrl.py`` and TFDS ``rlu_rwrl.py``.
 from __future__ import annotations
 
 import re
+from collections.abc import Mapping
 from types import MappingProxyType
+from typing import TYPE_CHECKING
 
 from rlu.domains import Domain
 from rlu.domains.common import act, f32, obs
+from rlu.types import ArraySpec
+
+if TYPE_CHECKING:  # pragma: no cover
+    from rlu.domains.spec import TaskRef, TaskSpec
 
 NAME = "rwrl"
 
@@ -39,10 +45,12 @@ _TFDS_RWRL = re.compile(
 )
 
 
-def observation_spec(task, challenge: str):
+def observation_spec(task: TaskSpec, challenge: str) -> Mapping[str, ArraySpec]:
     """Observation spec of an RWRL task under a challenge (``easy`` adds 10 dummy scalars)."""
     from rlu.types import RluError
 
+    if not isinstance(task.observation_spec, Mapping):
+        raise RluError(f"{task.id}: an RWRL task's observation spec is a dict of arrays")
     spec = dict(task.observation_spec)
     if challenge == "easy":
         spec.update({k: f32(1) for k in RWRL_EASY_DUMMY_KEYS})
@@ -51,7 +59,7 @@ def observation_spec(task, challenge: str):
     return MappingProxyType(spec)
 
 
-def build_tasks():
+def build_tasks() -> list[TaskSpec]:
     """The RWRL TaskSpecs."""
     from rlu.domains.spec import ReleaseDataset, TaskSpec
 
@@ -88,7 +96,9 @@ def build_tasks():
     return tasks
 
 
-def tfds_ref(tasks, name: str, builder: str, config: str, family: str, fix: str):
+def tfds_ref(
+    tasks: Mapping[str, TaskSpec], name: str, builder: str, config: str, family: str, fix: str
+) -> TaskRef:
     """``rlu_rwrl/<task>_combined_challenge_<none|easy>_<P>_percent``: task, challenge, size."""
     from rlu.domains.spec import TaskRef
     from rlu.types import RluError

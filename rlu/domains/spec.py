@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Literal, TypeVar
+from typing import TYPE_CHECKING, Any, Literal, TypeVar
 
 from rlu.types import (
     ActionSpec,
@@ -16,13 +16,16 @@ from rlu.types import (
     observation_spec_to_json,
 )
 
+if TYPE_CHECKING:  # pragma: no cover
+    import rlu.domains
+
 _V = TypeVar("_V", bound=str | int)
 
 Domain = str
 """A domain's name: one of ``rlu.domains.DOMAINS``."""
 
 
-def _domains():
+def _domains() -> Mapping[str, rlu.domains.Domain]:
     from rlu.domains import DOMAINS
 
     return DOMAINS

@@ -36,12 +36,16 @@ from __future__ import annotations
 
 import importlib
 import os
-from typing import Any
+from types import ModuleType
+from typing import TYPE_CHECKING, Any
 
 from rlu.domains import DOMAINS
 from rlu.system import install_hint
 from rlu.tasks import resolve_task
 from rlu.types import RluError
+
+if TYPE_CHECKING:  # pragma: no cover
+    import gymnasium
 
 # Each domain's env module and extra (rlu.domains), as they were named here.
 _FACTORIES = {name: d.env_module for name, d in DOMAINS.items()}
@@ -57,7 +61,7 @@ wrapper steps = 432K frames); ``make_env(..., max_episode_steps=ATARI_ORIGINAL_E
 reproduces it (rlu's default is the paper's 27,000)."""
 
 
-def _factory(domain: str):
+def _factory(domain: str) -> ModuleType:
     if DOMAINS[domain].mujoco:
         # MuJoCo needs a GL backend for any rendering; EGL works headless on CPU (Mesa).
         os.environ.setdefault("MUJOCO_GL", "egl")
@@ -80,7 +84,7 @@ def make_env(
     render_size: tuple[int, int] | None = None,
     render_camera: str | int | None = None,
     **settings: Any,
-):
+) -> Any:  # the domain's gymnasium.Env subclass (float rewards, the task's observations)
     """A Gymnasium env for ``task_id`` (see the module docstring for ``settings``).
 
     ``render_mode="rgb_array"`` makes ``env.render()`` return frames (see ``rlu.envs.core``);
@@ -125,7 +129,7 @@ def make_vector_env(
     seed: int | None = None,
     challenge: str | None = None,
     **kwargs: Any,
-):
+) -> gymnasium.vector.VectorEnv:
     """N copies of the task stepping in worker processes (see rlu.envs.vector)."""
     from rlu.envs.vector import make_vector_env as _make
 

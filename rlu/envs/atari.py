@@ -121,7 +121,9 @@ class AtariEnv(gym.Env):
         self._stack[:, :, -1] = frame
         return self._stack.copy()
 
-    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
         super().reset(seed=seed)
         if seed is not None:
             self._seed_ale(int(seed))
@@ -133,7 +135,7 @@ class AtariEnv(gym.Env):
         obs = self._push(self._pool_and_resize())
         return obs, {"raw_reward": 0.0, "lives": self.ale.lives()}
 
-    def step(self, action: Any):
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         a = self._actions[int(action)]
         ale = self.ale
         reward = 0.0

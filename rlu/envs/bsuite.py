@@ -42,7 +42,9 @@ class BsuiteEnv(gym.Env):
         check_observation(obs, self.task.observation_spec, self.task.id)
         return obs
 
-    def reset(self, *, seed: int | None = None, options: dict | None = None):
+    def reset(
+        self, *, seed: int | None = None, options: dict | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
         if seed is None and self._env is None:
             seed = self._seed  # make_env's seed seeds the first episode
         super().reset(seed=seed)
@@ -50,7 +52,7 @@ class BsuiteEnv(gym.Env):
         self._env = self._cls(seed=env_seed)
         return self._obs(self._env.reset()), {}
 
-    def step(self, action: Any):
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         if self._env is None:
             raise RluError(f"{self.task.id}: call reset() before step()")
         a = int(action)

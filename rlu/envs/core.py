@@ -228,14 +228,16 @@ class DmControlEnv(gym.Env):
         return obs
 
     # --- Gymnasium API ---------------------------------------------------------------------
-    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         super().reset(seed=seed)
         if seed is not None:
             self._reseed(int(seed))
         ts = self._env.reset()
         return self._first(ts.observation), {}
 
-    def step(self, action: Any):
+    def step(self, action: Any) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
         ts = self._env.step(self._action(action))
         obs = self._observation(ts.observation)
         reward = float(ts.reward) if ts.reward is not None else 0.0
@@ -304,29 +306,29 @@ class DmEnvView:
         self._dm_env = dm_env
         self._specs = specs
 
-    def reset(self):
+    def reset(self) -> Any:
         ts = self._gym._env.reset()
         return ts._replace(observation=self._gym._first(ts.observation))
 
-    def step(self, action):
+    def step(self, action: Any) -> Any:
         ts = self._gym._env.step(self._gym._action(action))
         obs = self._gym._observation(ts.observation)
         return ts._replace(observation=obs)
 
-    def observation_spec(self):
+    def observation_spec(self) -> dict[str, Any]:
         return {
             k: self._specs.Array(s.shape, np.dtype(s.dtype), name=k)
             for k, s in self._gym._spec.items()
         }
 
-    def action_spec(self):
+    def action_spec(self) -> Any:
         shape = self._gym.action_space.shape
         return self._specs.BoundedArray(shape, np.float32, -1.0, 1.0, name="action")
 
-    def reward_spec(self):
+    def reward_spec(self) -> Any:
         return self._gym._env.reward_spec()
 
-    def discount_spec(self):
+    def discount_spec(self) -> Any:
         return self._gym._env.discount_spec()
 
     def close(self) -> None:

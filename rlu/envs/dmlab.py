@@ -14,7 +14,7 @@ not trained on. ``make_env`` then raises an ``RluError`` naming what is missing.
 from __future__ import annotations
 
 import importlib.util
-from typing import Any
+from typing import Any, NoReturn
 
 from rlu.domains import DOMAINS
 from rlu.envs.core import Render
@@ -22,7 +22,9 @@ from rlu.tasks import TaskSpec
 from rlu.types import RluError
 
 
-def make(task: TaskSpec, seed: int | None = None, render: Render | None = None, **settings: Any):
+def make(
+    task: TaskSpec, seed: int | None = None, render: Render | None = None, **settings: Any
+) -> NoReturn:
     """Refuses with what is missing (see the module docstring): ``deepmind_lab`` and how to
     build it, or, with it installed, the recording agent's action set."""
     domain = DOMAINS[task.domain]

@@ -21,6 +21,7 @@ env with seed s (~0.5-2 s), unseeded resets continue the seeded streams.
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from typing import Any
 
 from rlu.envs.core import DmControlEnv, Render
@@ -30,13 +31,13 @@ from rlu.types import RluError
 CAMERA_KEY = "walker/egocentric_camera"
 
 
-def _rodent():
+def _rodent() -> Any:
     from dm_control.locomotion import walkers
 
     return walkers.Rat(observable_options={"egocentric_camera": dict(enabled=True)})
 
 
-def _humanoid():
+def _humanoid() -> Any:
     from dm_control.locomotion import walkers
 
     return walkers.CMUHumanoidPositionControlled(
@@ -44,7 +45,7 @@ def _humanoid():
     )
 
 
-def _env(task: Any, time_limit: float, seed: int | None):
+def _env(task: Any, time_limit: float, seed: int | None) -> Any:
     from dm_control import composer
 
     return composer.Environment(
@@ -55,7 +56,7 @@ def _env(task: Any, time_limit: float, seed: int | None):
     )
 
 
-def rodent_bowl_escape(seed: int | None):
+def rodent_bowl_escape(seed: int | None) -> Any:
     from dm_control.locomotion import arenas, tasks
 
     walker = _rodent()
@@ -66,7 +67,7 @@ def rodent_bowl_escape(seed: int | None):
     return _env(task, 20, seed)
 
 
-def rodent_mazes(seed: int | None):
+def rodent_mazes(seed: int | None) -> Any:
     from dm_control.locomotion import arenas, props, tasks
 
     walker = _rodent()
@@ -102,7 +103,7 @@ def rodent_mazes(seed: int | None):
     return _env(task, 30, seed)
 
 
-def rodent_gaps(seed: int | None):
+def rodent_gaps(seed: int | None) -> Any:
     from dm_control.composer.variation import distributions
     from dm_control.locomotion import arenas, tasks
 
@@ -128,7 +129,7 @@ def rodent_gaps(seed: int | None):
     return _env(task, 30, seed)
 
 
-def rodent_two_touch(seed: int | None):
+def rodent_two_touch(seed: int | None) -> Any:
     from dm_control.locomotion import arenas, props, tasks
 
     walker = _rodent()
@@ -147,7 +148,7 @@ def rodent_two_touch(seed: int | None):
     return _env(task, 30, seed)
 
 
-def humanoid_walls(seed: int | None):
+def humanoid_walls(seed: int | None) -> Any:
     from dm_control.composer.variation import colors, distributions
     from dm_control.locomotion import arenas, tasks
 
@@ -177,7 +178,7 @@ def humanoid_walls(seed: int | None):
     return _env(task, 30, seed)
 
 
-def humanoid_corridor(seed: int | None):
+def humanoid_corridor(seed: int | None) -> Any:
     from dm_control.locomotion import arenas, tasks
 
     walker = _humanoid()
@@ -192,7 +193,7 @@ def humanoid_corridor(seed: int | None):
     return _env(task, 30, seed)
 
 
-def humanoid_gaps(seed: int | None):
+def humanoid_gaps(seed: int | None) -> Any:
     from dm_control.composer.variation import distributions
     from dm_control.locomotion import arenas, tasks
 
@@ -236,7 +237,9 @@ class _Seeded:
     then exactly ``make_env(task, seed=s).reset()``.
     """
 
-    def __init__(self, builder, seed: int | None, camera: bool) -> None:
+    def __init__(
+        self, builder: Callable[[int | None], Any], seed: int | None, camera: bool
+    ) -> None:
         self._builder = builder
         self._camera = camera
         self.env: Any = None
@@ -254,7 +257,7 @@ class _Seeded:
             # The tasks switch the camera on themselves; switch it off after building.
             self.env.task._walker.observables.egocentric_camera.enabled = False  # noqa: SLF001
 
-    def _global_seeded(self, fn, *args):
+    def _global_seeded(self, fn: Callable[..., Any], *args: Any) -> Any:
         import numpy as np
 
         state = np.random.get_state()
@@ -264,22 +267,22 @@ class _Seeded:
         finally:
             np.random.set_state(state)
 
-    def reset(self):
+    def reset(self) -> Any:
         return self._global_seeded(self.env.reset)
 
-    def step(self, action):
+    def step(self, action: Any) -> Any:
         return self._global_seeded(self.env.step, action)
 
-    def action_spec(self):
+    def action_spec(self) -> Any:
         return self.env.action_spec()
 
-    def observation_spec(self):
+    def observation_spec(self) -> Any:
         return self.env.observation_spec()
 
-    def reward_spec(self):
+    def reward_spec(self) -> Any:
         return self.env.reward_spec()
 
-    def discount_spec(self):
+    def discount_spec(self) -> Any:
         return self.env.discount_spec()
 
     def close(self) -> None:

@@ -39,8 +39,9 @@ Deviations from the original, on purpose:
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 
@@ -242,13 +243,13 @@ def _xml(domain: str, param: str, value: float) -> tuple[bytes, dict]:
 # Each returns True when the constraint is satisfied. `c` is safety_coeff in [0, 1].
 
 
-def _constraints(domain: str, c: float):
+def _constraints(domain: str, c: float) -> tuple[tuple[str, ...], Callable[[Any], list[bool]]]:
     from dm_control.mujoco.wrapper import mjbindings
 
     if domain == "cartpole":
         # realworld_swingup limits: slider (-2c, 2c) m; |slider accel| < 130c m/s^2; balance
         # velocity violated when cos(angle) > cos((1-c)/0.5 + 0.15) and |ang vel| > 0.5c.
-        def cartpole(p) -> list[bool]:
+        def cartpole(p: Any) -> list[bool]:
             ang_limit, vel_limit = (1 - c) / 0.5 + 0.15, c * 0.5
             x = p.cart_position()
             return [
@@ -266,7 +267,7 @@ def _constraints(domain: str, c: float):
         limits = limits * np.pi / 180.0
         joints = ["left_hip", "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle"]
 
-        def walker(p) -> list[bool]:
+        def walker(p: Any) -> list[bool]:
             q = np.array([p.named.data.qpos[j][0] for j in joints])
             return [
                 # As coded in the original (lenient): any joint above its min and any below max.
@@ -281,7 +282,7 @@ def _constraints(domain: str, c: float):
         hinge = int(mjbindings.enums.mjtJoint.mjJNT_HINGE)
         toes = ["toe_front_left", "toe_front_right", "toe_back_left", "toe_back_right"]
 
-        def quadruped(p) -> list[bool]:
+        def quadruped(p: Any) -> list[bool]:
             ids = np.nonzero(p.model.jnt_type == hinge)[0]
             qadr, dadr = p.model.jnt_qposadr[ids], p.model.jnt_dofadr[ids]
             force = max(np.linalg.norm(p.named.data.sensordata[f"force_{t}"]) for t in toes)
@@ -296,7 +297,7 @@ def _constraints(domain: str, c: float):
     if domain == "humanoid":
         feet = ["right_left_foot", "right_right_foot", "left_left_foot", "left_right_foot"]
 
-        def humanoid(p) -> list[bool]:
+        def humanoid(p: Any) -> list[bool]:
             sd = p.named.data.sensordata
             touch = max(np.linalg.norm(sd["head_touch"]), np.linalg.norm(sd["torso_touch"]))
             foot = max(np.linalg.norm(sd[f"{f}_touch"]) for f in feet)
@@ -422,6 +423,7 @@ class _RwrlTask:
         self.inner = inner
         self.settings = settings
         self.state = ChallengeState(settings.challenge, None)
+        self._constraint_fn: Callable[[Any], list[bool]] | None
         if settings.safety:
             self.constraint_names, self._constraint_fn = _constraints(domain, settings.safety_coeff)
         else:
@@ -437,16 +439,16 @@ class _RwrlTask:
 
     # control.Task interface
     @property
-    def random(self):
+    def random(self) -> np.random.RandomState:
         return self.inner.random
 
-    def action_spec(self, physics):
+    def action_spec(self, physics: Any) -> Any:
         return self.inner.action_spec(physics)
 
-    def step_spec(self, physics):
+    def step_spec(self, physics: Any) -> Any:
         return self.inner.step_spec(physics)
 
-    def initialize_episode(self, physics):
+    def initialize_episode(self, physics: Any) -> None:
         if self.domain == "quadruped":
             # rwrl/quadruped.py RealWorldMove.initialize_episode: a random *yaw* only (the suite
             # draws a random 3-D orientation), then lift until nothing touches.
@@ -460,7 +462,7 @@ class _RwrlTask:
             self.inner.initialize_episode(physics)
         self._update_constraints(physics)
 
-    def before_step(self, action, physics):
+    def before_step(self, action: Any, physics: Any) -> None:
         if self._acts:
             if self._bounds is None:
                 spec = self.inner.action_spec(physics)
@@ -468,15 +470,15 @@ class _RwrlTask:
             action = self.state.action(np.asarray(action, np.float64), *self._bounds)
         self.inner.before_step(action, physics)
 
-    def after_step(self, physics):
+    def after_step(self, physics: Any) -> None:
         self._update_constraints(physics)
         self.inner.after_step(physics)
 
-    def _update_constraints(self, physics) -> None:
+    def _update_constraints(self, physics: Any) -> None:
         if self._constraint_fn is not None:
             self.constraints_obs = np.array(self._constraint_fn(physics), dtype=bool)
 
-    def get_observation(self, physics):
+    def get_observation(self, physics: Any) -> Mapping[str, np.ndarray]:
         obs = self.inner.get_observation(physics)
         if self._obs:
             obs = {k: np.array(v, dtype=np.float64, ndmin=1) for k, v in obs.items()}
@@ -500,7 +502,7 @@ class _RwrlTask:
         # rwrl/utils/multiobj_objectives.py SafetyObjective: fraction of satisfied constraints.
         return float(self.constraints_obs.sum()) / float(len(self.constraints_obs))
 
-    def get_reward(self, physics):
+    def get_reward(self, physics: Any) -> float:
         r = self.inner.get_reward(physics)
         a = self.settings.multiobj_coeff
         if self.settings.multiobj_reward:
@@ -509,10 +511,10 @@ class _RwrlTask:
             r = self.state.reward_delay(r)
         return r
 
-    def get_termination(self, physics):
+    def get_termination(self, physics: Any) -> float | None:
         return self.inner.get_termination(physics)
 
-    def observation_spec(self, physics):
+    def observation_spec(self, physics: Any) -> NoReturn:
         raise NotImplementedError  # rlu takes the spec from rlu.tasks, never from a draw
 
 
@@ -536,7 +538,7 @@ class RwrlSettings(Checked):
     """Add ``multiobj`` = [base reward, safety score] to the observations (needs safety)."""
 
 
-def _make_environment(domain: str, task_name: str, settings: RwrlSettings, seed: int | None):
+def _make_environment(domain: str, task_name: str, settings: RwrlSettings, seed: int | None) -> Any:
     from dm_control import suite
     from dm_control.rl import control
 
@@ -564,7 +566,7 @@ def _make_environment(domain: str, task_name: str, settings: RwrlSettings, seed:
             self.perturb_sign = 1.0
             self.perturb_value = pert.start if pert else None
 
-        def reset(self):
+        def reset(self) -> Any:
             # rwrl/utils/wrappers.py LoggingEnv.reset: a new parameter every `period` episodes.
             if pert is not None:
                 if self.perturb_counter % ch.perturb_period == 0:

@@ -30,7 +30,9 @@ its next ``step`` ignores the action and returns the first observation of a new 
 from __future__ import annotations
 
 import functools
-from typing import Any, Literal
+from collections.abc import Callable, Sequence
+from multiprocessing.connection import Connection
+from typing import Any, Literal, SupportsFloat
 
 import numpy as np
 
@@ -48,7 +50,9 @@ from rlu.types import RluError
 _AUTO = {name: d.vector_backend for name, d in DOMAINS.items()}
 
 
-def _make_one(task_id: str, seed: int | None, challenge: str | None, settings: dict[str, Any]):
+def _make_one(
+    task_id: str, seed: int | None, challenge: str | None, settings: dict[str, Any]
+) -> gym.Env:
     from rlu.envs import make_env
 
     return make_env(task_id, seed=seed, challenge=challenge, **settings)
@@ -103,7 +107,7 @@ def _merge_infos(infos: list[dict]) -> dict[str, np.ndarray]:
     return {k: np.array([i[k] for i in infos]) for k in sorted(keys)}
 
 
-def _worker(conn, fns) -> None:
+def _worker(conn: Connection, fns: Sequence[Callable[[], gym.Env]]) -> None:
     envs = [fn() for fn in fns]
     done = [False] * len(envs)
     try:
@@ -116,6 +120,7 @@ def _worker(conn, fns) -> None:
             elif cmd == "step":
                 obs, rew, term, trunc, infos = [], [], [], [], []
                 for j, (e, a) in enumerate(zip(envs, data, strict=True)):
+                    r: SupportsFloat
                     if done[j]:  # Gymnasium's next-step autoreset: the action is ignored
                         o, i = e.reset()
                         r, te, tr = 0.0, False, False
@@ -149,7 +154,7 @@ class ProcessVectorEnv(gym.vector.VectorEnv):
 
     def __init__(
         self,
-        env_fns: list,
+        env_fns: Sequence[Callable[[], gym.Env]],
         num_workers: int | None = None,
         context: Literal["spawn", "fork", "forkserver"] | None = None,
     ):
@@ -179,7 +184,9 @@ class ProcessVectorEnv(gym.vector.VectorEnv):
             self._procs.append(p)
         self._closed = False
 
-    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[Any, dict[str, np.ndarray]]:
         seeds = [None] * self.num_envs if seed is None else [seed + i for i in range(self.num_envs)]
         for c, sl in zip(self._conns, self._slices, strict=True):
             c.send(("reset", seeds[sl]))
@@ -187,7 +194,9 @@ class ProcessVectorEnv(gym.vector.VectorEnv):
         obs = _concat([p[0] for p in parts])
         return obs, _merge_infos([i for p in parts for i in p[1]])
 
-    def step(self, actions: Any):
+    def step(
+        self, actions: Any
+    ) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
         actions = np.asarray(actions) if not isinstance(actions, dict) else actions
         for c, sl in zip(self._conns, self._slices, strict=True):
             c.send(("step", list(actions[sl])))
@@ -280,13 +289,15 @@ class AleVectorEnv(gym.vector.VectorEnv):
         self.action_space = gym.vector.utils.batch_space(self.single_action_space, num_envs)
         self.metadata = {"autoreset_mode": gym.vector.AutoresetMode.NEXT_STEP}
 
-    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
         if seed is None and self._seed is not None:
             seed, self._seed = self._seed, None  # the constructor's seed seeds the first reset
         obs, info = self._env.reset(seed=seed, options=options)
         return _frames_last(obs), info
 
-    def step(self, actions: Any):
+    def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, Any, Any, dict[str, Any]]:
         obs, reward, terminated, truncated, info = self._env.step(np.asarray(actions))
         raw = np.asarray(reward, np.float64)
         info = dict(info)

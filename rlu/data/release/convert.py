@@ -17,7 +17,7 @@ import os
 import queue
 import re
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -193,7 +193,9 @@ def append_batch(writer: DatasetWriter, batch: SegmentBatch) -> None:
 # --- workers -------------------------------------------------------------------------------
 
 
-def shard_batches(job: ShardJob, path: str, columns: bool = False):
+def shard_batches(
+    job: ShardJob, path: str, columns: bool = False
+) -> Iterator[tuple[SegmentBatch | SegmentColumns | None, dict[str, Any] | None]]:
     """One shard decoded, in order: ``(batch, None)``... then ``(None, stats)``; the batches
     fitted to the schema, one decode batch held at a time (at most 64 MiB of records; 64 Atari
     transitions, 4 Atari or DMLab episodes), never the shard.
@@ -384,7 +386,9 @@ class _Pool:
             self.budgets[self.next] = budget
             self.next += 1
 
-    def shard(self, i: int):
+    def shard(
+        self, i: int
+    ) -> Iterator[tuple[SegmentBatch | SegmentColumns | None, dict[str, Any] | None]]:
         self._start_upto(i + self.workers - 1)
         q, p = self.queues[i], self.procs[i]
         while True:
@@ -475,6 +479,7 @@ def convert(
                         report.records += stats["records"]
                         report.skipped += stats["skipped"]
                         continue
+                    assert batch is not None  # a pair holds a batch or the stats
                     write_batch(writer, batch)
                     bar.set_postfix(
                         shards=f"{i}/{len(paths)}",

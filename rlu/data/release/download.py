@@ -64,6 +64,7 @@ import urllib.request
 import zlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import IO, Any, BinaryIO
 
 from rlu.data.release.catalog import object_url, shard_limit
 from rlu.files import move_into_place, open_private, write_atomic
@@ -200,7 +201,7 @@ def sha256_file(path: str) -> str:
     return h.hexdigest()
 
 
-def _goog_hashes(headers) -> dict[str, str]:
+def _goog_hashes(headers: http.client.HTTPMessage) -> dict[str, str]:
     """``x-goog-hash: crc32c=..., md5=...`` (one header or several) -> {'md5': b64, ...}."""
     out = {}
     for value in headers.get_all("x-goog-hash") or []:
@@ -681,7 +682,15 @@ class _Redirects(urllib.request.HTTPRedirectHandler):
     def __init__(self, allow: bool):
         self.allow = allow
 
-    def redirect_request(self, req, fp, code, msg, headers, newurl):  # noqa: ANN001
+    def redirect_request(
+        self,
+        req: urllib.request.Request,
+        fp: IO[bytes],
+        code: int,
+        msg: str,
+        headers: http.client.HTTPMessage,
+        newurl: str,
+    ) -> urllib.request.Request | None:
         old = urllib.parse.urlsplit(req.full_url).hostname
         new = urllib.parse.urlsplit(urllib.parse.urljoin(req.full_url, newurl)).hostname
         if old != new and not self.allow:
@@ -694,7 +703,7 @@ class _Redirects(urllib.request.HTTPRedirectHandler):
 
 def _copy_body(
     resp: http.client.HTTPResponse,
-    f,
+    f: BinaryIO,
     part: str,
     limit: int,
     on_bytes: Callable[[int], object],
@@ -735,7 +744,7 @@ def _copy_body(
         return ""  # a server that keeps the connection open sent nothing more
 
 
-def _write(f, chunk: bytes, part: str) -> None:
+def _write(f: BinaryIO, chunk: bytes, part: str) -> None:
     """A failed write (a full disk) is this machine's, not the server's: it ends the command."""
     try:
         f.write(chunk)
@@ -834,7 +843,7 @@ def download(
     objects: Sequence[str],
     cache_dir: str | os.PathLike | None = None,
     base_url: str | None = None,
-    **kw,
+    **kw: Any,
 ) -> list[Fetched]:
     """Fetch ``objects`` (bucket-relative names) into the cache; returns where they are."""
     return Downloader(cache_dir=cache_dir, base_url=base_url, **kw).fetch(objects)

@@ -143,7 +143,11 @@ def _numeric(col: Any, key: str, where: str) -> np.ndarray:
 
 
 def _scalar(
-    cols: Mapping[str, Any], key: str, where: str, dtype=None, integer: bool = False
+    cols: Mapping[str, Any],
+    key: str,
+    where: str,
+    dtype: type[np.generic] | None = None,
+    integer: bool = False,
 ) -> np.ndarray:
     v = _numeric(_need(cols, key, where), key, where)
     if integer:
@@ -189,8 +193,13 @@ def _ragged(cols: Mapping[str, Any]) -> bool:
 
 
 def _png_stack(
-    col: ex.BytesColumn, count: int | None, key: str, where: str, channels: int, size: tuple
-):
+    col: ex.BytesColumn,
+    count: int | None,
+    key: str,
+    where: str,
+    channels: int,
+    size: tuple[int, int],
+) -> list[list[np.ndarray]]:
     vals = col.values
     if count is not None and any(len(v) != count for v in vals):
         raise FormatError(f"{where}: {key!r} must hold {count} PNG frames per record")

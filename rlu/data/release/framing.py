@@ -29,7 +29,7 @@ import os
 import queue
 import struct
 import threading
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import BinaryIO
 
@@ -49,7 +49,7 @@ _U32 = struct.Struct("<I")
 MAX_RECORD_BYTES = 1 << 27
 
 
-def _crc_impl():
+def _crc_impl() -> Callable[[bytes], int]:
     try:
         import google_crc32c
     except ImportError as e:  # pragma: no cover - the release extra installs it
@@ -62,10 +62,10 @@ def _crc_impl():
     return google_crc32c.value
 
 
-_crc32c = None
+_crc32c: Callable[[bytes], int] | None = None
 
 
-def _crc32c_fn():
+def _crc32c_fn() -> Callable[[bytes], int]:
     global _crc32c
     if _crc32c is None:
         _crc32c = _crc_impl()
@@ -787,7 +787,7 @@ class RecordWriter:
     def __enter__(self) -> RecordWriter:
         return self
 
-    def __exit__(self, exc_type, exc, tb) -> None:
+    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
         if exc_type is None:
             self.close()
         else:

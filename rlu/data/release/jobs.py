@@ -339,6 +339,7 @@ def _write_part(
             if st is not None:
                 stats = st
                 continue
+            assert batch is not None  # a pair holds a batch or the stats
             before = writer.num_steps
             write_batch(writer, batch)
             steps(writer.num_steps - before)

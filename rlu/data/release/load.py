@@ -142,7 +142,14 @@ def open_cached(dest: str, task_id: str, cache_dir: str | os.PathLike | None, **
     return ds
 
 
-def _fetch_and_convert(sel, dest, cache_dir, base_url, workers, progress) -> None:
+def _fetch_and_convert(
+    sel: catalog.ReleaseSelection,
+    dest: str,
+    cache_dir: str | os.PathLike | None,
+    base_url: str | None,
+    workers: int | None,
+    progress: bool | None,
+) -> None:
     fetched = download(sel.objects, cache_dir=cache_dir, base_url=base_url, progress=progress)
     kind = DOMAINS[sel.task.domain].datasets
     convert(

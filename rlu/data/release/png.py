@@ -17,16 +17,17 @@ from __future__ import annotations
 import io
 import struct
 import zlib
+from types import ModuleType
 
 import numpy as np
 
 from rlu.types import FormatError
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
-_Image = None
+_Image: ModuleType | None = None
 
 
-def _pil():
+def _pil() -> ModuleType:
     global _Image
     if _Image is None:
         try:
@@ -44,7 +45,7 @@ def _pil():
 _FAST_MODES = {0: ("L", 1), 2: ("RGB", 3)}  # PNG colour type -> (Pillow mode, channels)
 
 
-def _fast_decode(data: bytes, Image) -> np.ndarray | None:
+def _fast_decode(data: bytes, Image: ModuleType) -> np.ndarray | None:
     """8-bit grey / RGB, non-interlaced: Pillow's C inflate + unfilter without ``Image.open``.
 
     ``Image.open`` spends most of its time in Python (plugin lookup, chunk parsing); calling the
