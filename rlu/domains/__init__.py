@@ -44,7 +44,8 @@ class Domain:
     """The domain's TaskSpecs (called once, by ``rlu.tasks``)."""
     env_module: str
     """The module whose ``make(task, seed=..., render=..., **settings)`` makes its envs,
-    imported only when an env is made."""
+    imported only when an env is made. Its envs end their own episodes, truncated at the task's
+    ``max_episode_steps`` at the latest (evaluation adds no time limit of its own)."""
     extra: str
     """The pyproject extra that installs the env's packages."""
     packages: tuple[str, ...] = ()
