@@ -96,14 +96,16 @@ def to_torch(x: Any, device: torch.device | None = None, dtype: str | None = Non
 
 
 class TorchTransition(NamedTuple):
-    """A continuous agent's :class:`rlu.types.Transition` as tensors on its device, the action
-    mapped into [-1, 1] by its ``networks.ActionScaler``."""
+    """A :class:`rlu.types.Transition` as tensors on the agent's device, what the losses take:
+    a continuous agent's action mapped into [-1, 1] by its ``networks.ActionScaler``
+    (:func:`transition`), a discrete agent's observations as ``discrete_common.frames`` gives
+    them (``discrete_common.to_torch``)."""
 
-    observation: Any
+    observation: TensorObservation
     action: torch.Tensor
     reward: torch.Tensor
     discount: torch.Tensor
-    next_observation: Any
+    next_observation: TensorObservation
 
 
 def transition(batch: Any, scaler: Any, device: torch.device) -> TorchTransition:

@@ -35,6 +35,7 @@ import torch
 from torch import nn
 
 from rlu.agents import common
+from rlu.agents.common import TorchTransition
 from rlu.files import (
     BATCH,
     FRACTION,
@@ -174,18 +175,6 @@ def _dict_shapes(name: str, spec: Mapping[str, Any]) -> Mapping[str, tuple[int, 
     return MappingProxyType(shapes)
 
 
-class TorchTransition(NamedTuple):
-    """A :class:`rlu.types.Transition` as tensors on the agent's device, observations as
-    :func:`frames` gives them (float (B, C, H, W) in [0, 1]: the networks' input)."""
-
-    observation: torch.Tensor | dict[str, torch.Tensor]
-    action: torch.Tensor
-    reward: torch.Tensor
-    discount: torch.Tensor
-    next_observation: torch.Tensor | dict[str, torch.Tensor]
-    next_action: torch.Tensor
-
-
 @overload
 def frames(x: Mapping[str, Any], field: str = ..., channels_last: bool = ...,
            device: torch.device | None = ...) -> dict[str, torch.Tensor]: ...  # fmt: skip
@@ -248,7 +237,6 @@ def to_torch(batch: Transition, device: torch.device | None = None) -> TorchTran
         reward=common.to_torch(batch.reward, device, "float32"),
         discount=common.to_torch(batch.discount, device, "float32"),
         next_observation=frames(batch.next_observation, "next_observation", device=device),
-        next_action=common.to_torch(batch.next_action, device, "int64"),
     )
 
 

@@ -42,7 +42,6 @@ def test_loss_bootstraps_from_the_target_networks_max_without_double_q():
         reward=t([1.0, -1.0, 0.5], torch.float64),
         discount=t([1.0, 0.0, 1.0], torch.float64),
         next_observation=t([1, 2, 0], torch.int64),
-        next_action=t([0, 0, 0], torch.int64),
     )
     loss, metrics = dqn_online.dopamine_dqn_loss(
         lambda s: online[s], lambda s: target[s], batch, 0.5, 1.0

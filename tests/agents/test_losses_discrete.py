@@ -28,7 +28,6 @@ def transition(obs, action, reward, discount, next_obs):
         reward=t(reward),
         discount=t(discount),
         next_observation=t(next_obs, torch.int64),
-        next_action=t(action, torch.int64),
     )
 
 
