@@ -144,12 +144,6 @@ def is_complete(entry: dict[str, Any], episodes: int, seed: int, settings: dict[
     )
 
 
-def _init_worker(parent: int) -> None:
-    from rlu.workers import die_with_parent
-
-    die_with_parent(parent)  # a killed measurement leaves no game playing on
-
-
 def measure(
     tasks: Iterable[tuple[str, str, dict[str, Any]]],
     episodes: int,
@@ -213,26 +207,12 @@ def measure(
         if progress is not None:
             progress(key, entry)
 
-    if workers == 1 or len(todo) == 1:
-        for key, t, c, s in todo:
-            done(key, measure_task(t, c, s, episodes, seed))
-        return doc
-    import multiprocessing as mp
-    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+    from rlu.workers import Backend, run_jobs
 
-    # Spawned, not forked: a fork of a process whose OpenMP pool has run can hang.
-    ctx = mp.get_context("spawn")
-    with ProcessPoolExecutor(min(workers, len(todo)), ctx, _init_worker, (os.getpid(),)) as pool:
-        pending = {pool.submit(measure_task, t, c, s, episodes, seed): key
-                   for key, t, c, s in todo}  # fmt: skip
-        try:
-            while pending:
-                finished, _ = wait(pending, return_when=FIRST_COMPLETED)
-                for f in finished:
-                    done(pending.pop(f), f.result())
-        except BaseException:
-            pool.shutdown(wait=False, cancel_futures=True)
-            raise
+    # one process per task at once (spawned, dying with this one: rlu.workers), or this one
+    keys = [key for key, *_ in todo]
+    jobs = [(t, c, s, episodes, seed) for _, t, c, s in todo]
+    run_jobs(measure_task, jobs, Backend(workers=workers), lambda i, e: done(keys[i], e))
     return doc
 
 
