@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from rlu.files import write_json
+from rlu.files import read_json, write_json
 from rlu.types import FormatError, RluError
 
 FORMAT = "rlu.random_scores/1"
@@ -226,13 +226,11 @@ def load(path: str | os.PathLike | None = None) -> dict[str, Any]:
     if path is None:
         text = resources.files("rlu").joinpath("resources/random_scores.json").read_text()
         where = "rlu/resources/random_scores.json"
-    else:
-        text, where = Path(path).read_text(), str(path)
-    try:
         doc = json.loads(text)
-    except json.JSONDecodeError as e:
-        raise FormatError(f"{where}: not JSON ({e}); re-run `rlu envs random-scores`") from e
-    if doc.get("format") != FORMAT or "scores" not in doc:
+    else:  # a file of the user's: bounded, a regular file, JSON
+        where = str(path)
+        doc = read_json(path, fix="check the path, or re-run `rlu envs random-scores`")
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT or "scores" not in doc:
         raise FormatError(f"{where}: not an {FORMAT} file; re-run `rlu envs random-scores`")
     return doc
 

@@ -36,12 +36,11 @@ import re
 from collections import defaultdict
 from collections.abc import Mapping, Sequence
 from importlib import resources
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from rlu.files import write_json
+from rlu.files import read_json, write_json
 from rlu.types import FormatError, RluError
 
 FORMAT = "rlu.atari_best_behaviour/1"
@@ -62,18 +61,10 @@ def load(path: str | os.PathLike | None = None) -> dict[str, Any]:
     if path is None:
         text = resources.files("rlu").joinpath("resources/atari_best_behaviour.json").read_text()
         where = RESOURCE
-    else:
-        try:
-            text = Path(path).read_text()
-        except OSError as e:
-            raise RluError(f"{path}: {e.strerror}; check the path") from None
-        where = str(path)
-    try:
         doc = json.loads(text)
-    except json.JSONDecodeError as e:
-        raise FormatError(
-            f"{where}: not JSON ({e}); rewrite it with rlu envs best-behaviour"
-        ) from None
+    else:  # a file of the user's: bounded, a regular file, JSON
+        where = str(path)
+        doc = read_json(path, fix="check the path, or rewrite it with rlu envs best-behaviour")
     if not isinstance(doc, dict) or doc.get("format") != FORMAT or "scores" not in doc:
         raise FormatError(
             f"{where}: not an {FORMAT} file (field 'format'); write one with "

@@ -26,7 +26,8 @@ from typing import Any
 
 import numpy as np
 
-from rlu.types import RluError
+from rlu.files import read_json
+from rlu.types import FormatError, RluError
 
 AggregateFn = Callable[[np.ndarray], np.ndarray]
 
@@ -96,13 +97,10 @@ def load_reference_scores(name: str) -> dict[str, float]:
 
     The file's ``scores`` field (or the whole file) maps keys to a number or to a record with a
     ``mean`` (the format of ``random_scores.json``)."""
-    from pathlib import Path
 
-    if name.endswith(".json"):
-        try:
-            text = Path(name).read_text()
-        except OSError as e:
-            raise RluError(f"reference scores {name}: {e.strerror}; check the path") from None
+    if name.endswith(".json"):  # a file of the user's: bounded, a regular file, JSON
+        data = read_json(name, fix="check the path, or pass a file rlu envs random-scores or "
+                         "rlu envs best-behaviour wrote")  # fmt: skip
     else:
         try:
             text = resources.files("rlu.resources").joinpath(f"{name}.json").read_text()
@@ -111,7 +109,9 @@ def load_reference_scores(name: str) -> dict[str, float]:
                 f"rlu/resources/{name}.json is missing; pass the scores explicitly or install "
                 "the part of rlu that provides it"
             ) from None
-    data = json.loads(text)
+        data = json.loads(text)
+    if not isinstance(data, Mapping):
+        raise FormatError(f"reference scores {name}: not a JSON object of scores")
     scores = data.get("scores", data)
     out = {}
     for k, v in scores.items():

@@ -48,7 +48,7 @@ def test_cli_writes_a_file(tmp_path, capsys):
 def test_corrupt_file_is_a_clear_error(tmp_path):
     bad = tmp_path / "bad.json"
     bad.write_text("{not json")
-    with pytest.raises(FormatError, match="not JSON"):
+    with pytest.raises(FormatError, match="not valid JSON"):
         scores.load(bad)
     bad.write_text("{}")
     with pytest.raises(FormatError, match="rlu.random_scores"):

@@ -53,7 +53,7 @@ def test_load_rejects_other_files(tmp_path):
     with pytest.raises(FormatError, match="format"):
         reference.load(p)
     p.write_text("{nope")
-    with pytest.raises(FormatError, match="not JSON"):
+    with pytest.raises(FormatError, match="not valid JSON"):
         reference.load(p)
     p.write_text(json.dumps({"format": reference.FORMAT, "scores": {"atari/Pong": {"x": 1}}}))
     with pytest.raises(FormatError, match="numeric 'mean'"):

@@ -142,3 +142,38 @@ def test_a_forged_wandb_id_is_refused(made, tmp_path, capsys, monkeypatch):
     (work / "wandb_id.txt").write_text("../../etc\n")
     argv = _train_argv(ds, work, "--log-to", "wandb", "--resume")
     refused(capsys, argv, [tmp_path], "wandb_id.txt", "not a W&B run id")
+
+
+def _fifo(path):
+    os.mkfifo(path)
+
+
+@pytest.mark.parametrize(
+    ("write", "says"),
+    [
+        (lambda p: p.write_text("{not json"), "not valid JSON"),
+        (lambda p: p.write_text("[1, 2]"), "not"),
+        (_fifo, "not a regular file"),
+        (lambda p: None, "is missing"),
+    ],
+    ids=["junk", "a_list", "fifo", "missing"],
+)
+@pytest.mark.parametrize("reader", ["reference_scores", "best_behaviour", "random_scores"])
+def test_a_score_file_of_the_users_is_read_bounded_with_a_clear_error(tmp_path, reader, write,
+                                                                      says):  # fmt: skip
+    """The reference, best-behaviour and random-score files a user passes are rlu's own formats
+    read back: a FIFO never hangs, junk or a list is a FormatError naming the file, never a
+    traceback."""
+    from rlu.envs import scores
+    from rlu.evaluation import reference
+    from rlu.evaluation.scores import load_reference_scores
+    from rlu.types import RluError
+
+    path = tmp_path / "scores.json"
+    write(path)
+    load = {"reference_scores": lambda: load_reference_scores(str(path)),
+            "best_behaviour": lambda: reference.load(path),
+            "random_scores": lambda: scores.load(path)}[reader]  # fmt: skip
+    with pytest.raises(RluError, match=says) as e:
+        load()
+    assert str(path) in str(e.value) or "reference scores" in str(e.value)
