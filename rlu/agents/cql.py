@@ -120,7 +120,7 @@ Config = CQLConfig
 PRESETS = {
     "paper": CQLConfig(),
     # Minutes on a CPU: each update scores 3N + 1 actions per state with both critics, so N = 4
-    # (52 ms per update on one core against 133 ms at N = 10); cloning for the first 5 %.
+    # (bench/README.md, design choices); cloning for the first 5 %.
     "small": CQLConfig(policy_layers=(256, 256), critic_layers=(256, 256), num_samples=4,
                        bc_steps=1_000, policy_lr=3e-4, alpha_lr=3e-4, num_steps=20_000),
 }  # fmt: skip
@@ -276,8 +276,8 @@ class CQLAgent:
         common.sgd_step(self.optimizers["policy"], loss_pi, inputs=list(self.policy.parameters()))
 
         # Critics: TD error plus the conservative regulariser (alpha' Lagrangian if asked).
-        # one critic pass per proposal group, as the original: measured here (N = 10, 256-unit
-        # critics, forward + backward, one thread) 181 ms against 205 ms for one (3N + 1) x B pass
+        # one critic pass per proposal group, as the original: faster on the CPU than one
+        # (3N + 1) x B pass (bench/README.md, design choices)
         q_data = self.critics(obs, action)
         q_rand, q_curr, q_next = (self.critics(obs, a) for a in (rand_a, curr_a, next_prop_a))
         reg = cql_regulariser(q_rand, q_curr, q_next, log_pi_curr, log_pi_next, q_data,
