@@ -35,7 +35,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from rlu.data.release import example as ex  # noqa: E402
+from rlu.codecs import example as ex  # noqa: E402
 from rlu.data.release.convert import convert  # noqa: E402
 from rlu.data.release.framing import RecordWriter  # noqa: E402
 from rlu.data.release.jobs import DatasetJob, convert_release, parts_folder  # noqa: E402
@@ -180,8 +180,8 @@ def _size(path: Path) -> int:
 
 def _one_shard(path: str, out: str, task: str, q) -> None:
     """In a fresh process: one shard job (its peak RSS is this process's)."""
+    import rlu.codecs.png as png
     import rlu.data.release.families  # noqa: F401 (the imports' memory is not the job's)
-    import rlu.data.release.png as png
 
     png._pil()
     base = rss_mb()

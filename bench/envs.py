@@ -59,7 +59,7 @@ def run_raw_ale(game, actions, max_steps=27_000):
     import ale_py
     import cv2
 
-    from rlu.envs.atari import rom_id
+    from rlu.domains.atari.env import rom_id
 
     ale = ale_py.ALEInterface()
     ale.setLoggerMode(ale_py.LoggerMode.Error)
@@ -118,7 +118,7 @@ def best_of(rounds, fns):
 def overhead(args):
     from dm_control import suite
 
-    from rlu.envs import locomotion
+    from rlu.domains.locomotion import env as locomotion
 
     rows = []
     n = 2000 if args.quick else 10000

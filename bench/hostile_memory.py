@@ -66,8 +66,8 @@ def record_bomb(path: Path, total: int) -> None:
 
 def windows_bomb(path: Path, total: int) -> None:
     """Valid control-suite windows, one record repeated: a real conversion of ``total`` bytes."""
-    from rlu.data.release import families as Fm
     from rlu.data.release.framing import frame
+    from rlu.domains import records
 
     rng = np.random.default_rng(0)
     rec = {
@@ -78,14 +78,14 @@ def windows_bomb(path: Path, total: int) -> None:
         "discount": np.float32([1, 1]),
         "step_type": np.float32([1, 1]),
     }
-    one = frame(Fm.encode_sequence(rec))
+    one = frame(records.encode_sequence(rec))
     path.write_bytes(_members(one * ((64 << 20) // len(one)), total))
 
 
 def atari_bomb(path: Path, total: int) -> None:
     """Valid Atari transitions (eight PNG frames each), one record repeated."""
-    from rlu.data.release import families as Fm
     from rlu.data.release.framing import frame
+    from rlu.domains.atari import release as atari_release
 
     frames = np.zeros((84, 84, 5), np.uint8)
     frames[40:44, 10:70] = 200  # flat screens with a bar, as Atari frames mostly are
@@ -99,7 +99,7 @@ def atari_bomb(path: Path, total: int) -> None:
         "episode_id": 7,
         "episode_return": 3.0,
     }
-    one = frame(Fm.encode_atari_transition(rec))
+    one = frame(atari_release.encode_atari_transition(rec))
     path.write_bytes(_members(one * ((16 << 20) // len(one)), total))
 
 
@@ -107,12 +107,13 @@ def long_records(path: Path, family: str, n: int = 30, mib: int = 100) -> None:
     """``n`` valid records of ``mib`` MiB each (a few kB of gzip apiece): a real record of the
     family plus a bytes feature no loader names, padded with zeros. 30 of 100 MiB: the 3 MB
     shard of issue 30 that took the old reader to 3.2 GB before its first record was decoded."""
-    from rlu.data.release import example as ex
-    from rlu.data.release import families as Fm
+    from rlu.codecs import example as ex
     from rlu.data.release.framing import frame
+    from rlu.domains import records
+    from rlu.domains.atari import release as atari_release
 
     if family == "dm_control_suite":
-        payload = Fm.encode_sequence(
+        payload = records.encode_sequence(
             {
                 "observation/position": np.zeros((2, 3), np.float32),
                 "observation/velocity": np.zeros((2, 2), np.float32),
@@ -124,7 +125,7 @@ def long_records(path: Path, family: str, n: int = 30, mib: int = 100) -> None:
         )
     else:
         t = 5
-        payload = Fm.encode_atari_episode(
+        payload = atari_release.encode_atari_episode(
             {
                 "observations": np.zeros((t, 84, 84), np.uint8),
                 "actions": np.zeros(t, np.int64),
@@ -303,9 +304,9 @@ def policy_dataset(dest: Path) -> None:
     ``save_snapshot`` as ``rlu generate`` writes it (no env runs)."""
     from rlu.agents import make_agent
     from rlu.data import DatasetWriter, Schema
-    from rlu.data.episode import make_episode
     from rlu.generate.online import OnlineConfig
     from rlu.generate.policies import policy_stem, save_snapshot
+    from rlu.segments import make_episode
     from rlu.tasks import get_task
 
     task = get_task(TASK)

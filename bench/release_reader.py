@@ -136,7 +136,7 @@ def time_it(fn, repeat: int = 3) -> float:
 def rlu_rows(
     files: list[str], stream_bytes: int, records: int, tmp: str
 ) -> list[tuple[str, float]]:
-    from rlu.data.release import example as E
+    from rlu.codecs import example as E
     from rlu.data.release import families as Fm
     from rlu.data.release.convert import convert
     from rlu.data.release.framing import RecordReader
@@ -358,7 +358,7 @@ def decoder_rows(files: list[str], n: int = 50_000) -> list[tuple[str, float, in
     import numpy as np
     from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
-    from rlu.data.release import example as E
+    from rlu.codecs import example as E
     from rlu.data.release.framing import RecordReader
 
     recs = []
@@ -466,7 +466,7 @@ def png_rows() -> list[tuple[str, float, int]]:
     import numpy as np
     from PIL import Image
 
-    from rlu.data.release.png import decode_png
+    from rlu.codecs.png import decode_png
 
     rng = np.random.default_rng(0)
     frames = []

@@ -29,7 +29,7 @@ def _config_classes() -> list[type]:
     """Every agent config class, the dataclasses composed in them, TrainConfig, SweepConfig,
     FQEConfig, RunSettings and its Runtime, GenerateConfig and its Backend, OnlineConfig,
     RwrlSettings and its Challenge."""
-    from rlu.envs.rwrl import RwrlSettings
+    from rlu.domains.rwrl.env import RwrlSettings
     from rlu.evaluation.fqe import FQEConfig
     from rlu.generate.config import GenerateConfig
     from rlu.generate.online import OnlineConfig
@@ -122,7 +122,7 @@ def _instances(cls: type) -> list[typing.Any]:
     """Valid instances of ``cls`` to replace one field of: an agent's presets (or its
     composed settings'), a default RunSettings, a small TrainConfig or SweepConfig."""
     from rlu.devices import Runtime
-    from rlu.envs.rwrl import Challenge, RwrlSettings
+    from rlu.domains.rwrl.env import Challenge, RwrlSettings
     from rlu.evaluation.fqe import FQEConfig
     from rlu.generate.config import GenerateConfig
     from rlu.generate.online import OnlineConfig
@@ -187,7 +187,7 @@ def test_a_value_just_outside_a_bound_is_refused_as_an_override_or_in_a_file(
 
     from rlu.agents import make_config
     from rlu.devices import Runtime
-    from rlu.envs.rwrl import Challenge, RwrlSettings
+    from rlu.domains.rwrl.env import Challenge, RwrlSettings
     from rlu.evaluation.fqe import FQEConfig
     from rlu.generate.config import GenerateConfig
     from rlu.generate.online import OnlineConfig

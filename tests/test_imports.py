@@ -11,12 +11,31 @@ ROOT = Path(__file__).resolve().parents[1]
 PKG = ROOT / "rlu"
 
 # package part (a folder or a file under rlu/) -> parts of rlu it must not import. The layers,
-# lowest first: types, system, files, seeds, devices, tasks; data, envs; agents; evaluation;
-# training (the run lifecycle); report; generate; commands and the CLI.
+# lowest first: types, system, files, seeds, devices; codecs (the release's record codecs) and
+# segments (the in-memory data model); domains (each domain's tasks, env and release families,
+# and the kits they are built of); tasks; data, envs; agents; evaluation; training (the run
+# lifecycle); report; generate; commands and the CLI.
 ABOVE_TRAINING = ("rlu.report", "rlu.generate", "rlu.commands", "rlu.cli")
 # the layers above the low modules (types, system, files, seeds, devices, tasks, workers)
 LOW = ("rlu.data", "rlu.envs", "rlu.agents", "rlu.evaluation", "rlu.training", *ABOVE_TRAINING)
+# what the release's record codecs and the data model may not import: anything but types/system
+BELOW_DOMAINS = (
+    "rlu.files",
+    "rlu.seeds",
+    "rlu.devices",
+    "rlu.workers",
+    "rlu.progress",
+    "rlu.locks",
+    "rlu.domains",
+    "rlu.tasks",
+    *LOW,
+)
 FORBIDDEN = {
+    "codecs": (*BELOW_DOMAINS, "rlu.segments"),
+    "segments.py": (*BELOW_DOMAINS, "rlu.codecs"),
+    # a domain's folder and the kits of rlu/domains sit below the task registry and every part
+    # that reads the domains (data, envs, ...): they import none of them
+    "domains": ("rlu.tasks", *LOW),
     "data": ("rlu.agents", "rlu.envs", "rlu.evaluation", "rlu.training", *ABOVE_TRAINING),
     "envs": ("rlu.agents", "rlu.data", "rlu.evaluation", "rlu.training", *ABOVE_TRAINING),
     "agents": ("rlu.data", "rlu.envs", "rlu.evaluation", "rlu.training", "rlu.tasks",

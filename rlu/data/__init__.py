@@ -10,7 +10,6 @@ import os
 from collections.abc import Sequence
 from typing import Any
 
-from rlu.data.episode import Segment, make_episode
 from rlu.data.store import Dataset, DatasetWriter, Schema, open_dataset
 from rlu.data.stream import SampleSource, StreamSampler, stream_sampler
 from rlu.data.views import (
@@ -22,6 +21,7 @@ from rlu.data.views import (
     sequence_sampler,
     transition_sampler,
 )
+from rlu.segments import Segment, make_episode
 
 __all__ = [
     "Dataset",

@@ -49,7 +49,6 @@ from typing import Any
 
 import numpy as np
 
-from rlu.data.episode import Segment, make_episode
 from rlu.data.foreign import (
     EPISODE_LENGTH_FACTOR,
     MAX_EPISODE_BYTES,
@@ -65,6 +64,7 @@ from rlu.data.foreign import (
     with_final_step,
 )
 from rlu.data.store import Dataset, DatasetWriter, Schema
+from rlu.segments import Segment, make_episode
 from rlu.types import ArraySpec, DiscreteSpec, FormatError, RluError
 
 SUPPORTED_VERSIONS = ("2.1",)

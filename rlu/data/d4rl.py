@@ -56,7 +56,6 @@ from typing import Any
 
 import numpy as np
 
-from rlu.data.episode import Segment, make_episode
 from rlu.data.foreign import (
     EPISODE_LENGTH_FACTOR,
     MAX_EPISODE_BYTES,
@@ -79,6 +78,7 @@ from rlu.data.store import Dataset, DatasetWriter, Schema
 from rlu.data.store.schema import action_problem
 from rlu.data.views import DatasetView, TransitionView
 from rlu.domains import DOMAINS
+from rlu.segments import Segment, make_episode
 from rlu.system import install_hint
 from rlu.types import ArraySpec, FormatError, RluError, SpecError
 

@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from rlu.data.episode import Segment
+from rlu.segments import Segment
 from rlu.system import install_hint
 from rlu.types import FormatError, RluError
 

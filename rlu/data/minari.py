@@ -64,7 +64,6 @@ from typing import Any
 
 import numpy as np
 
-from rlu.data.episode import METADATA_FIELDS, Segment, make_episode
 from rlu.data.foreign import (
     finite_array,
     fits,
@@ -76,6 +75,7 @@ from rlu.data.foreign import (
 )
 from rlu.data.store import Dataset, DatasetWriter, Schema
 from rlu.domains import DOMAINS
+from rlu.segments import METADATA_FIELDS, Segment, make_episode
 from rlu.system import install_hint
 from rlu.types import (
     ArraySpec,

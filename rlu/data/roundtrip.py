@@ -54,11 +54,11 @@ from typing import Any, cast
 
 import numpy as np
 
-from rlu.data.episode import METADATA_FIELDS, METADATA_MISSING, Segment
 from rlu.data.foreign import READ_BYTES, Column, NpzFile, iter_blocks
 from rlu.data.store import Dataset, DatasetWriter, Schema
 from rlu.data.store.reader import ZlibColumn
 from rlu.data.store.schema import action_problem, is_attachment
+from rlu.segments import METADATA_FIELDS, METADATA_MISSING, Segment
 from rlu.types import ArraySpec, FormatError, RluError
 
 SIDECAR_FORMAT = "rlu-export-sidecar"

@@ -9,8 +9,8 @@ from typing import Any
 
 import numpy as np
 
-from rlu.data.episode import Segment, make_episode
 from rlu.data.store import DatasetWriter, Schema
+from rlu.segments import Segment, make_episode
 from rlu.types import ArraySpec, DiscreteSpec
 
 

@@ -1,18 +1,28 @@
-"""The registry of domains: what is each domain's own, in one module per domain.
+"""The registry of domains: what is each domain's own, in one folder per domain.
 
     from rlu.domains import DOMAINS, get_domain
     DOMAINS["atari"].extra          # 'atari': the extra that installs its environments
     get_domain("rwrl").challenges   # ('none', 'easy')
 
-A domain's module (``rlu/domains/<name>.py``) holds its task tables and builds its TaskSpecs,
-names its env factory (imported only when an env is made) and the extra that installs it, the
-TensorFlow Datasets builders that name its datasets and how their config names read, how its
-datasets are told apart (Atari runs, RWRL challenge and size), where its paper numbers come from,
-what the paper states of their conditions (``rlu.domains.paper``) and how the report draws and
-normalises them, and the agent ``rlu generate`` trains to record its data at each scale. The task
-registry (``rlu.tasks``), ``rlu.envs``, the release catalog, the report, generation and the
-command line read these entries instead of naming domains, so a new domain is one module plus one
-line in ``_MODULES`` below; ``tests/domains/test_domain_contract.py`` checks every entry.
+A domain is one folder, ``rlu/domains/<name>/`` (a small one may be one module ``<name>.py``):
+
+- ``__init__.py``: its task tables and TaskSpecs, and its entry ``DOMAIN`` (:class:`Domain`): the
+  extra that installs its env, the TensorFlow Datasets builders that name its datasets and how
+  their config names read, how its datasets are told apart (Atari runs, RWRL challenge and
+  size), where its paper numbers come from, what the paper states of their conditions
+  (``rlu.domains.paper``), how the report draws and normalises them, and the agent
+  ``rlu generate`` trains to record its data at each scale;
+- ``env.py``: its env factory, built of :mod:`rlu.domains.envkit` (imported only when an env is
+  made);
+- ``release.py``: its release families, built of :mod:`rlu.domains.records` (imported when the
+  release is read).
+
+The task registry (``rlu.tasks``), ``rlu.envs``, the release reader and catalog, the report,
+generation and the command line read these entries instead of naming domains, so a new domain is
+one folder plus one line in ``_MODULES`` below; ``tests/domains/test_domain_contract.py`` checks
+every entry and ``tests/domains/test_new_domain.py`` adds one. The kits the domains are built of
+(``envkit``, ``records``, ``common``, ``spec``, ``paper``) import nothing above them: no
+``rlu.tasks``, ``rlu.data`` or ``rlu.envs`` (``tests/test_imports.py``).
 """
 
 from __future__ import annotations
@@ -27,6 +37,7 @@ from rlu.domains.paper import CONTINUOUS, TASK_FIGURES, PaperConditions
 from rlu.types import RluError
 
 if TYPE_CHECKING:  # pragma: no cover
+    from rlu.domains.records import Family
     from rlu.domains.spec import TaskRef, TaskSpec
 
 __all__ = ["Domain", "DOMAINS", "get_domain"]
@@ -52,6 +63,10 @@ class Domain:
     """Top-level modules its envs import: the command line names ``extra`` when one is missing."""
     mujoco: bool = False
     """Whether its envs are MuJoCo's (they need a GL backend to render)."""
+    release_module: str | None = None
+    """The module whose ``FAMILIES`` (:class:`rlu.domains.records.Family` entries) read and write
+    the domain's release files, imported when the release is read (``rlu.data.release``); None:
+    the domain has no release files."""
     env_install: str | None = None
     """How its env's packages are installed where no pip extra can (DeepMind Lab is built from
     source); None: ``extra`` installs them."""
@@ -68,6 +83,9 @@ class Domain:
     """The env setting that changes the step limit (Atari's ``max_episode_steps``)."""
     vector_backend: str = "sync"
     """``make_vector_env``'s ``auto`` backend for the domain (see rlu.envs.vector)."""
+    native_vector: str | None = None
+    """The backend name of the domain's own vector env (Atari's ``"ale"``), made by its env
+    module's ``make_vector(task, num_envs, seed, **settings)``; None: it has none."""
     tfds_builders: Mapping[str, str] = field(default_factory=dict)
     """TensorFlow Datasets builder -> the release family it reads."""
     tfds_examples: Mapping[str, str] = field(default_factory=dict)
@@ -115,8 +133,15 @@ class Domain:
         """The env module (imported now)."""
         return importlib.import_module(self.env_module)
 
+    def release_families(self) -> tuple[Family, ...]:
+        """The domain's release families (its release module imported now); () without one."""
+        if self.release_module is None:
+            return ()
+        return tuple(importlib.import_module(self.release_module).FAMILIES)
 
-# One line per domain: the module rlu/domains/<name>.py, whose DOMAIN is the entry.
+
+# One line per domain: the package rlu/domains/<name>/ (or module <name>.py), whose DOMAIN is
+# the entry.
 _MODULES = ("control_suite", "locomotion", "atari", "rwrl", "bsuite", "dmlab")
 
 

@@ -16,8 +16,9 @@ domains, one uint8 array for Atari. The factory checks the first observation aga
 MuJoCo envs also offer ``env.dm_env``, a dm_env view of the same environment.
 
 Every domain takes ``render_mode="rgb_array"`` (``env.render()`` returns the frame; MuJoCo's
-offscreen renderer or the ALE's screen, see ``rlu.envs.core``), and ``env.spec.max_episode_steps``
-is the episode's real step limit. Settings per domain (keyword arguments of ``make_env``):
+offscreen renderer or the ALE's screen, see ``rlu.domains.envkit``), and
+``env.spec.max_episode_steps`` is the episode's real step limit. Settings per domain (keyword
+arguments of ``make_env``):
 
 - control suite: none.
 - locomotion: ``camera`` (default True: the 64x64x3 egocentric camera rendered every step, as
@@ -29,7 +30,7 @@ is the episode's real step limit. Settings per domain (keyword arguments of ``ma
   ``sticky_action_prob`` (0.25), ``frame_skip`` (4).
 - rwrl: ``challenge`` ("none" or "easy" as released; "medium"/"hard" also exist),
   ``safety`` / ``safety_coeff``, ``multiobj_coeff`` / ``multiobj_reward`` /
-  ``multiobj_observed`` (see rlu.envs.rwrl).
+  ``multiobj_observed`` (see rlu.domains.rwrl.env).
 """
 
 from __future__ import annotations
@@ -87,10 +88,10 @@ def make_env(
 ) -> Any:  # the domain's gymnasium.Env subclass (float rewards, the task's observations)
     """A Gymnasium env for ``task_id`` (see the module docstring for ``settings``).
 
-    ``render_mode="rgb_array"`` makes ``env.render()`` return frames (see ``rlu.envs.core``);
+    ``render_mode="rgb_array"`` makes ``env.render()`` return frames (see ``rlu.domains.envkit``);
     ``challenge`` (RWRL) defaults to the one a TFDS name carries, else ``"none"``.
     """
-    from rlu.envs.core import render_settings
+    from rlu.domains.envkit import render_settings
     from rlu.envs.registration import env_spec
 
     ref = resolve_task(task_id)

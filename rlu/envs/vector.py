@@ -4,8 +4,8 @@
     obs, info = venv.reset()             # dict of (N, ...) arrays, or (N, 84, 84, 4) for Atari
     obs, reward, terminated, truncated, info = venv.step(actions)
 
-Backends (``"auto"`` picks per domain, see ``_AUTO``: ale for Atari, process for locomotion,
-sync for the control suite and RWRL, from bench/envs.py):
+Backends (``"auto"`` picks per domain, ``Domain.vector_backend``: ale for Atari, process for
+locomotion, sync for the control suite and RWRL, from bench/envs.py):
 - ``"process"``: ``ProcessVectorEnv``, N envs over ``num_workers`` (default:
   the available cores) worker processes, each stepping its share of envs in a loop, so one
   message round trip serves N / W env steps. Env i is ``rlu.make_env(task, seed=seed + i)``, so
@@ -13,7 +13,9 @@ sync for the control suite and RWRL, from bench/envs.py):
   ``forkserver`` so that no GL context is ever inherited across a fork.
 - ``"async"``: ``gymnasium.vector.AsyncVectorEnv``, one process per env (shared-memory
   observations), same seeding.
-- ``"ale"`` (Atari default): ale-py's C++ ``AtariVectorEnv`` with rlu's settings (sticky 0.25,
+- ``"ale"`` (Atari default; a domain's native vector env, ``Domain.native_vector``, made by its
+  env module's ``make_vector``: ``rlu.domains.atari.env.AleVectorEnv``): ale-py's C++
+  ``AtariVectorEnv`` with rlu's settings (sticky 0.25,
   no no-ops, no fire reset, frame skip 4 with max-pool, 84x84 grey, 4 frames zero-padded at an
   episode start, newest last). Its frames were checked to be bit-identical to ``AtariEnv``'s
   under the same actions (tests/envs/test_vector.py); its seeding differs from the single env's,
@@ -37,9 +39,9 @@ from typing import Any, Literal, SupportsFloat
 import numpy as np
 
 from rlu.domains import DOMAINS
-from rlu.envs.core import gym, spaces
+from rlu.domains.envkit import gym
 from rlu.system import available_cores
-from rlu.tasks import ATARI_MAX_AGENT_STEPS, get_task
+from rlu.tasks import get_task
 from rlu.types import RluError
 
 # Chosen by measurement (bench/envs.py; the figures and their machine: bench/README.md, "Design
@@ -72,12 +74,14 @@ def make_vector_env(
     n = int(num_envs or available_cores())
     if n < 1:
         raise RluError(f"num_envs must be >= 1, got {num_envs}")
+    domain = DOMAINS[task.domain]
     if backend == "auto":
         backend = _AUTO[task.domain]
-    if backend == "ale":
-        if _AUTO[task.domain] != "ale":
-            raise RluError(f"{task.id}: backend 'ale' is for Atari tasks; use 'async'")
-        return AleVectorEnv(task.env["game"], n, seed, **settings)
+    native = {d.native_vector for d in DOMAINS.values() if d.native_vector is not None}
+    if backend in native:
+        if backend != domain.native_vector:
+            raise RluError(f"{task.id}: backend {backend!r} is another domain's; use 'async'")
+        return domain.env_factory().make_vector(task, n, seed, **settings)
     fns = [
         functools.partial(
             _make_one, task_id, None if seed is None else seed + i, challenge, settings
@@ -86,14 +90,17 @@ def make_vector_env(
     ]
     if backend == "sync":
         return gym.vector.SyncVectorEnv(fns)
-    context: Literal["forkserver"] | None = "forkserver" if _AUTO[task.domain] != "ale" else None
+    # forkserver: no MuJoCo GL context is inherited across a fork (a native vector env's domain
+    # forks, as before)
+    context: Literal["forkserver"] | None = None if domain.native_vector else "forkserver"
     if backend == "process":
         return ProcessVectorEnv(fns, num_workers=num_workers, context=context)
     if backend == "async":
         if num_workers not in (None, n):
             raise RluError("backend 'async' runs one process per env; drop num_workers")
         return gym.vector.AsyncVectorEnv(fns, context=context)
-    raise RluError(f"unknown vector backend {backend!r}; use auto, process, async, ale or sync")
+    names = ", ".join(["auto", "process", "async", *sorted(native), "sync"])
+    raise RluError(f"unknown vector backend {backend!r}; use {names}")
 
 
 def _stack(items: list) -> Any:
@@ -224,86 +231,3 @@ def _concat(parts: list) -> Any:
     if isinstance(parts[0], dict):
         return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     return np.concatenate(parts)
-
-
-def _frames_last(obs: np.ndarray) -> np.ndarray:
-    """(N, 4, 84, 84) -> a new contiguous (N, 84, 84, 4) array.
-
-    One strided copy per frame plane, faster than ``ascontiguousarray(transpose)`` for uint8
-    by enough to matter beside ALE's own step (bench/README.md, "Design choices").
-    """
-    out = np.empty((obs.shape[0], *obs.shape[2:], obs.shape[1]), obs.dtype)
-    for c in range(obs.shape[1]):
-        out[..., c] = obs[:, c]
-    return out
-
-
-class AleVectorEnv(gym.vector.VectorEnv):
-    """ale-py's AtariVectorEnv with rlu's observation layout and reward convention."""
-
-    def __init__(
-        self,
-        game: str,
-        num_envs: int,
-        seed: int | None = None,
-        *,
-        max_episode_steps: int = ATARI_MAX_AGENT_STEPS,
-        clip_rewards: bool = False,
-        sticky_action_prob: float = 0.25,
-        frame_skip: int = 4,
-        num_threads: int | None = None,
-    ) -> None:
-        from ale_py.vector_env import AtariVectorEnv
-
-        from rlu.envs.atari import SCREEN_SIZE, rom_id
-
-        self._env = AtariVectorEnv(
-            rom_id(game),
-            num_envs,
-            num_threads=num_threads or min(num_envs, available_cores()),
-            repeat_action_probability=sticky_action_prob,
-            noop_max=0,
-            use_fire_reset=False,
-            episodic_life=False,
-            reward_clipping=False,
-            frameskip=frame_skip,
-            maxpool=True,
-            stack_num=4,
-            grayscale=True,
-            img_height=SCREEN_SIZE,
-            img_width=SCREEN_SIZE,
-            # ALE counts frames; the single env counts agent steps of `frame_skip` frames.
-            max_num_frames_per_episode=max_episode_steps * frame_skip,
-        )
-        self.num_envs = num_envs
-        self._seed = seed
-        self.clip_rewards = clip_rewards
-        space = self._env.single_action_space
-        assert isinstance(space, spaces.Discrete)  # ALE's minimal action set
-        n_actions = space.n
-        self.single_observation_space = spaces.Box(0, 255, (SCREEN_SIZE, SCREEN_SIZE, 4), np.uint8)
-        self.single_action_space = spaces.Discrete(n_actions)
-        self.observation_space = gym.vector.utils.batch_space(
-            self.single_observation_space, num_envs
-        )
-        self.action_space = gym.vector.utils.batch_space(self.single_action_space, num_envs)
-        self.metadata = {"autoreset_mode": gym.vector.AutoresetMode.NEXT_STEP}
-
-    def reset(
-        self, *, seed: int | None = None, options: dict[str, Any] | None = None
-    ) -> tuple[np.ndarray, dict[str, Any]]:
-        if seed is None and self._seed is not None:
-            seed, self._seed = self._seed, None  # the constructor's seed seeds the first reset
-        obs, info = self._env.reset(seed=seed, options=options)
-        return _frames_last(obs), info
-
-    def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, Any, Any, dict[str, Any]]:
-        obs, reward, terminated, truncated, info = self._env.step(np.asarray(actions))
-        raw = np.asarray(reward, np.float64)
-        info = dict(info)
-        info["raw_reward"] = raw
-        out = np.clip(raw, -1.0, 1.0) if self.clip_rewards else raw
-        return _frames_last(obs), out, terminated, truncated, info
-
-    def close(self, **kwargs: Any) -> None:
-        self._env.close()

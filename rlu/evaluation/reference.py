@@ -89,7 +89,7 @@ def best_behaviour(task_id: str, path: str | os.PathLike | None = None) -> float
 
 
 def _scalar(cols: Mapping[str, Any], key: str, where: str) -> np.ndarray:
-    from rlu.data.release import example as ex
+    from rlu.codecs import example as ex
 
     col = cols.get(key)
     if col is None:
@@ -104,7 +104,7 @@ def _scalar(cols: Mapping[str, Any], key: str, where: str) -> np.ndarray:
 
 def checkpoint_returns(path: str | os.PathLike, verify: bool = True) -> dict[int, list[float]]:
     """``{checkpoint_idx: [raw episode_return, ...]}`` of one ``atari_episodes_ordered`` shard."""
-    from rlu.data.release import example as ex
+    from rlu.codecs import example as ex
     from rlu.data.release.framing import RecordReader
 
     out: dict[int, list[float]] = defaultdict(list)

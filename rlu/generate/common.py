@@ -34,12 +34,12 @@ from typing import Any
 import numpy as np
 
 from rlu.data import DatasetWriter, open_dataset
-from rlu.data.episode import Segment
 from rlu.domains import DOMAINS
 from rlu.files import AnyJSON, MapOf, read_json, write_json
 from rlu.generate.config import GenerateConfig
 from rlu.generate.recorder import schema_for
 from rlu.seeds import derive_seed, seed_stream
+from rlu.segments import Segment
 from rlu.tasks import TaskSpec
 from rlu.types import RluError
 

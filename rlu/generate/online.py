@@ -37,12 +37,12 @@ from typing import Any
 
 import numpy as np
 
-from rlu.data.episode import Segment
 from rlu.data.views import n_step_counts, n_step_targets, stack_frames
 from rlu.files import FRACTION, MAX_STEPS, STEPS, Checked, bounds
 from rlu.generate.common import ACTOR, AGENT, ENV, EPISODE, run_rng, run_seed
 from rlu.generate.config import GenerateConfig
 from rlu.generate.recorder import EpisodeRecorder, episode_id, schema_for
+from rlu.segments import Segment
 from rlu.tasks import TaskSpec, get_task
 from rlu.types import ArraySpec, BatchSpec, FormatError, RluError, Transition
 

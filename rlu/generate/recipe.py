@@ -32,7 +32,6 @@ from pathlib import Path
 from typing import Any
 
 from rlu.data import DatasetWriter
-from rlu.data.episode import Segment
 from rlu.generate.common import (
     Progress,
     merge_runs,
@@ -47,6 +46,7 @@ from rlu.generate.online import OnlineConfig, RunHooks, run_online
 from rlu.generate.policies import save_snapshot
 from rlu.generate.recorder import schema_for
 from rlu.generate.scales import get_scale
+from rlu.segments import Segment
 from rlu.tasks import TaskSpec, get_task
 from rlu.types import RluError
 

@@ -24,8 +24,8 @@ from typing import Any
 import numpy as np
 
 from rlu.data import Schema
-from rlu.data.episode import Segment, make_episode
 from rlu.domains import DOMAINS
+from rlu.segments import Segment, make_episode
 from rlu.tasks import TaskSpec
 from rlu.types import ArraySpec, ObservationSpec, RluError
 

@@ -31,9 +31,9 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from rlu.agents import make_agent  # noqa: E402
-from rlu.data.episode import make_episode  # noqa: E402
 from rlu.data.store import DatasetWriter, Schema, open_dataset  # noqa: E402
 from rlu.data.views import make_sampler, transition_sampler  # noqa: E402
+from rlu.segments import make_episode  # noqa: E402
 from rlu.types import ArraySpec, DiscreteSpec  # noqa: E402
 
 CELLS, START, CAP = 7, 3, 30

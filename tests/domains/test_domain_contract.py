@@ -43,7 +43,13 @@ def test_the_registry_is_the_task_registrys_domains():
     assert {t.domain for t in TASKS.values()} == set(DOMAINS)
     for name, domain in DOMAINS.items():
         assert isinstance(domain, Domain) and domain.name == name
-        assert (ROOT / "rlu" / "domains" / f"{name}.py").is_file()
+        # a domain is in one place: its folder (or module), which holds every module it names
+        home = f"rlu.domains.{name}"
+        assert (ROOT / "rlu" / "domains" / name / "__init__.py").is_file() or (
+            ROOT / "rlu" / "domains" / f"{name}.py"
+        ).is_file()
+        for module in (domain.env_module, domain.release_module):
+            assert module is None or module == home or module.startswith(home + "."), module
     with pytest.raises(RluError, match="unknown domain 'nope'; use one of"):
         get_domain("nope")
 

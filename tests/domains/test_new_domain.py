@@ -1,7 +1,8 @@
 """A new domain is one module plus one registry line: a copy of the package gains
-``rlu/domains/corridor.py`` (its task, its env, its entry) and ``"corridor"`` in ``_MODULES``,
-nothing else, and the command line lists it, trains an agent on its data, evaluates the run in
-its env and reports it. Real processes on the copy (``python -m rlu``), no edit of the repo."""
+``rlu/domains/corridor.py`` (its task, its env, its release family, its entry) and ``"corridor"``
+in ``_MODULES``, nothing else, and the command line lists it, converts a shard of its release
+format, trains an agent on the data, evaluates the run in its env and reports it. Real processes
+on the copy (``python -m rlu``), no edit of the repo."""
 
 from __future__ import annotations
 
@@ -29,10 +30,11 @@ import numpy as np
 
 from rlu.domains import Domain
 from rlu.domains.common import f32
+from rlu.domains.records import Family, integers, need, numeric
 
 
 def build_tasks() -> list:
-    from rlu.domains.spec import TaskSpec
+    from rlu.domains.spec import ReleaseDataset, TaskSpec
     from rlu.types import DiscreteSpec
 
     return [
@@ -45,13 +47,49 @@ def build_tasks() -> list:
             episode_length=16,
             selection="offline",
             episodes=MappingProxyType({}),
-            release=(),
+            release=(ReleaseDataset("corridor", "corridor/walk", MappingProxyType({"": 1})),),
         )
     ]
 
 
+def parse(cols: Any, where: str = "record") -> list:
+    """Whole episodes: T 4-float observations, T int64 actions, T rewards."""
+    action = integers(numeric(need(cols, "action", where), "action", where), "action", where)
+    t = action.shape[1]
+    obs = numeric(need(cols, "observation", where), "observation", where)
+    reward = numeric(need(cols, "reward", where), "reward", where)
+    return [{"observation": obs.reshape(-1, t, 4), "action": action, "reward": reward}]
+
+
+def segments(raw: Any) -> Any:
+    from rlu.segments import SegmentBatch
+
+    n, t = raw["action"].shape
+    first, last = np.zeros((n, t), bool), np.zeros((n, t), bool)
+    first[:, 0] = last[:, -1] = True
+    discount = np.ones((n, t), np.float32)
+    discount[:, -2:] = 0.0  # every episode ends at the corridor's end: terminal
+    return SegmentBatch(raw["observation"].astype(np.float32), raw["action"],
+                        raw["reward"].astype(np.float32), discount, first, last, last.copy())
+
+
+def encode(rec: Any) -> bytes:
+    from rlu.codecs import example as ex
+
+    feats = {k: np.asarray(v).reshape(-1) for k, v in rec.items()}
+    kinds = {"observation": ex.FLOAT, "action": ex.INT64, "reward": ex.FLOAT}
+    return ex.encode_example(feats, kinds=kinds)
+
+
+FAMILIES = (
+    Family(name="corridor", compression=None, parse=parse, segments=segments, encode=encode,
+           whole_episodes=True, max_record_bytes=1 << 20, max_shard_bytes=1 << 24,
+           record_note="a corridor episode is 16 steps of 6 floats"),
+)
+
+
 def make(task: Any, seed: int | None = None, render: Any = None, **settings: Any) -> Any:
-    from rlu.envs.core import gym, observation_space, spaces
+    from rlu.domains.envkit import gym, observation_space, spaces
 
     class Walk(gym.Env):
         metadata = {"render_modes": []}
@@ -83,17 +121,28 @@ DOMAIN = Domain(
     title="Corridor",
     build_tasks=build_tasks,
     env_module="rlu.domains.corridor",
+    release_module="rlu.domains.corridor",
     extra="control",
     packages=("gymnasium",),
 )
 '''
 
-SYNTHETIC = """
+# a release shard of the corridor's family, written by its own encoder: 6 episodes walking right
+SHARD = """
 import sys
-from rlu.data import Schema
-from rlu.data.synthetic import write_synthetic
-from rlu.tasks import get_task
-write_synthetic(sys.argv[1], Schema.for_task(get_task("corridor/walk")), 6, 16, seed=0)
+import numpy as np
+from rlu.data.release.families import write_shard
+rng = np.random.default_rng(0)
+records = []
+for _ in range(6):
+    actions = np.concatenate([rng.integers(0, 2, 6), np.ones(7, np.int64)])
+    cells = np.minimum(7, np.maximum(0, np.cumsum(np.concatenate([[0], 2 * actions - 1]))))
+    t = int(np.argmax(cells == 7)) + 1 if (cells == 7).any() else len(cells)
+    obs = np.stack([cells[:t] / 7, np.ones(t), np.zeros(t), np.zeros(t)], 1).astype(np.float32)
+    reward = np.zeros(t, np.float32)
+    reward[-2] = 1.0
+    records.append({"observation": obs, "action": np.append(actions, 0)[:t], "reward": reward})
+write_shard(sys.argv[1], "corridor", records)
 """
 
 
@@ -118,7 +167,9 @@ def _changes(a: Path, b: Path) -> tuple[list[str], list[str]]:
 
 
 @pytest.mark.slow  # several processes importing torch: ~30 s on a 2-core machine
-def test_a_domain_added_as_one_module_and_one_line_lists_trains_evaluates_and_reports(tmp_path):
+def test_a_domain_added_as_one_module_and_one_line_lists_converts_trains_evaluates_reports(
+    tmp_path,
+):
     pytest.importorskip("torch")
     pytest.importorskip("gymnasium")
     copy = tmp_path / "copy"
@@ -144,9 +195,15 @@ def test_a_domain_added_as_one_module_and_one_line_lists_trains_evaluates_and_re
     listed = rlu("list")
     assert listed.returncode == 0 and "corridor/walk" in listed.stdout, listed.stdout
     data, run = tmp_path / "data", tmp_path / "run"
-    made = subprocess.run([sys.executable, "-c", SYNTHETIC, str(data)], cwd=copy, env=env,
+    shard = tmp_path / "corridor" / "walk-00000-of-00001"
+    shard.parent.mkdir()
+    made = subprocess.run([sys.executable, "-c", SHARD, str(shard)], cwd=copy, env=env,
                           capture_output=True, text=True, timeout=300)  # fmt: skip
     assert made.returncode == 0, made.stderr
+    converted = rlu("convert", str(shard), "--family", "corridor", "--task", "corridor/walk",
+                    "--out", str(data))  # fmt: skip
+    assert converted.returncode == 0, converted.stderr
+    assert ": 6 segments, 74 steps from 6 records" in converted.stdout, converted.stdout
     trained = rlu("train", "--task", "corridor/walk", "--agent", "dqn", "--dataset", str(data),
                   "--out", str(run), "--steps", "3", "--eval-every", "0", "--eval-episodes", "1",
                   "--eval-envs", "1", "--device", "cpu", "--quiet",

@@ -7,8 +7,8 @@ pytest.importorskip("ale_py")
 pytest.importorskip("cv2")
 
 import rlu  # noqa: E402
+from rlu.domains.envkit import check_observation, observation_space  # noqa: E402
 from rlu.envs import ATARI_ORIGINAL_EVAL_STEPS  # noqa: E402
-from rlu.envs.core import check_observation, observation_space  # noqa: E402
 from rlu.tasks import list_tasks  # noqa: E402
 from tests.envs.helpers import check_env_quietly, rollout, same  # noqa: E402
 

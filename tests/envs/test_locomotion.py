@@ -7,8 +7,8 @@ pytest.importorskip("dm_control")
 pytest.importorskip("labmaze")
 
 import rlu  # noqa: E402
-from rlu.envs.core import check_observation, observation_space  # noqa: E402
-from rlu.envs.locomotion import CAMERA_KEY  # noqa: E402
+from rlu.domains.envkit import check_observation, observation_space  # noqa: E402
+from rlu.domains.locomotion.env import CAMERA_KEY  # noqa: E402
 from rlu.tasks import list_tasks  # noqa: E402
 from tests.envs.helpers import check_env_quietly, rollout, same  # noqa: E402
 

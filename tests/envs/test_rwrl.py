@@ -1,4 +1,4 @@
-"""RWRL envs: each challenge does what its definition says (rlu/envs/rwrl.py, with sources)."""
+"""RWRL envs: each challenge does what its definition says (rlu/domains/rwrl/env.py, with sources)."""
 
 import numpy as np
 import pytest
@@ -6,8 +6,8 @@ import pytest
 pytest.importorskip("dm_control")
 
 import rlu  # noqa: E402
-from rlu.envs.core import check_observation, observation_space  # noqa: E402
-from rlu.envs.rwrl import CHALLENGES, PERTURBATIONS  # noqa: E402
+from rlu.domains.envkit import check_observation, observation_space  # noqa: E402
+from rlu.domains.rwrl.env import CHALLENGES, PERTURBATIONS  # noqa: E402
 from rlu.tasks import list_tasks, rwrl_observation_spec  # noqa: E402
 from tests.envs.helpers import check_env_quietly, rollout, same  # noqa: E402
 

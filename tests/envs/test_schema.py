@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 import rlu
-from rlu.data.episode import make_episode
 from rlu.data.store import DatasetWriter, Schema, open_dataset
 from rlu.data.views import TransitionView
+from rlu.segments import make_episode
 
 
 def _episode(env, steps):

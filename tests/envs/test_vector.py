@@ -36,8 +36,7 @@ def test_sub_envs_are_the_single_envs_of_seed_plus_i(backend, n):
 def test_ale_vector_env_frames_equal_the_single_env():
     pytest.importorskip("ale_py")
     pytest.importorskip("cv2")
-    from rlu.envs.atari import AtariEnv
-    from rlu.envs.vector import AleVectorEnv
+    from rlu.domains.atari.env import AleVectorEnv, AtariEnv
 
     # Without sticky actions both envs are deterministic given the actions, so the frames
     # (pooling, resize, stacking, zero padding) must be bit-identical.
@@ -72,8 +71,8 @@ def test_auto_backend_per_domain():
 
 def test_default_backends_and_batch_shapes():
     pytest.importorskip("ale_py")
+    from rlu.domains.atari.env import AleVectorEnv
     from rlu.envs import make_vector_env
-    from rlu.envs.vector import AleVectorEnv
 
     venv = make_vector_env("atari/Pong", num_envs=2, seed=0)
     assert isinstance(venv, AleVectorEnv)

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rlu.data.episode import make_episode
 from rlu.data.store import DatasetWriter, Schema, open_dataset
 from rlu.evaluation import scores
+from rlu.segments import make_episode
 from rlu.types import ArraySpec, DiscreteSpec, RluError
 
 

@@ -34,9 +34,11 @@ from tests.servers import direct, serve
 pytest.importorskip("google_crc32c", reason="the release extra (google-crc32c) is not installed")
 
 from rlu.cli import main  # noqa: E402
-from rlu.data.release import example as ex  # noqa: E402
+from rlu.codecs import example as ex  # noqa: E402
 from rlu.data.release import families as Fm  # noqa: E402
 from rlu.data.release.framing import RecordReader, frame  # noqa: E402
+from rlu.domains import records  # noqa: E402
+from rlu.domains.atari import release as atari_release  # noqa: E402
 from rlu.types import FormatError, RluError  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -58,7 +60,9 @@ def _window() -> dict[str, np.ndarray]:
 
 
 def _shard_bytes() -> bytes:
-    return gzip.compress(b"".join(frame(Fm.encode_sequence(_window())) for _ in range(8)), mtime=0)
+    return gzip.compress(
+        b"".join(frame(records.encode_sequence(_window())) for _ in range(8)), mtime=0
+    )
 
 
 class _Handler(http.server.BaseHTTPRequestHandler):
@@ -228,7 +232,7 @@ def _limit_memory() -> None:
 
 def test_a_shard_of_100_mib_records_is_refused_in_bounded_memory(tmp_path):
     shard = tmp_path / "train-00000-of-00001"
-    _long_record_shard(shard, Fm.encode_sequence(_window()), 12, 100)
+    _long_record_shard(shard, records.encode_sequence(_window()), 12, 100)
     assert shard.stat().st_size < 2 << 20  # 1.2 GB of records in a little over 1 MB
     argv = ["convert", "--family", "dm_control_suite", "--task", TASK, "--out",
             str(tmp_path / "out"), str(shard)]  # fmt: skip
@@ -252,7 +256,7 @@ def test_long_records_of_an_episode_family_are_decoded_as_they_stream(tmp_path):
     from tests.release.test_families import atari_episode
 
     shard = tmp_path / "run_1-00000-of-00001"
-    ep = Fm.encode_atari_episode(atari_episode(np.random.default_rng(0), 5))
+    ep = atari_release.encode_atari_episode(atari_episode(np.random.default_rng(0), 5))
     stride = _long_record_shard(shard, ep, 3, 70)  # each past the decode batch's byte bound
     reader = RecordReader(shard)
     segments = Fm.iter_segments(shard, "atari_episodes_ordered", reader=reader)
@@ -262,7 +266,7 @@ def test_long_records_of_an_episode_family_are_decoded_as_they_stream(tmp_path):
 
 
 def test_an_atari_episode_past_the_recording_limit_is_refused_undecoded(tmp_path):
-    from rlu.data.release.png import encode_png
+    from rlu.codecs.png import encode_png
 
     t = 30_000
     frame_png = encode_png(np.zeros((84, 84), np.uint8))

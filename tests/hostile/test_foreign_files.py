@@ -291,9 +291,9 @@ def policy_ds(tmp_path_factory) -> Path:
     pytest.importorskip("torch")
     from rlu.agents import make_agent
     from rlu.data import DatasetWriter
-    from rlu.data.episode import make_episode
     from rlu.generate.online import OnlineConfig
     from rlu.generate.policies import policy_stem, save_snapshot
+    from rlu.segments import make_episode
 
     tmp = tmp_path_factory.mktemp("policy")
     task = get_task(TASK)

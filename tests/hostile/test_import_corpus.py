@@ -18,14 +18,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from rlu.codecs import example as E
+from rlu.codecs.png import encode_png
 from rlu.data import Schema, open_dataset
 from rlu.data.d4rl import import_d4rl, to_d4rl
-from rlu.data.release import example as E
-from rlu.data.release import families as Fm
 from rlu.data.release.convert import convert
 from rlu.data.release.framing import frame, write_records
-from rlu.data.release.png import encode_png
 from rlu.data.synthetic import write_synthetic
+from rlu.domains import records
+from rlu.domains.atari import release as atari_release
+from rlu.domains.rwrl import release as rwrl_release
 from rlu.tasks import get_task
 from rlu.types import RluError
 from tests.release.test_families import atari_record, rwrl_record, window_record
@@ -496,7 +498,7 @@ def _records(payloads: list[bytes], gz: bool = True) -> Callable[[Path], Path]:
 def _window(**change) -> bytes:
     rec = window_record(np.random.default_rng(0), 2, {"position": 3, "velocity": 2})
     rec["action"] = rec["action"][:, :1]
-    feats = E.decode_example(Fm.encode_sequence(rec))
+    feats = E.decode_example(records.encode_sequence(rec))
     feats.update(change)
     for k, v in change.items():
         if v is None:
@@ -505,7 +507,9 @@ def _window(**change) -> bytes:
 
 
 def _atari(**change) -> bytes:
-    feats = E.decode_example(Fm.encode_atari_transition(atari_record(np.random.default_rng(0))))
+    feats = E.decode_example(
+        atari_release.encode_atari_transition(atari_record(np.random.default_rng(0)))
+    )
     feats.update(change)
     return E.encode_example(feats)
 
@@ -584,7 +588,7 @@ _convert_case("atari_action_as_float", _records([_atari(a_t=np.float32([1.5]))])
 _convert_case(
     "rwrl_header_beyond_the_file",
     _raw_file(
-        (frame(Fm.encode_rwrl(rwrl_record(np.random.default_rng(0), 5))) * 2)[:-30],
+        (frame(rwrl_release.encode_rwrl(rwrl_record(np.random.default_rng(0), 5))) * 2)[:-30],
         "episodes.tfrecord-00000-of-00001",
     ),
     "rwrl",

@@ -10,7 +10,8 @@ from pathlib import Path
 import numpy as np
 
 from rlu.data.release.convert import convert
-from rlu.data.release.families import CAMERA_KEY, FIRST, LAST, MID, write_shard
+from rlu.data.release.families import write_shard
+from rlu.domains.records import CAMERA_KEY, FIRST, LAST, MID
 from rlu.tasks import get_task
 
 FAMILIES = ("control_episodes", "seq2_windows", "rwrl", "atari_episodes", "locomotion")

@@ -52,8 +52,8 @@ def assert_same_dataset(a, b) -> dict[str, int]:
     step (and frame) column row by row with its dtype (every episode's last row included), the
     segment index, every metadata column (missing values included), the episode returns, and
     every attached file byte for byte. Returns what was compared."""
-    from rlu.data.episode import METADATA_FIELDS
     from rlu.data.roundtrip import attachments
+    from rlu.segments import METADATA_FIELDS
 
     for key in ("schema", "counts", "provenance"):
         assert a.manifest[key] == b.manifest[key], key

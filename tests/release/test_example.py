@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rlu.data.release import example as E
+from rlu.codecs import example as E
 from rlu.types import FormatError
 
 

@@ -6,9 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rlu.data.release import example as E
+from rlu.codecs import example as E
 from rlu.data.release import families as Fm
 from rlu.data.release.framing import RecordReader, is_gzip
+from rlu.domains import records
 
 
 def _f32(rng, *shape):
@@ -18,7 +19,7 @@ def _f32(rng, *shape):
 def window_record(rng, t, obs_dims, camera=False, step_type=None, discount=None):
     rec = {f"observation/{k}": _f32(rng, t, d) for k, d in obs_dims.items()}
     if camera:
-        rec[Fm.CAMERA_KEY] = rng.integers(0, 256, (t, 64, 64, 3), dtype=np.uint8)
+        rec[records.CAMERA_KEY] = rng.integers(0, 256, (t, 64, 64, 3), dtype=np.uint8)
     rec["action"] = _f32(rng, t, 2)
     rec["reward"] = _f32(rng, t)
     rec["discount"] = np.ones(t, np.float32) if discount is None else np.float32(discount)

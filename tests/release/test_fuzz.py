@@ -14,7 +14,7 @@ import re
 import numpy as np
 import pytest
 
-from rlu.data.release import example as E
+from rlu.codecs import example as E
 from rlu.data.release import families as Fm
 from rlu.data.release.framing import RecordWriter
 from rlu.types import FormatError

@@ -9,7 +9,7 @@ from pathlib import Path
 
 def test_release_modules_import_lazily():
     code = (
-        "import sys, rlu.data.release.framing, rlu.data.release.example, rlu.data.release.png, "
+        "import sys, rlu.data.release.framing, rlu.codecs.example, rlu.codecs.png, "
         "rlu.data.release.families, rlu.data.release.catalog, rlu.data.release.download, "
         "rlu.data.release.convert, rlu.data.release.load, rlu.commands.release;"
         "print(','.join(m for m in ('PIL', 'google_crc32c', 'tensorflow', 'google.protobuf') "

@@ -17,6 +17,7 @@ from rlu.data.release.framing import RecordReader
 from rlu.data.store import open_dataset
 from rlu.data.validate import validate
 from rlu.data.views import TransitionView
+from rlu.domains import records
 
 RELEASE = Path(__file__).resolve().parents[1] / "fixtures" / "release"
 LOCOMOTION = RELEASE / "dm_locomotion" / "humanoid_corridor" / "seq2" / "train-00000-of-00100"
@@ -35,7 +36,7 @@ def test_tf_written_locomotion_shard_reads_bit_for_bit():
     assert sorted(raw) == sorted([*exp.files, "length"])
     for k in exp.files:
         assert _bits(raw[k], exp[k]), k
-    assert raw[Fm.CAMERA_KEY].shape == (7, 2, 64, 64, 3) and np.all(raw["length"] == 2)
+    assert raw[records.CAMERA_KEY].shape == (7, 2, 64, 64, 3) and np.all(raw["length"] == 2)
 
 
 def test_tf_written_locomotion_windows_convert_to_the_loaders_tuples(tmp_path):
@@ -53,11 +54,11 @@ def test_tf_written_locomotion_windows_convert_to_the_loaders_tuples(tmp_path):
         assert _bits(t.observation[k], exp[f"observation/{k}"][:, 0]), k
         assert _bits(t.next_observation[k], exp[f"observation/{k}"][:, 1]), k
     # the fall: the transition into the LAST step has discount 0, and only it is terminal
-    terminal = (exp["step_type"][:, 1] == Fm.LAST) & (exp["discount"][:, 0] == 0)
+    terminal = (exp["step_type"][:, 1] == records.LAST) & (exp["discount"][:, 0] == 0)
     assert terminal.tolist() == [False, False, True, False, False, False, False]
     segs = [s for b in Fm.iter_segments(LOCOMOTION, "dm_locomotion") for s in b]
     assert [bool(s.is_terminal[-1]) for s in segs] == terminal.tolist()
-    assert [bool(s.is_last[-1]) for s in segs] == (exp["step_type"][:, 1] == Fm.LAST).tolist()
+    assert [bool(s.is_last[-1]) for s in segs] == (exp["step_type"][:, 1] == records.LAST).tolist()
     assert validate(out).ok
 
 

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from PIL import Image
 
-from rlu.data.release import png
+from rlu.codecs import png
 from rlu.types import FormatError
 
 

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from rlu.data.episode import make_episode
 from rlu.data.store import DatasetWriter, Schema
+from rlu.segments import make_episode
 from rlu.types import ArraySpec, BoundedSpec
 
 EPISODE_STEPS = 50

@@ -235,8 +235,8 @@ def test_fqe_selection_over_a_sweep(local_sweep, tmp_path):
 
 
 def _episodes_dataset(path, returns_by_checkpoint):
-    from rlu.data.episode import make_episode
     from rlu.data.store import DatasetWriter, Schema
+    from rlu.segments import make_episode
     from rlu.types import ArraySpec, DiscreteSpec
 
     schema = Schema(ArraySpec((2,), "float32"), DiscreteSpec((), "int64", 3))

@@ -1,9 +1,9 @@
 """The original RL Unplugged release without TensorFlow.
 
 - :mod:`.framing`: TFRecord reader / writer (masked CRC-32C, whole-file gzip, streaming);
-- :mod:`.example`: ``tf.train.Example`` <-> numpy;
-- :mod:`.png`: the release's PNG frames;
-- :mod:`.families`: per-family decoding into loader-shaped arrays and into Segments;
+- :mod:`.families`: the registry of the release's families (each domain declares its own, with
+  its decoding into loader-shaped arrays and into Segments; ``tf.train.Example`` and PNG codecs in
+  :mod:`rlu.codecs`);
 - :mod:`.catalog`: bucket paths and shard counts for every registered task;
 - :mod:`.download`: resumable, checksum-recorded HTTPS download into a cache dir;
 - :mod:`.convert`: shards -> native store; :mod:`.jobs`: one job per shard on the one runner (local

@@ -24,11 +24,11 @@ from typing import Any
 
 import numpy as np
 
-from rlu.data.episode import METADATA_FIELDS
 from rlu.data.release.families import SegmentBatch, get_family, iter_segments, reader_for
 from rlu.data.store import DatasetWriter, Deflated, Schema, SegmentColumns, segment_columns
 from rlu.domains import DOMAINS
 from rlu.progress import Progress
+from rlu.segments import METADATA_FIELDS
 from rlu.system import available_cores
 from rlu.tasks import TaskSpec, get_task, rwrl_observation_spec
 from rlu.types import ArraySpec, DiscreteSpec, FormatError, RluError, SpecError

@@ -33,7 +33,6 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from rlu.data.episode import METADATA_FIELDS, METADATA_MISSING, Segment
 from rlu.data.inflate import current, inflate_frames
 from rlu.data.store.decoders import MEMORY, Decoders, decoders
 from rlu.data.store.schema import (
@@ -46,6 +45,7 @@ from rlu.data.store.schema import (
     partial_dir,
     whole_number,
 )
+from rlu.segments import METADATA_FIELDS, METADATA_MISSING, Segment
 from rlu.types import ArraySpec, FormatError, RluError
 
 if TYPE_CHECKING:

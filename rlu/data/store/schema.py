@@ -35,8 +35,8 @@ from typing import Any
 
 import numpy as np
 
-from rlu.data.episode import METADATA_FIELDS, Segment
 from rlu.domains import DOMAINS
+from rlu.segments import METADATA_FIELDS, Segment
 from rlu.types import (
     ActionSpec,
     ArraySpec,

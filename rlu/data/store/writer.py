@@ -22,7 +22,6 @@ from typing import Any, cast
 
 import numpy as np
 
-from rlu.data.episode import METADATA_FIELDS, METADATA_MISSING, Segment
 from rlu.data.store.schema import (
     ATTACHMENT_DIRS,
     FORMAT,
@@ -37,6 +36,7 @@ from rlu.data.store.schema import (
 )
 from rlu.files import move_into_place, open_new, write_atomic
 from rlu.locks import OutputLock
+from rlu.segments import METADATA_FIELDS, METADATA_MISSING, Segment
 from rlu.system import available_cores
 from rlu.types import ArraySpec, RluError, SpecError
 

@@ -224,12 +224,14 @@ DOMAIN = Domain(
     name=NAME,
     title="Atari 2600",
     build_tasks=build_tasks,
-    env_module="rlu.envs.atari",
+    env_module="rlu.domains.atari.env",
+    release_module="rlu.domains.atari.release",
     extra="atari",
     packages=("ale_py", "cv2", "gymnasium"),
     datasets="runs",
     step_limit_setting="max_episode_steps",
     vector_backend="ale",
+    native_vector="ale",
     tfds_builders=MappingProxyType(
         {
             "rlu_atari": "atari_episodes_ordered",

@@ -40,8 +40,17 @@ from typing import Any
 
 import numpy as np
 
-from rlu.envs.core import RENDER_MODES, Render, check_observation, gym, observation_space, spaces
-from rlu.tasks import ATARI_MAX_AGENT_STEPS, TaskSpec
+from rlu.domains.atari import ATARI_MAX_AGENT_STEPS
+from rlu.domains.envkit import (
+    RENDER_MODES,
+    Render,
+    check_observation,
+    gym,
+    observation_space,
+    spaces,
+)
+from rlu.domains.spec import TaskSpec
+from rlu.system import available_cores
 from rlu.types import RluError
 
 SCREEN_SIZE = 84
@@ -192,3 +201,92 @@ def make(
     if env.observation_space != observation_space(task.observation_spec):
         raise RluError(f"{task.id}: the env's observation space differs from the TaskSpec")
     return env
+
+
+# --- the native vector env (``rlu.envs.make_vector_env``'s "ale" backend) -----------------------
+
+
+def make_vector(task: TaskSpec, num_envs: int, seed: int | None = None, **settings: Any) -> Any:
+    """``num_envs`` copies of ``task`` in ale-py's C++ vector env (see :class:`AleVectorEnv`)."""
+    return AleVectorEnv(task.env["game"], num_envs, seed, **settings)
+
+
+def _frames_last(obs: np.ndarray) -> np.ndarray:
+    """(N, 4, 84, 84) -> a new contiguous (N, 84, 84, 4) array.
+
+    One strided copy per frame plane, faster than ``ascontiguousarray(transpose)`` for uint8
+    by enough to matter beside ALE's own step (bench/README.md, "Design choices").
+    """
+    out = np.empty((obs.shape[0], *obs.shape[2:], obs.shape[1]), obs.dtype)
+    for c in range(obs.shape[1]):
+        out[..., c] = obs[:, c]
+    return out
+
+
+class AleVectorEnv(gym.vector.VectorEnv):
+    """ale-py's AtariVectorEnv with rlu's observation layout and reward convention."""
+
+    def __init__(
+        self,
+        game: str,
+        num_envs: int,
+        seed: int | None = None,
+        *,
+        max_episode_steps: int = ATARI_MAX_AGENT_STEPS,
+        clip_rewards: bool = False,
+        sticky_action_prob: float = 0.25,
+        frame_skip: int = 4,
+        num_threads: int | None = None,
+    ) -> None:
+        from ale_py.vector_env import AtariVectorEnv
+
+        self._env = AtariVectorEnv(
+            rom_id(game),
+            num_envs,
+            num_threads=num_threads or min(num_envs, available_cores()),
+            repeat_action_probability=sticky_action_prob,
+            noop_max=0,
+            use_fire_reset=False,
+            episodic_life=False,
+            reward_clipping=False,
+            frameskip=frame_skip,
+            maxpool=True,
+            stack_num=4,
+            grayscale=True,
+            img_height=SCREEN_SIZE,
+            img_width=SCREEN_SIZE,
+            # ALE counts frames; the single env counts agent steps of `frame_skip` frames.
+            max_num_frames_per_episode=max_episode_steps * frame_skip,
+        )
+        self.num_envs = num_envs
+        self._seed = seed
+        self.clip_rewards = clip_rewards
+        space = self._env.single_action_space
+        assert isinstance(space, spaces.Discrete)  # ALE's minimal action set
+        n_actions = space.n
+        self.single_observation_space = spaces.Box(0, 255, (SCREEN_SIZE, SCREEN_SIZE, 4), np.uint8)
+        self.single_action_space = spaces.Discrete(n_actions)
+        self.observation_space = gym.vector.utils.batch_space(
+            self.single_observation_space, num_envs
+        )
+        self.action_space = gym.vector.utils.batch_space(self.single_action_space, num_envs)
+        self.metadata = {"autoreset_mode": gym.vector.AutoresetMode.NEXT_STEP}
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        if seed is None and self._seed is not None:
+            seed, self._seed = self._seed, None  # the constructor's seed seeds the first reset
+        obs, info = self._env.reset(seed=seed, options=options)
+        return _frames_last(obs), info
+
+    def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, Any, Any, dict[str, Any]]:
+        obs, reward, terminated, truncated, info = self._env.step(np.asarray(actions))
+        raw = np.asarray(reward, np.float64)
+        info = dict(info)
+        info["raw_reward"] = raw
+        out = np.clip(raw, -1.0, 1.0) if self.clip_rewards else raw
+        return _frames_last(obs), out, terminated, truncated, info
+
+    def close(self, **kwargs: Any) -> None:
+        self._env.close()

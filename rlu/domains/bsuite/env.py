@@ -16,8 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from rlu.envs.core import Render, check_observation, gym, observation_space, spaces
-from rlu.tasks import TaskSpec
+from rlu.domains.envkit import Render, check_observation, gym, observation_space, spaces
+from rlu.domains.spec import TaskSpec
 from rlu.types import RluError
 
 

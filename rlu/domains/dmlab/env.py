@@ -17,8 +17,8 @@ import importlib.util
 from typing import Any, NoReturn
 
 from rlu.domains import DOMAINS
-from rlu.envs.core import Render
-from rlu.tasks import TaskSpec
+from rlu.domains.envkit import Render
+from rlu.domains.spec import TaskSpec
 from rlu.types import RluError
 
 

@@ -4,7 +4,7 @@ The builders copy the original's (``rl_unplugged/dm_control_suite.py`` ``_build_
 dm_control's examples, whose humanoid parameters differ. Every number below is the
 original's.
 The original then wrapped each env in: action normalisation to [-1, 1] -> clip -> float32 ->
-keep the dataset's observation keys; ``rlu.envs.core.DmControlEnv`` does the same.
+keep the dataset's observation keys; ``rlu.domains.envkit.DmControlEnv`` does the same.
 
 Rendering: the camera is rendered offscreen on every step through MuJoCo's GL backend
 (``MUJOCO_GL=egl`` or ``osmesa``; rlu sets ``egl`` when unset) with the default renderer
@@ -24,8 +24,8 @@ import functools
 from collections.abc import Callable
 from typing import Any
 
-from rlu.envs.core import DmControlEnv, Render
-from rlu.tasks import TaskSpec
+from rlu.domains.envkit import DmControlEnv, Render
+from rlu.domains.spec import TaskSpec
 from rlu.types import RluError
 
 CAMERA_KEY = "walker/egocentric_camera"

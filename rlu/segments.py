@@ -22,7 +22,7 @@ as in the Dopamine replay that recorded the data).
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -127,3 +127,41 @@ def make_episode(
         metadata=meta,
         frame_prefix=frame_prefix,
     )
+
+
+@dataclass
+class SegmentBatch:
+    """N segments of one length T as stacked arrays (N, T, ...); iterating gives Segments."""
+
+    observation: Any
+    action: np.ndarray
+    reward: np.ndarray
+    discount: np.ndarray
+    is_first: np.ndarray
+    is_last: np.ndarray
+    is_terminal: np.ndarray
+    metadata: dict[str, np.ndarray] = field(default_factory=dict)
+    lengths: np.ndarray | None = None
+    """Per-segment step counts when some segments are shorter than T (trimmed windows)."""
+
+    def __len__(self) -> int:
+        return int(self.reward.shape[0])
+
+    def __iter__(self) -> Iterator[Segment]:
+        for i in range(len(self)):
+            sl = slice(0, None if self.lengths is None else int(self.lengths[i]))
+            obs = (
+                {k: v[i, sl] for k, v in self.observation.items()}
+                if isinstance(self.observation, Mapping)
+                else self.observation[i, sl]
+            )
+            yield Segment(
+                observation=obs,
+                action=self.action[i, sl],
+                reward=self.reward[i, sl],
+                discount=self.discount[i, sl],
+                is_first=self.is_first[i, sl],
+                is_last=self.is_last[i, sl],
+                is_terminal=self.is_terminal[i, sl],
+                metadata={k: v[i].item() for k, v in self.metadata.items()},
+            )

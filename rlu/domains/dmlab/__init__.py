@@ -23,8 +23,8 @@ the release README spells two levels ``explore_rewards_*``, the objects
 The dataset is described in Gulcehre et al. 2021 ("Regularized Behavior Value Estimation"); the
 paper rlu follows for the other domains (Gulcehre et al. 2020) reports no DMLab numbers.
 
-DeepMind Lab is not on PyPI: its env (``rlu.envs.dmlab``) needs the ``deepmind_lab`` module built
-from source (:data:`ENV_INSTALL`).
+DeepMind Lab is not on PyPI: its env (``rlu.domains.dmlab.env``) needs the ``deepmind_lab``
+module built from source (:data:`ENV_INSTALL`).
 """
 
 from __future__ import annotations
@@ -76,7 +76,7 @@ DATA_ONLY = (
     "neither the recording R2D2 agent's 15 actions (the DeepMind Lab action vector of each "
     "index) nor its action repeat"
 )
-"""Why rlu makes no DeepMind Lab env (``rlu list`` prints it; ``rlu.envs.dmlab`` refuses)."""
+"""Why rlu makes no DeepMind Lab env (``rlu list`` prints it; ``rlu.domains.dmlab.env`` refuses)."""
 
 
 def observation_spec() -> Mapping[str, ArraySpec]:
@@ -144,7 +144,8 @@ DOMAIN = Domain(
     name=NAME,
     title="DeepMind Lab",
     build_tasks=build_tasks,
-    env_module="rlu.envs.dmlab",
+    env_module="rlu.domains.dmlab.env",
+    release_module="rlu.domains.dmlab.release",
     extra="dmlab",
     packages=("deepmind_lab", "gymnasium"),
     env_install=ENV_INSTALL,

@@ -15,8 +15,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from rlu.envs.core import DmControlEnv, Render
-from rlu.tasks import TaskSpec
+from rlu.domains.envkit import DmControlEnv, Render
+from rlu.domains.spec import TaskSpec
 from rlu.types import RluError
 
 

@@ -45,9 +45,11 @@ from typing import Any, NoReturn
 
 import numpy as np
 
-from rlu.envs.core import DmControlEnv, Render
+from rlu.domains.common import f32
+from rlu.domains.envkit import DmControlEnv, Render
+from rlu.domains.rwrl import observation_spec as rwrl_observation_spec
+from rlu.domains.spec import TaskSpec
 from rlu.files import FRACTION, Checked, bounds
-from rlu.tasks import TaskSpec, _f32, rwrl_observation_spec
 from rlu.types import ArraySpec, ConfigError, RluError
 
 # --- combined challenges: rwrl/realworld_env.py get_combined_challenge ------------------------
@@ -515,7 +517,7 @@ class _RwrlTask:
         return self.inner.get_termination(physics)
 
     def observation_spec(self, physics: Any) -> NoReturn:
-        raise NotImplementedError  # rlu takes the spec from rlu.tasks, never from a draw
+        raise NotImplementedError  # rlu takes the spec from the task registry, never from a draw
 
 
 @dataclass(frozen=True)
@@ -615,12 +617,12 @@ def observation_spec(task: TaskSpec, settings: RwrlSettings) -> dict[str, ArrayS
         spec = dict(rwrl_observation_spec(task, settings.challenge_name))
     else:
         spec = dict(task.observation_spec)  # type: ignore[arg-type]
-        spec.update({f"dummy-{i}": _f32(1) for i in range(settings.challenge.num_dummy)})
+        spec.update({f"dummy-{i}": f32(1) for i in range(settings.challenge.num_dummy)})
     if settings.safety:
         n = len(_constraints(task.env["suite_domain"], settings.safety_coeff)[0])
         spec["constraints"] = ArraySpec((n,), "bool")
     if settings.multiobj_observed:
-        spec["multiobj"] = _f32(2)
+        spec["multiobj"] = f32(2)
     return spec
 
 
@@ -639,7 +641,7 @@ def make(
     else:
         raise RluError(
             f"{task.id}: unknown RWRL challenge {challenge!r}; use one of {sorted(CHALLENGES)} "
-            "(the release has 'none' and 'easy') or an rlu.envs.rwrl.Challenge"
+            "(the release has 'none' and 'easy') or an rlu.domains.rwrl.env.Challenge"
         )
     overrides = {k: settings.pop(k) for k in list(settings) if k in Challenge.__annotations__}
     try:
@@ -647,7 +649,9 @@ def make(
             ch, name = replace(ch, **overrides), "custom"
         s = RwrlSettings(ch, name, **settings)
     except TypeError as e:
-        raise RluError(f"{task.id}: bad RWRL setting ({e}); see rlu.envs.rwrl.RwrlSettings") from e
+        raise RluError(
+            f"{task.id}: bad RWRL setting ({e}); see rlu.domains.rwrl.env.RwrlSettings"
+        ) from e
     except ConfigError as e:  # a setting out of its bounds: the task, the field, value, bound
         raise ConfigError(f"{task.id}: {e}") from None
     if (s.multiobj_reward or s.multiobj_observed) and not s.safety:
