@@ -54,6 +54,17 @@ class Family:
     batch_records: int = 4096
     """Records decoded together (a batch is also cut at 64 MB of records): fewer where a record
     decodes to much more than its bytes (PNG frames)."""
+    job_memory: int = 512 << 20
+    """Memory one shard's conversion job asks Ray for (bytes), so that a node runs no more of
+    them at once than its memory holds."""
+    image_encoding: str = "raw"
+    """How a converted dataset stores its images by default (``zlib`` for Atari's frames)."""
+    whole_stacks: bool = False
+    """Each record's observations are whole frame stacks (Atari's transition files): the
+    converted dataset keeps the stacks instead of storing each frame once."""
+    reward_note: str | None = None
+    """What the family's stored reward is, written into a converted dataset's manifest (Atari's
+    clipped or raw score); None: the reward is the environment's."""
 
 
 # --- the checks of a record's features --------------------------------------------------------

@@ -18,8 +18,6 @@ ROOT = Path(__file__).resolve().parents[2]
 LEFT = {
     # not domain names: names that happen to be spelled as one
     "rlu/agents/discrete_common.py": (1, "the discrete configs' `atari` settings field"),
-    "rlu/data/release/jobs.py": (1, "the release family `dmlab` (its shard's memory)"),
-    "rlu/data/release/convert.py": (3, "the release family `atari` (transition files)"),
     "rlu/generate/__init__.py": (2, "the generation recipe `rwrl` (Domain.generation's value)"),
     # task ids of the bundled data
     "rlu/commands/quickstart.py": (1, "the quick start runs on control-suite data"),

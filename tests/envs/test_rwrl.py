@@ -1,4 +1,5 @@
-"""RWRL envs: each challenge does what its definition says (rlu/domains/rwrl/env.py, with sources)."""
+"""RWRL envs: each challenge does what its definition says (rlu/domains/rwrl/env.py, with
+sources)."""
 
 import numpy as np
 import pytest

@@ -24,31 +24,17 @@ from typing import Any
 
 import numpy as np
 
-from rlu.data.release.families import SegmentBatch, get_family, iter_segments, reader_for
+from rlu.data.release.families import get_family, iter_segments, reader_for
 from rlu.data.store import DatasetWriter, Deflated, Schema, SegmentColumns, segment_columns
 from rlu.domains import DOMAINS
 from rlu.progress import Progress
-from rlu.segments import METADATA_FIELDS
+from rlu.segments import METADATA_FIELDS, SegmentBatch
 from rlu.system import available_cores
 from rlu.tasks import TaskSpec, get_task, rwrl_observation_spec
 from rlu.types import ArraySpec, DiscreteSpec, FormatError, RluError, SpecError
 from rlu.workers import die_with_parent
 
 _RUN_RE = re.compile(r"run_(\d+)")
-# What the stored reward of each Atari family is, written into the dataset's manifest.
-ATARI_REWARD = {
-    "atari": (
-        "clipped to [-1, 1]: r_t of the release's transition files is the reward the recording "
-        "DQN stored (Dopamine's runner clips before storing; atari.py documents the episode "
-        "return as clipped). The raw game score is not in these files: episode_return is "
-        "missing and clipped_episode_return holds the file's clipped return."
-    ),
-    "atari_episodes_ordered": (
-        "raw game score (the file's unclipped_rewards); the clipped reward is clip(r, -1, 1), "
-        "checked against the file's clipped_rewards. episode_return is the raw sum, "
-        "clipped_episode_return the clipped one."
-    ),
-}
 _QUEUE_MIB = 256  # decoded data a reader may hold queued ahead of the parent
 
 
@@ -67,9 +53,10 @@ def schema_for(
     task: TaskSpec, family: str, challenge: str | None = None, image_encoding: str | None = None
 ) -> Schema:
     """The store schema of a task's release family (Atari transitions keep their 4-frame stacks)."""
+    fam = get_family(family)
     if image_encoding is None:
-        image_encoding = "zlib" if family.startswith("atari") else "raw"
-    if family == "atari":
+        image_encoding = fam.image_encoding
+    if fam.whole_stacks:
         return Schema.for_task(task, image_encoding, observation=task.observation_spec)
     if DOMAINS[task.domain].challenges:
         return Schema.for_task(
@@ -301,7 +288,7 @@ def plan_conversion(
     prov = {
         "source": "rl_unplugged release",
         "family": family,
-        **({"reward": ATARI_REWARD[family]} if family in ATARI_REWARD else {}),
+        **({"reward": note} if (note := get_family(family).reward_note) is not None else {}),
         "task": task.id,
         "challenge": challenge,
         "run": meta.get("run", named_run),

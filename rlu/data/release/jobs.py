@@ -55,6 +55,7 @@ from rlu.data.release.convert import (
     write_batch,
 )
 from rlu.data.release.download import Downloader, Fetched, release_dir
+from rlu.data.release.families import get_family
 from rlu.data.store import MANIFEST, DatasetWriter, Schema, read_manifest, verify_checksums
 from rlu.files import check_output, move_into_place
 from rlu.progress import Progress, format_duration, format_size
@@ -65,12 +66,6 @@ LOCK_WAIT = 600.0
 """Seconds a shard's download waits for a cache entry another attempt holds: a first attempt
 lost with its node holds it until its process dies (at once on one machine; an NFS server
 drops a dead client's locks after its lease, 90 s by default)."""
-SHARD_MEMORY = {"atari_episodes_ordered": 1 << 30, "dmlab": 1 << 30}
-"""Memory a shard job asks Ray for (bytes; other families: ``DEFAULT_SHARD_MEMORY``), so that a
-node runs no more of them at once than its memory holds. An Atari episode shard job of real
-frames (Pong, MsPacman) peaked at 174-186 MB (bench/README.md); 4 episodes of 27,000 frames, the
-longest the release has, decode to 760 MB."""
-DEFAULT_SHARD_MEMORY = 512 << 20
 _SEND_EVERY = 8 << 20  # bytes between two progress messages of one job
 _URL_SCHEMES = ("s3://", "gs://", "gcs://", "az://", "abfs://", "http://", "https://", "hdfs://")
 
@@ -562,7 +557,8 @@ def _run_shards(
             live[m[0]] += m[1]
             show()
 
-    memory = max(SHARD_MEMORY.get(s.job.family, DEFAULT_SHARD_MEMORY) for s in shards)
+    # each family's Family.job_memory: a node runs no more shard jobs than its memory holds
+    memory = max(get_family(s.job.family).job_memory for s in shards)
     with bar:
         run_jobs(
             run_shard,

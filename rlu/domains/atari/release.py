@@ -196,6 +196,8 @@ def encode_atari_episode(rec: Mapping[str, np.ndarray]) -> bytes:
 # about 75 GiB in 100 shards (or 50 episode shards). An episode of frames decodes to ~28x its PNG
 # bytes (a Pong frame: 250 B -> 7 kB), so 64 of them held ~750 MB (bench/cluster.py); 4 bound a
 # conversion job at ~1/16 of that and decode as fast (a record is hundreds to thousands of frames).
+# Job memory: an episode shard job of real frames (Pong, MsPacman) peaked at 174-186 MB
+# (bench/README.md); 4 episodes of 27,000 frames, the longest the release has, decode to 760 MB.
 FAMILIES = (
     Family(
         name="atari",
@@ -208,6 +210,15 @@ FAMILIES = (
         max_shard_bytes=4 * _GiB,
         record_note="an Atari transition is 8 PNG frames, tens of kB",
         batch_records=64,
+        image_encoding="zlib",
+        whole_stacks=True,
+        reward_note=(
+            "clipped to [-1, 1]: r_t of the release's transition files is the reward the "
+            "recording DQN stored (Dopamine's runner clips before storing; atari.py documents "
+            "the episode return as clipped). The raw game score is not in these files: "
+            "episode_return is missing and clipped_episode_return holds the file's clipped "
+            "return."
+        ),
     ),
     Family(
         name="atari_episodes_ordered",
@@ -220,5 +231,12 @@ FAMILIES = (
         max_shard_bytes=8 * _GiB,
         record_note="an Atari episode is at most 27,000 PNG frames, tens of MB",
         batch_records=4,
+        job_memory=1 << 30,
+        image_encoding="zlib",
+        reward_note=(
+            "raw game score (the file's unclipped_rewards); the clipped reward is clip(r, -1, 1), "
+            "checked against the file's clipped_rewards. episode_return is the raw sum, "
+            "clipped_episode_return the clipped one."
+        ),
     ),
 )

@@ -133,5 +133,6 @@ FAMILIES = (
         max_shard_bytes=4 * _GiB,
         record_note="a DMLab episode of 72x96 PNG frames is 3-14 MB on average",
         batch_records=4,
+        job_memory=1 << 30,
     ),
 )
