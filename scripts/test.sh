@@ -26,8 +26,7 @@ fi
 echo "scripts/test.sh: ruff check and ruff format --check"
 .venv/bin/ruff check .
 .venv/bin/ruff format --check rlu tests bench scripts
-# mypy over the modules pyproject.toml's [tool.mypy] `files` lists (not yet the whole package:
-# docs/getting_started.md says which parts are left out)
+# mypy over all of rlu/ (pyproject.toml's [tool.mypy]; docs/getting_started.md says how strict)
 echo "scripts/test.sh: mypy"
 .venv/bin/mypy
 # The documentation site (mkdocs.yml), warnings as errors: a broken link or anchor, a page left

@@ -22,6 +22,13 @@ def _dataset_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--size", choices=["small", "medium", "large"], help="RWRL dataset size")
 
 
+def _family_names() -> list[str]:
+    """The release families the registered tasks' files are in, in the domains' order."""
+    from rlu.tasks import list_tasks
+
+    return list(dict.fromkeys(rel.family for t in list_tasks() for rel in t.release))
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     from rlu.commands.train import add_backend_options
 
@@ -65,9 +72,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--family",
         required=True,
-        help="atari, atari_episodes_ordered, "
-        "dm_control_suite, dm_control_suite_episodes, dm_locomotion, "
-        "dm_locomotion_episodes, rwrl, bsuite, dmlab",
+        help=", ".join(_family_names()),
     )
     p.add_argument(
         "--task",

@@ -16,7 +16,9 @@ if TYPE_CHECKING:
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("list", help="list every task of the suite")
-    p.add_argument("--domain", help="control_suite, locomotion, atari, rwrl, bsuite or dmlab")
+    from rlu.domains import DOMAINS
+
+    p.add_argument("--domain", help=", ".join(DOMAINS))
     p.add_argument("--selection", choices=["online", "offline"])
     p.add_argument("--json", action="store_true", help="print a JSON array")
     p.set_defaults(func=_list)
