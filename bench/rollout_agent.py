@@ -37,7 +37,7 @@ TASK = "control_suite/cartpole_swingup"
 
 
 def make_run(root: Path, preset: str) -> Path:
-    from rlu.generate.recipe import bundled_dataset
+    from rlu.data.bundled import bundled_dataset
 
     run = RunSettings(preset=preset, steps=5, eval_every=-1, checkpoint_every=5)
     cfg = TrainConfig(task=TASK, agent="d4pg", dataset=str(bundled_dataset()), run=run)

@@ -31,9 +31,9 @@ from new_agents import d3rlpy_buffer  # noqa: E402
 
 from rlu.agents import make_agent  # noqa: E402
 from rlu.data import open_dataset  # noqa: E402
+from rlu.data.bundled import bundled_dataset  # noqa: E402
 from rlu.data.statistics import dataset_statistics  # noqa: E402
 from rlu.data.views import make_sampler  # noqa: E402
-from rlu.generate.recipe import bundled_dataset  # noqa: E402
 
 
 def linears(module: nn.Module) -> list[nn.Linear]:

@@ -25,6 +25,8 @@ def test_quickstart_end_to_end_at_tiny_cost(tmp_path, capsys):
     assert row.endswith("| yes |" if d4pg > data else "| no |")
     assert f"Best offline RL agent here: d4pg, {d4pg / bc:.2f} times BC's return" in text
     assert "| bc | small, 5 |" in text and "is not comparable to these runs" in text
+    # the paper's row for the task, from rlu's copy of its tables, in the table's order
+    assert "The paper on this task (BC 386, D4PG 856, BCQ 445, BRAC 869, RABM 798;" in text
     assert result["dataset_returns"]["episodes"] == 40
     runs = out / "sweep" / "control_suite__cartpole_swingup"
     assert (runs / "bc" / "default" / "seed_0" / "result.json").exists()
@@ -54,7 +56,7 @@ def test_quickstart_never_deletes_what_it_did_not_write(tmp_path, capsys):
 
     pytest.importorskip("torch")
     pytest.importorskip("dm_control")
-    from rlu.generate.recipe import bundled_dataset
+    from rlu.data.bundled import bundled_dataset
 
     data = tmp_path / "data"
     shutil.copytree(bundled_dataset(), data)
@@ -78,11 +80,29 @@ def test_quickstart_never_deletes_what_it_did_not_write(tmp_path, capsys):
     assert sorted(p.relative_to(data) for p in data.rglob("*")) == before
 
 
+def test_quickstart_refuses_data_of_another_domain_before_touching_out(tmp_path, capsys):
+    """The quick start runs on data of the bundled dataset's domain (the control suite): a
+    dataset of another domain's task is refused, naming the task, before --out exists."""
+    from rlu.data import Schema
+    from rlu.data.synthetic import write_synthetic
+    from rlu.tasks import get_task
+
+    schema = Schema.for_task(get_task("locomotion/humanoid_corridor"))
+    data = write_synthetic(tmp_path / "data", schema, 1, 3)
+    out = tmp_path / "qs"
+    cheap = ["--steps", "5", "--eval-episodes", "1", "--agents", "bc"]  # if it were not refused
+    assert main(["quickstart", "--dataset", str(data), "--out", str(out), *cheap]) == 2
+    err = capsys.readouterr().err
+    assert "a dataset of task 'locomotion/humanoid_corridor'" in err
+    assert "runs on data of the bundled dataset's domain (control_suite;" in err
+    assert not out.exists()
+
+
 def test_info_json_lists_every_episode_return(capsys):
     import numpy as np
 
     from rlu.data import open_dataset
-    from rlu.generate.recipe import bundled_dataset
+    from rlu.data.bundled import bundled_dataset
 
     path = bundled_dataset()
     assert main(["info", str(path), "--json"]) == 0

@@ -46,7 +46,7 @@ def _train(tmp_path, dataset: str, name: str = "run") -> list[str]:
 
 def test_train_takes_a_task_id_and_a_tfds_name(tmp_path, cache, capsys):
     pytest.importorskip("torch")
-    from rlu.generate.recipe import bundled_dataset
+    from rlu.data.bundled import bundled_dataset
 
     assert main(_train(tmp_path, CARTPOLE)) == 0  # the dataset rlu ships
     config = json.loads((tmp_path / "run" / "config.json").read_text())
@@ -75,7 +75,7 @@ def test_a_name_that_is_nothing_says_what_was_tried(tmp_path, capsys):
 
 def test_a_sweep_takes_bare_names_and_defaults_to_each_tasks_own_data(tmp_path):
     from rlu.commands.train import _datasets
-    from rlu.generate.recipe import bundled_dataset
+    from rlu.data.bundled import bundled_dataset
     from rlu.training.sweep import SweepConfig, resolve_datasets
 
     assert _datasets([CARTPOLE]) == {CARTPOLE: CARTPOLE}
@@ -139,7 +139,7 @@ def test_load_dataset_refuses_unknown_keywords_with_the_closest():
         rlu.load_dataset(CARTPOLE, familly="dm_control_suite_episodes")
     with pytest.raises(RluError, match="no keyword 'zzz'. It takes base_url, cache_dir"):
         rlu.load_dataset(CARTPOLE, zzz=1)
-    from rlu.generate.recipe import bundled_dataset
+    from rlu.data.bundled import bundled_dataset
 
     with pytest.raises(RluError, match="a dataset folder is one dataset, and family, run pick"):
         rlu.load_dataset(str(bundled_dataset()), family="x", run=1)

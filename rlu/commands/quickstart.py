@@ -105,11 +105,11 @@ def _run(args: argparse.Namespace) -> int:
     from rlu.agents import agent_module
     from rlu.commands.train import backend_from_args
     from rlu.data import load_dataset, open_dataset
+    from rlu.data.bundled import bundled_dataset, bundled_tasks
     from rlu.data.validate import validate
     from rlu.devices import Runtime
     from rlu.evaluation.rollout import evaluate, task_env_factory
     from rlu.files import check_output
-    from rlu.generate.recipe import bundled_dataset
     from rlu.report.quickstart import MARKER, policy_row, write_quickstart_report
     from rlu.training.config import RunSettings
     from rlu.training.sweep import SweepConfig, sweep
@@ -120,10 +120,11 @@ def _run(args: argparse.Namespace) -> int:
     task_id = ds.schema.task_id
     discrete = isinstance(ds.schema.action, DiscreteSpec)
     # every argument is checked before anything on disk is touched
-    if not task_id or not task_id.startswith("control_suite/"):
+    homes = sorted({t.partition("/")[0] for t in bundled_tasks()})
+    if not task_id or task_id.partition("/")[0] not in homes:
         raise RluError(
-            f"{path}: a dataset of task {task_id!r}; the quick start runs on a "
-            "control-suite dataset (rlu train and rlu sweep run on any)"
+            f"{path}: a dataset of task {task_id!r}; the quick start runs on data of the "
+            f"bundled dataset's domain ({', '.join(homes)}; rlu train and rlu sweep run on any)"
         )
     for agent in args.agents:
         agent_module(agent, discrete)  # an unknown agent fails here

@@ -223,7 +223,7 @@ def recover_environment(ds: Dataset, eval_env: bool = False, **kwargs: Any) -> A
     return gym.make(spec, **kwargs)
 
 
-_GYM_1_0_KEYS = (
+_GYM_1_0_KEYS = (  # keys of a spec's JSON that gymnasium 1.0's EnvSpec no longer takes
     '"order_enforce": true,',
     '"apply_api_compatibility": false,',
     '"autoreset": false, ',
@@ -245,11 +245,7 @@ def _recorded_spec(ds: Dataset, eval_env: bool) -> Any:
     text = text or meta.get("env_spec")
     if not isinstance(text, str):
         return None
-    for old in (
-        '"order_enforce": true,',
-        '"apply_api_compatibility": false,',
-        '"autoreset": false, ',
-    ):
+    for old in _GYM_1_0_KEYS:
         text = text.replace(old, "")  # as Minari does, for gymnasium 1.0
     try:
         return EnvSpec.from_json(text)

@@ -115,9 +115,10 @@ class Domain:
     (Atari); the release's transition files hold whole stacks."""
     camera_setting: str | None = None
     """The env setting that turns its camera observation on or off (locomotion's ``camera``)."""
-    generation: Literal["runs", "rwrl", "policy"] | None = None
-    """How ``rlu generate`` makes its data: online agents' runs (``rlu.generate.recipe``), the
-    RWRL recipe (``rlu.generate.rwrl``), a policy the user supplies; None: not generated."""
+    generation: Literal["runs", "snapshots", "policy"] | None = None
+    """How ``rlu generate`` makes its data: online agents' runs (``rlu.generate.recipe``), fixed
+    behaviour snapshots of such runs rolled out under the domain's challenges (RWRL's recipe,
+    ``rlu.generate.rwrl``), a policy the user supplies; None: not generated."""
     success: Literal["return", "time_limit", "none"] = "return"
     """What generation counts as a successful episode: a return of 80% of the maximum, reaching
     the time limit, or none (every episode kept)."""
@@ -126,7 +127,7 @@ class Domain:
     provenance)."""
     behaviour_agents: Mapping[str, str] = field(default_factory=dict)
     """Per scale of ``rlu generate`` (``rlu.generate.config.SCALES``: tiny, laptop, paper), the
-    online agent whose runs record the data (``generation="runs"`` or ``"rwrl"``); each agent's
+    online agent whose runs record the data (``generation="runs"`` or ``"snapshots"``); each agent's
     settings at each scale are ``rlu.generate.scales``'; empty: no agent is trained."""
 
     def env_factory(self) -> Any:

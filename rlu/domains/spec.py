@@ -55,11 +55,15 @@ class ReleaseDataset:
     shards: Mapping[str, int]
     seq_length: int | None = None
     """Steps per record for window files (2 or 40); None for whole-episode files."""
+    folders: Mapping[str, str] = field(default_factory=dict)
+    """A binding's named part -> its folder in the bucket where they differ (RWRL's paper sizes
+    small / medium / large are the 20 / 40 / 100 percent folders)."""
 
     def prefix(self, binding: str = "") -> str:
         """``path`` with the dataset's placeholders filled: named ones (``{run}``, ...) and
         positional ones, the binding's ``/``-separated parts (bsuite's ``{0}`` and ``{1}``)."""
-        return self.path.format(*binding.split("/"), **_binding_fields(binding))
+        named = {k: self.folders.get(v, v) for k, v in _binding_fields(binding).items()}
+        return self.path.format(*binding.split("/"), **named)
 
     def shard_names(self, binding: str = "") -> list[str]:
         n = self.shards[binding]
@@ -72,11 +76,8 @@ def _binding_fields(binding: str) -> dict[str, str]:
         return {}
     if "/" not in binding:  # a run: Atari's run_N, DMLab's training_0
         return {"run": binding}
-    from rlu.domains.rwrl import RWRL_SIZES
-
     challenge, size = binding.split("/")
-    # paper sizes small / medium / large are the bucket's 20 / 40 / 100 percent folders
-    return {"challenge": challenge, "size": RWRL_SIZES.get(size, size)}
+    return {"challenge": challenge, "size": size}
 
 
 @dataclass(frozen=True)
@@ -201,7 +202,8 @@ class TaskRef:
 
     def _setting(self, key: str, value: _V | None, mine: str | None) -> _V | str | None:
         """``value`` as passed, else the name's; one that contradicts the name is an error."""
-        if value is not None and mine is not None and _norm(key, value) != mine:
+        folders = {k: v for r in self.task.release for k, v in r.folders.items()}
+        if value is not None and mine is not None and _norm(key, value, folders) != mine:
             raise RluError(
                 f"{self.name} names {key} {mine!r}, which contradicts {key}={value!r}; drop "
                 f"the {key} or use the task id {self.task.id}"
@@ -209,11 +211,9 @@ class TaskRef:
         return value if value is not None else mine
 
 
-def _norm(key: str, value: str | int) -> str:
-    if key == "run":  # Atari's 3 is run_3; named runs (DMLab's training_0) stay as they are
+def _norm(key: str, value: str | int, folders: Mapping[str, str]) -> str:
+    """``value`` in the name's words: Atari's run 3 is run_3 (named runs such as DMLab's
+    training_0 stay as they are); a bucket folder (RWRL's 20_percent) is the part it holds."""
+    if key == "run":
         return f"run_{value}" if str(value).isdigit() else str(value)
-    if key == "size":
-        from rlu.domains.rwrl import RWRL_SIZES
-
-        return {v: k for k, v in RWRL_SIZES.items()}.get(str(value), str(value))
-    return str(value)
+    return {v: k for k, v in folders.items()}.get(str(value), str(value))

@@ -4,9 +4,10 @@
     generate(GenerateConfig("control_suite/cartpole_swingup", scale="laptop", seed=0), "data/cp")
 
 One frozen :class:`GenerateConfig` (``config``) says what to record and how to run; ``generate``
-passes it whole to one of three peer recipes: ``recipe`` (D4PG / DQN training runs: the control
-suite and Atari), ``rwrl`` (fixed behaviour snapshots, D4PG or at the paper scale DMPO, rolled
-out with and without challenges) and ``policy`` (a policy the user supplies: locomotion). They
+passes it whole to one of three peer recipes (``Domain.generation`` names one): ``recipe``
+(``runs``: D4PG / DQN training runs, the control suite and Atari), ``rwrl`` (``snapshots``: fixed
+behaviour snapshots, D4PG or at the paper scale DMPO, rolled out with and without challenges)
+and ``policy`` (a policy the user supplies: locomotion). They
 share ``common`` (seeds, success rule, selection, work folder, the runner, merge, progress) and
 ``scales``; ``online`` is the actor-learner loop and its replay (the store's n-step and frame
 stack maths), ``recorder`` turns env steps into store segments. Heavy dependencies (torch, the
@@ -58,7 +59,7 @@ def _check_out(out: Path, kind: str) -> None:
     a folder its own interrupted generation started)."""
     if out.is_symlink() or (out.exists() and not out.is_dir()):
         raise RluError(f"--out {out} exists and is not a folder; choose another --out")
-    if kind == "rwrl":
+    if kind == "snapshots":
         from rlu.generate.rwrl import SUMMARY
 
         if (out / SUMMARY).exists():
@@ -112,7 +113,7 @@ def generate(
             from rlu.generate.policy import generate_with_policy
 
             return generate_with_policy(config, task, out, work)
-        if kind == "rwrl":
+        if kind == "snapshots":
             from rlu.generate.rwrl import generate_rwrl
 
             return generate_rwrl(config, task, out, work)

@@ -135,20 +135,3 @@ def generate_runs(
     if not config.keep_work:
         shutil.rmtree(work)
     return path
-
-
-BUNDLED_TASK = "control_suite/cartpole_swingup"
-
-
-def bundled_dataset(task_id: str = BUNDLED_TASK) -> Path:
-    """The dataset shipped in the package (made by ``rlu generate``; its manifest holds the
-    command and seed)."""
-    from importlib import resources
-
-    path = Path(str(resources.files("rlu"))) / "resources" / "datasets" / task_id
-    if not (path / "manifest.json").exists():
-        raise RluError(
-            f"{path}: no bundled dataset for {task_id!r}; the package ships {BUNDLED_TASK} only "
-            "(reinstall rlu if it is missing)"
-        )
-    return path

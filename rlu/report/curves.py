@@ -17,22 +17,28 @@ from typing import Any
 
 import numpy as np
 
+NO_CURVES = (
+    "no run's evaluations were found (each run's eval.jsonl, read from its folder: a sweep moved "
+    "without its run folders has none)"
+)
+"""Why the panel is absent when ``curves`` finds none."""
+
 
 def curves(
-    ctx: Any,
+    records: Sequence[Mapping[str, Any]],
+    tasks: Sequence[str],
+    agents: Sequence[str],
     chosen: Mapping[tuple[str, str], tuple[str, str]],
-) -> dict[str, Any] | Any:
-    """The ``curves`` panel (``numbers.PANELS``) from the domain's context and, per (task,
-    agent), the (configuration, protocol) its cells show; ``Absent`` when no run kept its
-    evaluations."""
-    from rlu.report.numbers import Absent
-
-    by_key = {(r["task"], r["agent"], r["config"], int(r["seed"])): r for r in ctx.records}
-    tasks = []
+) -> dict[str, Any] | None:
+    """The ``curves`` panel (``numbers.PANELS``) from a domain's records, its tasks and agents
+    in the report's order and, per (task, agent), the (configuration, protocol) its cells show;
+    None when no run kept its evaluations (``NO_CURVES``)."""
+    by_key = {(r["task"], r["agent"], r["config"], int(r["seed"])): r for r in records}
+    panel = []
     without: list[str] = []
-    for task in ctx.tasks:
-        agents = {}
-        for agent in ctx.agents:
+    for task in tasks:
+        shown = {}
+        for agent in agents:
             if (task, agent) not in chosen:
                 continue
             config, protocol = chosen[(task, agent)]
@@ -51,21 +57,18 @@ def curves(
             if not seeds:
                 continue
             pretrain = {r.get("pretrain_steps") or 0 for _, r in runs}
-            agents[agent] = {
+            shown[agent] = {
                 "config": config,
                 "protocol": protocol,
                 **mean_band([x["steps"] for x in seeds], [x["means"] for x in seeds]),
                 "seeds": seeds,
                 "pretrain_steps": max(pretrain),
             }
-        if agents:
-            tasks.append({"task": task, "agents": agents})
-    if not tasks:
-        return Absent(
-            "no run's evaluations were found (each run's eval.jsonl, read from its folder: a "
-            "sweep moved without its run folders has none)"
-        )
-    return {"tasks": tasks, "without_curve": without}
+        if shown:
+            panel.append({"task": task, "agents": shown})
+    if not panel:
+        return None
+    return {"tasks": panel, "without_curve": without}
 
 
 def mean_band(steps: Sequence[Sequence[int]], means: Sequence[Sequence[float]]) -> dict[str, Any]:

@@ -143,17 +143,20 @@ def paper_entry(
     task_id: str, agent: str, paper: Mapping[str, Any] | None = None
 ) -> dict[str, Any] | None:
     """The paper's ``{mean, std, bold}`` for a task and agent, or None where the paper has none."""
+    cols = {k.lower(): v for k, v in paper_row(task_id, paper).items()}
+    return cols.get(agent.split(".")[-1].lower())
+
+
+def paper_row(task_id: str, paper: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """The paper's ``{agent: {mean, std, bold}}`` for a task, agents as the paper names them in
+    its table's order; empty where the paper has no row for the task."""
     paper = load_paper_results() if paper is None else paper
     domain, _, name = task_info(task_id)
     table = paper.get(domain)
     if not isinstance(table, Mapping):
-        return None
+        return {}
     rows = {_key(k): v for k, v in table.items()}
-    row = rows.get(_key(name))
-    if row is None:
-        return None
-    cols = {k.lower(): v for k, v in row.items()}
-    return cols.get(agent.split(".")[-1].lower())
+    return dict(rows.get(_key(name)) or {})
 
 
 def dataset_percentile(dataset: str, q: float = 90.0) -> float | None:
@@ -493,12 +496,13 @@ def atari_per_game_panel(ctx: DomainContext) -> dict[str, Any] | Absent | None:
 
 def curves_panel(ctx: DomainContext) -> dict[str, Any] | Absent:
     """Learning curves of the configurations the tables show (``rlu.report.curves``)."""
-    from rlu.report.curves import curves
+    from rlu.report.curves import NO_CURVES, curves
 
     chosen = {k: (s.config, "online") for k, s in _online(ctx, ctx.records).items()}
     naive = _naive(ctx, ctx.records)
     chosen.update({k: (s.config, naive.protocol(k[1])) for k, s in naive.sel.items()})
-    return curves(ctx, chosen)
+    panel = curves(ctx.records, ctx.tasks, ctx.agents, chosen)
+    return Absent(NO_CURVES) if panel is None else panel
 
 
 def _split_selections(

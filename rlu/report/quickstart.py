@@ -21,11 +21,14 @@ from rlu.system import install_hint
 MARKER = "results.json"
 """The file every quick-start folder holds (the quick start replaces only such a folder)."""
 
-PAPER = {
-    "control_suite/cartpole_swingup": "D4PG 856, BRAC 869, RABM 798, BC 386",
-}
-"""The paper's numbers on the bundled task (its "DM Control suite results" table: the paper's
-settings and networks, trained on the release's data; it states no continuous step budget)."""
+
+def paper_line(task_id: str) -> str:
+    """The paper's numbers on the task, ``"BC 386, D4PG 856, ..."`` in its table's order (its
+    "DM Control suite results" table for the bundled task: the paper's settings and networks on
+    the release's data; it states no continuous step budget); "" where the paper has none."""
+    from rlu.report.numbers import paper_row
+
+    return ", ".join(f"{a} {e['mean']:g}" for a, e in paper_row(task_id).items())
 
 
 def _std(x: np.ndarray) -> float | None:
@@ -57,9 +60,10 @@ def _against_bc(rows: Sequence[Mapping[str, Any]], task_id: str) -> list[str]:
         f"Best offline RL agent here: {best['policy']}, {best['mean'] / bc['mean']:.2f} "
         "times BC's return."
     ]
-    if task_id in PAPER:
+    paper = paper_line(task_id)
+    if paper:
         lines.append(
-            f"The paper on this task ({PAPER[task_id]}; the paper's settings on the release's "
+            f"The paper on this task ({paper}; the paper's settings on the release's "
             "data) is not comparable to these runs (small presets, short budgets, laptop-scale "
             "data): it says only which way the comparison went there."
         )

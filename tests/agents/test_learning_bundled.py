@@ -40,7 +40,7 @@ EPISODES = 10
 
 
 def small_preset_return(name: str, folder) -> float:
-    from rlu.generate.recipe import bundled_dataset
+    from rlu.data.bundled import bundled_dataset
     from rlu.training.train import train
     from tests.fakes import train_config
 
@@ -54,7 +54,7 @@ def small_preset_return(name: str, folder) -> float:
 @pytest.fixture(scope="module")
 def bars(tmp_path_factory):
     from rlu.data import open_dataset
-    from rlu.generate.recipe import bundled_dataset
+    from rlu.data.bundled import bundled_dataset
 
     data_mean = float(np.mean(open_dataset(bundled_dataset(TASK)).episode_returns()))
     return small_preset_return("bc", tmp_path_factory.mktemp("bc")), data_mean
@@ -84,7 +84,7 @@ def td3bc_checks(seed: int, folder) -> dict[str, float]:
 
     import rlu
     from rlu.agents import common
-    from rlu.generate.recipe import bundled_dataset
+    from rlu.data.bundled import bundled_dataset
     from rlu.training.restore import load_agent
     from rlu.training.train import train
     from tests.fakes import train_config

@@ -120,7 +120,7 @@ def test_generation_fields_resolve(name):
 
     domain = DOMAINS[name]
     task = list_tasks(name)[0]
-    if domain.generation not in ("runs", "rwrl"):
+    if domain.generation not in ("runs", "snapshots"):
         assert not domain.behaviour_agents
         with pytest.raises(RluError, match="rlu generate trains behaviour agents for the "):
             get_scale(task, SCALES[0])

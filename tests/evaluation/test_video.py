@@ -167,7 +167,7 @@ def test_video_folders_are_checked_before_any_work(trained, tmp_path, capsys):
     """'' , the run itself, a dataset, a symbolic link, something else's folder: refused at once,
     nothing written; counts that cannot be filmed too."""
     from rlu.cli import main
-    from rlu.generate.recipe import bundled_dataset
+    from rlu.data.bundled import bundled_dataset
 
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()

@@ -7,12 +7,16 @@ import shlex
 import pytest
 
 from rlu.data import open_dataset
+from rlu.data.bundled import bundled_dataset, bundled_tasks
 from rlu.data.validate import validate
-from rlu.generate.recipe import BUNDLED_TASK, bundled_dataset
+
+BUNDLED_TASK = "control_suite/cartpole_swingup"
 
 
 def test_bundled_dataset_is_valid_and_small():
+    assert bundled_tasks() == [BUNDLED_TASK]
     path = bundled_dataset()
+    assert path == bundled_dataset(BUNDLED_TASK)
     report = validate(path)
     assert report.ok, report.problems
     ds = open_dataset(path)
@@ -25,6 +29,15 @@ def test_bundled_dataset_is_valid_and_small():
     assert prov["settings"]["seed"] == 0 and prov["selection"]["kept"] == 40
     runs = {ds.segment(i).metadata["run"] for i in range(len(ds))}
     assert runs == {0, 1, 2}
+
+
+def test_a_task_without_a_bundled_dataset_is_a_clear_error():
+    from rlu.types import RluError
+
+    with pytest.raises(
+        RluError, match=f"no bundled dataset for 'atari/Pong'.*ships {BUNDLED_TASK}"
+    ):
+        bundled_dataset("atari/Pong")
 
 
 @pytest.mark.slow

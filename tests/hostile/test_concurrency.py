@@ -365,7 +365,7 @@ def test_a_killed_sweeps_workers_die_with_it(pendulum, tmp_path):
 def test_a_second_sweep_into_a_folder_in_use_is_refused_at_once(tmp_path):
     """Two ``rlu sweep`` into one --out: the second stops with "in use by PID N" before writing
     anything (on main both went on and both failed)."""
-    from rlu.generate.recipe import bundled_dataset
+    from rlu.data.bundled import bundled_dataset
 
     out = tmp_path / "sweep"
     data = f"{TASK}={bundled_dataset()}"
@@ -383,8 +383,8 @@ def test_a_second_export_to_one_file_is_refused_and_an_interrupt_in_a_close_is_k
     same temporary file and both exited 0). A Ctrl-C while an HDF5 file closes is raised after
     the close (h5py swallowed it, and the export exited 0)."""
     pytest.importorskip("h5py")
+    from rlu.data.bundled import bundled_dataset
     from rlu.files import interrupts_deferred
-    from rlu.generate.recipe import bundled_dataset
 
     out = tmp_path / "d4rl.hdf5"
     args = [sys.executable, "-m", "rlu", "export", str(bundled_dataset()), "--format", "d4rl",

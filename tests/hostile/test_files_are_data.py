@@ -97,7 +97,7 @@ def test_a_run_of_a_trusted_module_evaluates_when_the_user_names_it(trained):
 
 def test_an_agent_module_named_in_a_behaviour_policy_is_never_imported(tmp_path):
     pytest.importorskip("torch")
-    from rlu.generate.recipe import bundled_dataset
+    from rlu.data.bundled import bundled_dataset
 
     data = tmp_path / "data"
     shutil.copytree(bundled_dataset(), data)

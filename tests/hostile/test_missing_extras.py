@@ -32,7 +32,7 @@ def _rlu(hidden: set[str], *args: str) -> subprocess.CompletedProcess:
 
 
 def _bundled() -> str:
-    from rlu.generate.recipe import bundled_dataset
+    from rlu.data.bundled import bundled_dataset
 
     return str(bundled_dataset())
 

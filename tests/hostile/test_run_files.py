@@ -34,7 +34,7 @@ def _one_line_error(res: subprocess.CompletedProcess, *says: str) -> None:
 def bc_run(tmp_path_factory):
     """Two BC runs (the real agent, the bundled data): 4 steps, checkpoints at 2 and 4."""
     pytest.importorskip("torch")
-    from rlu.generate.recipe import bundled_dataset
+    from rlu.data.bundled import bundled_dataset
 
     root = tmp_path_factory.mktemp("bc")
     for agent in ("bc", "d4pg"):
@@ -90,7 +90,7 @@ def test_another_agents_checkpoint_is_one_line(bc_run, tmp_path):
 def test_garbage_generator_state_on_resume_is_one_line(bc_run, tmp_path):
     import torch
 
-    from rlu.generate.recipe import bundled_dataset
+    from rlu.data.bundled import bundled_dataset
 
     run = _copy(bc_run / "bc", tmp_path / "run")
     (run / "result.json").unlink()
@@ -109,7 +109,7 @@ def test_garbage_generator_state_on_resume_is_one_line(bc_run, tmp_path):
 
 
 def test_a_log_torn_in_the_middle_is_one_line(bc_run, tmp_path):
-    from rlu.generate.recipe import bundled_dataset
+    from rlu.data.bundled import bundled_dataset
 
     run = _copy(bc_run / "bc", tmp_path / "run")
     (run / "result.json").unlink()
@@ -171,7 +171,7 @@ def test_option_values_out_of_range_are_refused_by_the_parser(args):
 
 
 def test_overrides_of_the_wrong_type_name_the_field(tmp_path):
-    from rlu.generate.recipe import bundled_dataset
+    from rlu.data.bundled import bundled_dataset
 
     base = ["train", "--task", TASK, "--agent", "bc", "--dataset", str(bundled_dataset()),
             "--out", str(tmp_path / "o"), "--steps", "1", "--eval-every", "-1"]  # fmt: skip

@@ -430,7 +430,7 @@ def test_recover_environment_of_the_bundled_export_is_rlus_env(tmp_path, minari_
     """Minari's own load_dataset(...).recover_environment() makes rlu's env from the stored spec,
     and the description says where the data came from (the manifest's provenance)."""
     pytest.importorskip("dm_control")
-    from rlu.generate.recipe import bundled_dataset
+    from rlu.data.bundled import bundled_dataset
 
     ds = open_dataset(bundled_dataset())
     export_minari(ds, "rlu/cartpole-bundled-v0")

@@ -25,7 +25,7 @@ def _rlu(*args: str) -> subprocess.CompletedProcess:
 def yaml_config(tmp_path):
     pytest.importorskip("torch")
     pytest.importorskip("yaml")
-    from rlu.generate.recipe import bundled_dataset
+    from rlu.data.bundled import bundled_dataset
 
     path = tmp_path / "bc.yaml"
     path.write_text(

@@ -87,6 +87,7 @@ def build_tasks() -> list[TaskSpec]:
                         f"rwrl/combined_challenge_{{challenge}}/{sdom}/{stask}/{{size}}/"
                         "episodes.tfrecord",
                         MappingProxyType(shards),
+                        folders=MappingProxyType(RWRL_SIZES),
                     ),
                 ),
                 env=MappingProxyType({"suite_domain": sdom, "suite_task": stask}),
@@ -134,7 +135,7 @@ DOMAIN = Domain(
         {"rlu_rwrl": "rlu_rwrl/walker_walk_combined_challenge_none_100_percent"}
     ),
     tfds_ref=tfds_ref,
-    generation="rwrl",
+    generation="snapshots",
     sim_packages=("dm-control", "mujoco"),
     # the control suite's D4PG below the paper's scale, where the paper's own RWRL behaviour
     # agent, distributional MPO, trains (rlu.generate.scales)
