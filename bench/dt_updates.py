@@ -53,9 +53,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from rlu.agents import make_agent  # noqa: E402
 from rlu.data import open_dataset  # noqa: E402
+from rlu.data.bundled import bundled_dataset  # noqa: E402
 from rlu.data.statistics import dataset_statistics  # noqa: E402
 from rlu.data.views import make_sampler  # noqa: E402
-from rlu.generate.recipe import bundled_dataset  # noqa: E402
 
 CONTROL = "control_suite/cartpole_swingup"
 
@@ -216,7 +216,7 @@ def atari(dropout: float, batch: int, check: bool = False):
     from rlu.data.store import Schema
     from rlu.data.synthetic import write_synthetic
     from rlu.tasks import get_task
-    from rlu.training.train import dataset_specs
+    from rlu.training.prepare import dataset_specs
 
     root = Path(os.environ.get("TMPDIR", "/tmp")) / "rlu_dt_bench_atari"
     if not (root / "manifest.json").exists():  # random frames: the arithmetic is the same

@@ -59,7 +59,8 @@ from rlu.data.torch import DeviceSampler, Prefetcher, device_batch  # noqa: E402
 from rlu.devices import Runtime, compile_modules, numerics  # noqa: E402
 from rlu.tasks import get_task  # noqa: E402
 from rlu.training.config import RunSettings  # noqa: E402
-from rlu.training.train import TrainConfig, dataset_specs, train  # noqa: E402
+from rlu.training.prepare import dataset_specs  # noqa: E402
+from rlu.training.train import TrainConfig, train  # noqa: E402
 
 TASKS = {"d4pg": "control_suite/walker_walk", "bc": "control_suite/walker_walk",
          "dqn": "atari/Pong", "iqn": "atari/Pong"}  # fmt: skip

@@ -312,9 +312,9 @@ def bench_discrete(args) -> None:
 
 
 def bench_continuous(name: str, args) -> None:
+    from rlu.data.bundled import bundled_dataset
     from rlu.evaluation import evaluate, task_env_factory
-    from rlu.generate.recipe import bundled_dataset
-    from rlu.training.train import greedy_policy
+    from rlu.training.loop import greedy_policy
 
     path = args.control_data or bundled_dataset(CONTROL_TASK)
     ds = open_dataset(path)

@@ -397,7 +397,7 @@ def _train_cli(tmp_path, *extra: str) -> tuple[int, str]:
 def test_a_boolean_override_reads_the_words_a_yaml_config_reads(tmp_path):
     """``recurrent=true`` on the command line (refused: "a string ('true'); expected true or
     false") is a boolean, as ``recurrent: true`` in a YAML config is; junk is still refused."""
-    from rlu.training.train import YAML_BOOLEANS, parse_overrides
+    from rlu.commands._options import YAML_BOOLEANS, parse_overrides
 
     for word, value in YAML_BOOLEANS.items():
         assert parse_overrides([f"recurrent={word}"]) == {"recurrent": value}
@@ -469,7 +469,7 @@ def test_config_error_is_an_rlu_error_in_the_public_types():
 
 
 def test_a_sweep_grid_point_out_of_bounds_is_refused_before_the_sweep_folder(tmp_path):
-    from rlu.generate.recipe import bundled_dataset
+    from rlu.data.bundled import bundled_dataset
     from rlu.training.sweep import SweepConfig, sweep
 
     task = "control_suite/cartpole_swingup"

@@ -25,6 +25,7 @@ import typing
 from typing import Any
 
 from rlu.training.config import scalar_hint
+from rlu.types import RluError
 
 
 # --- field docs -----------------------------------------------------------------------------
@@ -195,4 +196,33 @@ def flat_values(cls: type, data: dict[str, Any], dest_prefix: str = "") -> dict[
         else:
             value = data[f.name]
             out[dest_prefix + f.name] = list(value) if isinstance(value, tuple) else value
+    return out
+
+
+YAML_BOOLEANS = {
+    **dict.fromkeys(("true", "True", "TRUE", "yes", "Yes", "YES", "on", "On", "ON"), True),
+    **dict.fromkeys(("false", "False", "FALSE", "no", "No", "NO", "off", "Off", "OFF"), False),
+}
+"""The words a YAML config file's reader (PyYAML's safe loader, YAML 1.1) reads as booleans; an
+override on the command line reads them the same way (``recurrent=true``)."""
+
+
+def parse_overrides(items: list[str] | None) -> dict[str, Any]:
+    """``["learning_rate=3e-4", "hidden=(256, 256)", "atari.batch_size=64", "recurrent=true"]``
+    -> typed values: Python literals, YAML's booleans (:data:`YAML_BOOLEANS`, as a config file
+    reads them); other bare words stay strings. The agent config checks each against its field
+    (``recurrent=maybe`` or ``recurrent=1``: refused, "expected true or false")."""
+    out: dict[str, Any] = {}
+    for item in items or []:
+        key, sep, text = item.partition("=")
+        if not sep or not key:
+            raise RluError(f"override {item!r}; write it as field=value, e.g. learning_rate=3e-4")
+        text = text.strip()
+        if text in YAML_BOOLEANS:
+            out[key.strip()] = YAML_BOOLEANS[text]
+            continue
+        try:
+            out[key.strip()] = ast.literal_eval(text)
+        except (ValueError, SyntaxError, MemoryError, RecursionError):
+            out[key.strip()] = text
     return out

@@ -79,8 +79,8 @@ def backend_from_args(args: argparse.Namespace, jobs: int | None = None) -> Any:
 def register(sub: argparse._SubParsersAction) -> None:
     from rlu.evaluation.fqe import FQEConfig
     from rlu.training.config import RunSettings
+    from rlu.training.prepare import TrainConfig
     from rlu.training.sweep import SweepConfig
-    from rlu.training.train import TrainConfig
 
     p = sub.add_parser(
         "train",
@@ -260,8 +260,10 @@ _seed = checked(int, {"min": 0}, "--seed")
 def _train(args: argparse.Namespace) -> int:
     import sys
 
+    from rlu.commands._options import parse_overrides
     from rlu.training.config import RunSettings
-    from rlu.training.train import TrainConfig, check_agent_config, parse_overrides, train
+    from rlu.training.prepare import TrainConfig, check_agent_config
+    from rlu.training.train import train
     from rlu.types import RluError
 
     overrides = parse_overrides(args.overrides)
@@ -327,7 +329,7 @@ def _from_config_file(args: argparse.Namespace) -> dict[str, Any]:
     never imported."""
     from rlu.commands._options import flat_values, typed_dests
     from rlu.training.config import RunSettings, read_config_file
-    from rlu.training.train import TrainConfig
+    from rlu.training.prepare import TrainConfig
 
     data = read_config_file(args.config, TrainConfig)
     typed = typed_dests(args.parser, args.argv)
@@ -432,9 +434,9 @@ def _datasets(items: list[str]) -> dict[str, str]:
 
 
 def _sweep(args: argparse.Namespace) -> int:
+    from rlu.commands._options import parse_overrides
     from rlu.training.config import RunSettings
     from rlu.training.sweep import SweepConfig, results_table, sweep
-    from rlu.training.train import parse_overrides
     from rlu.types import RluError
 
     given = _sweep_config_file(args) if args.config is not None else {}
@@ -471,8 +473,8 @@ def _sweep_config_file(args: argparse.Namespace) -> dict[str, Any]:
     are never imported."""
     from rlu.commands._options import flat_values, typed_dests
     from rlu.training.config import RunSettings, read_config_file
+    from rlu.training.prepare import TrainConfig
     from rlu.training.sweep import SweepConfig
-    from rlu.training.train import TrainConfig
     from rlu.types import FormatError, RluError
 
     try:

@@ -2,7 +2,7 @@
 
 :class:`RunSettings` holds everything about a run that is not *what* it trains (task, agent,
 dataset, seed, agent overrides): preset, budget, evaluation, logging, checkpoints, the env
-factory, threads and the runtime (``rlu.devices.Runtime``). ``rlu.training.train.TrainConfig``
+factory, threads and the runtime (``rlu.devices.Runtime``). ``rlu.training.prepare.TrainConfig``
 composes it; ``rlu.training.sweep.SweepConfig`` holds one as the template of every run; the quick
 start builds one. A new training option is one field here: its flag, type check, range check and
 help text come from the field (``rlu.commands._options``: the command line's side), its check in
@@ -23,6 +23,7 @@ from typing import Any
 
 from rlu.devices import Runtime
 from rlu.files import MAX_DEPTH, MAX_STEPS, STEPS, Checked, bounds
+from rlu.types import RluError
 
 EVAL_EVERY_MIN = 10_000
 """Fewest learner steps between two periodic evaluations when ``eval_every`` is left unset."""
@@ -176,8 +177,6 @@ def config_from_file(cls: type, path: str, given: dict[str, Any] | None = None) 
     agent, an env factory) is refused unless ``given`` names it too: names in files are never
     imported (``given`` replaces that field). A required field that neither holds is an error
     naming the file and the field."""
-    from rlu.types import RluError
-
     given = dict(given or {})
     data = read_config_file(path, cls)
     for key in ("agent", "agents"):

@@ -24,8 +24,7 @@ import numpy as np
 from rlu.devices import compile_modules, numerics
 from rlu.seeds import derive_seed, stream_seed
 from rlu.training import runs
-from rlu.training.prepare import Prepared
-from rlu.training.train import TrainConfig, greedy_policy
+from rlu.training.prepare import Prepared, TrainConfig
 from rlu.types import RluError
 
 
@@ -272,3 +271,15 @@ def _restore(path: Path, state: Mapping[str, Any], agent: Any, sampler: Any, tot
             f"{path}: its sampler or generator state is damaged ({why}); {fix}"
         ) from None  # noqa: E501
     return step
+
+
+def greedy_policy(agent: Any) -> Any:
+    """The evaluation policy of an agent (a ``rlu.types.Policy``): ``act(obs, greedy=True)``,
+    passing on the episode starts and the previous rewards."""
+
+    def policy(
+        observation: Any, is_first: np.ndarray | None = None, reward: np.ndarray | None = None
+    ) -> np.ndarray:
+        return agent.act(observation, greedy=True, is_first=is_first, reward=reward)
+
+    return policy

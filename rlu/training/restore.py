@@ -32,7 +32,7 @@ _BUILD_ERRORS = (RuntimeError, ValueError, TypeError, KeyError, OverflowError, M
 def read_run(path: str | os.PathLike) -> tuple[dict[str, Any], Path, Path]:
     """(resolved config, run folder, checkpoint) of a run folder (its newest checkpoint) or of
     one checkpoint file in it, the config checked against its shape."""
-    from rlu.training.train import TrainConfig
+    from rlu.training.prepare import TrainConfig
 
     run, ckpt = runs.find_run(path)
     return runs.read_config(run, TrainConfig.shape()), run, ckpt
@@ -91,7 +91,7 @@ def load_agent(path: str | os.PathLike, device: Any = "cpu") -> tuple[Any, dict[
 def load_policy(path: str | os.PathLike, device: Any = "cpu") -> tuple[Any, dict[str, Any]]:
     """(greedy policy of a run's newest checkpoint or of a given checkpoint, acting on
     ``device``, resolved config)."""
-    from rlu.training.train import greedy_policy
+    from rlu.training.loop import greedy_policy
 
     agent, resolved = load_agent(path, device)
     return greedy_policy(agent), resolved

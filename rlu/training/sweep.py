@@ -126,7 +126,7 @@ def expand(config: SweepConfig, out: str | os.PathLike) -> list[RunSpec]:
     line, never from a file."""
     from rlu.agents import make_config
     from rlu.data import open_dataset
-    from rlu.training.train import trust
+    from rlu.training.prepare import trust
 
     for agent in config.agents:
         trust(agent, config.run.env)
@@ -164,7 +164,8 @@ def run_one(spec: RunSpec, config: SweepConfig) -> dict[str, Any]:
     """Train one run (resuming or skipping it if it exists) and return its result record; its
     steps go to the sweep's display as they are done (``rlu.progress.Relay``)."""
     from rlu.progress import Relay
-    from rlu.training.train import TrainConfig, train
+    from rlu.training.prepare import TrainConfig
+    from rlu.training.train import train
 
     run = Path(spec.run_dir)
     if (run / runs.RESULT).exists():

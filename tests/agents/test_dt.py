@@ -265,7 +265,7 @@ def _train(tmp_path, task, data, *overrides):
 @pytest.fixture(scope="module")
 def control_run(tmp_path_factory):
     pytest.importorskip("dm_control")
-    from rlu.generate.recipe import bundled_dataset
+    from rlu.data.bundled import bundled_dataset
 
     data = bundled_dataset(CONTROL)
     return _train(tmp_path_factory.mktemp("dt"), CONTROL, data, "batch_size=8", "context_length=4")
@@ -303,10 +303,10 @@ def test_both_evaluation_protocols_take_dt_runs(control_run):
     """Online and naive offline selection read result records, whatever the agent; selection by
     FQE values the policy one state at a time (every row an episode start, reward 0)."""
     from rlu.data import open_dataset
+    from rlu.data.bundled import bundled_dataset
     from rlu.data.views import TransitionView
     from rlu.evaluation.fqe import FQEConfig, fqe_estimate
     from rlu.evaluation.protocols import offline_selection_naive, online_selection
-    from rlu.generate.recipe import bundled_dataset
     from rlu.training.restore import load_policy
 
     out, data = control_run, bundled_dataset(CONTROL)
@@ -330,7 +330,7 @@ LEARNING_UPDATES = 3000
 
 
 def _bundled_run(agent: str, folder) -> dict:
-    from rlu.generate.recipe import bundled_dataset
+    from rlu.data.bundled import bundled_dataset
     from rlu.training.train import train
     from tests.fakes import train_config
 
@@ -356,11 +356,11 @@ def test_dt_conditioned_on_the_best_return_learns_the_bundled_cartpole(tmp_path)
     and reached 236 by 12,000 updates at dropout 0.1."""
     pytest.importorskip("dm_control")
     from rlu.data import open_dataset
+    from rlu.data.bundled import bundled_dataset
     from rlu.evaluation.rollout import evaluate, task_env_factory
-    from rlu.generate.recipe import bundled_dataset
     from rlu.seeds import derive_seed
+    from rlu.training.loop import greedy_policy
     from rlu.training.restore import load_agent
-    from rlu.training.train import greedy_policy
 
     bc = _bundled_run("bc", tmp_path)["score"]
     best = _bundled_run("dt", tmp_path)["score"]

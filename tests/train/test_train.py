@@ -14,9 +14,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from rlu.commands._options import parse_overrides
 from rlu.seeds import derive_seed
 from rlu.training.restore import evaluate_run
-from rlu.training.train import TrainConfig, parse_overrides, train
+from rlu.training.train import TrainConfig, train
 from rlu.types import RluError
 from tests.fakes import train_config
 
