@@ -15,6 +15,7 @@ never one holding the dataset, and only after every argument has been checked.
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import Any
 
 from rlu.commands.train import add_backend_options, add_device_option
@@ -85,14 +86,51 @@ def _seed(text: str) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
+    import time
+
+    from rlu.devices import Runtime
+    from rlu.report.quickstart import policy_row, write_quickstart_report
+    from rlu.training.sweep import sweep
+
+    t0 = time.perf_counter()
+    ds, backend, out, valid = _checked(args)
+    path = Path(ds.path)
+    task_id = ds.schema.task_id
+    runtime = Runtime(device=args.device)
+    print(f"  device: {runtime.resolve().device}")
+    rows = [policy_row("random", _random_returns(ds, args))]
+    print(f"  random policy: {rows[0]['mean']:.1f}  ({time.perf_counter() - t0:.0f}s)")
+    print(
+        f"  training {', '.join(args.agents)} ({args.steps:,} steps each, small preset) in "
+        f"{backend.workers} process(es)"
+    )
+    config = _sweep_config(args, ds, runtime)
+    records = sweep(config, out / "sweep", backend, progress=not args.quiet)
+    by_agent = {r["agent"]: r for r in records}
+    for agent in args.agents:
+        r = by_agent[agent]
+        made = {k: r[k] for k in ("preset", "steps", "eval_episodes")}
+        rows.append(policy_row(agent, r["returns"], **made))
+    command = ds.manifest["provenance"].get("command", "?")
+    text = write_quickstart_report(
+        out, task_id, path, command, ds.episode_returns(), rows, time.perf_counter() - t0
+    )
+    print()
+    print(text)
+    beat = [r["policy"] for r in rows[1:] if r["mean"] > rows[0]["mean"]]
+    print(
+        f"beat the random policy: {', '.join(beat) or 'none'}; "
+        f"report: {out / 'report.md'}; {time.perf_counter() - t0:.0f}s"
+    )
+    return 0 if valid else 1
+
+
+def _checked(args: argparse.Namespace) -> tuple[Any, Any, Path, bool]:
+    """(dataset, backend, --out, whether the data are valid), every argument checked before
+    anything on disk is touched; then --out is replaced and the dataset described."""
     import importlib.util
     import shutil
-    import time
-    from pathlib import Path
 
-    import numpy as np
-
-    from rlu.seeds import derive_seed
     from rlu.system import install_hint
     from rlu.types import DiscreteSpec, RluError
 
@@ -107,19 +145,12 @@ def _run(args: argparse.Namespace) -> int:
     from rlu.data import load_dataset, open_dataset
     from rlu.data.bundled import bundled_dataset, bundled_tasks
     from rlu.data.validate import validate
-    from rlu.devices import Runtime
-    from rlu.evaluation.rollout import evaluate, task_env_factory
     from rlu.files import check_output
-    from rlu.report.quickstart import MARKER, policy_row, write_quickstart_report
-    from rlu.training.config import RunSettings
-    from rlu.training.sweep import SweepConfig, sweep
+    from rlu.report.quickstart import MARKER
 
-    t0 = time.perf_counter()
     ds = load_dataset(args.dataset) if args.dataset else open_dataset(bundled_dataset())
     path = Path(ds.path)
     task_id = ds.schema.task_id
-    discrete = isinstance(ds.schema.action, DiscreteSpec)
-    # every argument is checked before anything on disk is touched
     homes = sorted({t.partition("/")[0] for t in bundled_tasks()})
     if not task_id or task_id.partition("/")[0] not in homes:
         raise RluError(
@@ -127,7 +158,7 @@ def _run(args: argparse.Namespace) -> int:
             f"bundled dataset's domain ({', '.join(homes)}; rlu train and rlu sweep run on any)"
         )
     for agent in args.agents:
-        agent_module(agent, discrete)  # an unknown agent fails here
+        agent_module(agent, isinstance(ds.schema.action, DiscreteSpec))  # unknown: fails here
     backend = backend_from_args(args, jobs=len(args.agents))
     out = check_output(args.out, [path], MARKER, "quick-start folder")
     report = validate(path)
@@ -136,18 +167,24 @@ def _run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True)
 
     stats = ds.info()["returns"]
-    command = ds.manifest["provenance"].get("command", "?")
     print(f"dataset {task_id}: {path}")
-    print(f"  made by: {command}")
+    print(f"  made by: {ds.manifest['provenance'].get('command', '?')}")
     print(
         f"  {stats['episodes']} episodes, {ds.num_steps} steps, return mean {stats['mean']:.1f} "
         f"p90 {stats['p90']:.1f} max {stats['max']:.1f}; validate: "
         f"{'valid' if report.ok else report.problems}"
     )
-    runtime = Runtime(device=args.device)
-    print(f"  device: {runtime.resolve().device}")
+    return ds, backend, out, report.ok
 
-    env_fn = task_env_factory(task_id)
+
+def _random_returns(ds: Any, args: argparse.Namespace) -> Any:
+    """The uniform random policy's returns, on the episodes each agent's final evaluation plays
+    (``rlu.training.train`` seeds it with stream ``steps``)."""
+    import numpy as np
+
+    from rlu.evaluation.rollout import evaluate, task_env_factory
+    from rlu.seeds import derive_seed
+
     action_shape = ds.schema.action.shape
     rng = np.random.default_rng(args.seed)
 
@@ -156,16 +193,21 @@ def _run(args: argparse.Namespace) -> int:
         n = len(next(iter(obs.values()))) if isinstance(obs, dict) else len(obs)
         return rng.uniform(-1.0, 1.0, (n, *action_shape)).astype(np.float32)
 
-    # the episodes each agent's final evaluation plays (rlu.training.train seeds it with stream
-    # `steps`)
-    eval_seed = derive_seed(args.seed, args.steps)
-    random = evaluate(random_policy, env_fn, args.eval_episodes, eval_seed)
-    rows = [policy_row("random", random.returns)]
-    print(f"  random policy: {rows[0]['mean']:.1f}  ({time.perf_counter() - t0:.0f}s)")
-    config = SweepConfig(
+    env_fn = task_env_factory(ds.schema.task_id)
+    seed = derive_seed(args.seed, args.steps)
+    return evaluate(random_policy, env_fn, args.eval_episodes, seed).returns
+
+
+def _sweep_config(args: argparse.Namespace, ds: Any, runtime: Any) -> Any:
+    """The sweep of the agents' small presets on the dataset, one configuration each."""
+    from rlu.training.config import RunSettings
+    from rlu.training.sweep import SweepConfig
+
+    task_id = ds.schema.task_id
+    return SweepConfig(
         tasks=(task_id,),
         agents=tuple(args.agents),
-        datasets={task_id: str(path)},
+        datasets={task_id: str(ds.path)},
         seeds=(args.seed,),
         grid={},  # each agent's small preset as it is: one configuration
         run=RunSettings(
@@ -179,31 +221,3 @@ def _run(args: argparse.Namespace) -> int:
             runtime=runtime,
         ),
     )
-    print(
-        f"  training {', '.join(args.agents)} ({args.steps:,} steps each, small preset) in "
-        f"{backend.workers} process(es)"
-    )
-    records = sweep(config, out / "sweep", backend, progress=not args.quiet)
-    by_agent = {r["agent"]: r for r in records}
-    for agent in args.agents:
-        r = by_agent[agent]
-        rows.append(
-            policy_row(
-                agent,
-                r["returns"],
-                preset=r["preset"],
-                steps=r["steps"],
-                eval_episodes=r["eval_episodes"],
-            )
-        )
-    text = write_quickstart_report(
-        out, task_id, path, command, ds.episode_returns(), rows, time.perf_counter() - t0
-    )
-    print()
-    print(text)
-    beat = [r["policy"] for r in rows[1:] if r["mean"] > rows[0]["mean"]]
-    print(
-        f"beat the random policy: {', '.join(beat) or 'none'}; "
-        f"report: {out / 'report.md'}; {time.perf_counter() - t0:.0f}s"
-    )
-    return 0 if report.ok else 1

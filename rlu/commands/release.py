@@ -30,6 +30,12 @@ def _family_names() -> list[str]:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    """``rlu download`` and ``rlu convert``."""
+    _register_download(sub)
+    _register_convert(sub)
+
+
+def _register_download(sub: argparse._SubParsersAction) -> None:
     from rlu.commands.train import add_backend_options
 
     p = sub.add_parser(
@@ -57,6 +63,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     _quiet_arg(p)
     p.set_defaults(func=_download)
+
+
+def _register_convert(sub: argparse._SubParsersAction) -> None:
+    from rlu.commands.train import add_backend_options
 
     p = sub.add_parser(
         "convert",

@@ -77,10 +77,16 @@ def backend_from_args(args: argparse.Namespace, jobs: int | None = None) -> Any:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from rlu.evaluation.fqe import FQEConfig
+    """``rlu train``, ``rlu evaluate``, ``rlu sweep`` and ``rlu report``."""
+    _register_train(sub)
+    _register_evaluate(sub)
+    _register_sweep(sub)
+    _register_report(sub)
+
+
+def _register_train(sub: argparse._SubParsersAction) -> None:
     from rlu.training.config import RunSettings
     from rlu.training.prepare import TrainConfig
-    from rlu.training.sweep import SweepConfig
 
     p = sub.add_parser(
         "train",
@@ -135,6 +141,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.set_defaults(func=_train, parser=p)
 
+
+def _register_evaluate(sub: argparse._SubParsersAction) -> None:
+    from rlu.training.config import RunSettings
+
     p = sub.add_parser(
         "evaluate",
         help="roll out a trained run's greedy policy in its env",
@@ -172,6 +182,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_device_option(p)
     add_video_options(p)
     p.set_defaults(func=_evaluate)
+
+
+def _register_sweep(sub: argparse._SubParsersAction) -> None:
+    from rlu.training.config import RunSettings
+    from rlu.training.sweep import SweepConfig
 
     p = sub.add_parser(
         "sweep",
@@ -221,6 +236,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="sweep folder (an existing one is continued)")
     add_options(p, RunSettings)
     p.set_defaults(func=_sweep, parser=p)
+
+
+def _register_report(sub: argparse._SubParsersAction) -> None:
+    from rlu.evaluation.fqe import FQEConfig
 
     p = sub.add_parser(
         "report",
