@@ -145,3 +145,93 @@ def test_core_imports_numpy_only():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "", f"core import pulled in: {out.stdout}"
+
+
+# file -> file imports that point back up inside a part, each with why it stays
+BACK_UP = {
+    # Minari's episode API as methods on the store's Dataset (ds.sample_episodes(5),
+    # ds.recover_environment(), as on minari.MinariDataset); they are thin and hand on to
+    # rlu.data.episodes, which sits above the store with the views and adapters it needs
+    ("rlu.data.store.reader", "rlu.data.episodes"),
+}
+
+
+def _module(path: Path) -> str:
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    return ".".join(p for p in parts if p != "__init__")
+
+
+MODULES = {_module(f) for f in PKG.rglob("*.py")}
+
+
+def _runtime_imports(path: Path) -> set[str]:
+    """The modules a file imports when it runs (module level or in a function, not under
+    ``if TYPE_CHECKING:``); ``from rlu.training import runs`` imports rlu.training.runs."""
+    names: set[str] = set()
+
+    def walk(node: ast.AST) -> None:
+        if isinstance(node, ast.If) and ast.unparse(node.test) in (
+            "TYPE_CHECKING",
+            "typing.TYPE_CHECKING",
+        ):
+            for child in node.orelse:
+                walk(child)
+            return
+        if isinstance(node, ast.Import):
+            names.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            for a in node.names:  # a module of the package, else a name the package defines
+                sub = f"{node.module}.{a.name}"
+                names.add(sub if sub in MODULES else node.module)
+        for child in ast.iter_child_nodes(node):
+            walk(child)
+
+    walk(ast.parse(path.read_text()))
+    return names
+
+
+def _file_edges() -> dict[str, set[str]]:
+    """Module -> the rlu modules it imports when it runs (``_runtime_imports``)."""
+    edges: dict[str, set[str]] = {}
+    for f in PKG.rglob("*.py"):
+        source = _module(f)
+        for name in _runtime_imports(f):
+            if name in MODULES and name != source:
+                edges.setdefault(source, set()).add(name)
+    return edges
+
+
+def _cycle(edges: dict[str, set[str]]) -> list[str] | None:
+    state: dict[str, int] = {}  # 1: on the current path, 2: done
+
+    def visit(node: str, path: list[str]) -> list[str] | None:
+        state[node] = 1
+        for nxt in sorted(edges.get(node, ())):
+            if state.get(nxt) == 1:
+                return [*path, node, nxt]
+            if nxt not in state and (found := visit(nxt, [*path, node])):
+                return found
+        state[node] = 2
+        return None
+
+    for node in sorted(edges):
+        if node not in state and (found := visit(node, [])):
+            return found
+    return None
+
+
+def test_no_circle_between_files_but_the_listed_ones():
+    """Between rlu's files too the imports that run point one way, but for those in BACK_UP
+    (each says why it stays); a package's __init__ counts as the package's module. Imports
+    under ``if TYPE_CHECKING:`` name types for annotations only and are left out."""
+    edges = _file_edges()
+    for source, target in BACK_UP:
+        assert target in edges.get(source, set()), f"{source} no longer imports {target}: drop it"
+        edges[source].discard(target)
+    cycle = _cycle(edges)
+    assert cycle is None, "import circle: " + " -> ".join(cycle or [])
+
+
+def test_the_file_circle_check_finds_a_circle():
+    assert _cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
+    assert _cycle({"a": {"b"}, "b": {"c"}}) is None

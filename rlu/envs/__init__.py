@@ -35,22 +35,12 @@ arguments of ``make_env``):
 
 from __future__ import annotations
 
-import importlib
-import os
-from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
-from rlu.domains import DOMAINS
-from rlu.system import install_hint
-from rlu.tasks import resolve_task
-from rlu.types import RluError
+from rlu.envs.make import make_env
 
 if TYPE_CHECKING:  # pragma: no cover
     import gymnasium
-
-# Each domain's env module and extra (rlu.domains), as they were named here.
-_FACTORIES = {name: d.env_module for name, d in DOMAINS.items()}
-_EXTRAS = {name: d.extra for name, d in DOMAINS.items()}
 
 __all__ = ["make_env", "make_vector_env", "gym_id", "ATARI_ORIGINAL_EVAL_STEPS"]
 
@@ -60,61 +50,6 @@ ATARI_ORIGINAL_EVAL_STEPS = 108_000
 """The agent steps after which the original rl_unplugged Atari evaluation env truncated (108,000
 wrapper steps = 432K frames); ``make_env(..., max_episode_steps=ATARI_ORIGINAL_EVAL_STEPS)``
 reproduces it (rlu's default is the paper's 27,000)."""
-
-
-def _factory(domain: str) -> ModuleType:
-    if DOMAINS[domain].mujoco:
-        # MuJoCo needs a GL backend for any rendering; EGL works headless on CPU (Mesa).
-        os.environ.setdefault("MUJOCO_GL", "egl")
-    try:
-        return importlib.import_module(_FACTORIES[domain])
-    except ImportError as e:
-        extra = _EXTRAS[domain]
-        raise RluError(
-            f"environments of domain {domain!r} need the {extra!r} extra ({e.name} is missing); "
-            f"install it with: {install_hint(extra)}"
-        ) from e
-
-
-def make_env(
-    task_id: str,
-    seed: int | None = None,
-    challenge: str | None = None,
-    *,
-    render_mode: str | None = None,
-    render_size: tuple[int, int] | None = None,
-    render_camera: str | int | None = None,
-    **settings: Any,
-) -> Any:  # the domain's gymnasium.Env subclass (float rewards, the task's observations)
-    """A Gymnasium env for ``task_id`` (see the module docstring for ``settings``).
-
-    ``render_mode="rgb_array"`` makes ``env.render()`` return frames (see ``rlu.domains.envkit``);
-    ``challenge`` (RWRL) defaults to the one a TFDS name carries, else ``"none"``.
-    """
-    from rlu.domains.envkit import render_settings
-    from rlu.envs.registration import env_spec
-
-    ref = resolve_task(task_id)
-    task = ref.task
-    if challenge is None:
-        challenge = ref.challenge or "none"
-    render = render_settings(task.id, render_mode, render_size, render_camera)
-    module = _factory(task.domain)
-    if DOMAINS[task.domain].challenges:
-        env = module.make(task, seed=seed, challenge=challenge, render=render, **settings)
-    elif challenge != "none":
-        takes = [d for d, dom in DOMAINS.items() if dom.challenges]
-        raise RluError(f"{task.id}: `challenge` applies to {'/'.join(takes)} tasks only; drop it")
-    else:
-        env = module.make(task, seed=seed, render=render, **settings)
-
-    kwargs: dict[str, Any] = {"seed": seed} if seed is not None else {}
-    if challenge != "none":
-        kwargs["challenge"] = challenge
-    given = {"render_mode": render_mode, "render_size": render_size, "render_camera": render_camera}
-    kwargs.update({k: v for k, v in given.items() if v is not None})
-    env.spec = env_spec(task, {**kwargs, **settings})
-    return env
 
 
 def gym_id(task_id: str) -> str:

@@ -29,13 +29,11 @@ limit; for a longer Atari limit use ``rlu.make_env(..., max_episode_steps=N)`` (
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from typing import Any
 
 import gymnasium as gym
-from gymnasium.envs.registration import EnvSpec
 
-from rlu.tasks import GYM_ENTRY_POINT, GYM_NAMESPACE, GYM_VERSION, TaskSpec, get_task, list_tasks
+from rlu.tasks import GYM_ENTRY_POINT, GYM_NAMESPACE, GYM_VERSION, get_task, list_tasks
 from rlu.types import RluError
 
 
@@ -56,22 +54,9 @@ def task_id_of(env_id: str) -> str:
 
 def make(task_id: str, **settings: Any) -> gym.Env:
     """The entry point of every registered id: ``rlu.make_env(task_id, **settings)``."""
-    from rlu.envs import make_env
+    from rlu.envs.make import make_env
 
     return make_env(task_id, **settings)
-
-
-def env_spec(task: TaskSpec | str, settings: Mapping[str, Any] | None = None) -> EnvSpec:
-    """The Gymnasium spec of ``task`` made with ``settings`` (what ``gymnasium.make`` would set)."""
-    task = get_task(task) if isinstance(task, str) else task
-    kwargs = {"task_id": task.id, **dict(settings or {})}
-    return EnvSpec(
-        id=task.gym_id,
-        entry_point=GYM_ENTRY_POINT,
-        kwargs=kwargs,
-        max_episode_steps=task.max_episode_steps(kwargs),
-        disable_env_checker=False,
-    )
 
 
 def register_envs() -> None:

@@ -55,7 +55,7 @@ _AUTO = {name: d.vector_backend for name, d in DOMAINS.items()}
 def _make_one(
     task_id: str, seed: int | None, challenge: str | None, settings: dict[str, Any]
 ) -> gym.Env:
-    from rlu.envs import make_env
+    from rlu.envs.make import make_env
 
     return make_env(task_id, seed=seed, challenge=challenge, **settings)
 
