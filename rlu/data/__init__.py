@@ -105,32 +105,40 @@ def load_dataset(
         _only_folder_keywords(name, release, base_url)
         return open_dataset(name, verify=verify)
     if source == "auto":
-        from rlu.data.release.load import load_task_dataset
-        from rlu.tasks import resolve_task
-        from rlu.types import RluError
-
-        try:
-            resolve_task(name)
-        except RluError as e:
-            folder = f"dataset {name!r}: no such folder ({os.path.abspath(name)})"
-            if _looks_like_a_path(name):
-                raise RluError(
-                    f"{folder}; check the path (a task id or TFDS name reads like "
-                    "control_suite/cartpole_swingup or rlu_atari/Pong_run_1: `rlu list`)"
-                ) from None
-            raise RluError(f"{folder}, and not a task id or TFDS name: {e}") from None
-        if base_url is not None:
-            raise RluError(
-                "base_url applies to source='release' (download and convert); the default "
-                "source reads what is on this machine only"
-            )
-        return load_task_dataset(name, verify=verify, progress=progress, **release)
+        return _on_this_machine(name, base_url, verify, progress, release)
     from rlu.data.release.load import load_release_dataset
 
     ds = load_release_dataset(name, base_url=base_url, progress=progress, **release)
     if verify:
         return open_dataset(ds.path, verify=True)
     return ds
+
+
+def _on_this_machine(
+    name: str, base_url: str | None, verify: bool, progress: bool | None, release: dict[str, Any]
+) -> Dataset:
+    """``load_dataset``'s ``source="auto"`` for a name that is no folder: a task id or TFDS
+    name, opened from what this machine holds (``rlu.data.release.load.load_task_dataset``)."""
+    from rlu.data.release.load import load_task_dataset
+    from rlu.tasks import resolve_task
+    from rlu.types import RluError
+
+    try:
+        resolve_task(name)
+    except RluError as e:
+        folder = f"dataset {name!r}: no such folder ({os.path.abspath(name)})"
+        if _looks_like_a_path(name):
+            raise RluError(
+                f"{folder}; check the path (a task id or TFDS name reads like "
+                "control_suite/cartpole_swingup or rlu_atari/Pong_run_1: `rlu list`)"
+            ) from None
+        raise RluError(f"{folder}, and not a task id or TFDS name: {e}") from None
+    if base_url is not None:
+        raise RluError(
+            "base_url applies to source='release' (download and convert); the default "
+            "source reads what is on this machine only"
+        )
+    return load_task_dataset(name, verify=verify, progress=progress, **release)
 
 
 def _looks_like_a_path(name: str) -> bool:

@@ -68,6 +68,28 @@ def _all_first(x: Any) -> tuple[np.ndarray, np.ndarray]:
     return np.ones(n, bool), np.zeros(n, np.float64)
 
 
+def _actions(actions: Any, discrete: bool, rows: int) -> Any:
+    """Actions as the Q network takes them: indices (discrete) or rows of float32 vectors."""
+    import torch
+
+    if discrete:
+        return torch.as_tensor(np.asarray(actions).astype(np.int64)).reshape(-1)
+    return torch.as_tensor(np.asarray(actions).astype(np.float32).reshape(rows, -1))
+
+
+def _mlp(in_dim: int, hidden: Any, out_dim: int) -> Any:
+    """ReLU layers of ``hidden`` widths between ``in_dim`` inputs and ``out_dim`` outputs."""
+    import torch
+
+    layers: list[Any] = []
+    d = in_dim
+    for h in hidden:
+        layers += [torch.nn.Linear(d, h), torch.nn.ReLU()]
+        d = h
+    layers.append(torch.nn.Linear(d, out_dim))
+    return torch.nn.Sequential(*layers)
+
+
 def fqe_estimate(
     transitions: Any,
     initial_observations: Any,
@@ -102,17 +124,13 @@ def fqe_estimate(
     init_act = np.asarray(policy(initial_observations, *_all_first(initial_observations)))
     reward = torch.as_tensor(np.asarray(transitions.reward, np.float32))
     discount = torch.as_tensor(np.asarray(transitions.discount, np.float32))
-    if discrete:
-        n_act = action_spec.num_values
-        act = torch.as_tensor(np.asarray(transitions.action, np.int64)).reshape(-1)
-        next_act_t = torch.as_tensor(next_act.astype(np.int64)).reshape(-1)
-        init_act_t = torch.as_tensor(init_act.astype(np.int64)).reshape(-1)
-        in_dim, out_dim = obs.shape[1], n_act
-    else:
-        act = torch.as_tensor(np.asarray(transitions.action, np.float32).reshape(n, -1))
-        next_act_t = torch.as_tensor(next_act.astype(np.float32).reshape(n, -1))
-        init_act_t = torch.as_tensor(init_act.astype(np.float32).reshape(len(init), -1))
-        in_dim, out_dim = obs.shape[1] + act.shape[1], 1
+    act, next_act_t, init_act_t = (
+        _actions(a, discrete, rows)
+        for a, rows in ((transitions.action, n), (next_act, n), (init_act, len(init)))
+    )
+    # a discrete Q network values every action of an observation, a continuous one the pair
+    in_dim = obs.shape[1] if discrete else obs.shape[1] + act.shape[1]
+    out_dim = action_spec.num_values if discrete else 1
 
     obs, next_obs, init, reward, discount, act, next_act_t, init_act_t = (
         t.to(dev) for t in (obs, next_obs, init, reward, discount, act, next_act_t, init_act_t)
@@ -127,19 +145,10 @@ def fqe_estimate(
             return net(x).gather(1, a[:, None])[:, 0]
         return net(torch.cat([x, a], dim=1))[:, 0]
 
-    def build() -> Any:
-        layers: list[Any] = []
-        d = in_dim
-        for h in config.hidden:
-            layers += [torch.nn.Linear(d, h), torch.nn.ReLU()]
-            d = h
-        layers.append(torch.nn.Linear(d, out_dim))
-        return torch.nn.Sequential(*layers)
-
     with torch.random.fork_rng(devices=[]):  # leaves the caller's global torch RNG untouched
         torch.manual_seed(config.seed)
-        net = build().to(dev)
-        target = build().to(dev)
+        net = _mlp(in_dim, config.hidden, out_dim).to(dev)
+        target = _mlp(in_dim, config.hidden, out_dim).to(dev)
     target.load_state_dict(net.state_dict())
     opt = torch.optim.Adam(net.parameters(), lr=config.learning_rate)
     for step in range(config.steps):

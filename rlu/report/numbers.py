@@ -860,71 +860,98 @@ def build_report(
         by_domain[task_info(r["task"])[0]].append(r)
     out: dict[str, Any] = {"domains": {}}
     for domain, recs in sorted(by_domain.items()):
-        agents = sorted({r["agent"] for r in recs})
-        tasks = sorted({r["task"] for r in recs}, key=lambda t: (task_info(t)[1] != "online", t))
         norm: Normaliser | None = None
         refs: dict[str, Any] | None = None
         if _normalises(domain):
-            norm, refs = _normaliser(tasks, random_scores, best_behaviour)
-        # tables show raw returns (as the paper's appendix does); selection across tasks and
-        # the aggregates use normalised scores for Atari
-        scored = [
-            {**r, "score": float(norm(r["task"], r["score"])) if norm else float(r["score"])}
-            for r in recs
-        ]
-        sources: dict[str, int] = {}
-        run_source: dict[tuple[str, str, str, int], int] = {}
-        for r in sorted(recs, key=lambda r: json.dumps(run_provenance(r), sort_keys=True)):
-            key = json.dumps(run_provenance(r), sort_keys=True)
-            run_source[(r["task"], r["agent"], r["config"], int(r["seed"]))] = sources.setdefault(
-                key, len(sources)
-            )
-        discrete = cond.paper_conditions(domain).discrete_agents
-        presets = {a: None if paper is None else paper(a, discrete) for a in agents}
-        conditions = {
-            (r["task"], r["agent"], r["config"], int(r["seed"])): cond.run_conditions(
-                run_provenance(r), _overrides(r), r["task"], domain, presets[r["agent"]]
-            )
-            for r in recs
-        }
-        ctx = DomainContext(
-            domain=domain,
-            records=tuple(recs),
-            scored=tuple(scored),
-            agents=tuple(agents),
-            tasks=tuple(tasks),
-            online_tasks=tuple(t for t in tasks if task_info(t)[1] == "online"),
-            offline_tasks=tuple(t for t in tasks if task_info(t)[1] == "offline"),
-            normalised=norm is not None,
-            paper=table,
-            datasets=dict(datasets or {}),
-            fqe=fqe,
-            reps=reps,
-            normalise=norm,
-            provenance=tuple(json.loads(k) for k in sources),
-            run_provenance=run_source,
-            presets=presets,
-            run_conditions=conditions,
-        )
-        dom: dict[str, Any] = {"agents": agents, "tasks": tasks, "normalised": norm is not None}
-        dom["datasets"] = {t: _paths(ctx.datasets[t]) for t in tasks if t in ctx.datasets}
-        dom["provenance"] = _provenance_entries(ctx)
-        dom["paper_presets"] = {a: _preset_json(ctx, a) for a in agents}
-        dom["paper_states"] = _statements(ctx)
-        if refs is not None:  # set with norm
-            dom["reference_scores"] = refs
-            dom["reference_flags"] = denominator_flags(refs, random_spread())
-        dom["panels"] = []
-        dom["absent"] = {}
-        for name, panel in PANELS.items():
-            data = panel(ctx)
-            if isinstance(data, Absent):
-                dom["absent"][name] = data.reason
-            elif data is not None:
-                dom[name] = data
-                dom["panels"].append(name)
-        out["domains"][domain] = dom
+            norm, refs = _normaliser(_task_order(recs), random_scores, best_behaviour)
+        ctx = _context(domain, recs, norm, table, datasets, fqe, reps, paper)
+        out["domains"][domain] = _domain_json(ctx, refs)
     return out
+
+
+def _task_order(recs: Sequence[Mapping[str, Any]]) -> list[str]:
+    """The records' tasks in the report's order: online-selection tasks first, then by id."""
+    return sorted({r["task"] for r in recs}, key=lambda t: (task_info(t)[1] != "online", t))
+
+
+def _context(
+    domain: str,
+    recs: Sequence[Mapping[str, Any]],
+    norm: Normaliser | None,
+    table: Mapping[str, Any],
+    datasets: Mapping[str, str | Sequence[str]] | None,
+    fqe: Mapping[str, Any] | None,
+    reps: int,
+    paper: PaperPresets | None,
+) -> DomainContext:
+    """What the panels read of one domain's records: the scores they compare (normalised by
+    ``norm`` where the domain is), each run's data source and the paper's conditions it meets."""
+    agents = sorted({r["agent"] for r in recs})
+    tasks = _task_order(recs)
+    # tables show raw returns (as the paper's appendix does); selection across tasks and the
+    # aggregates use normalised scores for Atari
+    scored = [
+        {**r, "score": float(norm(r["task"], r["score"])) if norm else float(r["score"])}
+        for r in recs
+    ]
+    sources: dict[str, int] = {}
+    run_source: dict[tuple[str, str, str, int], int] = {}
+    for r in sorted(recs, key=lambda r: json.dumps(run_provenance(r), sort_keys=True)):
+        key = json.dumps(run_provenance(r), sort_keys=True)
+        run_source[(r["task"], r["agent"], r["config"], int(r["seed"]))] = sources.setdefault(
+            key, len(sources)
+        )
+    discrete = cond.paper_conditions(domain).discrete_agents
+    presets = {a: None if paper is None else paper(a, discrete) for a in agents}
+    conditions = {
+        (r["task"], r["agent"], r["config"], int(r["seed"])): cond.run_conditions(
+            run_provenance(r), _overrides(r), r["task"], domain, presets[r["agent"]]
+        )
+        for r in recs
+    }
+    return DomainContext(
+        domain=domain,
+        records=tuple(recs),
+        scored=tuple(scored),
+        agents=tuple(agents),
+        tasks=tuple(tasks),
+        online_tasks=tuple(t for t in tasks if task_info(t)[1] == "online"),
+        offline_tasks=tuple(t for t in tasks if task_info(t)[1] == "offline"),
+        normalised=norm is not None,
+        paper=table,
+        datasets=dict(datasets or {}),
+        fqe=fqe,
+        reps=reps,
+        normalise=norm,
+        provenance=tuple(json.loads(k) for k in sources),
+        run_provenance=run_source,
+        presets=presets,
+        run_conditions=conditions,
+    )
+
+
+def _domain_json(ctx: DomainContext, refs: dict[str, Any] | None) -> dict[str, Any]:
+    """One domain's part of the report: what it holds, its data sources, the paper's presets
+    and statements, the reference scores (``refs``, where normalised) and every panel."""
+    agents, tasks = list(ctx.agents), list(ctx.tasks)
+    dom: dict[str, Any] = {"agents": agents, "tasks": tasks, "normalised": ctx.normalised}
+    dom["datasets"] = {t: _paths(ctx.datasets[t]) for t in tasks if t in ctx.datasets}
+    dom["provenance"] = _provenance_entries(ctx)
+    dom["paper_presets"] = {a: _preset_json(ctx, a) for a in agents}
+    dom["paper_states"] = _statements(ctx)
+    if refs is not None:  # set with the normaliser
+        dom["reference_scores"] = refs
+        dom["reference_flags"] = denominator_flags(refs, random_spread())
+    dom["panels"] = []
+    dom["absent"] = {}
+    for name, panel in PANELS.items():
+        data = panel(ctx)
+        if isinstance(data, Absent):
+            dom["absent"][name] = data.reason
+        elif data is not None:
+            dom[name] = data
+            dom["panels"].append(name)
+    return dom
 
 
 def _provenance_entries(ctx: DomainContext) -> list[dict[str, Any]]:
