@@ -374,6 +374,29 @@ def dataset_dir(dataset_id: str, root: str | os.PathLike | None = None) -> Path:
     return base.joinpath(*parts)
 
 
+def _write_metadata(
+    path: Path, ds: Dataset, info: Mapping[str, Any] | None, export_id: str
+) -> None:
+    """Complete the metadata.json Minari wrote: a dataset imported from Minari gets its own
+    fields back (its id aside), any other rlu's provenance, task and env spec; both the id of
+    this export (which the sidecar carries too)."""
+    from rlu.files import write_json
+
+    meta = _read_own_json(path)
+    if info is not None:
+        meta.update({k: v for k, v in info["metadata"].items() if k != "dataset_id"})
+    else:
+        prov = ds.manifest.get("provenance", {})
+        spec = env_spec_for(ds.schema, prov)
+        meta["rlu_provenance"] = json.dumps(prov, sort_keys=True)
+        if ds.schema.task_id:
+            meta["rlu_task_id"] = ds.schema.task_id
+        if spec is not None:
+            meta["env_spec"] = spec.to_json()
+    meta["rlu_export_id"] = export_id
+    write_json(path, meta, indent=None)
+
+
 def export_minari(
     ds: Dataset,
     dataset_id: str | None = None,
@@ -434,21 +457,7 @@ def export_minari(
             warnings.filterwarnings("ignore", module="minari")  # author, permalink unset
             path = dataset_dir(dataset_id, staging)
             _write_minari(minari, ds, dataset_id, info, source, description, chunk_steps)
-            meta = _read_own_json(path / "data" / "metadata.json")
-            if info is not None:
-                meta.update({k: v for k, v in info["metadata"].items() if k != "dataset_id"})
-            else:
-                prov = ds.manifest.get("provenance", {})
-                spec = env_spec_for(ds.schema, prov)
-                meta["rlu_provenance"] = json.dumps(prov, sort_keys=True)
-                if ds.schema.task_id:
-                    meta["rlu_task_id"] = ds.schema.task_id
-                if spec is not None:
-                    meta["env_spec"] = spec.to_json()
-            meta["rlu_export_id"] = export_id
-            from rlu.files import write_json
-
-            write_json(path / "data" / "metadata.json", meta, indent=None)
+            _write_metadata(path / "data" / "metadata.json", ds, info, export_id)
             what = write_sidecar(ds, path / MINARI_SIDECAR, "minari", export_id, length < 2)
         _move_into_place(staging, path, base)
     if note is not None:

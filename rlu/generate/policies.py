@@ -421,6 +421,29 @@ def _read_arrays(path: Path, meta: Mapping[str, Any], json_path: Path) -> dict[s
     return arrays
 
 
+def _load_weights(
+    net: Any, arrays: Mapping[str, Any], npz: Path, json_path: Path, meta: Mapping[str, Any]
+) -> None:
+    """Load a snapshot's arrays into the network its json names (shapes checked), in eval
+    mode; float16 weights act in the network's own dtype (float32)."""
+    import torch
+
+    want = {k: tuple(v.shape) for k, v in net.state_dict().items()}
+    have = {k: tuple(v.shape) for k, v in arrays.items()}
+    if want != have:
+        diff = sorted(k for k in want.keys() | have.keys() if want.get(k) != have.get(k))
+        raise RluError(
+            f"{npz}: arrays do not fit {meta['agent']}'s {meta['module']} network as "
+            f"{json_path.name} configures it (wrong or missing: {', '.join(diff[:5])}); "
+            "re-generate the dataset"
+        )
+    ref = net.state_dict()
+    net.load_state_dict(
+        {k: torch.from_numpy(np.array(v)).to(ref[k].dtype) for k, v in arrays.items()}
+    )
+    net.eval()
+
+
 def load_behaviour_policy(
     dataset: Any,
     run: int,
@@ -434,8 +457,6 @@ def load_behaviour_policy(
     on batched observations (the behaviour agents are memoryless: ``is_first`` and ``reward``
     are ignored). ``exploration``: act with the behaviour noise (module docstring);
     ``seed`` seeds that noise and DQN's evaluation epsilon."""
-    import torch
-
     from rlu.agents import agent_module, config_from_json
     from rlu.tasks import get_task
 
@@ -462,21 +483,7 @@ def load_behaviour_policy(
             f"{json_path}: field 'module' is {meta['module']!r}; agent {meta['agent']!r} has "
             f"{', '.join(agent.modules)}"
         )
-    net = agent.modules[meta["module"]]
-    want = {k: tuple(v.shape) for k, v in net.state_dict().items()}
-    have = {k: tuple(v.shape) for k, v in arrays.items()}
-    if want != have:
-        diff = sorted(k for k in want.keys() | have.keys() if want.get(k) != have.get(k))
-        raise RluError(
-            f"{npz}: arrays do not fit {meta['agent']}'s {meta['module']} network as "
-            f"{json_path.name} configures it (wrong or missing: {', '.join(diff[:5])}); "
-            "re-generate the dataset"
-        )
-    ref = net.state_dict()  # float16 weights act in the network's own dtype (float32)
-    net.load_state_dict(
-        {k: torch.from_numpy(np.array(v)).to(ref[k].dtype) for k, v in arrays.items()}
-    )
-    net.eval()
+    _load_weights(agent.modules[meta["module"]], arrays, npz, json_path, meta)
     rng = np.random.default_rng([int(seed), 8])
     noise = meta["exploration"]
     if task.discrete:

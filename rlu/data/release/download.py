@@ -643,26 +643,35 @@ class Downloader:
                 _write_private(meta_path, json.dumps(meta).encode())
             with os.fdopen(fd, "wb") as f:
                 longer = _copy_body(resp, f, part, limit - have, on_bytes, stop)
-        size = os.path.getsize(part)
-        if longer == "over":
-            _remove(part, meta_path)
-            raise _Fail(
-                f"the body goes on past {limit:,} bytes without a length, more than any shard "
-                "of this family: a broken or hostile server; check --base-url",
-                permanent=True,
-            )
-        if longer:
-            _remove(part, meta_path)
-            raise _Fail("the server sent more bytes than its Content-Length announced")
-        if total is not None and size < total:
-            raise _Fail(f"connection closed after {size:,} of {total:,} bytes")
-        if total is not None and size > total:
-            _remove(part, meta_path)
-            raise _Fail(f"received {size:,} bytes, more than the {total:,} announced")
-        why = _check_hashes(part, meta)
-        if why:
-            _remove(part, meta_path)
-            raise _Fail(why)
+        _check_body(part, meta_path, meta, total, limit, longer)
+
+
+def _check_body(
+    part: str, meta_path: str, meta: dict[str, Any], total: int | None, limit: int, longer: str
+) -> None:
+    """After a request's body: ``part`` is the whole object (its announced length and hashes)
+    or :class:`_Fail` says why not, the part removed where resuming it cannot help;
+    ``longer`` is what ``_copy_body`` found past the end."""
+    size = os.path.getsize(part)
+    if longer == "over":
+        _remove(part, meta_path)
+        raise _Fail(
+            f"the body goes on past {limit:,} bytes without a length, more than any shard "
+            "of this family: a broken or hostile server; check --base-url",
+            permanent=True,
+        )
+    if longer:
+        _remove(part, meta_path)
+        raise _Fail("the server sent more bytes than its Content-Length announced")
+    if total is not None and size < total:
+        raise _Fail(f"connection closed after {size:,} of {total:,} bytes")
+    if total is not None and size > total:
+        _remove(part, meta_path)
+        raise _Fail(f"received {size:,} bytes, more than the {total:,} announced")
+    why = _check_hashes(part, meta)
+    if why:
+        _remove(part, meta_path)
+        raise _Fail(why)
 
 
 def _ignore(*_: object) -> None:
