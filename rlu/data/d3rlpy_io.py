@@ -593,6 +593,26 @@ def is_rlu_d3rlpy(path: Path) -> bool:
         f.close()
 
 
+def _write_episodes(h5: Any, ds: Dataset, keys: list[str], layout: Any, source: Any) -> int:
+    """Every d3rlpy episode of ``ds`` into the open dump ``h5`` (``<key>_<j>``, or
+    ``<key>_<j>_<n>`` for a tuple observation's parts), columns an import kept in their own
+    dtypes and shapes; returns how many."""
+    kept = _kept_columns(source, layout)
+    written = 0
+    for j, (_, ep) in enumerate(d3rlpy_episodes(ds, layout)):
+        for key in keys:
+            value = ep[key]
+            parts = value if isinstance(value, list) else [value]
+            for n, part in enumerate(parts):
+                if (key, n) in kept:
+                    part = kept[(key, n)].take(len(part) if key != "terminated" else 1)
+                    part = part.reshape(np.shape(value if len(parts) == 1 else part))
+                name = f"{key}_{j}" if len(parts) == 1 else f"{key}_{j}_{n}"
+                h5.create_dataset(name, data=part)
+        written = j + 1
+    return written
+
+
 def export_d3rlpy(
     ds: Dataset, out: str | os.PathLike, overwrite: bool = False, note: Any = None
 ) -> Path:
@@ -647,24 +667,12 @@ def export_d3rlpy(
     terminal = np.asarray(ds.column("is_terminal"))[np.asarray(ds.start) + length - 1]
     held = (length < 2) | terminal  # final observations the dump lacks
     make_folder(out.parent)
-    written = 0
     try:
         with OutputLock(out, "export file"), atomic_path(out, suffix=True) as tmp:
             h5 = h5py.File(tmp, "w")
             try:
                 h5.create_dataset("columns", data=keys)
-                kept = _kept_columns(source, layout)
-                for j, (_, ep) in enumerate(d3rlpy_episodes(ds, layout)):
-                    for key in keys:
-                        value = ep[key]
-                        parts = value if isinstance(value, list) else [value]
-                        for n, part in enumerate(parts):
-                            if (key, n) in kept:
-                                part = kept[(key, n)].take(len(part) if key != "terminated" else 1)
-                                part = part.reshape(np.shape(value if len(parts) == 1 else part))
-                            name = f"{key}_{j}" if len(parts) == 1 else f"{key}_{j}_{n}"
-                            h5.create_dataset(name, data=part)
-                    written = j + 1
+                written = _write_episodes(h5, ds, keys, layout, source)
                 if not written:
                     raise RluError(f"{ds.path}: every segment is a single step; nothing to export")
                 h5.create_dataset("num_episodes", data=written)
