@@ -153,6 +153,53 @@ def _load_snapshot(path: Path, agent: Any) -> dict[str, Any]:
     return {k: v for k, v in snap.items() if k != "agent"}
 
 
+def _train_snapshots(
+    config: GenerateConfig, task: TaskSpec, online: OnlineConfig, runs: int, work: Path
+) -> tuple[list[Any], list[dict[str, Any]]]:
+    """Play the training runs (each keeping its chunks' policies and mean returns), then
+    (each run's behaviour agent, its snapshot's record) with the snapshot loaded."""
+    bar = Progress(runs * online.episodes, task.id + " (training)", config.progress)
+    play_runs(config, train_snapshot, [(config, online, r, work) for r in range(runs)], bar)
+    bar.close()
+    agents, snapshots = [], []
+    for r in range(runs):
+        agent = make_behaviour_agent(task, online, run_seed(config.seed, r, AGENT), config.device)
+        snapshots.append(_load_snapshot(work / f"run_{r:03d}" / "snapshot.pt", agent))
+        agents.append(agent)
+    return agents, snapshots
+
+
+def _episode(
+    env: Any,
+    rec: EpisodeRecorder,
+    agent: Any,
+    sigma: float | None,
+    rng: np.random.Generator,
+    reset: int,
+    meta: Mapping[str, Any],
+) -> Any:
+    """One episode of a snapshot, from the env reset with seed ``reset``, acting as the
+    behaviour did (``sigma``: D4PG's noise; None: a sample of DMPO's own Gaussian) on the
+    task's own observation keys; its recorded segment."""
+    spec = rec.task.observation_spec
+    assert isinstance(spec, Mapping)  # RWRL observes a dict
+    keys = list(spec)  # the task's own: the easy challenge's dummy keys are left out
+    obs, _ = env.reset(seed=reset)
+    rec.begin(obs)
+    while True:
+        o = {k: obs[k][None] for k in keys}
+        if sigma is None:
+            a = agent.act(o, greedy=False)[0]
+        else:
+            a = agent.act(o)[0]
+            a = a + sigma * rng.standard_normal(a.shape).astype(np.float32)
+        a = np.clip(a, -1.0, 1.0)
+        obs, rew, term, trunc, info = env.step(a)
+        seg = rec.step(a, rew, obs, term, trunc, info, meta)
+        if seg is not None:
+            return seg
+
+
 def generate_rwrl(config: GenerateConfig, task: TaskSpec, out: Path, work: Path) -> Path:
     """Train the runs, snapshot them and roll out every dataset into ``out`` (see the module
     docstring), working in the claimed ``work`` folder; returns ``out``."""
@@ -176,15 +223,7 @@ def generate_rwrl(config: GenerateConfig, task: TaskSpec, out: Path, work: Path)
     open_work(work, settings, f"{command} --out {out}")
     out.mkdir(parents=True, exist_ok=True)
 
-    # 1. training runs, keeping each chunk's policy and mean return
-    bar = Progress(runs * online.episodes, task.id + " (training)", config.progress)
-    play_runs(config, train_snapshot, [(config, online, r, work) for r in range(runs)], bar)
-    bar.close()
-    agents, snapshots = [], []
-    for r in range(runs):
-        agent = make_behaviour_agent(task, online, run_seed(seed, r, AGENT), config.device)
-        snapshots.append(_load_snapshot(work / f"run_{r:03d}" / "snapshot.pt", agent))
-        agents.append(agent)
+    agents, snapshots = _train_snapshots(config, task, online, runs, work)
 
     # 2. roll out every dataset from the snapshots
     threads = torch.get_num_threads()
@@ -203,8 +242,6 @@ def generate_rwrl(config: GenerateConfig, task: TaskSpec, out: Path, work: Path)
                 rng = stream_rng(
                     seed, ROLLOUT, 2, CHALLENGES.index(challenge), list(RWRL_SIZES).index(size)
                 )
-                assert isinstance(task.observation_spec, Mapping)  # RWRL observes a dict
-                keys = list(task.observation_spec)
                 prov = {
                     "generator": "rlu generate (rwrl snapshots)",
                     "command": command + " --out DIR",
@@ -224,22 +261,8 @@ def generate_rwrl(config: GenerateConfig, task: TaskSpec, out: Path, work: Path)
                             "episode_index": e,
                             "episode_id": episode_id(r, e),
                         }
-                        obs, _ = env.reset(seed=derive_seed(seed, ROLLOUT, 1, e))
-                        rec.begin(obs)
-                        while True:
-                            o = {k: obs[k][None] for k in keys}
-                            if online.sigma is None:  # DMPO: a sample of its own Gaussian
-                                a = agents[r].act(o, greedy=False)[0]
-                            else:
-                                a = agents[r].act(o)[0]
-                                noise = rng.standard_normal(a.shape).astype(np.float32)
-                                a = a + online.sigma * noise
-                            a = np.clip(a, -1.0, 1.0)
-                            obs, rew, term, trunc, info = env.step(a)
-                            seg = rec.step(a, rew, obs, term, trunc, info, meta)
-                            if seg is not None:
-                                break
-                        w.append(seg)
+                        reset = derive_seed(seed, ROLLOUT, 1, e)
+                        w.append(_episode(env, rec, agents[r], online.sigma, rng, reset, meta))
                 env.close()
     finally:
         torch.set_num_threads(threads)
