@@ -391,6 +391,43 @@ def check_shared_path(path: str | os.PathLike, flag: str) -> None:
         )
 
 
+def _run_assemblies(
+    assemblies: list[_Assembly],
+    results: dict[tuple[int, int], ShardResult],
+    report: JobReport,
+    backend: Backend,
+    progress: bool,
+    retries: int,
+) -> None:
+    """One assembly job per dataset whose shards are converted, each filling in its dataset's
+    report; a bar counts the parts' bytes assembled."""
+    total = sum(results[a.dataset, i].part_bytes for a in assemblies for i in range(len(a.parts)))
+    bar = Progress(total, "assemble", "B", quiet=not progress)
+    done = 0
+
+    def assembled(i: int, got: dict[str, Any]) -> None:
+        nonlocal done
+        d = report.datasets[got["dataset"]]
+        d.status, d.segments, d.steps = "converted", got["segments"], got["steps"]
+        d.episodes, d.bytes = got["episodes"], got["bytes"]
+        done += 1
+        bar.set_postfix(datasets=f"{done}/{len(assemblies)}")
+
+    def message(m: tuple[str, int]) -> None:
+        if m[0] == "assembled":
+            bar.update(m[1])
+
+    with bar:
+        run_jobs(
+            assemble,
+            [(a,) for a in assemblies],
+            _backend_for(backend, len(assemblies)),
+            on_result=assembled,
+            on_message=message,
+            retries=retries,
+        )
+
+
 def convert_release(
     datasets: Sequence[DatasetJob],
     backend: Backend,
@@ -466,33 +503,7 @@ def convert_release(
         assemblies.append(_Assembly(k, d.out, parts, plans[k].job.schema, prov, overwrite))
     t1 = time.monotonic()
     if assemblies:
-        total = sum(
-            results[a.dataset, i].part_bytes for a in assemblies for i in range(len(a.parts))
-        )
-        bar = Progress(total, "assemble", "B", quiet=not progress)
-        done = 0
-
-        def assembled(i: int, got: dict[str, Any]) -> None:
-            nonlocal done
-            d = report.datasets[got["dataset"]]
-            d.status, d.segments, d.steps = "converted", got["segments"], got["steps"]
-            d.episodes, d.bytes = got["episodes"], got["bytes"]
-            done += 1
-            bar.set_postfix(datasets=f"{done}/{len(assemblies)}")
-
-        def message(m: tuple[str, int]) -> None:
-            if m[0] == "assembled":
-                bar.update(m[1])
-
-        with bar:
-            run_jobs(
-                assemble,
-                [(a,) for a in assemblies],
-                _backend_for(backend, len(assemblies)),
-                on_result=assembled,
-                on_message=message,
-                retries=retries,
-            )
+        _run_assemblies(assemblies, results, report, backend, progress, retries)
     report.assemble_seconds = time.monotonic() - t1
     report.seconds = time.monotonic() - t0
     return report
