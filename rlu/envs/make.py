@@ -45,7 +45,7 @@ def make_env(
     render_camera: str | int | None = None,
     **settings: Any,
 ) -> Any:  # the domain's gymnasium.Env subclass (float rewards, the task's observations)
-    """A Gymnasium env for ``task_id`` (see the module docstring for ``settings``).
+    """A Gymnasium env for ``task_id`` (``rlu.envs``' docstring lists each domain's ``settings``).
 
     ``render_mode="rgb_array"`` makes ``env.render()`` return frames (see ``rlu.domains.envkit``);
     ``challenge`` (RWRL) defaults to the one a TFDS name carries, else ``"none"``.
