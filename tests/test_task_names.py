@@ -121,6 +121,17 @@ def test_release_selection_takes_the_name_s_dataset_and_refuses_a_contradiction(
     assert cs.objects == ("dm_control_suite_episodes/fish_swim/train-00000-of-00100",)
 
 
+def test_an_rwrl_size_given_as_its_bucket_folder_agrees_with_the_name():
+    """RWRL's sizes are the paper's words (large) and the bucket's folders (100_percent):
+    either agrees with a name that picks the size; another size is a contradiction."""
+    ref = resolve_task("rlu_rwrl/walker_walk_combined_challenge_none_100_percent")
+    assert ref.size == "large"
+    assert ref.dataset_settings(size="100_percent")[3] == "100_percent"
+    assert ref.dataset_settings(size="large")[3] == "large"
+    with pytest.raises(RluError, match="names size 'large', which contradicts size='20_percent'"):
+        ref.dataset_settings(size="20_percent")
+
+
 def test_cli_download_list_and_info_take_tfds_names(capsys):
     assert main(["download", "rlu_atari/Breakout_run_2", "--list", "--shards", "0"]) == 0
     assert (
